@@ -1,0 +1,374 @@
+/* The blur operator H: linear convolution with an explicit boundary policy, plus the halo. */
+#include "blur_internal.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* ---- frames ------------------------------------------------------------------------------ */
+
+static int reflect(int t, int size)
+{
+    /* symmetric (half-sample) reflection into [0, size): d c b a | a b c d | d c b a */
+    int period = 2 * size;
+    t %= period;
+    if (t < 0) t += period;
+    return t < size ? t : period - 1 - t;
+}
+
+static svp_status axis_init(int size, int r, svp_boundary b, int *n, int *off, int **src)
+{
+    int single = 0;
+    switch (b) {
+    case SVP_BOUNDARY_ZERO:
+        if (r > size - 1) r = size - 1;
+        *n = svp_fft_good_size(size + r);
+        *off = 0;
+        break;
+    case SVP_BOUNDARY_PERIODIC:
+        *n = size;
+        *off = 0;
+        break;
+    case SVP_BOUNDARY_MIRROR:
+        /* one reflection of r pixels each side is exact while r <= size; the symmetric period
+         * 2 size is exact for any r. Take the smaller frame. */
+        if (r <= size && svp_fft_good_size(size + 2 * r) < 2 * size) {
+            single = 1;
+            *n = svp_fft_good_size(size + 2 * r);
+            *off = r;
+        } else {
+            *n = 2 * size;
+            *off = 0;
+        }
+        break;
+    default: return svp_fail(SVP_ERR_INVALID, "unknown boundary mode %d", (int)b);
+    }
+    int *s = malloc((size_t)*n * sizeof *s);
+    if (!s) return svp_fail(SVP_ERR_NOMEM, "out of memory for a frame map");
+    for (int j = 0; j < *n; j++) {
+        switch (b) {
+        case SVP_BOUNDARY_ZERO: s[j] = j < size ? j : -1; break;
+        case SVP_BOUNDARY_PERIODIC: s[j] = j; break;
+        default:
+            if (single)
+                s[j] = j < size + 2 * r ? reflect(j - r, size) : -1;
+            else
+                s[j] = reflect(j, size);
+        }
+    }
+    *src = s;
+    return SVP_OK;
+}
+
+svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
+                          svp_boundary boundary)
+{
+    memset(f, 0, sizeof *f);
+    f->width = width;
+    f->height = height;
+    svp_status st = axis_init(width, rx, boundary, &f->nx, &f->off_x, &f->src_x);
+    if (st == SVP_OK) st = axis_init(height, ry, boundary, &f->ny, &f->off_y, &f->src_y);
+    if (st == SVP_OK) st = svp_fft_plan_get(f->ny, f->nx, &f->plan);
+    if (st != SVP_OK) {
+        svp_frame_release(f);
+        return st;
+    }
+    f->ncx = f->nx / 2 + 1;
+    return SVP_OK;
+}
+
+void svp_frame_release(svp_frame *f)
+{
+    free(f->src_x);
+    free(f->src_y);
+    svp_free(f->otf);
+    memset(f, 0, sizeof *f);
+}
+
+size_t svp_frame_memory(const svp_frame *f)
+{
+    return (size_t)f->ny * f->ncx * sizeof(fftw_complex) + (size_t)(f->nx + f->ny) * sizeof(int);
+}
+
+static int wrap(int d, int n)
+{
+    d %= n;
+    return d < 0 ? d + n : d;
+}
+
+svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, int cy,
+                                svp_boundary boundary)
+{
+    double *placed = svp_calloc((size_t)f->ny * f->nx, sizeof(double));
+    if (!f->otf) f->otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
+    if (!placed || !f->otf) {
+        svp_free(placed);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d OTF", f->nx, f->ny);
+    }
+    const int kw = kernel->width, kh = kernel->height;
+    /* Serial over rows: aliased offsets add into the same cell. */
+    for (int y = 0; y < kh; y++) {
+        int dy = y - cy;
+        if (boundary == SVP_BOUNDARY_ZERO && abs(dy) > f->height - 1) continue;
+        int fy = wrap(dy, f->ny);
+        double *row = placed + (size_t)fy * f->nx;
+        const double *krow = kernel->data + (size_t)y * kw;
+        for (int x = 0; x < kw; x++) {
+            int dx = x - cx;
+            if (boundary == SVP_BOUNDARY_ZERO && abs(dx) > f->width - 1) continue;
+            row[wrap(dx, f->nx)] += krow[x];
+        }
+    }
+    svp_fft_forward(f->plan, placed, f->otf);
+    svp_free(placed);
+    return SVP_OK;
+}
+
+void svp_frame_extend(const svp_frame *f, const double *restrict image, double *restrict frame)
+{
+    const int nx = f->nx, w = f->width;
+    const int *sx = f->src_x, *sy = f->src_y;
+#pragma omp parallel for schedule(static)
+    for (int j = 0; j < f->ny; j++) {
+        double *out = frame + (size_t)j * nx;
+        if (sy[j] < 0) {
+            memset(out, 0, (size_t)nx * sizeof(double));
+            continue;
+        }
+        const double *in = image + (size_t)sy[j] * w;
+        for (int i = 0; i < nx; i++) out[i] = sx[i] >= 0 ? in[sx[i]] : 0.0;
+    }
+}
+
+void svp_frame_crop(const svp_frame *f, const double *restrict frame, double *restrict image)
+{
+    const int w = f->width;
+#pragma omp parallel for schedule(static)
+    for (int y = 0; y < f->height; y++)
+        memcpy(image + (size_t)y * w, frame + (size_t)(y + f->off_y) * f->nx + f->off_x,
+               (size_t)w * sizeof(double));
+}
+
+void svp_frame_embed(const svp_frame *f, const double *restrict image, double *restrict frame)
+{
+    const int w = f->width, nx = f->nx;
+#pragma omp parallel for schedule(static)
+    for (int j = 0; j < f->ny; j++) {
+        double *out = frame + (size_t)j * nx;
+        memset(out, 0, (size_t)nx * sizeof(double));
+        int y = j - f->off_y;
+        if (y >= 0 && y < f->height)
+            memcpy(out + f->off_x, image + (size_t)y * w, (size_t)w * sizeof(double));
+    }
+}
+
+void svp_frame_fold(const svp_frame *f, const double *restrict frame, double *restrict image)
+{
+    const int w = f->width, h = f->height, nx = f->nx;
+    const int *sx = f->src_x, *sy = f->src_y;
+    /* Each image row gathers the frame rows that copy it, in frame order (deterministic). */
+#pragma omp parallel for schedule(static)
+    for (int y = 0; y < h; y++) {
+        double *out = image + (size_t)y * w;
+        memset(out, 0, (size_t)w * sizeof(double));
+        for (int j = 0; j < f->ny; j++) {
+            if (sy[j] != y) continue;
+            const double *in = frame + (size_t)j * nx;
+            for (int i = 0; i < nx; i++)
+                if (sx[i] >= 0) out[sx[i]] += in[i];
+        }
+    }
+}
+
+void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
+                        double scale)
+{
+    const size_t n = (size_t)f->ny * f->ncx;
+    const fftw_complex *restrict otf = f->otf;
+    if (conjugate) {
+#pragma omp parallel for schedule(static) if (n > 32768)
+        for (size_t i = 0; i < n; i++) spectrum[i] *= scale * conj(otf[i]);
+    } else {
+#pragma omp parallel for schedule(static) if (n > 32768)
+        for (size_t i = 0; i < n; i++) spectrum[i] *= scale * otf[i];
+    }
+}
+
+/* ---- the operator ------------------------------------------------------------------------ */
+
+static svp_status blur_finish(svp_blur *b, svp_blur **out)
+{
+    int rx = b->kernel->width - 1 - b->kcx > b->kcx ? b->kernel->width - 1 - b->kcx : b->kcx;
+    int ry = b->kernel->height - 1 - b->kcy > b->kcy ? b->kernel->height - 1 - b->kcy : b->kcy;
+    svp_status st = svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary);
+    if (st == SVP_OK) st = svp_frame_set_kernel(&b->frame, b->kernel, b->kcx, b->kcy, b->boundary);
+    if (st == SVP_OK) {
+        b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
+        b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
+        if (!b->work_r || !b->work_c) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    }
+    if (st != SVP_OK) {
+        svp_blur_free(b);
+        return st;
+    }
+    *out = b;
+    return SVP_OK;
+}
+
+static svp_status check_geometry(int width, int height, svp_boundary boundary)
+{
+    if (width < 1 || height < 1)
+        return svp_fail(SVP_ERR_INVALID, "image size %d x %d: both must be at least 1", width,
+                        height);
+    if (boundary != SVP_BOUNDARY_ZERO && boundary != SVP_BOUNDARY_MIRROR &&
+        boundary != SVP_BOUNDARY_PERIODIC)
+        return svp_fail(SVP_ERR_INVALID, "unknown boundary mode %d", (int)boundary);
+    return SVP_OK;
+}
+
+svp_status svp_blur_new(const svp_psf *psf, int width, int height, svp_boundary boundary,
+                        svp_blur **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new: out is NULL");
+    *out = NULL;
+    SVP_CHECK(svp_psf_validate(psf));
+    SVP_CHECK(check_geometry(width, height, boundary));
+    /* Default support: every offset that joins two pixels of the field of view. */
+    int rx = width - 1, ry = height - 1;
+    if (psf->support > 0) {
+        rx = (int)ceil(psf->support);
+        ry = rx;
+        if (boundary == SVP_BOUNDARY_ZERO) {
+            /* offsets beyond the image never connect two pixels, but normalisation is over
+             * the whole support: render it whole, the frame drops what cannot reach. */
+        }
+    }
+    svp_blur *b = calloc(1, sizeof *b);
+    if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
+    b->kind = SVP_BLUR_INVARIANT;
+    b->width = width;
+    b->height = height;
+    b->boundary = boundary;
+    b->halo = psf->halo;
+    b->has_model = 1;
+    b->psf = *psf;
+    svp_status st = svp_psf_render(psf, rx, ry, &b->kernel);
+    if (st != SVP_OK) {
+        free(b);
+        return st;
+    }
+    b->kcx = rx;
+    b->kcy = ry;
+    return blur_finish(b, out);
+}
+
+svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int normalise,
+                               int width, int height, svp_boundary boundary, svp_blur **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new_kernel: out is NULL");
+    *out = NULL;
+    if (!kernel || !kernel->data) return svp_fail(SVP_ERR_INVALID, "kernel is missing");
+    SVP_CHECK(check_geometry(width, height, boundary));
+    if (cx < 0 && cy < 0) {
+        cx = kernel->width / 2;
+        cy = kernel->height / 2;
+    }
+    if (cx < 0 || cy < 0 || cx >= kernel->width || cy >= kernel->height)
+        return svp_fail(SVP_ERR_INVALID, "kernel centre (%d, %d) is outside the %d x %d kernel",
+                        cx, cy, kernel->width, kernel->height);
+    size_t n = (size_t)kernel->width * kernel->height;
+    if (svp_image_count_nonfinite(kernel))
+        return svp_fail(SVP_ERR_INVALID, "kernel has NaN or Inf values");
+    double sum = svp_sum(kernel->data, n);
+    if (normalise && !(fabs(sum) > 0))
+        return svp_fail(SVP_ERR_INVALID, "kernel sums to zero: it cannot be normalised");
+    svp_blur *b = calloc(1, sizeof *b);
+    if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
+    b->kind = SVP_BLUR_INVARIANT;
+    b->width = width;
+    b->height = height;
+    b->boundary = boundary;
+    b->kcx = cx;
+    b->kcy = cy;
+    svp_status st = svp_image_copy(kernel, &b->kernel);
+    if (st != SVP_OK) {
+        free(b);
+        return st;
+    }
+    if (normalise)
+        for (size_t i = 0; i < n; i++) b->kernel->data[i] /= sum;
+    return blur_finish(b, out);
+}
+
+void svp_blur_free(svp_blur *b)
+{
+    if (!b) return;
+    svp_frame_release(&b->frame);
+    svp_image_free(b->kernel);
+    svp_free(b->work_r);
+    svp_free(b->work_c);
+    free(b);
+}
+
+int svp_blur_width(const svp_blur *b) { return b->width; }
+int svp_blur_height(const svp_blur *b) { return b->height; }
+svp_boundary svp_blur_boundary(const svp_blur *b) { return b->boundary; }
+double svp_blur_halo(const svp_blur *b) { return b->halo; }
+
+size_t svp_blur_memory(const svp_blur *b)
+{
+    return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
+           (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
+           (size_t)b->kernel->width * b->kernel->height * sizeof(double);
+}
+
+static svp_status check_io(const svp_blur *b, const svp_image *in, const svp_image *out,
+                           const char *what)
+{
+    if (!b || !in || !out) return svp_fail(SVP_ERR_INVALID, "%s: NULL argument", what);
+    if (in->width != b->width || in->height != b->height || out->width != b->width ||
+        out->height != b->height)
+        return svp_fail(SVP_ERR_SIZE,
+                        "%s: operator is %d x %d but input is %d x %d and output %d x %d", what,
+                        b->width, b->height, in->width, in->height, out->width, out->height);
+    if (in->data == out->data)
+        return svp_fail(SVP_ERR_INVALID, "%s: input and output must not alias", what);
+    return SVP_OK;
+}
+
+/* out = (1 − α) conv + α <in> (the halo term is its own adjoint). */
+static void add_halo(const svp_blur *b, const double *in, double *out)
+{
+    const size_t n = (size_t)b->width * b->height;
+    if (b->halo == 0) return;
+    const double mean = svp_sum(in, n) / (double)n;
+    const double keep = 1.0 - b->halo, add = b->halo * mean;
+#pragma omp parallel for schedule(static) if (n > 65536)
+    for (size_t i = 0; i < n; i++) out[i] = keep * out[i] + add;
+}
+
+svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
+{
+    SVP_CHECK(check_io(b, x, y, "svp_blur_apply"));
+    svp_frame *f = &b->frame;
+    svp_frame_extend(f, x->data, b->work_r);
+    svp_fft_forward(f->plan, b->work_r, b->work_c);
+    svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
+    svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
+    svp_frame_crop(f, b->work_r, y->data);
+    add_halo(b, x->data, y->data);
+    return SVP_OK;
+}
+
+svp_status svp_blur_adjoint(svp_blur *b, const svp_image *y, svp_image *x)
+{
+    SVP_CHECK(check_io(b, y, x, "svp_blur_adjoint"));
+    svp_frame *f = &b->frame;
+    svp_frame_embed(f, y->data, b->work_r);
+    svp_fft_forward(f->plan, b->work_r, b->work_c);
+    svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
+    svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
+    svp_frame_fold(f, b->work_r, x->data);
+    add_halo(b, y->data, x->data);
+    return SVP_OK;
+}

@@ -1,0 +1,165 @@
+/* FFT engine: cached FFTW plans per size, wisdom, threads, smooth sizes. */
+#include "internal.h"
+
+#include <errno.h>
+#include <omp.h>
+#include <pthread.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "svpsf_version.h"
+
+/* The thread count and the plan cache are the library's only global mutable state. */
+static pthread_mutex_t fft_lock = PTHREAD_MUTEX_INITIALIZER;
+static pthread_once_t fft_once = PTHREAD_ONCE_INIT;
+static int fft_threads_ok;
+static int n_threads; /* 0 = not set yet: all cores */
+static svp_fft_effort fft_effort = SVP_FFT_MEASURE;
+
+typedef struct plan_entry {
+    svp_fft_plan plan;
+    int threads;
+    struct plan_entry *next;
+} plan_entry;
+static plan_entry *plan_cache;
+
+static void fft_init(void) { fft_threads_ok = fftw_init_threads() != 0; }
+
+const char *svp_version(void) { return SVPSF_VERSION; }
+const char *svp_fftw_version(void) { return fftw_version; }
+
+void svp_set_threads(int n)
+{
+    pthread_mutex_lock(&fft_lock);
+    n_threads = n < 1 ? 1 : n;
+    pthread_mutex_unlock(&fft_lock);
+    omp_set_num_threads(n < 1 ? 1 : n);
+}
+
+int svp_get_threads(void)
+{
+    pthread_mutex_lock(&fft_lock);
+    int n = n_threads;
+    pthread_mutex_unlock(&fft_lock);
+    return n > 0 ? n : omp_get_max_threads();
+}
+
+void svp_set_fft_effort(svp_fft_effort effort)
+{
+    pthread_mutex_lock(&fft_lock);
+    fft_effort = effort;
+    pthread_mutex_unlock(&fft_lock);
+}
+
+svp_status svp_fft_wisdom_load(const char *path)
+{
+    pthread_once(&fft_once, fft_init);
+    pthread_mutex_lock(&fft_lock);
+    int ok = fftw_import_wisdom_from_filename(path);
+    pthread_mutex_unlock(&fft_lock);
+    if (!ok) return svp_fail(SVP_ERR_IO, "%s: cannot read FFTW wisdom", path);
+    return SVP_OK;
+}
+
+svp_status svp_fft_wisdom_save(const char *path)
+{
+    pthread_mutex_lock(&fft_lock);
+    int ok = fftw_export_wisdom_to_filename(path);
+    pthread_mutex_unlock(&fft_lock);
+    if (!ok) return svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path, strerror(errno));
+    return SVP_OK;
+}
+
+int svp_fft_good_size(int n)
+{
+    if (n <= 1) return 1;
+    for (int m = n;; m++) {
+        int r = m;
+        while (r % 2 == 0) r /= 2;
+        while (r % 3 == 0) r /= 3;
+        while (r % 5 == 0) r /= 5;
+        while (r % 7 == 0) r /= 7;
+        if (r == 1) return m;
+    }
+}
+
+svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out)
+{
+    if (ny < 1 || nx < 1) return svp_fail(SVP_ERR_INVALID, "FFT size %d x %d", ny, nx);
+    pthread_once(&fft_once, fft_init);
+    int threads = svp_get_threads();
+    pthread_mutex_lock(&fft_lock);
+    for (plan_entry *e = plan_cache; e; e = e->next) {
+        if (e->plan.ny == ny && e->plan.nx == nx && e->threads == threads) {
+            *out = &e->plan;
+            pthread_mutex_unlock(&fft_lock);
+            return SVP_OK;
+        }
+    }
+    svp_status status = SVP_OK;
+    int ncx = nx / 2 + 1;
+    size_t nreal = (size_t)ny * nx, ncomplex = (size_t)ny * ncx;
+    double *r = svp_alloc(nreal * sizeof(double));
+    fftw_complex *c = svp_alloc(ncomplex * sizeof(fftw_complex));
+    plan_entry *e = calloc(1, sizeof *e);
+    if (!r || !c || !e) {
+        status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d FFT", ny, nx);
+        goto cleanup;
+    }
+    if (fft_threads_ok) fftw_plan_with_nthreads(threads);
+    unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);
+    e->plan.ny = ny;
+    e->plan.nx = nx;
+    e->plan.ncx = ncx;
+    e->threads = threads;
+    e->plan.r2c = fftw_plan_dft_r2c_2d(ny, nx, r, c, flags);
+    e->plan.c2r = fftw_plan_dft_c2r_2d(ny, nx, c, r, flags);
+    if (!e->plan.r2c || !e->plan.c2r) {
+        if (e->plan.r2c) fftw_destroy_plan(e->plan.r2c);
+        if (e->plan.c2r) fftw_destroy_plan(e->plan.c2r);
+        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a %d x %d transform", ny, nx);
+        goto cleanup;
+    }
+    e->next = plan_cache;
+    plan_cache = e;
+    *out = &e->plan;
+    e = NULL;
+cleanup:
+    pthread_mutex_unlock(&fft_lock);
+    free(e);
+    svp_free(r);
+    svp_free(c);
+    return status;
+}
+
+void svp_fft_forward(const svp_fft_plan *plan, double *in, fftw_complex *out)
+{
+    fftw_execute_dft_r2c(plan->r2c, in, out);
+}
+
+void svp_fft_inverse(const svp_fft_plan *plan, fftw_complex *in, double *out)
+{
+    fftw_execute_dft_c2r(plan->c2r, in, out);
+    const double scale = 1.0 / ((double)plan->ny * plan->nx);
+    const size_t n = (size_t)plan->ny * plan->nx;
+#pragma omp parallel for schedule(static) if (n > 65536)
+    for (size_t i = 0; i < n; i++) out[i] *= scale;
+}
+
+void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double *out)
+{
+    fftw_execute_dft_c2r(plan->c2r, in, out);
+}
+
+void svp_fft_cleanup(void)
+{
+    pthread_mutex_lock(&fft_lock);
+    while (plan_cache) {
+        plan_entry *next = plan_cache->next;
+        fftw_destroy_plan(plan_cache->plan.r2c);
+        fftw_destroy_plan(plan_cache->plan.c2r);
+        free(plan_cache);
+        plan_cache = next;
+    }
+    pthread_mutex_unlock(&fft_lock);
+}

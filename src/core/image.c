@@ -1,0 +1,136 @@
+/* svp_image: aligned row-major doubles, and deterministic reductions. */
+#include "internal.h"
+
+#include <math.h>
+#include <omp.h>
+#include <stdlib.h>
+#include <stdint.h>
+#include <string.h>
+
+void *svp_alloc(size_t bytes)
+{
+    void *p = NULL;
+    /* round up so vector loops may read a whole last cache line */
+    size_t rounded = (bytes + SVP_ALIGN - 1) / SVP_ALIGN * SVP_ALIGN;
+    if (posix_memalign(&p, SVP_ALIGN, rounded ? rounded : SVP_ALIGN) != 0) return NULL;
+    return p;
+}
+
+void *svp_calloc(size_t count, size_t size)
+{
+    if (size && count > SIZE_MAX / size) return NULL;
+    void *p = svp_alloc(count * size);
+    if (p) memset(p, 0, count * size);
+    return p;
+}
+
+void svp_free(void *p)
+{
+    free(p);
+}
+
+svp_status svp_image_new(int width, int height, svp_image **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_image_new: out is NULL");
+    *out = NULL;
+    if (width < 1 || height < 1)
+        return svp_fail(SVP_ERR_INVALID, "image size %d x %d: both must be at least 1", width,
+                        height);
+    if ((size_t)width > SIZE_MAX / sizeof(double) / (size_t)height)
+        return svp_fail(SVP_ERR_NOMEM, "image size %d x %d is too large", width, height);
+    svp_image *img = malloc(sizeof *img);
+    if (!img) return svp_fail(SVP_ERR_NOMEM, "out of memory for an image header");
+    img->width = width;
+    img->height = height;
+    img->data = svp_calloc((size_t)width * (size_t)height, sizeof(double));
+    if (!img->data) {
+        free(img);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d image", width, height);
+    }
+    *out = img;
+    return SVP_OK;
+}
+
+svp_status svp_image_copy(const svp_image *src, svp_image **out)
+{
+    if (!src) return svp_fail(SVP_ERR_INVALID, "svp_image_copy: source is NULL");
+    SVP_CHECK(svp_image_new(src->width, src->height, out));
+    memcpy((*out)->data, src->data, (size_t)src->width * src->height * sizeof(double));
+    return SVP_OK;
+}
+
+void svp_image_free(svp_image *image)
+{
+    if (!image) return;
+    svp_free(image->data);
+    free(image);
+}
+
+svp_status svp_image_same_size(const svp_image *a, const svp_image *b, const char *what_a,
+                               const char *what_b)
+{
+    if (!a || !b)
+        return svp_fail(SVP_ERR_INVALID, "%s is missing", !a ? what_a : what_b);
+    if (a->width != b->width || a->height != b->height)
+        return svp_fail(SVP_ERR_SIZE, "%s is %d x %d but %s is %d x %d", what_a, a->width,
+                        a->height, what_b, b->width, b->height);
+    return SVP_OK;
+}
+
+size_t svp_image_count_nonfinite(const svp_image *image)
+{
+    size_t n = (size_t)image->width * image->height, count = 0;
+    for (size_t i = 0; i < n; i++) count += !isfinite(image->data[i]);
+    return count;
+}
+
+/* Fixed-size blocks make the summation order independent of the thread count. */
+#define SUM_BLOCK 4096
+
+double svp_sum(const double *restrict x, size_t n)
+{
+    size_t nblocks = (n + SUM_BLOCK - 1) / SUM_BLOCK;
+    if (nblocks <= 1) {
+        double s = 0;
+        for (size_t i = 0; i < n; i++) s += x[i];
+        return s;
+    }
+    double *partial = malloc(nblocks * sizeof *partial);
+    if (!partial) { /* fall back to a serial sum in the same block order */
+        double s = 0;
+        for (size_t b = 0; b < nblocks; b++) {
+            double sb = 0;
+            size_t end = (b + 1) * SUM_BLOCK < n ? (b + 1) * SUM_BLOCK : n;
+            for (size_t i = b * SUM_BLOCK; i < end; i++) sb += x[i];
+            s += sb;
+        }
+        return s;
+    }
+#pragma omp parallel for schedule(static)
+    for (size_t b = 0; b < nblocks; b++) {
+        double sb = 0;
+        size_t end = (b + 1) * SUM_BLOCK < n ? (b + 1) * SUM_BLOCK : n;
+        for (size_t i = b * SUM_BLOCK; i < end; i++) sb += x[i];
+        partial[b] = sb;
+    }
+    double s = 0;
+    for (size_t b = 0; b < nblocks; b++) s += partial[b];
+    free(partial);
+    return s;
+}
+
+double svp_max(const double *restrict x, size_t n)
+{
+    double m = -INFINITY;
+    for (size_t i = 0; i < n; i++)
+        if (isfinite(x[i]) && x[i] > m) m = x[i];
+    return m;
+}
+
+double svp_min(const double *restrict x, size_t n)
+{
+    double m = INFINITY;
+    for (size_t i = 0; i < n; i++)
+        if (isfinite(x[i]) && x[i] < m) m = x[i];
+    return m;
+}

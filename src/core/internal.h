@@ -1,0 +1,66 @@
+/* Library-internal helpers shared by the modules. Not installed. */
+#ifndef SVP_INTERNAL_H
+#define SVP_INTERNAL_H
+
+#include "svpsf.h"
+
+#include <complex.h>
+#include <fftw3.h>
+#include <stddef.h>
+
+#define SVP_ALIGN 64
+
+#if defined(__GNUC__)
+#define SVP_PRINTF(a, b) __attribute__((format(printf, a, b)))
+#else
+#define SVP_PRINTF(a, b)
+#endif
+
+/* Records a message for svp_last_error() and returns status (so `return svp_fail(...)`). */
+svp_status svp_fail(svp_status status, const char *fmt, ...) SVP_PRINTF(2, 3);
+/* Prefixes the current error message: "context: previous message". Returns status. */
+svp_status svp_fail_context(svp_status status, const char *fmt, ...) SVP_PRINTF(2, 3);
+void svp_clear_error(void);
+
+/* 64-byte aligned allocation (fftw_malloc); sizes in bytes. NULL on failure. */
+void *svp_alloc(size_t bytes);
+void *svp_calloc(size_t count, size_t size);
+void svp_free(void *p);
+
+#define SVP_CHECK(expr)                                                                        \
+    do {                                                                                       \
+        svp_status svp_check_status_ = (expr);                                                 \
+        if (svp_check_status_ != SVP_OK) return svp_check_status_;                             \
+    } while (0)
+
+/* Deterministic sum (the same for every thread count): fixed blocks summed in parallel, the
+ * block sums added in order. */
+double svp_sum(const double *restrict x, size_t n);
+double svp_max(const double *restrict x, size_t n); /* of finite values; -inf when none */
+double svp_min(const double *restrict x, size_t n);
+
+/* ---- FFT engine ---------------------------------------------------------------------------
+ * Plans for real 2-D transforms of ny x nx real values (nx/2+1 complex columns), made once
+ * per (ny, nx, threads) and cached (guarded by a mutex). Execution uses FFTW's new-array API
+ * on svp_alloc'd buffers and is thread-safe. */
+typedef struct svp_fft_plan {
+    int ny, nx;       /* real size */
+    int ncx;          /* nx / 2 + 1 */
+    fftw_plan r2c;    /* real (ny x nx) → complex (ny x ncx) */
+    fftw_plan c2r;    /* complex → real (unnormalised, destroys its input) */
+} svp_fft_plan;
+
+svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out);
+void svp_fft_forward(const svp_fft_plan *plan, double *in, fftw_complex *out);
+/* Inverse real FFT, scaled by 1/(ny nx) so forward followed by inverse is the identity.
+ * Destroys `in`. */
+void svp_fft_inverse(const svp_fft_plan *plan, fftw_complex *in, double *out);
+/* The same without the 1/(ny nx) scaling (fold it into a spectral product instead). */
+void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double *out);
+/* Frees every cached plan (tests and tools at exit). */
+void svp_fft_cleanup(void);
+
+/* Progress helper: calls the callback if any; returns SVP_ERR_CANCELLED when it asks to stop. */
+svp_status svp_report_progress(svp_progress_fn fn, void *user, double fraction);
+
+#endif

@@ -1,0 +1,71 @@
+/* Status codes and the thread-local error message. */
+#include "internal.h"
+
+#include <stdarg.h>
+#include <stdio.h>
+#include <string.h>
+
+#define SVP_ERROR_LEN 1024
+
+static _Thread_local char last_error[SVP_ERROR_LEN];
+
+const char *svp_status_string(svp_status status)
+{
+    switch (status) {
+    case SVP_OK: return "ok";
+    case SVP_ERR_INVALID: return "invalid argument";
+    case SVP_ERR_IO: return "input/output error";
+    case SVP_ERR_FORMAT: return "malformed file";
+    case SVP_ERR_SIZE: return "size mismatch";
+    case SVP_ERR_NOMEM: return "out of memory";
+    case SVP_ERR_EXISTS: return "output exists";
+    case SVP_ERR_CANCELLED: return "cancelled";
+    case SVP_ERR_NUMERIC: return "numerical failure";
+    case SVP_ERR_UNSUPPORTED: return "unsupported";
+    case SVP_ERR_INTERNAL: return "internal error";
+    }
+    return "unknown status";
+}
+
+const char *svp_last_error(void) { return last_error; }
+
+void svp_clear_error(void) { last_error[0] = '\0'; }
+
+svp_status svp_fail(svp_status status, const char *fmt, ...)
+{
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(last_error, sizeof last_error, fmt, ap);
+    va_end(ap);
+    return status;
+}
+
+svp_status svp_fail_context(svp_status status, const char *fmt, ...)
+{
+    char previous[SVP_ERROR_LEN];
+    char context[SVP_ERROR_LEN];
+    memcpy(previous, last_error, sizeof previous);
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(context, sizeof context, fmt, ap);
+    va_end(ap);
+    size_t n = strlen(context);
+    if (n > sizeof last_error - 1) n = sizeof last_error - 1;
+    memcpy(last_error, context, n);
+    if (previous[0] && n + 2 < sizeof last_error) {
+        memcpy(last_error + n, ": ", 2);
+        n += 2;
+        size_t m = strlen(previous);
+        if (m > sizeof last_error - 1 - n) m = sizeof last_error - 1 - n;
+        memcpy(last_error + n, previous, m);
+        n += m;
+    }
+    last_error[n] = '\0';
+    return status;
+}
+
+svp_status svp_report_progress(svp_progress_fn fn, void *user, double fraction)
+{
+    if (fn && fn(user, fraction)) return svp_fail(SVP_ERR_CANCELLED, "cancelled by the caller");
+    return SVP_OK;
+}

@@ -1,0 +1,1 @@
+// OpenCV I/O (the only C++ file)

@@ -1,0 +1,1 @@
+#include "../blur/blur_internal.h"

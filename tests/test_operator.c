@@ -1,0 +1,215 @@
+/* The space-invariant blur operator: against a direct sum, adjointness, flux, linearity. */
+#include "test_helpers.h"
+
+#include "blur/blur_internal.h"
+
+static const svp_boundary modes[] = {SVP_BOUNDARY_ZERO, SVP_BOUNDARY_MIRROR,
+                                     SVP_BOUNDARY_PERIODIC};
+static const char *mode_names[] = {"zero", "mirror", "periodic"};
+
+static int reflect_ref(int t, int n)
+{
+    /* symmetric extension by repeated unfolding, written independently of operator.c */
+    while (t < 0 || t >= n) t = t < 0 ? -t - 1 : 2 * n - 1 - t;
+    return t;
+}
+
+static double ext_value(const svp_image *x, int i, int j, svp_boundary b)
+{
+    int w = x->width, h = x->height;
+    switch (b) {
+    case SVP_BOUNDARY_ZERO:
+        if (i < 0 || j < 0 || i >= w || j >= h) return 0;
+        break;
+    case SVP_BOUNDARY_PERIODIC:
+        i = ((i % w) + w) % w;
+        j = ((j % h) + h) % h;
+        break;
+    case SVP_BOUNDARY_MIRROR:
+        i = reflect_ref(i, w);
+        j = reflect_ref(j, h);
+        break;
+    }
+    return x->data[(size_t)j * w + i];
+}
+
+/* y(i) = Σ_d k(d) x_ext(i − d) + halo, summed directly. */
+static void direct_blur(const svp_image *k, int cx, int cy, double halo, const svp_image *x,
+                        svp_boundary b, svp_image *y)
+{
+    double mean = test_sum(x) / ((double)x->width * x->height);
+    for (int j = 0; j < x->height; j++)
+        for (int i = 0; i < x->width; i++) {
+            double s = 0;
+            for (int v = 0; v < k->height; v++)
+                for (int u = 0; u < k->width; u++)
+                    s += k->data[(size_t)v * k->width + u] *
+                         ext_value(x, i - (u - cx), j - (v - cy), b);
+            y->data[(size_t)j * x->width + i] = (1 - halo) * s + halo * mean;
+        }
+}
+
+static void test_matches_direct_sum(void **state)
+{
+    (void)state;
+    const int sizes[][2] = {{1, 1}, {2, 3}, {7, 5}, {16, 9}, {13, 13}};
+    for (size_t s = 0; s < sizeof sizes / sizeof sizes[0]; s++) {
+        int w = sizes[s][0], h = sizes[s][1];
+        for (int m = 0; m < 3; m++) {
+            /* an asymmetric random kernel, larger than the image in one case */
+            for (int big = 0; big < 2; big++) {
+                int kw = big ? 2 * w + 3 : 5, kh = big ? 2 * h + 1 : 3;
+                svp_image *k = test_random_image(kw, kh, 7 + s);
+                svp_image *x = test_random_image(w, h, 11 + s);
+                svp_image *y = test_image(w, h), *ref = test_image(w, h);
+                svp_blur *op = NULL;
+                int cx = kw / 2 - (big ? 1 : 0), cy = kh / 2;
+                ASSERT_OK(svp_blur_new_kernel(k, cx, cy, 0, w, h, modes[m], &op));
+                ASSERT_OK(svp_blur_apply(op, x, y));
+                direct_blur(k, cx, cy, 0, x, modes[m], ref);
+                double err = test_max_abs_diff(y, ref);
+                if (err > 1e-12 * (1 + test_max_abs(ref)))
+                    fail_msg("%s %dx%d kernel %dx%d: max error %.3g", mode_names[m], w, h, kw,
+                             kh, err);
+                svp_blur_free(op);
+                svp_image_free(k);
+                svp_image_free(x);
+                svp_image_free(y);
+                svp_image_free(ref);
+            }
+        }
+    }
+}
+
+static void test_adjoint_identity(void **state)
+{
+    (void)state;
+    const int sizes[][2] = {{1, 1}, {2, 3}, {31, 17}, {64, 48}};
+    for (size_t s = 0; s < sizeof sizes / sizeof sizes[0]; s++) {
+        int w = sizes[s][0], h = sizes[s][1];
+        for (int m = 0; m < 3; m++) {
+            svp_psf psf;
+            svp_psf_defaults(&psf);
+            psf.model = SVP_PSF_MOFFAT;
+            psf.fwhm = 3.5;
+            psf.fwhm_minor = 2.0;
+            psf.angle = 0.4;
+            psf.beta = 1.1;
+            psf.halo = 0.3;
+            svp_blur *op = NULL;
+            ASSERT_OK(svp_blur_new(&psf, w, h, modes[m], &op));
+            svp_image *x = test_random_image(w, h, 3), *y = test_random_image(w, h, 5);
+            svp_image *hx = test_image(w, h), *hty = test_image(w, h);
+            ASSERT_OK(svp_blur_apply(op, x, hx));
+            ASSERT_OK(svp_blur_adjoint(op, y, hty));
+            double a = test_dot(hx, y), b = test_dot(x, hty);
+            if (fabs(a - b) > 1e-12 * fabs(a))
+                fail_msg("%s %dx%d: <Hx,y> = %.17g, <x,H'y> = %.17g", mode_names[m], w, h, a, b);
+            svp_blur_free(op);
+            svp_image_free(x);
+            svp_image_free(y);
+            svp_image_free(hx);
+            svp_image_free(hty);
+        }
+    }
+}
+
+/* Periodic and mirror operators keep all light in the image; zero keeps it when the source is
+ * far from the edges (with a kernel support that stays inside). */
+static void test_unit_flux(void **state)
+{
+    (void)state;
+    const int w = 40, h = 30;
+    for (int m = 0; m < 3; m++) {
+        svp_psf psf;
+        svp_psf_defaults(&psf);
+        psf.model = SVP_PSF_LORENTZIAN;
+        psf.fwhm = 2.5;
+        psf.halo = 0.5;
+        if (modes[m] == SVP_BOUNDARY_ZERO) psf.support = 9;
+        svp_blur *op = NULL;
+        ASSERT_OK(svp_blur_new(&psf, w, h, modes[m], &op));
+        svp_image *x = test_image(w, h), *y = test_image(w, h);
+        x->data[15 * w + 20] = 1.0;
+        ASSERT_OK(svp_blur_apply(op, x, y));
+        ASSERT_CLOSE(test_sum(y), 1.0, 1e-12);
+        for (size_t i = 0; i < (size_t)w * h; i++)
+            if (y->data[i] < -1e-15) fail_msg("%s: negative output %g", mode_names[m], y->data[i]);
+        svp_blur_free(op);
+        svp_image_free(x);
+        svp_image_free(y);
+    }
+}
+
+static void test_linearity_and_delta(void **state)
+{
+    (void)state;
+    const int w = 23, h = 19;
+    svp_image *x1 = test_random_image(w, h, 1), *x2 = test_random_image(w, h, 2);
+    svp_image *comb = test_image(w, h), *y1 = test_image(w, h), *y2 = test_image(w, h),
+              *yc = test_image(w, h);
+    for (size_t i = 0; i < (size_t)w * h; i++) comb->data[i] = 2.5 * x1->data[i] - 0.75 * x2->data[i];
+    for (int m = 0; m < 3; m++) {
+        svp_psf psf;
+        svp_psf_defaults(&psf);
+        psf.model = SVP_PSF_GAUSSIAN;
+        psf.fwhm = 4;
+        svp_blur *op = NULL;
+        ASSERT_OK(svp_blur_new(&psf, w, h, modes[m], &op));
+        ASSERT_OK(svp_blur_apply(op, x1, y1));
+        ASSERT_OK(svp_blur_apply(op, x2, y2));
+        ASSERT_OK(svp_blur_apply(op, comb, yc));
+        for (size_t i = 0; i < (size_t)w * h; i++)
+            ASSERT_CLOSE(yc->data[i], 2.5 * y1->data[i] - 0.75 * y2->data[i], 1e-13);
+        svp_blur_free(op);
+        /* a 1x1 kernel is the identity */
+        svp_image *delta = test_image(1, 1);
+        delta->data[0] = 1;
+        ASSERT_OK(svp_blur_new_kernel(delta, -1, -1, 1, w, h, modes[m], &op));
+        ASSERT_OK(svp_blur_apply(op, x1, y1));
+        assert_true(test_max_abs_diff(y1, x1) < 1e-14);
+        svp_blur_free(op);
+        svp_image_free(delta);
+    }
+    svp_image_free(x1);
+    svp_image_free(x2);
+    svp_image_free(comb);
+    svp_image_free(y1);
+    svp_image_free(y2);
+    svp_image_free(yc);
+}
+
+static void test_bad_arguments(void **state)
+{
+    (void)state;
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    svp_blur *op = NULL;
+    assert_int_equal(svp_blur_new(&psf, 0, 5, SVP_BOUNDARY_ZERO, &op), SVP_ERR_INVALID);
+    psf.fwhm = -1;
+    assert_int_equal(svp_blur_new(&psf, 5, 5, SVP_BOUNDARY_ZERO, &op), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "FWHM"));
+    svp_psf_defaults(&psf);
+    ASSERT_OK(svp_blur_new(&psf, 8, 8, SVP_BOUNDARY_ZERO, &op));
+    svp_image *x = test_image(8, 8), *y = test_image(7, 8);
+    assert_int_equal(svp_blur_apply(op, x, y), SVP_ERR_SIZE);
+    assert_int_equal(svp_blur_apply(op, x, x), SVP_ERR_INVALID);
+    svp_blur_free(op);
+    svp_image_free(x);
+    svp_image_free(y);
+}
+
+int main(void)
+{
+    svp_set_fft_effort(SVP_FFT_ESTIMATE);
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_matches_direct_sum),
+        cmocka_unit_test(test_adjoint_identity),
+        cmocka_unit_test(test_unit_flux),
+        cmocka_unit_test(test_linearity_and_delta),
+        cmocka_unit_test(test_bad_arguments),
+    };
+    int rc = cmocka_run_group_tests_name("operator", tests, NULL, NULL);
+    svp_fft_cleanup();
+    return rc;
+}
