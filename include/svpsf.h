@@ -294,6 +294,18 @@ SVP_API svp_status svp_halo_correct(double halo, const svp_image *pl_apparent,
 SVP_API svp_status svp_psf_file_read(const char *path, svp_psf *psf, double *pixel_um,
                                      svp_boundary *boundary);
 
+/* ---------------------------------------------------------------------------------------- */
+/* Space-variant PSF fields and operators (docs/model.md §Space-variant)                     */
+/* @@section variant */
+
+/* ---------------------------------------------------------------------------------------- */
+/* Fitting: Levenberg–Marquardt, PSF spot fits, PSF maps                                     */
+/* @@section fit */
+
+/* ---------------------------------------------------------------------------------------- */
+/* Physics: source fields, reconstruction, spectra                                           */
+/* @@section physics */
+
 #ifdef __cplusplus
 }
 #endif

@@ -1,0 +1,2 @@
+/* (module under construction) */
+#include "../core/internal.h"

@@ -1,0 +1,2 @@
+/* (command under construction) */
+#include "cli.h"
