@@ -213,12 +213,21 @@ typedef struct svp_deconv_options {
 SVP_API void svp_deconv_defaults(svp_deconv_options *options);
 
 /* Wiener–Hunt deconvolution of y by H. NaN/Inf pixels of y are missing data: they are filled
- * from their neighbours (normalised convolution with the PSF) before filtering. The halo term
- * is inverted exactly (a scalar equation for the mean). x may be y's twin size, not y. */
+ * from their neighbours (normalised convolution with the PSF, refined by a few conjugate-
+ * gradient steps to the fill the regularised model predicts) before filtering. The halo term
+ * is inverted exactly (a scalar equation for the mean). Periodic H is filtered at the image
+ * size; mirror and zero H in the 2 width x 2 height symmetric frame (zero mode: the data are
+ * mirror-extended, because zero-padded data ring at the edges). Space-variant H: calls
+ * svp_deconv_tikhonov_cg. Uses options->balance (>= 0); progress once, at the end. x must
+ * have y's size and not be y. options NULL = defaults. */
 SVP_API svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
                                      const svp_deconv_options *options, svp_image *x);
 /* Richardson–Lucy: x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, started flat at the data mean; m is
- * 0 on NaN/Inf pixels of y (missing data), 1 elsewhere. y must be >= 0 where finite. */
+ * 0 on NaN/Inf pixels of y (missing data), 1 elsewhere; pixels no finite datum sees keep the
+ * start value. boundary_weights = 0 divides by the scalar mean of Hᵀm instead (plain RL).
+ * y must be >= 0 where finite (else SVP_ERR_INVALID; signed data: the shift of method
+ * rl-signed). Works for every operator kind; progress once per iteration; the output is >= 0
+ * and finite. options NULL = defaults. */
 SVP_API svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y,
                                  const svp_deconv_options *options, svp_image *x);
 
@@ -237,9 +246,13 @@ SVP_API svp_status svp_skimage_richardson_lucy(const svp_image *image, const svp
 /* ---------------------------------------------------------------------------------------- */
 /* The transforms T and T⁻¹ (eqs. 3 and 4)                                                   */
 
-/* Forward transform T: pl_apparent = H pl_true; for each component c
- * field_apparent[c] = H(field_true[c] · pl_true) / pl_apparent, where pl_apparent > 0; where
- * pl_apparent is 0 the apparent field is set to 0 and validity (if not NULL) to 0, else 1. */
+/* Forward transform T (eq. 3): pl_apparent = H pl_true (clamped at 0: negative values are
+ * FFT round-off); for each of the n_fields >= 1 components
+ * field_apparent[c] = H(field_true[c] · pl_true) / pl_apparent. Where pl_apparent <=
+ * 1e-10 · max(pl_apparent) (dark: no light, or FFT round-off of none) the apparent field is 0
+ * and validity (may be NULL) 0, else 1. The true maps must be complete: NaN/Inf in pl_true or
+ * a field_true, or a negative pl_true, is SVP_ERR_INVALID naming the input. Outputs must not
+ * share pixels with inputs or each other. One H application per component plus one. */
 SVP_API svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
                                          const svp_image *const *field_true, int n_fields,
                                          svp_image *pl_apparent, svp_image *const *field_apparent,
@@ -255,20 +268,32 @@ typedef enum svp_method {
 
 typedef struct svp_correct_options {
     svp_method method;           /* default SVP_METHOD_RW */
-    svp_deconv_options deconv;   /* iterations (75 for RL), balance, ... */
-    double pl_floor;             /* the recovered PL is floored at pl_floor · max(PL) before
-                                    dividing; pixels below it have validity < 1; default 1e-3 */
-    double shift;                /* c of the signed shift; 0 (default) = automatic:
-                                    c = 0.1 · range(B̃) − min(B̃) per component */
+    svp_deconv_options deconv;   /* svp_deconv_defaults() except iterations = 75 (the
+                                    reference study's RL count for measured data); its
+                                    progress callback receives the whole job's fraction */
+    double pl_floor;             /* in (0, 1): the recovered PL is floored at
+                                    pl_floor · max(PL) before dividing; pixels below it have
+                                    validity < 1; default 1e-3 */
+    double shift;                /* c of the signed shift (methods R, RL_SIGNED); 0 (default)
+                                    = automatic per component: c = 0.1 · range(B̃) − min(B̃)
+                                    over the measured pixels (range := |B̃|, or 1, for a
+                                    constant map). An explicit c must give B̃ + c > 0 at every
+                                    measured pixel of every component. */
 } svp_correct_options;
 
 SVP_API void svp_correct_defaults(svp_correct_options *options);
 
 /* Inverse transform T⁻¹ (eq. 4): pl_true = Ĩ ⊘ p; field_true[c] = ((B̃_c Ĩ) ⊘ p) / max(pl_true,
- * floor). All components share the one deconvolution of Ĩ. validity in [0, 1]: 1 where the
- * recovered PL is above the floor, falling linearly to 0 at zero PL, 0 at NaN input pixels
- * that no neighbour covers. No NaN or Inf is ever written. n_missing (may be NULL) returns the
- * number of NaN/Inf input pixels that were treated as missing data. */
+ * floor), floor = pl_floor · max(pl_true); for R / RL_SIGNED the numerator is
+ * ((B̃_c + c) Ĩ) ⊘ p − c · pl_true (eq. 5). All components share the one deconvolution of Ĩ.
+ * Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution
+ * (RL masks it, Wiener fills it), so numerator and denominator see the same measurements.
+ * validity (may be NULL) in [0, 1] (eq. 6): clamp(pl_true / floor, 0, 1), times at missing
+ * pixels the share of their light the core PSF puts on measured pixels (0 where nothing covers
+ * them). No NaN or Inf is ever written. n_missing (may be NULL) returns the number of missing
+ * pixel positions. options NULL = svp_correct_defaults. RL methods (RW, R, RL_SIGNED) need
+ * Ĩ >= 0 (SVP_ERR_INVALID otherwise; W accepts signed PL). No light at all (max Ĩ <= 0):
+ * everything 0, validity 0. Outputs must not share pixels with inputs or each other. */
 SVP_API svp_status svp_inverse_transform(svp_blur *blur, const svp_image *pl_apparent,
                                          const svp_image *const *field_apparent, int n_fields,
                                          const svp_correct_options *options,
@@ -277,7 +302,10 @@ SVP_API svp_status svp_inverse_transform(svp_blur *blur, const svp_image *pl_app
 
 /* Closed-form inverse for a halo-only PSF p = (1 − α) δ + α / A (PHYSICS.md §2, exact for any
  * PL): Ĩ = (1 − α) I + α <Ĩ>, B̃Ĩ = (1 − α) BI + α <B̃Ĩ>, so
- * B = (B̃Ĩ − α <B̃Ĩ>) / (Ĩ − α <Ĩ>). With uniform PL: ΔB = ΔB̃ / (1 − α). */
+ * B = (B̃Ĩ − α <B̃Ĩ>) / (Ĩ − α <Ĩ>) (eq. 7), means over the whole image. With uniform PL:
+ * ΔB = ΔB̃ / (1 − α). Where the denominator is <= 1e-10 · max|Ĩ| (no light) B = 0. α must be
+ * in [0, 1); NaN/Inf inputs are SVP_ERR_INVALID (the means need complete maps). field_true may
+ * be field_apparent or pl_apparent (computed pointwise after the means). */
 SVP_API svp_status svp_halo_correct(double halo, const svp_image *pl_apparent,
                                     const svp_image *field_apparent, svp_image *field_true);
 
@@ -298,13 +326,1068 @@ SVP_API svp_status svp_psf_file_read(const char *path, svp_psf *psf, double *pix
 /* Space-variant PSF fields and operators (docs/model.md §Space-variant)                     */
 /* @@section variant */
 
+/* A PSF field says how the PSF varies over a width x height image. One model per field
+ * (Gaussian, Lorentzian or Moffat; a "Gaussian-like" region inside a Moffat field is a Moffat
+ * with a large beta, e.g. 10). support and subsample are common to the whole field (taken from
+ * the first PSF given). What varies, and is interpolated, is the parameter vector
+ *   p = {fwhm, e1, e2, beta, halo}     (SVP_FIELD_NPARAM = 5, in that order)
+ * with fwhm = (FWHM_major + FWHM_minor) / 2 in pixels, ellipticity
+ * e = (FWHM_major − FWHM_minor) / (FWHM_major + FWHM_minor) and (e1, e2) = e (cos 2θ, sin 2θ):
+ * orientation is interpolated weighted by ellipticity, never as θ. beta is interpolated
+ * linearly (ignored for Gaussian, 1 for Lorentzian); halo is alpha_b. Interpolated values are
+ * clamped to valid ranges (fwhm >= 0.05 px, |e| <= 0.95, beta >= 0.05, halo in [0, 0.999]).
+ * Positions are pixel coordinates: pixel (x, y) is data[y * width + x], x, y may be
+ * fractional. */
+#define SVP_FIELD_NPARAM 5
+typedef enum svp_field_param {
+    SVP_FIELD_FWHM = 0, /* mean FWHM (major + minor) / 2, pixels */
+    SVP_FIELD_E1 = 1,   /* e cos 2θ */
+    SVP_FIELD_E2 = 2,   /* e sin 2θ */
+    SVP_FIELD_BETA = 3, /* Moffat beta */
+    SVP_FIELD_HALO = 4  /* alpha_b */
+} svp_field_param;
+
+typedef enum svp_psf_field_kind {
+    SVP_FIELD_UNIFORM = 0, /* one PSF everywhere */
+    SVP_FIELD_GRID = 1,    /* PSFs at nodes, bilinear in between, constant beyond */
+    SVP_FIELD_POLY = 2,    /* polynomial surfaces in normalised position */
+    SVP_FIELD_REGIONS = 3  /* a PSF per label of a label image, blended across boundaries */
+} svp_psf_field_kind;
+
+typedef struct svp_psf_field svp_psf_field;
+
+/* PSF <-> parameter vector (see above). svp_psf_to_params needs a valid psf; from_params
+ * takes model, support and subsample from `base` and clamps p to the valid ranges. */
+SVP_API svp_status svp_psf_to_params(const svp_psf *psf, double p[SVP_FIELD_NPARAM]);
+SVP_API void svp_psf_from_params(const svp_psf *base, const double p[SVP_FIELD_NPARAM],
+                                 svp_psf *out);
+
+/* Uniform field. width = height = 0 makes a field valid for any image size (the plain PSF
+ * file of the foundation issue reads as that). */
+SVP_API svp_status svp_psf_field_new_uniform(const svp_psf *psf, int width, int height,
+                                             svp_psf_field **out);
+
+/* Node grid: nx x ny nodes, node (i, j) at (node_x[i], node_y[j]) pixels with PSF
+ * node_psfs[j * nx + i]. node_x / node_y strictly increasing, may lie outside the image;
+ * NULL = evenly spread with nodes at cell centres: x_i = (i + 0.5) width / nx − 0.5.
+ * Parameters are bilinear in between and constant beyond the outermost nodes. All node PSFs
+ * must share the model. */
+SVP_API svp_status svp_psf_field_new_grid(int width, int height, int nx, int ny,
+                                          const double *node_x, const double *node_y,
+                                          const svp_psf *node_psfs, svp_psf_field **out);
+
+/* Polynomial surfaces of total degree `degree` (0..8) in normalised position
+ *   u = (2 x − (width − 1)) / max(width − 1, 1),  v likewise with y and height  (u, v in [-1, 1])
+ * p_q(u, v) = Σ_t coeffs[q * n_terms + t] · basis_t(u, v), q over SVP_FIELD_NPARAM parameters,
+ * n_terms = svp_psf_field_poly_terms(degree) = (degree + 1)(degree + 2) / 2, and the terms
+ * ordered by total degree, then by the power of v: 1, u, v, u², u v, v², u³, u² v, ...
+ * For least squares: one row per measured spot is svp_psf_field_poly_basis(...), the
+ * right-hand side the spot's parameter vector (svp_psf_to_params). `base` gives model, support,
+ * subsample (its own parameters are not used). */
+SVP_API int svp_psf_field_poly_terms(int degree);
+SVP_API void svp_psf_field_poly_basis(int degree, int width, int height, double x, double y,
+                                      double *basis /* n_terms values */);
+SVP_API svp_status svp_psf_field_new_poly(const svp_psf *base, int width, int height,
+                                          int degree, const double *coeffs,
+                                          svp_psf_field **out);
+
+/* Regions: labels[y * width + x] in 0 .. n_labels − 1 picks region_psfs[label]. Across a
+ * boundary the parameter vectors blend over `transition` pixels (10 %–90 % width): the blend
+ * weights are the one-hot label maps smoothed with a Gaussian of sigma = transition / 2.563
+ * (mirror boundary), so they are >= 0 and sum to 1 at every pixel; transition = 0 gives sharp
+ * regions. A label with no pixel is allowed (unused). */
+SVP_API svp_status svp_psf_field_new_regions(int width, int height, const int *labels,
+                                             int n_labels, const svp_psf *region_psfs,
+                                             double transition, svp_psf_field **out);
+
+SVP_API svp_status svp_psf_field_copy(const svp_psf_field *field, svp_psf_field **out);
+SVP_API void svp_psf_field_free(svp_psf_field *field);
+SVP_API svp_psf_field_kind svp_psf_field_get_kind(const svp_psf_field *field);
+/* The field's image size (0 x 0 for a uniform field valid for any size). */
+SVP_API int svp_psf_field_width(const svp_psf_field *field);
+SVP_API int svp_psf_field_height(const svp_psf_field *field);
+/* The local PSF at pixel position (x, y) (fractional allowed; regions: bilinear between
+ * pixel centres, clamped to the image). */
+SVP_API svp_status svp_psf_field_at(const svp_psf_field *field, double x, double y,
+                                    svp_psf *out);
+/* The local parameter vector at (x, y) (clamped as above). */
+SVP_API svp_status svp_psf_field_params_at(const svp_psf_field *field, double x, double y,
+                                           double p[SVP_FIELD_NPARAM]);
+
+/* PSF-map files (YAML; docs/cli.md §PSF maps). Lengths in µm in the file, pixels in memory:
+ *   version: 1                             # optional
+ *   pixel_um: 0.1                          # required, > 0
+ *   image: {width: 512, height: 512}       # required except for uniform
+ *   model: moffat                          # gaussian | lorentzian | moffat: one per field
+ *   support_um: 0                          # optional; 0 = whole field of view
+ *   subsample: 0                           # optional, 0..64
+ *   kind: uniform | grid | poly | regions
+ *   psf: {fwhm_um: 0.6, fwhm_minor_um: 0.5, angle_deg: 30, beta: 1.1, halo: 0}   # uniform
+ *   nodes: {nx: 4, ny: 3}  or  {x_px: [...], y_px: [...]}   # grid (nx/ny: cell centres)
+ *   node_psfs: [{fwhm_um: .., beta: .., ...}, ...]  # grid: nx * ny entries, x fastest
+ *   degree: 2                              # poly
+ *   coefficients: {fwhm_um: [...], e1: [...], e2: [...], beta: [...], halo: [...]}
+ *                                          # poly: n_terms each; only fwhm_um required
+ *   labels_file: map.labels.npy            # regions: an image of integer labels 0..L-1,
+ *                                          #   relative to this file's folder
+ *   transition_um: 0.5                     # regions, optional (default 0: sharp)
+ *   regions: [{label: 0, name: bare, fwhm_um: .., beta: .., halo: ..}, ...]   # L entries
+ *   provenance: "free text"                # optional (also: comment)
+ * In every PSF entry fwhm_um is required, beta is required for Moffat fields (and refused for
+ * Gaussian ones), the rest is optional (fwhm_minor_um: 0 = circular; angle_deg 0; halo 0).
+ * A file without `kind` is read as the plain PSF file (svp_psf_file_read): a uniform field of
+ * size 0 x 0. pixel_um (may be NULL) returns the pixel size. Errors name file:line:column and
+ * the key (unknown keys, keys of another kind, wrong counts, labels outside 0..L-1).
+ * svp_psf_field_write writes atomically (with overwrite == 0 an existing file gives
+ * SVP_ERR_EXISTS); a regions field first writes its labels to "<path without .yaml/.yml>
+ * .labels.npy" (same rule). Grid nodes are written as PSFs rebuilt from their parameter vectors
+ * (identical shapes). provenance may be NULL. */
+SVP_API svp_status svp_psf_field_read(const char *path, svp_psf_field **out, double *pixel_um);
+SVP_API svp_status svp_psf_field_write(const char *path, const svp_psf_field *field,
+                                       double pixel_um, const char *provenance, int overwrite);
+
+/* The space-variant operator (PHYSICS.md §6): H x = Σ_k p_k ⊛ (w_k (1 − α) ⊙ x) + <α x>_FOV,
+ * α the field's per-pixel halo (exact, not interpolated), p_k normalised core kernels.
+ *  - tent: K = gx x gy nodes at x_i = i (width − 1) / (gx − 1) (the centre when gx = 1),
+ *    bilinear hat weights w_k >= 0 summing to 1 at every pixel; p_k = the field's PSF at node k.
+ *    Flux and positivity are kept exactly; error vs the exact operator falls as (node
+ *    spacing)². One application: K forward + 1 inverse real FFT; adjoint 1 + K.
+ *  - low rank: the field's PSF sampled on sx x sy positions (placed like tent nodes), the
+ *    stacked kernels' SVD (LAPACKE_dgesdd) gives `rank` eigen-PSFs e_r and coefficients at the
+ *    samples, interpolated bilinearly into maps c_r: H x = Σ_r e_r ⊛ (c_r (1 − α) ⊙ x) + ...
+ *    With lowrank_mean (default) the first term is the mean sampled kernel (c_0 = 1) and the
+ *    others come from the SVD of the deviations from it: they sum to zero, so every source
+ *    keeps unit flux at every rank. A plain SVD (lowrank_mean = 0) keeps flux only
+ *    approximately (tests measure up to 60 % at rank 1); with renormalise (default) its
+ *    coefficient maps are divided per pixel by the expansion's flux so a point source keeps
+ *    unit flux exactly. Positivity is not guaranteed by either. rank = sx sy with
+ *    renormalise = 0 equals the tent operator on the same grid, so the error never falls below
+ *    the tent's on the sample grid. The SVD holds sx sy kernels of (2 rx + 1)(2 ry + 1) values: at most 2^27
+ *    values (1 GB); beyond that set a support.
+ * All kernels share one radius: support (pixels) if > 0, else the field's PSF support, else the
+ * whole field of view (offsets up to width − 1, height − 1), as svp_blur_new. Memory: one
+ * complex spectrum of the padded frame per node / eigen-PSF (svp_blur_memory). */
+typedef enum svp_variant_repr {
+    SVP_VARIANT_TENT = 0,   /* default */
+    SVP_VARIANT_LOWRANK = 1
+} svp_variant_repr;
+
+typedef struct svp_variant_options {
+    svp_variant_repr representation; /* default SVP_VARIANT_TENT */
+    int grid_x, grid_y;    /* tent nodes per axis, 1 .. 64 each; default 8 x 8 (clamped to
+                              the image size) */
+    int rank;              /* low rank: terms kept (the mean counts as one), 1 .. sx sy;
+                              default 6 */
+    int samples_x, samples_y; /* low rank: PSF sample grid; default 8 x 8 */
+    int renormalise;       /* low rank: exact unit flux per source (default 1) */
+    int lowrank_mean;      /* low rank: mean PSF first, SVD of the deviations (default 1) */
+    double support;        /* kernel radius in pixels; 0 (default) = as described above */
+    svp_progress_fn progress; /* optional, during construction */
+    void *progress_user;
+} svp_variant_options;
+
+SVP_API void svp_variant_defaults(svp_variant_options *options);
+/* Builds H for a field (options NULL = defaults). A field with a size must match width x
+ * height (SVP_ERR_SIZE). The result works with svp_blur_apply / _adjoint / _free / _memory and
+ * the solvers (RL; Wiener dispatches to svp_deconv_tikhonov_cg). */
+SVP_API svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
+                                      svp_boundary boundary, const svp_variant_options *options,
+                                      svp_blur **out);
+/* The exact per-source reference operator Ĩ(o) = Σ_s [(1 − α_s) k_s(o − s) + α_s / N] I(s),
+ * k_s the normalised core kernel of the PSF at source pixel s (same sampling and truncation as
+ * svp_psf_render, same boundary modes as svp_blur_new: the scene beyond the edges is zero,
+ * mirrored or periodic), and its exact adjoint. Direct sums, O(N · kernel area) per
+ * application: meant for images up to ~256² (tests, benchmarks). support as in
+ * svp_variant_options (0 = the field's support, else the whole field of view). */
+SVP_API svp_status svp_blur_new_exact(const svp_psf_field *field, int width, int height,
+                                      svp_boundary boundary, double support, svp_blur **out);
+/* 1 for the space-variant kinds (tent, low rank, exact), 0 for the invariant operator. */
+SVP_API int svp_blur_is_variant(const svp_blur *blur);
+/* The local PSF of the operator's field at (x, y) (for invariant operators built from a model:
+ * that model; from a kernel: SVP_ERR_UNSUPPORTED). */
+SVP_API svp_status svp_blur_psf_at(const svp_blur *blur, double x, double y, svp_psf *out);
+
+/* Tikhonov deconvolution for any operator: x = argmin ‖m (Hx − y)‖² + λ ‖L x‖², λ =
+ * options->balance, L the 5-point Laplacian (same boundary as H), m = 0 at NaN/Inf pixels of
+ * y (missing data), 1 elsewhere. Conjugate gradients on the normal equations
+ * (Hᵀ m H + λ LᵀL) x = Hᵀ m y, preconditioned by the Wiener filter of the PSF at the image
+ * centre (periodic frame), started at 0; at most options->iterations steps (NULL options =
+ * svp_deconv_defaults), stopping early when the relative residual ‖Hᵀm y − A x‖ / ‖Hᵀm y‖ falls
+ * below 1e-10. For an invariant periodic H this is the Wiener–Hunt solution (X = conj(Ĥ) Y /
+ * (|Ĥ|² + λ |L̂|²)), reached in one step. Progress per iteration. */
+SVP_API svp_status svp_deconv_tikhonov_cg(svp_blur *blur, const svp_image *y,
+                                          const svp_deconv_options *options, svp_image *x);
+
+/* ---------------------------------------------------------------------------------------- */
+/* Registration: align two images of the same scene, warp one onto the other's grid          */
+/* @@section register */
+/* Coordinates are pixel coordinates: pixel (x, y) is data[y * width + x], its centre at the
+ * integer point (x, y) (OpenCV's convention). A transform is a row-major 2 x 3 affine matrix
+ * a[6] that maps REFERENCE pixel coordinates to MOVING pixel coordinates:
+ *     x_moving = a[0] x_ref + a[1] y_ref + a[2]
+ *     y_moving = a[3] x_ref + a[4] y_ref + a[5]
+ * so the scene point seen at (x_ref, y_ref) in the reference is seen at (x_moving, y_moving) in
+ * the moving image, and warping the moving image onto the reference grid samples it at
+ * a · (x_ref, y_ref, 1) (svp_warp; OpenCV's warpAffine with WARP_INVERSE_MAP). A moving image
+ * whose content is displaced by +d (moving(x) = reference(x − d)) gives a = [1 0 d_x; 0 1 d_y]. */
+
+typedef enum svp_register_method {
+    SVP_REGISTER_PHASE = 0, /* phase correlation: translation only, sub-pixel (default) */
+    SVP_REGISTER_ECC = 1    /* OpenCV findTransformECC (enhanced correlation coefficient),
+                               started from the phase-correlation translation */
+} svp_register_method;
+
+typedef enum svp_register_motion {
+    SVP_MOTION_TRANSLATION = 0, /* 2 parameters (default) */
+    SVP_MOTION_EUCLIDEAN = 1,   /* rotation + translation, 3 parameters (ECC only) */
+    SVP_MOTION_AFFINE = 2       /* full 2 x 3 affine, 6 parameters (ECC only) */
+} svp_register_motion;
+
+typedef struct svp_register_options {
+    svp_register_method method; /* default SVP_REGISTER_PHASE */
+    svp_register_motion motion; /* default SVP_MOTION_TRANSLATION; phase correlation accepts
+                                   only TRANSLATION */
+    int normalise;       /* 1 (default): each image is scaled to zero mean and unit variance
+                            over its finite pixels before anything else, so images of different
+                            brightness (PL vs reflectance) compare; the residual is then in
+                            units of the standard deviation. 0: used as they are (the mean is
+                            still subtracted for phase correlation, which ignores scale). */
+    double smooth_sigma; /* Gaussian pre-smoothing, sigma in pixels, of both images (>= 0; 0 =
+                            none); default 1. Phase correlation: applied as the spectral weight
+                            exp(−σ² |ω|²) on the cross-power spectrum; ECC: cv::GaussianBlur of
+                            both images. Damps pixel noise; does not bias a translation. */
+    /* phase correlation */
+    int window;          /* 1 (default): Hann window (sin² taper to zero at the edges) so the
+                            image edges do not correlate; refined passes lay it over the region
+                            both images see and move it with the scene, so the windowed images
+                            are exact shifted copies (no pull towards zero shift). 0: no window
+                            (periodic images; isolated spots on a flat background, e.g. an
+                            excitation/emission spot pair, where it is more accurate). */
+    double whitening;    /* regularised whitening of the cross-power spectrum X = M conj(R):
+                            X / (|X| + whitening · max|X|) (0 = pure phase correlation, which
+                            amplifies noise-only frequencies; large = plain cross-correlation);
+                            >= 0, default 0.1 */
+    double min_significance; /* results whose phase-correlation peak significance is below
+                            this are flagged (result->low_significance); default 10 (measured
+                            on blob scenes of 64² to 512²: unrelated images 3–9, shifted
+                            copies 12–100, with or without moderate noise) */
+    /* ECC */
+    int iterations;      /* most ECC iterations (>= 2); default 100 */
+    double epsilon;      /* ECC stops when the correlation coefficient changes by less than
+                            this between iterations (OpenCV's TermCriteria EPS); default 1e-6.
+                            Not reached within `iterations` → SVP_ERR_NUMERIC. */
+    const double *initial_affine; /* ECC starting transform (6 values, see above); NULL
+                            (default) = the phase-correlation translation */
+    svp_progress_fn progress; /* optional: once per ECC iteration */
+    void *progress_user;
+} svp_register_options;
+
+SVP_API void svp_register_defaults(svp_register_options *options);
+
+typedef struct svp_register_result {
+    double affine[6];   /* reference → moving pixel coordinates (see above) */
+    double shift_x;     /* displacement of the reference image centre c = ((w − 1) / 2,
+                           (h − 1) / 2): a · c − c, pixels (= a[2], a[5] for a translation) */
+    double shift_y;
+    double rotation;    /* angle of the linear part, atan2(a[3] − a[1], a[0] + a[4]), radians
+                           from +x towards +y: the moving image shows the reference rotated by
+                           this angle (exact for euclidean and similarity transforms) */
+    double scale;       /* sqrt|a[0] a[4] − a[1] a[3]|: moving features are this many times
+                           larger (1 for translation and euclidean) */
+    double response;    /* phase correlation: the interpolated peak height / its largest
+                           possible value Σ|W|, in [−1, 1]: 1 for exact shifted copies, lower
+                           with noise; smooth unrelated images can still reach 0.2–0.7, so
+                           judge by `significance`. ECC: that of its starting translation
+                           (NaN when initial_affine is given) */
+    double significance; /* peak-to-sidelobe ratio of the correlation surface: (peak − mean) /
+                           standard deviation, both taken farther than 5 + 2 smooth_sigma px
+                           from the peak (NaN when initial_affine is given) */
+    double correlation; /* Pearson correlation of the reference and the warped moving image
+                           over the overlap (the quantity ECC maximises), after
+                           normalisation, without smoothing */
+    double residual_rms; /* RMS of (reference − warped moving) over the overlap, after the
+                           normalisation (so in standard deviations when normalise = 1) */
+    double overlap;     /* fraction of the reference pixels in the overlap: pixels whose mapped
+                           position lies inside the moving image (svp_warp's domain) and whose
+                           reference and interpolated moving values are finite */
+    int iterations;     /* ECC iterations run (0 for phase correlation) */
+    int low_significance; /* 1 when significance < options->min_significance: the images may
+                           not overlap or lack common texture; the transform is unreliable
+                           (the status is still SVP_OK); 0 when not measured
+                           (ECC with initial_affine) */
+    size_t nonfinite_reference; /* NaN/Inf pixels, filled from their neighbours for the
+                                   estimation and left out of correlation and residual */
+    size_t nonfinite_moving;
+} svp_register_result;
+
+/* Estimates the transform that maps reference pixel coordinates to moving pixel coordinates
+ * (the moving image is brought onto the reference with svp_warp(moving, result->affine, ...)).
+ * Both images must have the same size (SVP_ERR_SIZE otherwise: crop or pad first; svp_warp
+ * accepts any sizes), at least 8 x 8 pixels, and at least one finite non-constant pixel each
+ * (a constant image has no texture to register: SVP_ERR_INVALID naming it). NaN/Inf pixels are
+ * filled with the mean of their finite 3 x 3 neighbours (growing inwards over up to 8 rings;
+ * the image mean beyond), counted in the result, and left out of correlation and residual.
+ * Phase correlation: the integer peak of the inverse transform of the whitened cross-power
+ * spectrum, refined to sub-pixel by maximising its Fourier interpolation (Newton on the
+ * spectral sum), then re-estimated with Hann windows over the region both images see (moved
+ * with the scene) until d changes by less than 1e-4 px (at most 6 passes). Shifts up to half
+ * the image size are found; measured error at most 2.5e-3 px on noise-free smooth scenes, for
+ * shifts up to 37 px in a 128 x 112 frame (tests/test_register.c).
+ * ECC: OpenCV's findTransformECC (reference = template, moving = input) run one iteration at a
+ * time from the phase-correlation translation (or options->initial_affine) until the
+ * correlation coefficient changes by less than epsilon; SVP_ERR_NUMERIC "registration did not
+ * converge after N iterations (correlation r)" when it does not, and SVP_ERR_NUMERIC with
+ * OpenCV's reason when ECC breaks down (e.g. the images do not overlap).
+ * options NULL = svp_register_defaults. On failure *result is zeroed except for what was
+ * known: when ECC fails, affine holds its last transform and iterations the count. */
+SVP_API svp_status svp_register(const svp_image *reference, const svp_image *moving,
+                                const svp_register_options *options,
+                                svp_register_result *result);
+
+typedef enum svp_interpolation {
+    SVP_INTERP_NEAREST = 0, /* the nearest pixel (round half up): label masks keep their
+                               labels */
+    SVP_INTERP_LINEAR = 1   /* bilinear; a NaN neighbour with nonzero weight gives NaN */
+} svp_interpolation;
+
+/* Brings the moving image onto the reference grid: out(x, y) = moving(a · (x, y, 1)) for every
+ * pixel of out (out's size is the reference grid; moving may have any size). Positions inside
+ * [−0.5, width − 0.5) x [−0.5, height − 0.5) of the moving image are sampled (linear: edge
+ * pixels are repeated over the outer half pixel); positions outside get border_value. out must
+ * not be moving. Exact in double precision (no fixed-point tables). */
+SVP_API svp_status svp_warp(const svp_image *moving, const double affine[6],
+                            svp_interpolation interpolation, double border_value,
+                            svp_image *out);
+
+/* The inverse transform (moving → reference coordinates). SVP_ERR_NUMERIC when the linear
+ * part is singular (|det| < 1e-12). */
+SVP_API svp_status svp_affine_invert(const double affine[6], double inverse[6]);
+
 /* ---------------------------------------------------------------------------------------- */
 /* Fitting: Levenberg–Marquardt, PSF spot fits, PSF maps                                     */
 /* @@section fit */
+/* ---- Levenberg–Marquardt for small dense problems (src/psf/fit.c) ------------------------
+ * Minimises χ² = Σ_i w_i (y_i − f_i(θ))² over θ (n_params ≤ SVP_LM_MAX_PARAMS values) in the
+ * shape of GSL's multifit_nlinear (problem, workspace, init / iterate / finish, driver) but
+ * never aborting: every failure is a status with a message. Classic LM with Marquardt
+ * scaling D = diag(‖J_j‖) (kept monotone, as MINPACK); each damped step solves the augmented
+ * least-squares problem [J; √λ D] δ = [−r; 0] by a QR of J (once per iteration) and a small
+ * (2n × n) QR per trial λ (LAPACKE dgeqrf/dormqr/dgels): no normal equations, so the condition
+ * number is not squared. Bounds go through smooth transforms (two-sided: x = lo + (hi − lo)
+ * (1 + sin u) / 2; one-sided: softplus); lower == upper fixes a parameter.
+ * Weights: 1/σ_i² from `sigma` when given, else from the noise model evaluated at the MODEL
+ * value f_i (frozen within an iteration, updated after every accepted step: iteratively
+ * reweighted; for pure shot noise this solves the Poisson score equations, so the estimate is
+ * not biased the way data-weighted χ² is), else unit weights.
+ * A workspace is reusable for any problem up to its capacity; init/iterate/finish/solve never
+ * allocate. Different workspaces may be used from different threads at the same time. */
+
+#define SVP_LM_MAX_PARAMS 64
+
+/* The model: writes model[i] = f_i(params) for i < n_points and, when jacobian is not NULL,
+ * jacobian[i * n_params + j] = ∂f_i/∂params[j] (row-major, every parameter, fixed ones
+ * included; they are ignored). Returns 0 on success, nonzero when the model cannot be evaluated
+ * at these parameters (the trial step is rejected; at the initial point it is an error). */
+typedef int (*svp_lm_model_fn)(void *user, const double *params, int n_params, int n_points,
+                               double *model, double *jacobian);
+
+/* Per-point noise, σ² = σ_bg² + max(p, 1/g)/g + (a p)², p the model value. The shot term is
+ * floored at one electron (p = 1/g) so pixels of zero model keep a finite weight. All zero =
+ * unit weights. */
+typedef struct svp_noise_model {
+    double sigma_bg; /* additive noise σ_bg (read noise, dark), data units; default 0 */
+    double gain;     /* g: electrons (photons) per data unit; 0 = no shot term; default 0 */
+    double excess;   /* a: relative noise, e.g. laser fluctuations; default 0 */
+} svp_noise_model;
+
+/* σ² of one point with model value p under the noise model (1 when the model is all zero). */
+SVP_API double svp_noise_variance(const svp_noise_model *noise, double p);
+
+typedef enum svp_lm_covariance_scaling {
+    SVP_LM_COV_AUTO = 0,     /* scaled by χ²_red only with unit weights (σ unknown; default) */
+    SVP_LM_COV_UNSCALED = 1, /* (JᵀWJ)⁻¹: right when σ_i are the true noise */
+    SVP_LM_COV_SCALED = 2    /* (JᵀWJ)⁻¹ · χ²_red (GSL/scipy curve_fit absolute_sigma=False) */
+} svp_lm_covariance_scaling;
+
+typedef struct svp_lm_options {
+    int max_iterations;  /* accepted steps before giving up with SVP_ERR_NUMERIC; default 200 */
+    double xtol;         /* stop when ‖D δ‖ ≤ xtol (‖D u‖ + xtol); default 1e-8 */
+    double gtol;         /* stop when max_j |J_jᵀ r| / (‖J_j‖ ‖r‖) ≤ gtol; default 1e-10 */
+    double ftol;         /* stop when the actual and the predicted relative decrease of χ² are
+                            both ≤ ftol; default 1e-8 (MINPACK's sqrt(eps) scale: far below a
+                            change of 1 in χ², i.e. 1σ, for any realistic number of points) */
+    double lambda_init;  /* initial damping relative to D²; default 1e-3 */
+    double fd_step;      /* forward-difference step relative to max(|θ_j|, |θ_j initial|, 1e-3)
+                            when the model has no Jacobian; default sqrt(DBL_EPSILON) */
+    svp_lm_covariance_scaling covariance; /* default SVP_LM_COV_AUTO */
+} svp_lm_options;
+
+SVP_API void svp_lm_defaults(svp_lm_options *options);
+
+typedef struct svp_lm_problem {
+    int n_params;            /* 1 .. SVP_LM_MAX_PARAMS */
+    int n_points;            /* >= the number of free parameters */
+    svp_lm_model_fn model;
+    void *user;              /* passed to model */
+    int analytic_jacobian;   /* nonzero: model fills the Jacobian; 0: forward differences */
+    const double *data;      /* y_i; NULL = zeros (then the model values are the residuals) */
+    const double *sigma;     /* σ_i > 0 per point; NULL = from `noise` */
+    svp_noise_model noise;   /* used when sigma is NULL; all zero = unit weights */
+    const double *lower;     /* per-parameter bounds; NULL or -INFINITY = none */
+    const double *upper;     /* NULL or +INFINITY = none; lower[j] == upper[j] fixes θ_j */
+} svp_lm_problem;
+
+/* Why the iterations stopped. */
+typedef enum svp_lm_stop {
+    SVP_LM_RUNNING = 0,   /* not yet */
+    SVP_LM_XTOL = 1,      /* the step became small */
+    SVP_LM_GTOL = 2,      /* the gradient became orthogonal to the residuals (or χ² = 0) */
+    SVP_LM_FTOL = 3,      /* χ² stopped decreasing */
+    SVP_LM_ROUNDOFF = 4,  /* no further decrease possible at machine precision (converged) */
+    SVP_LM_MAX_ITER = 5,  /* not converged: max_iterations reached */
+    SVP_LM_STUCK = 6      /* not converged: no step decreases χ² although the gradient is not
+                             small (a model that is not smooth, or a bad Jacobian) */
+} svp_lm_stop;
+
+typedef struct svp_lm_result {
+    double chi2;        /* Σ w_i (y_i − f_i)² at the solution, weights from the model there */
+    double chi2_red;    /* chi2 / dof; 0 when dof = 0 */
+    int dof;            /* n_points − number of free parameters */
+    int iterations;     /* accepted steps */
+    int evaluations;    /* model calls (finite-difference calls included) */
+    svp_lm_stop stop;
+    int covariance_ok;  /* 0: JᵀWJ was singular at the solution; variances are INFINITY */
+    unsigned long long at_bound; /* bit j set: θ_j ended at (within 1e-4 of the range of) a
+                                    bound; its variance is INFINITY and the others are
+                                    conditional on it */
+} svp_lm_result;
+
+typedef struct svp_lm_workspace svp_lm_workspace;
+
+/* A workspace for problems with up to max_params parameters and max_points points. */
+SVP_API svp_status svp_lm_workspace_new(int max_params, int max_points,
+                                        svp_lm_workspace **out);
+SVP_API void svp_lm_workspace_free(svp_lm_workspace *ws);
+
+/* Starts a fit at params0 (clamped into the bounds). The problem's arrays must stay valid
+ * until the fit is finished. options NULL = defaults. Evaluates the model (and Jacobian). */
+SVP_API svp_status svp_lm_init(svp_lm_workspace *ws, const svp_lm_problem *problem,
+                               const svp_lm_options *options, const double *params0);
+/* One accepted step (trying larger damping until χ² decreases). *stop (may be NULL) becomes
+ * nonzero when a convergence test is met. SVP_ERR_NUMERIC when no step can decrease χ² while
+ * the gradient is not small (stop = SVP_LM_STUCK). */
+SVP_API svp_status svp_lm_iterate(svp_lm_workspace *ws, svp_lm_stop *stop);
+/* The current parameters (n_params values). */
+SVP_API void svp_lm_params(const svp_lm_workspace *ws, double *params);
+/* Statistics and covariance at the current point. params and covariance (n_params² values,
+ * row-major, in the user's parameters: the Jacobian is taken w.r.t. θ, not the transformed
+ * variable) may be NULL. Fixed parameters have zero rows and columns. */
+SVP_API svp_status svp_lm_finish(svp_lm_workspace *ws, double *params, svp_lm_result *result,
+                                 double *covariance);
+/* The driver: init, iterate until a test is met, finish. params: initial values in, solution
+ * out. When the fit does not converge within max_iterations it still writes the last
+ * parameters and statistics (result.stop = SVP_LM_MAX_ITER) and returns SVP_ERR_NUMERIC with a
+ * message giving χ² and the last step. */
+SVP_API svp_status svp_lm_solve(svp_lm_workspace *ws, const svp_lm_problem *problem,
+                                const svp_lm_options *options, double *params,
+                                svp_lm_result *result, double *covariance);
+/* "small step", "small gradient", ... */
+SVP_API const char *svp_lm_stop_string(svp_lm_stop stop);
+
+/* ---- Spot fits (PHYSICS.md §4): elliptical Moffat, Gaussian, Lorentzian -----------------
+ * Model of pixel (x, y) (pixel centres at integer coordinates, x = column):
+ *   f = background + amplitude · P(q),  q = dᵀ M d / s²,  d = (x − x0, y − y0),
+ *   Moffat P = (1 + q)^(−β), s = r0(F, β);  Gaussian P = exp(−q/2), s = σ(F);
+ *   M = exp(−G), G = [[g1, g2], [g2, −g1]], (g1, g2) = ln(FWHM_major/FWHM_minor)(cos 2θ, sin 2θ)
+ * fitting F = sqrt(FWHM_major · FWHM_minor), g1, g2: det M = 1 and the orientation enters as
+ * (cos 2θ, sin 2θ), so the fit is regular for round spots (θ undefined there, only its
+ * uncertainty grows). Results are reported in the PSF-field convention (svp_psf_to_params). The model is integrated over each pixel (2 × 2 Gauss–Legendre points,
+ * 4 × 4 when the minor FWHM is below 2 px) within max(3, 4 FWHM) of the centre; outside, the
+ * centre value is used. */
+
+typedef enum svp_spot_flag {
+    SVP_SPOT_NOT_CONVERGED = 1u << 0,  /* the LM fit did not converge (status NUMERIC) */
+    SVP_SPOT_NEAR_BORDER = 1u << 1,    /* centre within border_fwhm · FWHM of an edge */
+    SVP_SPOT_SATURATED = 1u << 2,      /* saturated pixels were excluded from the fit */
+    SVP_SPOT_BETA_AT_BOUND = 1u << 3,  /* β ran to beta_min or beta_max */
+    SVP_SPOT_HOT_PIXELS = 1u << 4,     /* single-pixel spikes were excluded */
+    SVP_SPOT_CLIPPED = 1u << 5,        /* κ-σ clipping excluded pixels */
+    SVP_SPOT_NO_ERRORS = 1u << 6,      /* covariance singular: uncertainties unknown */
+    SVP_SPOT_WIDTH_AT_BOUND = 1u << 7, /* FWHM or axis ratio ran to its bound */
+    SVP_SPOT_POOR_FIT = 1u << 8        /* χ²_red above chi2_red_max (known noise only) */
+} svp_spot_flag;
+
+#define SVP_SPOT_N_FLAGS 9
+
+/* Text for one flag bit ("near border: ..."); "" for 0 or an unknown bit. */
+SVP_API const char *svp_spot_flag_string(unsigned flag);
+/* All set flags as "not converged; saturated" into buf (always terminated). Returns the length
+ * the full text needs. "ok" when no flag is set. */
+SVP_API size_t svp_spot_flags_describe(unsigned flags, char *buf, size_t size);
+
+typedef struct svp_spot_options {
+    svp_psf_model model;   /* default SVP_PSF_MOFFAT */
+    double beta;           /* initial (or fixed) β of a Moffat; default 2.5 */
+    int fix_beta;          /* keep β at `beta`; default 0 */
+    double beta_min;       /* β bounds of a Moffat fit; default 0.5 */
+    double beta_max;       /* default 20 (β → ∞ is a Gaussian) */
+    int elliptical;        /* fit two FWHMs and an angle; 0: circular; default 1 */
+    svp_noise_model noise; /* default {σ_bg 0, gain 1, a 0}: the data are photon counts. Gain 0
+                              and σ_bg 0: unit weights, uncertainties scaled by χ²_red */
+    double saturation;     /* pixels >= saturation are excluded and the fit flagged; 0 (default)
+                              = detect a plateau of >= 3 pixels equal to the maximum; < 0 off */
+    int hot_pixels;        /* exclude single-pixel spikes: above hot_ratio × the brightest of
+                              their 8 neighbours (background removed) and hot_sigma σ above it;
+                              default 1. Spots narrower than ~1.4 px FWHM look like spikes. */
+    double hot_ratio;      /* default 4 */
+    double hot_sigma;      /* default 8 */
+    double clip_kappa;     /* exclude pixels with |y − f| > κ σ and refit, worst first (per
+                              round those above max(κ, max|z|/2)); many moderate outliers are a
+                              misfit (POOR_FIT), not clipped; default 5; 0 = off */
+    int clip_iterations;   /* clipping rounds at most; default 5 */
+    double border_fwhm;    /* near-border distance in units of the major FWHM; default 2 */
+    int refuse_near_border; /* SVP_ERR_INVALID instead of the flag; default 0 */
+    double min_snr;        /* the 3×3-mean peak must stand this many σ above the background,
+                              else the image is empty (SVP_ERR_INVALID); default 5 */
+    double chi2_red_max;   /* POOR_FIT threshold; default 3 */
+    int pixel_integration; /* 1 (default): integrate the model over pixels; 0: centre values */
+    double ee_radius;      /* disc radius (px) for the encircled-energy radii; 0 (default) =
+                              min(width, height) / 2 (the flux of β ≤ 1 diverges otherwise) */
+    double x0, y0;         /* initial centre (px); NaN (default) = from moments */
+    svp_lm_options lm;     /* max_iterations 200, ... */
+} svp_spot_options;
+
+SVP_API void svp_spot_defaults(svp_spot_options *options);
+
+typedef struct svp_spot_result {
+    svp_psf_model model;
+    double amplitude, amplitude_err;   /* peak of the profile above background, data units */
+    double x0, x0_err, y0, y0_err;     /* centre, pixels */
+    double fwhm, fwhm_err;             /* mean FWHM (major + minor) / 2, pixels (as
+                                          SVP_FIELD_FWHM) */
+    double fwhm_major, fwhm_major_err; /* pixels */
+    double fwhm_minor, fwhm_minor_err;
+    double angle, angle_err;           /* major axis from +x towards +y, radians in (−π/2, π/2] */
+    double e1, e1_err, e2, e2_err;     /* e (cos 2θ, sin 2θ), e = (major − minor) / (major +
+                                          minor): as SVP_FIELD_E1, SVP_FIELD_E2 */
+    double beta, beta_err;             /* Moffat β (1 for Lorentzian, 0 for Gaussian) */
+    double r0, r0_err;                 /* Moffat r0 (Gaussian σ) of the mean FWHM, pixels */
+    double background, background_err; /* data units */
+    double ee50, ee80, ee95;           /* encircled-energy radii (px) within ee_radius */
+    double ee_radius;                  /* the disc they refer to */
+    double chi2, chi2_red;
+    int dof, iterations;
+    int n_used;                        /* pixels in the final fit */
+    int n_hot, n_clipped, n_saturated; /* pixels excluded, by reason */
+    double border_distance;            /* centre to the nearest edge, pixels */
+    unsigned flags;                    /* svp_spot_flag bits */
+    double covariance[8 * 8];          /* of the fitted (amplitude, x0, y0, F, g1, g2, β,
+                                          background), F and g as in the model above */
+} svp_spot_result;
+
+/* Fits one spot. model_image and residual (data − model) may be NULL, else the spot's size;
+ * pixels that were NaN in the spot get residual 0. Errors: SVP_ERR_INVALID for an empty
+ * image (no significant peak), no finite pixels, fewer than 25 pixels, bad options or (with
+ * refuse_near_border) a spot near the border; SVP_ERR_NUMERIC when the fit did not converge —
+ * then the result is still filled and flagged SVP_SPOT_NOT_CONVERGED. A β that creeps along its
+ * bound until max_iterations is held at the bound for a last fit (flag BETA_AT_BOUND, beta_err
+ * INFINITY) instead. Uncertainties are 1σ from the covariance at the solution: unscaled with a
+ * known noise model (they cover the truth at the nominal 68 % on Poisson data), scaled by
+ * χ²_red with unit weights; INFINITY where unknown (a parameter at a bound, singular fit). */
+SVP_API svp_status svp_spot_fit(const svp_image *spot, const svp_spot_options *options,
+                                svp_spot_result *result, svp_image *model_image,
+                                svp_image *residual);
+/* The fitted PSF as an svp_psf (pixels; subsample 3 when the fit integrated over pixels so that
+ * svp_psf_render reproduces the fitted model, halo 0, support 0). */
+SVP_API void svp_spot_result_psf(const svp_spot_result *result, svp_psf *psf);
+
+/* ---- PSF from an excitation/emission pair (PHYSICS.md §5) -------------------------------
+ * I_PL = I_G ⊛ p: both spots are fitted directly; the excitation spot (background removed,
+ * negatives set to 0, restricted to a disc around its fitted centre) is the kernel of a
+ * Richardson–Lucy deconvolution of the emission spot (background removed; saturated and hot
+ * pixels treated as missing); the result is fitted again. Registration: the kernel is centred
+ * on the fitted excitation centre, which removes any offset between the two images to within
+ * half a pixel (the rest only moves p, whose centre is free); the fitted offset is reported.
+ * The direct fit is an upper bound on p's width; the deconvolved one approaches p from above as
+ * RL iterates (75 iterations leave it a few % wide). */
+
+typedef struct svp_pair_options {
+    svp_spot_options spot;   /* for the excitation and the direct emission fit */
+    int iterations;          /* Richardson–Lucy iterations; default 75 */
+    double kernel_radius;    /* radius of the kernel disc, px; 0 (default) = 3 × the fitted
+                                excitation major FWHM */
+    int kernel_from_fit;     /* 1: the fitted excitation model (no noise) as the kernel;
+                                default 0 (the measured spot) */
+    svp_boundary boundary;   /* of the deconvolution; default SVP_BOUNDARY_ZERO */
+} svp_pair_options;
+
+SVP_API void svp_pair_defaults(svp_pair_options *options);
+
+typedef struct svp_pair_result {
+    svp_spot_result excitation;  /* fit of I_G */
+    svp_spot_result direct;      /* fit of I_PL: the upper bound */
+    svp_spot_result deconvolved; /* fit of I_PL ⊘ I_G: the estimate of p */
+    double offset_x, offset_y;   /* emission centre − excitation centre, px */
+    int deconvolved_ok;          /* 0 when the deconvolution or its fit failed */
+} svp_pair_result;
+
+/* excitation and emission: the same size. deconvolved (may be NULL, else the same size)
+ * receives I_PL ⊘ I_G. On a failure of the deconvolution step (e.g. SVP_ERR_UNSUPPORTED) the
+ * excitation and direct fits are still filled and deconvolved_ok is 0. */
+SVP_API svp_status svp_psf_from_pair(const svp_image *excitation, const svp_image *emission,
+                                     const svp_pair_options *options, svp_pair_result *result,
+                                     svp_image *deconvolved);
+
+/* ---- PSF maps from many spot fits (src/psf/map.c) ---------------------------------------
+ * Each accepted spot gives the PSF-field parameter vector (fwhm, e1, e2, beta; halo is not
+ * measured by a spot and is the constant options.halo) with its 1σ uncertainties. Either
+ * polynomial surfaces of each parameter are fitted over the field (weighted least squares,
+ * weights 1/σ², LAPACKE dgels) and returned as an SVP_FIELD_POLY field, or, with a label
+ * image, per-region statistics are formed and regions that do not differ significantly are
+ * merged (SVP_FIELD_REGIONS). Rejections carry a reason per spot and parameter. */
+
+typedef struct svp_psf_sample {
+    double x, y;          /* spot centre in the field, pixels (the fit's own x0, y0, which
+                             refer to the spot cut-out, are not used) */
+    svp_spot_result fit;
+} svp_psf_sample;
+
+typedef enum svp_map_reject {
+    SVP_MAP_KEPT = 0,
+    SVP_MAP_REJECT_FLAGS = 1,   /* the fit carries a flag of options.reject_flags */
+    SVP_MAP_REJECT_INVALID = 2, /* value or uncertainty not finite/positive, or another model */
+    SVP_MAP_REJECT_OUTSIDE = 3, /* position outside the field (or label out of range) */
+    SVP_MAP_REJECT_OUTLIER = 4  /* |residual| > clip_kappa × robust σ of the surface/region */
+} svp_map_reject;
+
+SVP_API const char *svp_map_reject_string(svp_map_reject code);
+
+typedef struct svp_map_options {
+    int degree;             /* polynomial degree for every parameter, 0..8; -1 (default) =
+                               per parameter by k-fold cross-validation over 0..max_degree
+                               (smallest degree within one standard error of the best) */
+    int max_degree;         /* default 3 */
+    int folds;              /* cross-validation folds, >= 2; default 5 */
+    unsigned reject_flags;  /* spot flags that reject a spot; default NOT_CONVERGED |
+                               NEAR_BORDER | SATURATED | BETA_AT_BOUND | NO_ERRORS |
+                               WIDTH_AT_BOUND */
+    double clip_kappa;      /* outliers: |z| > clip_kappa × max(1, 1.4826 MAD(z)), z the
+                               residual in units of the spot's σ; default 4; 0 = off */
+    int clip_iterations;    /* default 5 */
+    double alpha;           /* regions: significance level of the Welch tests; default 0.01 */
+    double transition;      /* regions: blend width in pixels (svp_psf_field_new_regions);
+                               default 0 */
+    double halo;            /* alpha_b of the whole map; default 0 */
+    double support;         /* PSF support radius (px) of the field; default 0 = whole view */
+    int subsample;          /* of the field's PSFs; default 0 (auto) */
+} svp_map_options;
+
+SVP_API void svp_map_defaults(svp_map_options *options);
+
+typedef struct svp_region_stats {
+    int label;                      /* region label (groups: the smallest member label) */
+    int count;                      /* accepted spots */
+    double mean[SVP_FIELD_NPARAM];  /* mean of the spots' parameters */
+    double std[SVP_FIELD_NPARAM];   /* sample standard deviation (0 when count < 2) */
+    double sem[SVP_FIELD_NPARAM];   /* std / sqrt(count) */
+    int group;                      /* regions: index of the merged group it belongs to */
+} svp_region_stats;
+
+typedef struct svp_map_report {
+    int n_samples;
+    svp_psf_model model;
+    int mapped[SVP_FIELD_NPARAM];   /* 1 for the parameters fitted (beta only for Moffat) */
+    /* polynomial maps */
+    int degree[SVP_FIELD_NPARAM];   /* chosen degree per parameter (-1: not mapped) */
+    double cv_score[SVP_FIELD_NPARAM][9]; /* mean held-out χ² per point for degrees 0..8
+                                             (0 where not tried) */
+    double chi2_red[SVP_FIELD_NPARAM];    /* of the final surface fit */
+    double rms[SVP_FIELD_NPARAM];   /* rms residual of the accepted spots, parameter units */
+    int n_used[SVP_FIELD_NPARAM];   /* spots in the final fit */
+    /* per spot and parameter: svp_map_reject code and, for outliers, the z value */
+    int *reject;                    /* n_samples * SVP_FIELD_NPARAM */
+    double *reject_z;
+    /* region maps */
+    int n_regions;                  /* = n_labels; 0 for polynomial maps */
+    svp_region_stats *regions;      /* n_regions */
+    int n_groups;
+    svp_region_stats *groups;       /* n_groups: the merged regions */
+    double *p_value;                /* n_regions²: Bonferroni-corrected Welch p between regions
+                                       (1 on the diagonal; -1 when a region has < 2 spots) */
+} svp_map_report;
+
+SVP_API void svp_map_report_free(svp_map_report *report);
+/* "spot 7 (x 10.0, y 4.0): rejected: flags: near border" / "... beta outlier (z = 6.1)" /
+ * "... kept". Returns the needed length (buf always terminated). */
+SVP_API size_t svp_map_describe_sample(const svp_map_report *report,
+                                       const svp_psf_sample *samples, int index, char *buf,
+                                       size_t size);
+
+/* Polynomial PSF map of a width x height field from n spot fits. field (may be NULL) gets an
+ * SVP_FIELD_POLY field of degree max(chosen degrees) (lower-degree surfaces padded with zero
+ * coefficients), report (may be NULL) the diagnostics. SVP_ERR_INVALID when fewer accepted
+ * spots remain than a constant needs (2) — the message lists the rejection counts. */
+SVP_API svp_status svp_psf_map_poly(const svp_psf_sample *samples, int n, int width,
+                                    int height, const svp_map_options *options,
+                                    svp_psf_field **field, svp_map_report **report);
+/* Region PSF map: labels[y * width + x] in 0..n_labels-1 (as svp_psf_field_new_regions); each
+ * spot belongs to the label under its rounded centre. Per label: mean, std, count of the
+ * parameters (outliers beyond clip_kappa robust σ of the region rejected). Then, greedily, the
+ * pair of groups with the largest Welch p value (Bonferroni over the mapped parameters) is
+ * merged while that p exceeds alpha; groups with fewer than 2 spots are never merged. Each
+ * label's PSF is its group's mean; a label without spots gets the mean of all spots. */
+SVP_API svp_status svp_psf_map_regions(const svp_psf_sample *samples, int n, const int *labels,
+                                       int width, int height, int n_labels,
+                                       const svp_map_options *options, svp_psf_field **field,
+                                       svp_map_report **report);
+
+
+/* ---------------------------------------------------------------------------------------- */
+/* Scenes: simulate a sample, its emission and optics; correct, reconstruct, report          */
+/* @@section scene */
+/* ---- Scenes (docs/scenes.md) ----------------------------------------------------------------
+ * A scene file (YAML) describes a sample (field sources: magnetic flakes, current strips, field
+ * maps from files), its emission (PL) pattern, the optics (PSF) and the effects to include
+ * (noise, the full ODMR spectrum, drift), then optional corrections (T⁻¹), source
+ * reconstructions, metrics and outputs. Loading parses and checks the whole file (every error
+ * names file:line:column and the key) and compiles it to a PLAN: the list of stages the scene
+ * needs, and only those. Running executes the plan into an output folder.
+ *
+ * Stages (names are stable; the detail line says what each does for the scene):
+ *   grid        the canvas: the view plus margin_um on every side
+ *   sources     true fields B_x, B_y, B_z on the canvas (Fourier flake field, analytic strip)
+ *   projection  the measured components (x, y, z and/or the NV-axis projection)
+ *   emission    the true PL map (product of the emission factors)
+ *   operator    the blur operator H: invariant = one OTF; a PSF map = space-variant
+ *   forward     closed form, eq. (3) (svp_forward_transform): only without `spectrum`
+ *   cube        with `spectrum`: ODMR frames simulated, blurred (and drifted) frame by frame
+ *   drift       with `drift`: the lateral shift of each frame (inside the cube loop)
+ *   estimate    with `spectrum`: per-pixel centroid or Lorentzian fit of the blurred cube
+ *   crop        the view cut out of the canvas (only with margin_um > 0)
+ *   noise       shot noise (only with `noise`; no random number is drawn otherwise)
+ *   correct     T⁻¹ (eq. 4), once per entry of `correct`
+ *   reconstruct magnetisation / current density from true, apparent and corrected maps
+ *   metrics     relative errors over masks, histograms, line cuts, reductions
+ *   figures     PNG maps (colour bar with units, scale bar) and plots
+ *   write       maps, CSV tables, report.md, summary.json
+ */
+typedef struct svp_scene svp_scene;
+
+typedef struct svp_scene_stage {
+    const char *name;   /* one of the stage names above */
+    const char *detail; /* one line: what the stage does for this scene */
+} svp_scene_stage;
+
+/* Reads and checks a scene file; relative paths inside it are relative to its folder. Errors:
+ * SVP_ERR_IO (the file or a file it names cannot be read), SVP_ERR_FORMAT (YAML, unknown or
+ * missing keys, wrong types, a length key with the wrong unit suffix), SVP_ERR_INVALID
+ * (impossible values), each "file:line:col: message" naming the key. Files the scene names
+ * (masks, images, field maps, PSF files) are checked to exist and have the right size. */
+SVP_API svp_status svp_scene_load(const char *path, svp_scene **out);
+/* The same from memory; `name` stands for the file (messages, and the folder that relative
+ * paths start from). */
+SVP_API svp_status svp_scene_load_string(const char *name, const char *text, size_t len,
+                                         svp_scene **out);
+SVP_API void svp_scene_free(svp_scene *scene);
+/* The plan: *stages (may be NULL) points at the scene's stage list; returns its length. */
+SVP_API int svp_scene_plan(const svp_scene *scene, const svp_scene_stage **stages);
+/* 1 when the plan has a stage of that name (e.g. "cube", "noise"), else 0. */
+SVP_API int svp_scene_has_stage(const svp_scene *scene, const char *name);
+/* The scene's name (the `name:` key, else the file name without extension). */
+SVP_API const char *svp_scene_name(const svp_scene *scene);
+/* Geometry: pixel size (µm), view and canvas sizes (pixels). Any pointer may be NULL. */
+SVP_API void svp_scene_geometry(const svp_scene *scene, double *pixel_um, int *view_w,
+                                int *view_h, int *canvas_w, int *canvas_h);
+/* The files a run writes, relative to the output folder (index 0 .. n − 1; NULL beyond). */
+SVP_API int svp_scene_n_outputs(const svp_scene *scene);
+SVP_API const char *svp_scene_output(const svp_scene *scene, int index);
+
+/* Called as each stage begins (index in the plan, 0-based); nonzero cancels the run
+ * (SVP_ERR_CANCELLED). */
+typedef int (*svp_scene_stage_fn)(void *user, int index, int n_stages,
+                                  const svp_scene_stage *stage);
+
+typedef struct svp_scene_options {
+    int write;               /* 1 (default): write the outputs into out_dir; 0: compute only
+                                (the maps and values stay in the result; out_dir may be NULL) */
+    int overwrite;           /* 0 (default): if any output exists, SVP_ERR_EXISTS before any
+                                work; 1: replace them */
+    int keep_maps;           /* 1 (default): the result keeps every map (svp_scene_result_map);
+                                0: freed once written */
+    svp_progress_fn progress; /* optional: overall fraction in [0, 1] */
+    void *progress_user;
+    svp_scene_stage_fn on_stage; /* optional */
+    void *stage_user;
+    int argc;                /* the command line to record in summary.json (optional) */
+    char *const *argv;
+} svp_scene_options;
+
+SVP_API void svp_scene_defaults(svp_scene_options *options);
+
+typedef struct svp_scene_result svp_scene_result;
+
+/* Runs the plan. out_dir is created when missing (write = 1). Every output is written
+ * atomically; summary.json records the plan, each stage's time, the settings and the metrics;
+ * report.md lists them with the figures. The result (may be NULL when not wanted) gives the
+ * timings, the maps and the metric values. */
+SVP_API svp_status svp_scene_run(const svp_scene *scene, const char *out_dir,
+                                 const svp_scene_options *options, svp_scene_result **result);
+SVP_API void svp_scene_result_free(svp_scene_result *result);
+/* Seconds spent in plan stage `index` (0 when it did not run). */
+SVP_API double svp_scene_result_stage_seconds(const svp_scene_result *result, int index);
+/* A map of the run by name (SI units), NULL when absent. View-sized: "<q>_<version>" with
+ * q = pl, B_x, B_y, B_z, B_nv (tesla), m_z (A), J_bz / J_bxy (|J|, A/m; components
+ * "J_bz_x_<version>", ...) and version = true, apparent, corrected_<k> (k = the correction's
+ * name); "err_<q>_<version>" (relative error, NaN where undefined), "validity_<k>",
+ * "mask_<name>", "B_<c>_closed_form" and "contrast" (spectrum scenes), "m_z_source",
+ * "J_x_source", "J_y_source" (the ideal sources); canvas-sized: "canvas_pl_true",
+ * "canvas_B_<c>_true", ... (docs/scenes.md §Outputs). */
+SVP_API const svp_image *svp_scene_result_map(const svp_scene_result *result, const char *name);
+/* A metric by key (docs/scenes.md §Metrics: "<quantity>/<mask>/<version>/<statistic>", e.g.
+ * "m_z/flake/corrected_rw/median_abs_rel_err"). Returns 1 and sets *value when present. */
+SVP_API int svp_scene_result_value(const svp_scene_result *result, const char *key,
+                                   double *value);
+SVP_API int svp_scene_result_n_values(const svp_scene_result *result);
+/* Key of value `index` (NULL beyond), *value its value. */
+SVP_API const char *svp_scene_result_value_at(const svp_scene_result *result, int index,
+                                              double *value);
+
 
 /* ---------------------------------------------------------------------------------------- */
 /* Physics: source fields, reconstruction, spectra                                           */
 /* @@section physics */
+
+/* Frame and sign conventions of every function in this section (pinned by tests/test_physics.c
+ * against the closed-form strip and flake fields):
+ *  - SI units: tesla, metre, A/m (sheet current density J), A (areal magnetisation
+ *    m_z = M_z t); positions and lengths on images are in pixels, with the pixel size in metres
+ *    given explicitly; pixel (i, j) has its centre at (x, y) = (i, j) pixels and covers
+ *    [i − ½, i + ½] × [j − ½, j + ½];
+ *  - the frame is right-handed: +x along the columns (rightwards), +y along the rows (DOWNWARDS
+ *    in a displayed image, row index increasing), +z = x × y (into the screen of a displayed
+ *    image). B_x, B_y, B_z and J_x, J_y are the components along these axes;
+ *  - the NV layer (sensor) lies at distance h (standoff) from the source plane on the +z side
+ *    (sensor.side = +1, "above") or on the −z side (side = −1, "below"). B_z is the same on both
+ *    sides; the in-plane components change sign with the side;
+ *  - Fourier convention: numpy/FFTW forward kernel e^(−i(kx x + ky y)), k = 2π·fftfreq(N, dx),
+ *    k = |k|. In-plane from out-of-plane: B_x(k) = −i s (kx/k) B_z(k), B_y = −i s (ky/k) B_z.
+ *    At the Nyquist frequency of an even-length axis the odd (derivative-like) multipliers are 0;
+ *  - a measured B_z that is positive towards the viewer of the displayed image is −B_z here
+ *    (or flip the rows). */
+
+/* Where the sensor is. */
+typedef struct svp_sensor {
+    double pixel_m;        /* pixel size, metres (> 0); default 100e-9 */
+    double standoff_m;     /* h: distance from the source plane (the near surface of a flake,
+                              the plane of a current sheet) to the centre of the NV layer,
+                              metres (> 0); default 100e-9 */
+    double nv_thickness_m; /* t_NV: thickness of the NV layer, metres, 0 <= t_NV < 2 h: the
+                              field is averaged over it, e^(−kh) → e^(−kh) sinh(a)/a with
+                              a = k t_NV / 2; default 0 (a plane) */
+    int side;              /* +1 (default): sensor on the +z side of the sources; −1: −z side */
+} svp_sensor;
+
+SVP_API void svp_sensor_defaults(svp_sensor *sensor);
+/* SVP_ERR_INVALID naming the field for pixel_m <= 0, standoff_m <= 0, t_NV outside [0, 2h),
+ * side not ±1, or a non-finite value. */
+SVP_API svp_status svp_sensor_validate(const svp_sensor *sensor);
+
+/* ---- shapes: add value × (covered area fraction) to each pixel (coordinates in pixels) ---- */
+
+/* Polygon with n >= 3 vertices xy = {x0, y0, x1, y1, ...}, simple (not self-intersecting),
+ * either orientation. Exact area coverage (each pixel square clipped against the polygon). */
+SVP_API svp_status svp_raster_polygon(svp_image *image, const double *xy, int n, double value);
+/* Rectangle of size width x height (pixels) centred at (cx, cy), its width axis rotated by
+ * angle (radians, from +x towards +y) — a polygon, exact coverage. */
+SVP_API svp_status svp_raster_rectangle(svp_image *image, double cx, double cy, double width,
+                                        double height, double angle, double value);
+/* Disc of radius r (pixels) centred at (cx, cy). Pixels wholly inside or outside are exact;
+ * pixels cut by the circle are sampled on a 16 x 16 sub-grid (area error ~1e-3 of πr²). */
+SVP_API svp_status svp_raster_disk(svp_image *image, double cx, double cy, double radius,
+                                   double value);
+
+/* ---- source fields ------------------------------------------------------------------------ */
+
+/* Stray field of a thin magnetic flake by the Fourier method (PHYSICS.md §7). moment is the
+ * areal magnetisation m_z = M_z t in A on the sensor's pixel grid (e.g. 1e-3 for M_z = 1 MA/m,
+ * t = 1 nm; build it with svp_raster_* or from a mask image times M_z t). Zero outside the
+ * image: the canvas is padded with zeros to at least pad_factor times the image size in each
+ * axis (pad_factor 0 → 2; 1 = no padding, periodic). thickness_m: the flake's thickness t
+ * (0 = the thin-film limit):
+ *     B_z(k) = (μ0/2) k e^(−kh) [(1 − e^(−kt)) / (kt)] [sinh(a)/a] m_z(k),  a = k t_NV / 2,
+ * (→ (μ0/2) k e^(−kh) m_z(k) for t → 0); B_x, B_y from B_z as in the conventions above. h is
+ * measured to the flake's near surface. Outputs (any may be NULL) have the moment's size. For
+ * M_z > 0, B_z is positive just inside an edge and negative just outside, on either side.
+ * Accuracy (tests): against the exact field of a rectangle with h = 2 pixels, 1.4e-3 of the
+ * peak farther than 4h from the edges, 2.7e-2 at the edges (pixel sampling). The padded canvas
+ * carries exactly zero flux, so the flux beyond it shifts the map by a tiny constant (at pad 2
+ * about 10 % of the already small flux missing from the view; pad 8: < 1 %). */
+SVP_API svp_status svp_flake_field(const svp_image *moment, double thickness_m,
+                                   const svp_sensor *sensor, int pad_factor, svp_image *bx,
+                                   svp_image *by, svp_image *bz);
+
+/* An infinitely long flat strip of current (PHYSICS.md §7). */
+typedef struct svp_strip {
+    double width_m;       /* w, metres (> 0); default 40e-6 */
+    double sheet_current; /* J, A/m (current per unit width, along the strip); default 200 */
+    double centre_x;      /* a point of the centre line, pixels; default 0, 0 */
+    double centre_y;
+    double angle;         /* direction of the current, radians from +x towards +y (rows);
+                             default π/2: current along +y */
+} svp_strip;
+
+SVP_API void svp_strip_defaults(svp_strip *strip);
+/* Analytic Oersted field of the strip. With u the current direction, n = u × z = (u_y, −u_x)
+ * and ξ the distance from the centre line along n (metres):
+ *   B_n(ξ) = s (μ0 J / 2π) [atan((w/2 + ξ)/h) + atan((w/2 − ξ)/h)]   (→ s μ0 J / 2 inside),
+ *   B_z(ξ) = (μ0 J / 4π) ln[((ξ − w/2)² + h²) / ((ξ + w/2)² + h²)],
+ * (B_x, B_y) = B_n n. For current along +y (angle π/2) n = +x: B_x > 0 over the strip for
+ * s = +1 and B_z < 0 on the +x side. With t_NV > 0 both are averaged exactly over the NV layer
+ * (closed-form antiderivatives in h). Outputs (any may be NULL; at least one) share one size. */
+SVP_API svp_status svp_strip_field(const svp_strip *strip, const svp_sensor *sensor,
+                                   svp_image *bx, svp_image *by, svp_image *bz);
+/* The strip's current density map (A/m): J u times the covered area fraction of each pixel
+ * (exact coverage of the band; the width in metres over pixel_m). jx or jy may be NULL. */
+SVP_API svp_status svp_strip_current(const svp_strip *strip, double pixel_m, svp_image *jx,
+                                     svp_image *jy);
+
+/* Projection on the NV axis: out = (axis · (B_x, B_y, B_z)) / |axis|, |axis| > 0. A component
+ * may be NULL only where its axis entry is 0. */
+SVP_API svp_status svp_field_project(const svp_image *bx, const svp_image *by,
+                                     const svp_image *bz, const double axis[3], svp_image *out);
+
+/* ---- source reconstruction (PHYSICS.md §7) ------------------------------------------------- */
+
+typedef enum svp_pad_mode {
+    SVP_PAD_TAPER = 0, /* default: the map continues from its edge values, cosine-tapered to its
+                          mean half-way across the padding (wrap-around meets at the mean) */
+    SVP_PAD_MEAN = 1,  /* the padding holds the map's mean (= mean-subtracted, zero-padded) */
+    SVP_PAD_NONE = 2   /* no padding: periodic */
+} svp_pad_mode;
+
+typedef struct svp_recon_options {
+    svp_sensor sensor;        /* pixel size, standoff, NV thickness, side */
+    double cutoff;            /* k_c of the window, rad/m; 0 (default) = 2π / standoff */
+    int window;               /* 1 (default): radial Hann W = ½[1 + cos(π k/k_c)] for k < k_c,
+                                 else 0; 0: no window (W = 1; the e^(kh) gain is then set to
+                                 0 where kh > 700) */
+    svp_pad_mode pad;         /* default SVP_PAD_TAPER */
+    int pad_factor;           /* padded canvas >= pad_factor × the image per axis; default 2 */
+    double source_thickness_m; /* flake thickness t for the magnetisation: divides by
+                                 (1 − e^(−kt))/(kt); 0 (default) = thin film */
+    int zero_border;          /* magnetisation only: 1 (default) then subtracts the mean of
+                                 the image's outermost pixel ring (m_z = 0 around a flake that
+                                 lies inside the view); 0: only the k = 0 term set to 0 */
+} svp_recon_options;
+
+SVP_API void svp_recon_defaults(svp_recon_options *options);
+
+/* Areal magnetisation m_z = M_z t (A) from B_z (T): m_z(k) = W · 2 B_z(k) / (μ0 k f(k)), with
+ * f(k) = e^(−kh) sinh(a)/a (and the thickness factor when set). k = 0 is undefined and set to
+ * 0: the mean of m_z over the padded canvas is lost; by default (zero_border) the map is then
+ * shifted to m_z = 0 on the image border. Measured (tests): 20 µm flake of 1 mA, h = 100 nm,
+ * 100 nm pixels, 51.2 µm view: 0.980–0.984 mA inside (taper), 0.93–0.94 mA (mean padding),
+ * 0.908–0.912 mA without the border shift. */
+SVP_API svp_status svp_reconstruct_magnetisation(const svp_image *bz,
+                                                 const svp_recon_options *options,
+                                                 svp_image *mz);
+/* Sheet current density (A/m) from B_z (T), in the frame above (right-handed, rows down):
+ *   J_x(k) = +i (ky/k) α W B_z(k),   J_y(k) = −i (kx/k) α W B_z(k),   α = 2 / (μ0 f(k)),
+ * the same for either sensor side; k = 0 set to 0 (a uniform current makes no B_z). NOTE:
+ * PHYSICS.md §7 writes the opposite signs, which belong to a left-handed frame (x right, y down,
+ * z towards the viewer); the tests pin these against the strip's closed form. The Fourier
+ * inversion needs the whole field: for a wire that crosses the view, the 1/x tails of B_z
+ * outside it are missing and J is underestimated by roughly 4w/(π² L) (strip width w, view L):
+ * measured 137 A/m for 200 A/m with a 40 µm strip in a 51.2 µm view, 196.6 A/m with a 2 µm
+ * strip; from B_x the same 40 µm strip gives 199.8 A/m. jx or jy may be NULL. */
+SVP_API svp_status svp_reconstruct_current_from_bz(const svp_image *bz,
+                                                   const svp_recon_options *options,
+                                                   svp_image *jx, svp_image *jy);
+/* Sheet current density from the in-plane field: J_y = s α W B_x, J_x = −s α W B_y (k = 0
+ * kept: α(0) = 2/μ0). Local in practice: insensitive to the view's size. bx → jy and by → jx;
+ * either pair may be NULL. */
+SVP_API svp_status svp_reconstruct_current_from_bxy(const svp_image *bx, const svp_image *by,
+                                                    const svp_recon_options *options,
+                                                    svp_image *jx, svp_image *jy);
+/* In-plane field from B_z by the relation in the conventions above (sensor, padding and window
+ * from options; set options->window = 0 for the unfiltered relation). k = 0 is set to 0: the
+ * mean in-plane field is not determined by B_z. bx or by may be NULL. */
+SVP_API svp_status svp_inplane_from_bz(const svp_image *bz, const svp_recon_options *options,
+                                       svp_image *bx, svp_image *by);
+/* ∇·J (A/m²) by central differences (one-sided at the borders); pixel_m > 0. */
+SVP_API svp_status svp_current_divergence(const svp_image *jx, const svp_image *jy,
+                                          double pixel_m, svp_image *div);
+
+/* ---- ODMR spectra (PHYSICS.md §1–2) ---------------------------------------------------------- */
+
+/* A spectral cube: n_freq frames I(x, y, freq[f]), each an svp_image (frame-major, so every
+ * frame can be blurred with svp_blur_apply). */
+typedef struct svp_cube {
+    int width, height, n_freq;
+    double *freq;      /* n_freq frequencies, Hz (strictly increasing) */
+    svp_image **frame; /* n_freq frames */
+} svp_cube;
+
+/* A cube of zero frames; freq (n_freq values, strictly increasing) is copied. */
+SVP_API svp_status svp_cube_new(int width, int height, int n_freq, const double *freq,
+                                svp_cube **out);
+SVP_API void svp_cube_free(svp_cube *cube);
+
+typedef struct svp_odmr {
+    double zero_field_hz;  /* D, default 2.870e9 */
+    double gamma_hz_per_t; /* γ_NV / 2π, default 28.033e9 Hz/T */
+    double linewidth_hz;   /* Γ, FWHM of each Lorentzian dip, default 1e6 */
+    double contrast;       /* C when no contrast map is given, in [0, 0.5]; default 0.02 */
+} svp_odmr;
+
+SVP_API void svp_odmr_defaults(svp_odmr *odmr);
+/* n_freq >= 2 equally spaced frequencies on D ± (γ |B|_max + half_span_linewidths · Γ). */
+SVP_API svp_status svp_odmr_sweep(const svp_odmr *odmr, double field_max_t,
+                                  double half_span_linewidths, int n_freq, double *freq);
+/* Fills the cube: I(ω) = PL [1 − C Σ± L(ω; D ± γ B_NV, Γ)], L(ω; ω0, Γ) = (Γ/2)² /
+ * ((ω − ω0)² + (Γ/2)²) (depth 1 at ω0). pl (>= 0) and field_nv (T) have the cube's size;
+ * contrast may be NULL (odmr->contrast everywhere) or a map with values in [0, 0.5].
+ * drift_px: hook for a lateral drift between frames (2 n_freq shifts in pixels); not yet
+ * implemented: must be NULL (else SVP_ERR_UNSUPPORTED). */
+SVP_API svp_status svp_odmr_simulate(const svp_odmr *odmr, const svp_image *pl,
+                                     const svp_image *field_nv, const svp_image *contrast,
+                                     const double *drift_px, svp_cube *cube);
+
+/* The centroid estimator ("split" centroid of the dip depth). With the off-resonance baseline
+ * b(x, y) (the PL; for a blurred cube the blurred PL, or any estimate linear in the frames),
+ * the depth d_f = b − I_f and trapezoid weights q_f of the frequency grid, over the frames with
+ * window_lo_hz <= freq <= window_hi_hz (both 0: all frames):
+ *   B = Σ q_f |ω_f − D| d_f / (γ Σ q_f d_f),     weight = Σ q_f d_f   (Hz · intensity).
+ * Both sums are linear in the frames, so for a blurred cube B̃ weight̃ = H(B · weight) and
+ * weight̃ = H(weight) hold exactly: eq. (3) with I_m = weight (∝ PL when the contrast is uniform
+ * and the dips lie inside the sweep). For two symmetric dips contained in their halves of the
+ * window it returns |B_NV| exactly; Lorentzian tails beyond the sweep and across D bias it
+ * (a gain error of about Γ / (π R) for a sweep reaching R beyond the line): apply a bias field
+ * so the dips separate, and subtract it. Pixels whose Σ q d <= 0 get B = 0 and weight 0.
+ * weight may be NULL. */
+SVP_API svp_status svp_odmr_centroid(const svp_odmr *odmr, const svp_cube *cube,
+                                     const svp_image *baseline, double window_lo_hz,
+                                     double window_hi_hz, svp_image *field, svp_image *weight);
+
+typedef struct svp_odmr_fit_options {
+    svp_lm_options lm;   /* Levenberg–Marquardt settings (svp_lm_defaults) */
+    int baseline_frames; /* frames at each end of the sweep averaged for the starting baseline;
+                            default 3 */
+} svp_odmr_fit_options;
+
+SVP_API void svp_odmr_fit_defaults(svp_odmr_fit_options *options);
+/* The per-pixel Lorentzian fit: least squares (unit weights, LM of svp_lm_solve with an
+ * analytic Jacobian) of I(ω) = b [1 − C (L(ω; D + γB, Γ) + L(ω; D − γB, Γ))] over θ = (b, C,
+ * B, Γ), D and γ fixed from odmr, C in [0, 1], Γ > 0; started at the end-frames baseline, the
+ * deepest point of the spectrum smoothed over ~Γ, odmr->linewidth_hz and the contrast from the
+ * dip area. field = |B| (T);
+ * contrast, baseline (intensity) and linewidth (Hz, FWHM) may be NULL. Pixels whose fit does not
+ * converge keep the last parameters and are counted in n_failed (may be NULL). options NULL =
+ * defaults. One LM workspace per thread; pixels in parallel. */
+SVP_API svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
+                                const svp_odmr_fit_options *options, svp_image *field,
+                                svp_image *contrast, svp_image *baseline, svp_image *linewidth,
+                                size_t *n_failed);
 
 #ifdef __cplusplus
 }

@@ -1,8 +1,999 @@
-/* (suite under construction: skipped, not passed) */
+/* Physics: source fields against closed forms and a Biot–Savart sum, every sign of the
+ * reconstruction pinned against the closed-form strip and flake, the ODMR centroid against
+ * eq. (3). Frame: x along columns, y along rows (down), z = x × y; sensor on +z for side +1. */
 #include "test_helpers.h"
-static void test_pending(void **state) { (void)state; skip(); }
+
+#include <stdio.h>
+
+#include "core/internal.h" /* svp_fft_cleanup */
+
+#define MU0 1.25663706212e-6
+
+/* ---- independent references ------------------------------------------------------------- */
+
+/* Field of the strip from a sum of straight filaments (Biot–Savart for infinite wires:
+ * B = μ0 dI (u × r⊥) / (2π |r⊥|²)), written without the library's n = u × z or its closed
+ * form. Point (px, py) and strip centre in metres, sensor at z = side · h. */
+static void strip_biot_savart(double width, double J, double cx, double cy, double angle,
+                              double h, int side, double px, double py, double b[3])
+{
+    const int n = 40000;
+    double ux = cos(angle), uy = sin(angle);
+    /* the filaments sit across the strip: along the in-plane perpendicular (−u_y, u_x) */
+    double ex = -uy, ey = ux;
+    b[0] = b[1] = b[2] = 0;
+    double deta = width / n;
+    for (int k = 0; k < n; k++) {
+        double eta = -0.5 * width + (k + 0.5) * deta;
+        double rx = px - (cx + eta * ex), ry = py - (cy + eta * ey), rz = side * h;
+        double along = rx * ux + ry * uy;
+        rx -= along * ux;
+        ry -= along * uy;
+        double r2 = rx * rx + ry * ry + rz * rz;
+        double c = MU0 * J * deta / (2 * M_PI * r2);
+        /* u × r⊥ with u_z = 0 */
+        b[0] += c * (uy * rz);
+        b[1] += c * (-ux * rz);
+        b[2] += c * (ux * ry - uy * rx);
+    }
+}
+
+/* Exact field of a uniformly magnetised thin rectangle [x1, x2] × [y1, y2] (areal moment m, A)
+ * at (x, y, z): a dipole sheet, φ = m Ω / 4π with Ω the solid angle; H = −∇φ summed over the
+ * corners (−1)^(i+j). Written from the solid angle atan(XY / (z r)), not from Fourier space. */
+static void rectangle_field(double m, double x1, double x2, double y1, double y2, double x,
+                            double y, double z, double b[3])
+{
+    const double xs[2] = {x1 - x, x2 - x}, ys[2] = {y1 - y, y2 - y};
+    double hx = 0, hy = 0, hz = 0;
+    for (int i = 0; i < 2; i++)
+        for (int j = 0; j < 2; j++) {
+            double sg = (i == j) ? 1 : -1;
+            double X = xs[i], Y = ys[j], r = sqrt(X * X + Y * Y + z * z);
+            hz += sg * X * Y * (r * r + z * z) / (r * (X * X + z * z) * (Y * Y + z * z));
+            hx += sg * Y * z / (r * (X * X + z * z));
+            hy += sg * X * z / (r * (Y * Y + z * z));
+        }
+    double c = MU0 * m / (4 * M_PI);
+    b[0] = c * hx;
+    b[1] = c * hy;
+    b[2] = c * hz;
+}
+
+static svp_sensor sensor_of(double pixel, double h, int side)
+{
+    svp_sensor s;
+    svp_sensor_defaults(&s);
+    s.pixel_m = pixel;
+    s.standoff_m = h;
+    s.side = side;
+    return s;
+}
+
+static double at(const svp_image *img, int i, int j) { return img->data[(size_t)j * img->width + i]; }
+
+/* ---- strip ------------------------------------------------------------------------------ */
+
+static void test_strip_closed_form(void **state)
+{
+    (void)state;
+    const double h = 100e-9, pixel = 100e-9, J = 200, w = 40e-6;
+    svp_sensor s = sensor_of(pixel, h, 1);
+    svp_strip st;
+    svp_strip_defaults(&st);
+    ASSERT_CLOSE(st.width_m, w, 0);
+    ASSERT_CLOSE(st.sheet_current, J, 0);
+    st.centre_x = 300;
+    st.centre_y = 1;
+    svp_image *bx = test_image(601, 3), *by = test_image(601, 3), *bz = test_image(601, 3);
+    ASSERT_OK(svp_strip_field(&st, &s, bx, by, bz));
+    /* at the centre: (μ0 J / π) atan(w / 2h), to 1e-6 relative */
+    double expect = MU0 * J / M_PI * atan(w / (2 * h));
+    double got = at(bx, 300, 1);
+    if (!(fabs(got - expect) <= 1e-6 * expect))
+        fail_msg("strip B_x at the centre %.12g T, closed form %.12g T", got, expect);
+    /* far inside a wide strip → μ0 J / 2 (126 µT); the centre is 2/(π·200) = 0.32 % below */
+    ASSERT_CLOSE(got / (0.5 * MU0 * J), 1 - 2 / (M_PI * 200), 1e-6);
+    ASSERT_CLOSE(0.5 * MU0 * J, 125.66e-6, 0.01e-6);
+    /* current along +y: B_y = 0, B_z < 0 on the +x side, > 0 on the −x side, 0 at the centre */
+    ASSERT_CLOSE(test_max_abs(by), 0, 1e-20);
+    if (!(at(bz, 450, 1) < 0 && at(bz, 150, 1) > 0))
+        fail_msg("strip B_z signs: +x side %g, -x side %g", at(bz, 450, 1), at(bz, 150, 1));
+    ASSERT_CLOSE(at(bz, 300, 1), 0, 1e-18);
+    svp_image_free(bx);
+    svp_image_free(by);
+    svp_image_free(bz);
+}
+
+/* Rotated strips, both sensor sides, against the filament sum: pins the angle convention, the
+ * y orientation (rows down) and the side. */
+static void test_strip_biot_savart(void **state)
+{
+    (void)state;
+    const double h = 100e-9, pixel = 50e-9, J = 200, w = 2e-6;
+    const double angles[] = {0, M_PI / 6, M_PI / 2, 2.0};
+    double worst = 0;
+    for (int side = -1; side <= 1; side += 2) {
+        for (size_t a = 0; a < sizeof angles / sizeof angles[0]; a++) {
+            svp_sensor s = sensor_of(pixel, h, side);
+            svp_strip st;
+            svp_strip_defaults(&st);
+            st.width_m = w;
+            st.angle = angles[a];
+            st.centre_x = 30.3;
+            st.centre_y = 28.7;
+            svp_image *b[3] = {test_image(64, 64), test_image(64, 64), test_image(64, 64)};
+            ASSERT_OK(svp_strip_field(&st, &s, b[0], b[1], b[2]));
+            const int pts[][2] = {{30, 28}, {5, 9}, {50, 60}, {33, 31}, {12, 40}, {45, 20}};
+            for (size_t p = 0; p < sizeof pts / sizeof pts[0]; p++) {
+                int i = pts[p][0], j = pts[p][1];
+                double ref[3];
+                strip_biot_savart(w, J, st.centre_x * pixel, st.centre_y * pixel, st.angle, h,
+                                  side, i * pixel, j * pixel, ref);
+                for (int c = 0; c < 3; c++) {
+                    double err = fabs(at(b[c], i, j) - ref[c]) / (0.5 * MU0 * J);
+                    if (err > worst) worst = err;
+                    if (err > 1e-4)
+                        fail_msg("side %d angle %g pixel (%d, %d) component %d: closed form %g, "
+                                 "Biot-Savart %g", side, st.angle, i, j, c, at(b[c], i, j),
+                                 ref[c]);
+                }
+            }
+            for (int c = 0; c < 3; c++) svp_image_free(b[c]);
+        }
+    }
+    print_message("strip closed form vs filament sum: max error %.2e of mu0 J/2\n", worst);
+}
+
+/* Current along +x (angle 0), sensor above: by the right-hand rule B_z > 0 on the rows below
+ * the wire (larger row index) and B_y < 0 over it. */
+static void test_strip_y_orientation(void **state)
+{
+    (void)state;
+    svp_sensor s = sensor_of(100e-9, 100e-9, 1);
+    svp_strip st;
+    svp_strip_defaults(&st);
+    st.width_m = 1e-6;
+    st.angle = 0;
+    st.centre_x = 10;
+    st.centre_y = 20;
+    svp_image *by = test_image(21, 41), *bz = test_image(21, 41), *bx = test_image(21, 41);
+    ASSERT_OK(svp_strip_field(&st, &s, bx, by, bz));
+    if (!(at(bz, 10, 30) > 0 && at(bz, 10, 10) < 0))
+        fail_msg("B_z below the wire (row 30) %g should be > 0, above (row 10) %g < 0",
+                 at(bz, 10, 30), at(bz, 10, 10));
+    if (!(at(by, 10, 20) < 0)) fail_msg("B_y over the wire %g should be < 0", at(by, 10, 20));
+    ASSERT_CLOSE(test_max_abs(bx), 0, 1e-20);
+    svp_image_free(bx);
+    svp_image_free(by);
+    svp_image_free(bz);
+}
+
+/* The strip's closed form at a plane, written here from PHYSICS.md §7 (current along +y). */
+static void strip_plane(double xi, double w, double J, double h, double *bxv, double *bzv)
+{
+    double a = 0.5 * w;
+    *bxv = MU0 * J / (2 * M_PI) * (atan((a + xi) / h) + atan((a - xi) / h));
+    *bzv = MU0 * J / (4 * M_PI) * log(((xi - a) * (xi - a) + h * h) / ((xi + a) * (xi + a) + h * h));
+}
+
+static void test_strip_nv_layer(void **state)
+{
+    (void)state;
+    const double h = 100e-9, t = 60e-9, pixel = 20e-9, J = 200, w = 1e-6;
+    svp_sensor s = sensor_of(pixel, h, 1);
+    s.nv_thickness_m = t;
+    svp_strip st;
+    svp_strip_defaults(&st);
+    st.width_m = w;
+    st.angle = M_PI / 2;
+    st.centre_x = 40;
+    svp_image *ax = test_image(81, 1), *az = test_image(81, 1);
+    ASSERT_OK(svp_strip_field(&st, &s, ax, NULL, az));
+    /* reference: the plane field averaged over the layer by 4000-point midpoint quadrature */
+    const int nq = 4000;
+    double worst = 0;
+    for (int i = 0; i < 81; i++) {
+        double sx = 0, sz = 0, vx, vz;
+        for (int q = 0; q < nq; q++) {
+            strip_plane((i - 40) * pixel, w, J, h - 0.5 * t + (q + 0.5) * t / nq, &vx, &vz);
+            sx += vx / nq;
+            sz += vz / nq;
+        }
+        worst = fmax(worst, fmax(fabs(ax->data[i] - sx), fabs(az->data[i] - sz)));
+    }
+    print_message("strip averaged over a 60 nm NV layer: max difference from quadrature %.2e "
+                  "of mu0 J/2\n", worst / (0.5 * MU0 * J));
+    if (worst > 1e-6 * 0.5 * MU0 * J) fail_msg("layer average: max difference %g T", worst);
+    svp_image_free(ax);
+    svp_image_free(az);
+}
+
+/* ---- shapes ----------------------------------------------------------------------------- */
+
+static void test_raster_shapes(void **state)
+{
+    (void)state;
+    svp_image *img = test_image(40, 30);
+    const double tri[] = {3.2, 4.1, 30.7, 8.9, 12.4, 25.3};
+    ASSERT_OK(svp_raster_polygon(img, tri, 3, 2.0));
+    double area = 0.5 * fabs((30.7 - 3.2) * (25.3 - 4.1) - (12.4 - 3.2) * (8.9 - 4.1));
+    ASSERT_CLOSE(test_sum(img), 2 * area, 1e-10);
+    memset(img->data, 0, 40 * 30 * sizeof(double));
+    /* a concave polygon (an L) and the reverse orientation */
+    const double ell[] = {2, 2, 20, 2, 20, 8, 8, 8, 8, 20, 2, 20};
+    ASSERT_OK(svp_raster_polygon(img, ell, 6, 1.0));
+    ASSERT_CLOSE(test_sum(img), 18 * 6 + 6 * 12, 1e-10);
+    memset(img->data, 0, 40 * 30 * sizeof(double));
+    ASSERT_OK(svp_raster_rectangle(img, 20.3, 14.6, 12.5, 7.25, 0.4, 1.0));
+    ASSERT_CLOSE(test_sum(img), 12.5 * 7.25, 1e-10);
+    for (size_t p = 0; p < 40 * 30; p++)
+        if (img->data[p] < -1e-15 || img->data[p] > 1 + 1e-12) fail_msg("coverage %g", img->data[p]);
+    memset(img->data, 0, 40 * 30 * sizeof(double));
+    ASSERT_OK(svp_raster_disk(img, 19.7, 15.2, 9.3, 1.0));
+    ASSERT_CLOSE(test_sum(img) / (M_PI * 9.3 * 9.3), 1, 1e-3);
+    assert_int_equal(svp_raster_polygon(img, tri, 2, 1.0), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "polygon: 2 vertices, at least 3 needed");
+    svp_image_free(img);
+}
+
+/* ---- flake ------------------------------------------------------------------------------ */
+
+/* A 10 x 6 µm flake, M_z t = 1 mA, h = 100 nm, 50 nm pixels, edges on pixel boundaries. */
+#define FL_N 384
+#define FL_PIX 50e-9
+#define FL_H 100e-9
+static const double fl_x1 = 91.5, fl_x2 = 291.5, fl_y1 = 131.5, fl_y2 = 251.5; /* pixels */
+
+static svp_image *flake_moment(void)
+{
+    svp_image *m = test_image(FL_N, FL_N);
+    const double xy[] = {fl_x1, fl_y1, fl_x2, fl_y1, fl_x2, fl_y2, fl_x1, fl_y2};
+    ASSERT_OK(svp_raster_polygon(m, xy, 4, 1e-3));
+    return m;
+}
+
+static void flake_exact(int side, svp_image *b[3])
+{
+    for (int j = 0; j < FL_N; j++)
+        for (int i = 0; i < FL_N; i++) {
+            double v[3];
+            rectangle_field(1e-3, fl_x1 * FL_PIX, fl_x2 * FL_PIX, fl_y1 * FL_PIX,
+                            fl_y2 * FL_PIX, i * FL_PIX, j * FL_PIX, side * FL_H, v);
+            for (int c = 0; c < 3; c++) b[c]->data[(size_t)j * FL_N + i] = v[c];
+        }
+}
+
+static void test_flake_fourier_vs_closed_form(void **state)
+{
+    (void)state;
+    svp_image *m = flake_moment();
+    for (int side = -1; side <= 1; side += 2) {
+        svp_sensor s = sensor_of(FL_PIX, FL_H, side);
+        svp_image *b[3], *e[3];
+        for (int c = 0; c < 3; c++) {
+            b[c] = test_image(FL_N, FL_N);
+            e[c] = test_image(FL_N, FL_N);
+        }
+        ASSERT_OK(svp_flake_field(m, 0, &s, 2, b[0], b[1], b[2]));
+        flake_exact(side, e);
+        double peak = test_max_abs(e[2]);
+        /* B_z peaks near 2 mT at the edges (μ0 m / (π h) · ½ for a straight edge ≈ 2 mT) */
+        if (!(peak > 1.5e-3 && peak < 2.5e-3)) fail_msg("flake peak B_z %g T", peak);
+        /* compare everywhere and away from the edges (>= 4 h) */
+        double worst_all = 0, worst_far = 0;
+        for (int j = 0; j < FL_N; j++)
+            for (int i = 0; i < FL_N; i++) {
+                double dx = fmin(fabs(i - fl_x1), fabs(i - fl_x2));
+                double dy = fmin(fabs(j - fl_y1), fabs(j - fl_y2));
+                int near = (dx < 8 && j > fl_y1 - 8 && j < fl_y2 + 8) ||
+                           (dy < 8 && i > fl_x1 - 8 && i < fl_x2 + 8);
+                for (int c = 0; c < 3; c++) {
+                    double d = fabs(at(b[c], i, j) - at(e[c], i, j)) / peak;
+                    worst_all = fmax(worst_all, d);
+                    if (!near) worst_far = fmax(worst_far, d);
+                }
+            }
+        print_message("flake side %+d: Fourier vs exact, max error %.2e of the peak (all), "
+                      "%.2e (>= 4h from edges)\n", side, worst_all, worst_far);
+        if (worst_far > 2e-3 || worst_all > 0.1)
+            fail_msg("side %d: Fourier flake field differs from the exact one: %g (far), %g",
+                     side, worst_far, worst_all);
+        /* PHYSICS §7 signs, M_z > 0: B_z > 0 just inside an edge, < 0 just outside; the same on
+         * both sides. In-plane: above (+z), B_x points outwards across the right edge. */
+        int yc = (int)(0.5 * (fl_y1 + fl_y2)), xr = (int)(fl_x2 + 0.5);
+        if (!(at(b[2], xr - 2, yc) > 0 && at(b[2], xr + 2, yc) < 0))
+            fail_msg("B_z inside %g / outside %g the right edge", at(b[2], xr - 2, yc),
+                     at(b[2], xr + 2, yc));
+        if (!(side * at(b[0], xr, yc) > 0))
+            fail_msg("side %d: B_x at the right edge %g", side, at(b[0], xr, yc));
+        int xc = (int)(0.5 * (fl_x1 + fl_x2)), yb = (int)(fl_y2 + 0.5);
+        if (!(side * at(b[1], xc, yb) > 0))
+            fail_msg("side %d: B_y at the bottom edge %g", side, at(b[1], xc, yb));
+        /* ∫ B_z over the view: the flux that leaves the view is missing from both alike */
+        double sum = test_sum(b[2]), sum_exact = test_sum(e[2]), sabs = 0;
+        for (size_t p = 0; p < (size_t)FL_N * FL_N; p++) sabs += fabs(b[2]->data[p]);
+        print_message("flake side %+d: sum B_z / sum |B_z| = %.3e (exact field: %.3e) over a "
+                      "%.1f um view\n", side, sum / sabs, sum_exact / sabs, FL_N * FL_PIX * 1e6);
+        /* the periodic canvas (2x padded) has exactly zero flux, so it also folds in the flux
+         * beyond the canvas: about 10 % of the (already small) missing flux, see
+         * test_flake_flux */
+        if (!(fabs(sum - sum_exact) < 0.15 * fabs(sum_exact)))
+            fail_msg("flux %g vs exact %g", sum, sum_exact);
+        for (int c = 0; c < 3; c++) {
+            svp_image_free(b[c]);
+            svp_image_free(e[c]);
+        }
+    }
+    svp_image_free(m);
+}
+
+/* The flux vanishes over the whole plane: over a view much larger than the flake only the
+ * dipole far field outside the view is missing, and that is known: a view of side L holds the
+ * flux of a point dipole M = m π a² through an L x L square (exact for the dipole: the flux
+ * kernel is rectangle_field's with source and field point swapped), -> 0 as L grows. */
+static void test_flake_flux(void **state)
+{
+    (void)state;
+    const double pixel = 100e-9, h = 100e-9, a = 10, m = 1e-3;
+    const int sizes[] = {128, 384};
+    double prev = 0;
+    for (int k = 0; k < 2; k++) {
+        const int n = sizes[k];
+        svp_image *mz = test_image(n, n), *bz = test_image(n, n), *bz2 = test_image(n, n);
+        double c = 0.5 * (n - 1);
+        ASSERT_OK(svp_raster_disk(mz, c, c, a, m));
+        svp_sensor s = sensor_of(pixel, h, 1);
+        /* pad 8: the periodic canvas's own zero flux then hides < 1 % of the far field */
+        ASSERT_OK(svp_flake_field(mz, 1e-9, &s, k == 0 ? 8 : 4, NULL, NULL, bz));
+        ASSERT_OK(svp_flake_field(mz, 1e-9, &s, 2, NULL, NULL, bz2));
+        double sum = test_sum(bz), sabs = 0;
+        for (size_t p = 0; p < (size_t)n * n; p++) sabs += fabs(bz->data[p]);
+        double moment = test_sum(mz) * pixel * pixel, dip[3];
+        double half = 0.5 * n * pixel;
+        rectangle_field(1.0, -half, half, -half, half, 0, 0, h, dip);
+        double flux = sum * pixel * pixel, flux_dipole = moment * dip[2];
+        print_message("1 um-radius disc in a %.1f um view: sum B_z / sum |B_z| = %.2e; flux "
+                      "%.4e T m^2 (pad 2: %.4e), point dipole through the view %.4e T m^2\n",
+                      n * pixel * 1e6, sum / sabs, flux, test_sum(bz2) * pixel * pixel,
+                      flux_dipole);
+        if (!(fabs(flux - flux_dipole) < 0.02 * fabs(flux_dipole)))
+            fail_msg("view %d: flux %g vs dipole %g", n, flux, flux_dipole);
+        if (k > 0 && !(fabs(sum / sabs) < 0.45 * prev)) /* ~ 1/L: a third */
+            fail_msg("the flux did not shrink with the view: %g then %g", prev, sum / sabs);
+        prev = fabs(sum / sabs);
+        svp_image_free(mz);
+        svp_image_free(bz);
+        svp_image_free(bz2);
+    }
+}
+
+/* Finite thickness: (1 − e^(−kt)) / (kt) equals averaging the thin-film field over the depth. */
+static void test_flake_thickness(void **state)
+{
+    (void)state;
+    const int n = 96;
+    svp_image *m = test_image(n, n), *thick = test_image(n, n), *avg = test_image(n, n);
+    svp_image *one = test_image(n, n);
+    ASSERT_OK(svp_raster_disk(m, 47.5, 47.5, 20, 1e-3));
+    const double t = 80e-9, h = 100e-9;
+    svp_sensor s = sensor_of(50e-9, h, 1);
+    ASSERT_OK(svp_flake_field(m, t, &s, 2, NULL, NULL, thick));
+    /* 8-point Gauss–Legendre over the depth [h, h + t] (e^(−kz) is smooth there) */
+    const double gx[4] = {0.1834346424956498, 0.5255324099163290, 0.7966664774136267,
+                          0.9602898564975363};
+    const double gw[4] = {0.3626837833783620, 0.3137066458778873, 0.2223810344533745,
+                          0.1012285362903763};
+    for (int q = 0; q < 8; q++) {
+        double x = (q < 4 ? -1 : 1) * gx[q % 4], wq = gw[q % 4];
+        s.standoff_m = h + 0.5 * t * (1 + x);
+        ASSERT_OK(svp_flake_field(m, 0, &s, 2, NULL, NULL, one));
+        for (size_t p = 0; p < (size_t)n * n; p++) avg->data[p] += 0.5 * wq * one->data[p];
+    }
+    double err = test_max_abs_diff(thick, avg) / test_max_abs(avg);
+    print_message("flake thickness factor vs depth average: %.2e of the peak\n", err);
+    if (err > 1e-8) fail_msg("thickness factor vs depth average: %g", err);
+    /* NV layer: sinh(a)/a equals averaging the plane field over [h − t_NV/2, h + t_NV/2] */
+    const double tnv = 120e-9;
+    s.standoff_m = h;
+    s.nv_thickness_m = tnv;
+    ASSERT_OK(svp_flake_field(m, 0, &s, 2, NULL, NULL, thick));
+    s.nv_thickness_m = 0;
+    memset(avg->data, 0, (size_t)n * n * sizeof(double));
+    for (int q = 0; q < 8; q++) {
+        double x = (q < 4 ? -1 : 1) * gx[q % 4], wq = gw[q % 4];
+        s.standoff_m = h + 0.5 * tnv * x;
+        ASSERT_OK(svp_flake_field(m, 0, &s, 2, NULL, NULL, one));
+        for (size_t p = 0; p < (size_t)n * n; p++) avg->data[p] += 0.5 * wq * one->data[p];
+    }
+    err = test_max_abs_diff(thick, avg) / test_max_abs(avg);
+    print_message("NV layer factor vs layer average: %.2e of the peak\n", err);
+    if (err > 1e-8) fail_msg("NV layer factor vs layer average: %g", err);
+    /* and the reconstruction divides it out: periodic round trip, no window */
+    s.standoff_m = h;
+    s.nv_thickness_m = tnv;
+    ASSERT_OK(svp_flake_field(m, t, &s, 1, NULL, NULL, thick));
+    svp_recon_options o;
+    svp_recon_defaults(&o);
+    o.sensor = s;
+    o.source_thickness_m = t;
+    o.pad = SVP_PAD_NONE;
+    o.window = 0;
+    ASSERT_OK(svp_reconstruct_magnetisation(thick, &o, avg));
+    err = test_max_abs_diff(avg, m);
+    print_message("round trip with t = 80 nm, t_NV = 120 nm: max |error| %.2e mA\n", err * 1e3);
+    if (err > 1e-12) fail_msg("round trip with thicknesses: %g A", err);
+    svp_image_free(m);
+    svp_image_free(thick);
+    svp_image_free(avg);
+    svp_image_free(one);
+}
+
+/* In-plane from out-of-plane: the exact B_z of the flake through −i s (k/k) gives the exact
+ * B_x and B_y (pins the sign of the relation for both sides). */
+static void test_inplane_from_bz(void **state)
+{
+    (void)state;
+    for (int side = -1; side <= 1; side += 2) {
+        svp_image *e[3], *bx = test_image(FL_N, FL_N), *by = test_image(FL_N, FL_N);
+        for (int c = 0; c < 3; c++) e[c] = test_image(FL_N, FL_N);
+        flake_exact(side, e);
+        svp_recon_options o;
+        svp_recon_defaults(&o);
+        o.sensor = sensor_of(FL_PIX, FL_H, side);
+        o.window = 0;
+        ASSERT_OK(svp_inplane_from_bz(e[2], &o, bx, by));
+        double peak = test_max_abs(e[0]), worst = 0;
+        for (int j = 40; j < FL_N - 40; j++)
+            for (int i = 40; i < FL_N - 40; i++) {
+                worst = fmax(worst, fabs(at(bx, i, j) - at(e[0], i, j)));
+                worst = fmax(worst, fabs(at(by, i, j) - at(e[1], i, j)));
+            }
+        print_message("in-plane from B_z, side %+d: max error %.2e of the peak B_x\n", side,
+                      worst / peak);
+        if (worst > 0.02 * peak) fail_msg("side %d: in-plane error %g of %g", side, worst, peak);
+        for (int c = 0; c < 3; c++) svp_image_free(e[c]);
+        svp_image_free(bx);
+        svp_image_free(by);
+    }
+}
+
+/* ---- reconstruction --------------------------------------------------------------------- */
+
+static void test_reconstruct_magnetisation(void **state)
+{
+    (void)state;
+    /* 20 µm square flake, 1 mA, h = 100 nm, 100 nm pixels, 512² view (51.2 µm), exact B_z */
+    const int n = 512;
+    const double pixel = 100e-9, h = 100e-9;
+    const double x1 = 155.5, x2 = 355.5;
+    svp_image *bz = test_image(n, n), *mz = test_image(n, n), *mz0 = test_image(n, n);
+    for (int j = 0; j < n; j++)
+        for (int i = 0; i < n; i++) {
+            double v[3];
+            rectangle_field(1e-3, x1 * pixel, x2 * pixel, x1 * pixel, x2 * pixel, i * pixel,
+                            j * pixel, h, v);
+            bz->data[(size_t)j * n + i] = v[2];
+        }
+    svp_recon_options o;
+    svp_recon_defaults(&o);
+    o.sensor = sensor_of(pixel, h, 1);
+    const char *modes[] = {"taper", "mean", "none"};
+    for (int pad = 0; pad < 3; pad++) {
+        o.pad = (svp_pad_mode)pad;
+        /* the k = 0-only variant for the default padding; the others with the border zero */
+        for (int zb = pad == SVP_PAD_TAPER ? 0 : 1; zb < 2; zb++) {
+            o.zero_border = zb;
+            ASSERT_OK(svp_reconstruct_magnetisation(bz, &o, zb ? mz : mz0));
+        }
+        /* inside the flake, >= 1 µm from its edges */
+        double lo = INFINITY, hi = -INFINITY, lo0 = INFINITY, hi0 = -INFINITY, out = 0;
+        for (int j = 0; j < n; j++)
+            for (int i = 0; i < n; i++) {
+                int inside = i > x1 + 10 && i < x2 - 10 && j > x1 + 10 && j < x2 - 10;
+                int outside = i < x1 - 10 || i > x2 + 10 || j < x1 - 10 || j > x2 + 10;
+                double v = at(mz, i, j), v0 = at(mz0, i, j);
+                if (inside) {
+                    lo = fmin(lo, v);
+                    hi = fmax(hi, v);
+                    lo0 = fmin(lo0, v0);
+                    hi0 = fmax(hi0, v0);
+                }
+                if (outside) out = fmax(out, fabs(v));
+            }
+        print_message("m_z inside the flake, pad %s: [%.4f, %.4f] mA (zero_border); "
+                      "|m_z| outside <= %.4f mA\n", modes[pad], lo * 1e3, hi * 1e3, out * 1e3);
+        if (pad == SVP_PAD_TAPER)
+            print_message("  k = 0 dropped only: [%.4f, %.4f] mA\n", lo0 * 1e3, hi0 * 1e3);
+        if (pad == SVP_PAD_TAPER && !(lo > 0.95e-3 && hi < 1.05e-3))
+            fail_msg("pad %s: m_z inside in [%g, %g], not within 5 %% of 1 mA", modes[pad], lo,
+                     hi);
+        /* without the border reference the level is off by the lost mean, but flat */
+        if (pad == SVP_PAD_TAPER && !(hi0 - lo0 < 0.01e-3))
+            fail_msg("k = 0 dropped: m_z inside in [%g, %g] is not flat", lo0, hi0);
+    }
+    /* round trip through the library's own forward model */
+    svp_image *m = test_image(n, n);
+    const double sq[] = {x1, x1, x2, x1, x2, x2, x1, x2};
+    ASSERT_OK(svp_raster_polygon(m, sq, 4, 1e-3));
+    ASSERT_OK(svp_flake_field(m, 0, &o.sensor, 2, NULL, NULL, bz));
+    o.pad = SVP_PAD_TAPER;
+    o.zero_border = 1;
+    ASSERT_OK(svp_reconstruct_magnetisation(bz, &o, mz));
+    print_message("round trip through svp_flake_field: m_z at the centre %.4f mA\n",
+                  at(mz, 255, 255) * 1e3);
+    ASSERT_CLOSE(at(mz, 255, 255), 1e-3, 0.05e-3);
+    /* periodic forward and inverse without a window are exact inverses apart from k = 0,
+     * which the border reference restores here (m_z = 0 on the border) */
+    ASSERT_OK(svp_flake_field(m, 0, &o.sensor, 1, NULL, NULL, bz));
+    o.pad = SVP_PAD_NONE;
+    o.window = 0;
+    ASSERT_OK(svp_reconstruct_magnetisation(bz, &o, mz));
+    double err = test_max_abs_diff(mz, m);
+    print_message("periodic round trip without a window: max |error| %.2e mA\n", err * 1e3);
+    if (err > 1e-12) fail_msg("periodic round trip error %g A", err);
+    svp_image_free(m);
+    svp_image_free(bz);
+    svp_image_free(mz);
+    svp_image_free(mz0);
+}
+
+/* J from the strip's closed-form field, J_y at the middle of the strip. */
+static void strip_recon(int n, double pixel, double w, int side, int from_bz, svp_pad_mode pad,
+                        int pad_factor, double *jy_mid, double *jx_mid, double *div_rel)
+{
+    const double h = 100e-9;
+    svp_sensor s = sensor_of(pixel, h, side);
+    svp_strip st;
+    svp_strip_defaults(&st);
+    st.width_m = w;
+    st.centre_x = 0.5 * (n - 1);
+    st.centre_y = 0.5 * (n - 1);
+    svp_image *bx = test_image(n, n), *by = test_image(n, n), *bz = test_image(n, n);
+    svp_image *jx = test_image(n, n), *jy = test_image(n, n), *dv = test_image(n, n);
+    ASSERT_OK(svp_strip_field(&st, &s, bx, by, bz));
+    svp_recon_options o;
+    svp_recon_defaults(&o);
+    o.sensor = s;
+    o.pad = pad;
+    o.pad_factor = pad_factor;
+    if (from_bz) ASSERT_OK(svp_reconstruct_current_from_bz(bz, &o, jx, jy));
+    else ASSERT_OK(svp_reconstruct_current_from_bxy(bx, by, &o, jx, jy));
+    /* the middle: the mean over the central 5 x 5 pixels */
+    double sy = 0, sx = 0;
+    for (int j = n / 2 - 2; j <= n / 2 + 2; j++)
+        for (int i = n / 2 - 2; i <= n / 2 + 2; i++) {
+            sy += at(jy, i, j) / 25;
+            sx += at(jx, i, j) / 25;
+        }
+    *jy_mid = sy;
+    *jx_mid = sx;
+    /* ∇·J over the central half of the view, relative to J / pixel */
+    ASSERT_OK(svp_current_divergence(jx, jy, pixel, dv));
+    double dmax = 0;
+    for (int j = n / 4; j < 3 * n / 4; j++)
+        for (int i = n / 4; i < 3 * n / 4; i++) dmax = fmax(dmax, fabs(at(dv, i, j)));
+    *div_rel = dmax * pixel / 200;
+    svp_image_free(bx);
+    svp_image_free(by);
+    svp_image_free(bz);
+    svp_image_free(jx);
+    svp_image_free(jy);
+    svp_image_free(dv);
+}
+
+static void test_reconstruct_current(void **state)
+{
+    (void)state;
+    double jy, jx, dv;
+    /* from B_x: the reference study's 40 µm strip, J = 200 A/m, h = 100 nm, 100 nm pixels, in a
+     * 51.2 µm view; both sensor sides */
+    for (int side = -1; side <= 1; side += 2) {
+        strip_recon(512, 100e-9, 40e-6, side, 0, SVP_PAD_TAPER, 2, &jy, &jx, &dv);
+        print_message("40 um strip, J from B_x (side %+d): J_y = %.3f A/m, J_x = %.2e A/m at "
+                      "the middle; max |div J| dx / J = %.2e\n", side, jy, jx, dv);
+        if (!(fabs(jy - 200) < 0.02 * 200)) fail_msg("J_y from B_x %g A/m, not 200 +- 2 %%", jy);
+        ASSERT_CLOSE(jx, 0, 1e-6);
+    }
+    /* from B_z: the inversion needs the field's 1/x tails, which a finite view cuts: the strip
+     * must be narrow against the view (w/L = 0.039 here) */
+    /* (B_z, hence J from B_z, is the same for both sides: one side suffices) */
+    strip_recon(1024, 50e-9, 2e-6, 1, 1, SVP_PAD_TAPER, 2, &jy, &jx, &dv);
+    print_message("2 um strip in a 51.2 um view, J from B_z: J_y = %.3f A/m, J_x = %.2e A/m; "
+                  "max |div J| dx / J = %.2e\n", jy, jx, dv);
+    if (!(fabs(jy - 200) < 0.02 * 200)) fail_msg("J_y from B_z %g A/m, not 200 +- 2 %%", jy);
+    ASSERT_CLOSE(jx, 0, 1e-3);
+    if (!(dv < 1e-6)) fail_msg("div J from B_z: %g", dv);
+    /* and how the 40 µm strip fares from B_z in 51.2 µm (documented limitation) */
+    strip_recon(512, 100e-9, 40e-6, 1, 1, SVP_PAD_TAPER, 2, &jy, &jx, &dv);
+    print_message("40 um strip in a 51.2 um view from B_z: J_y = %.1f A/m (the cut 1/x tails; "
+                  "4w/(pi^2 L) = %.0f %%)\n", jy, 400 * 40 / (M_PI * M_PI * 51.2));
+    if (!(jy > 0 && jy < 200)) fail_msg("J_y from B_z of the wide strip %g", jy);
+}
+
+/* A rotated strip: the reconstructed current points along the strip's direction (sign pin for
+ * J_x and the y orientation). */
+static void test_reconstruct_current_direction(void **state)
+{
+    (void)state;
+    const int n = 256;
+    const double pixel = 50e-9, h = 100e-9;
+    const double angles[] = {0, M_PI / 3, -2.2};
+    for (size_t a = 0; a < sizeof angles / sizeof angles[0]; a++) {
+        svp_sensor s = sensor_of(pixel, h, 1);
+        svp_strip st;
+        svp_strip_defaults(&st);
+        st.width_m = 3e-6;
+        st.angle = angles[a];
+        st.centre_x = st.centre_y = 127.5;
+        svp_image *bx = test_image(n, n), *by = test_image(n, n), *bz = test_image(n, n);
+        svp_image *jx = test_image(n, n), *jy = test_image(n, n);
+        ASSERT_OK(svp_strip_field(&st, &s, bx, by, bz));
+        svp_recon_options o;
+        svp_recon_defaults(&o);
+        o.sensor = s;
+        for (int src = 0; src < 2; src++) {
+            if (src) ASSERT_OK(svp_reconstruct_current_from_bz(bz, &o, jx, jy));
+            else ASSERT_OK(svp_reconstruct_current_from_bxy(bx, by, &o, jx, jy));
+            double vx = at(jx, 128, 128), vy = at(jy, 128, 128);
+            double along = vx * cos(st.angle) + vy * sin(st.angle);
+            double across = -vx * sin(st.angle) + vy * cos(st.angle);
+            if (!(along > 150 && fabs(across) < 0.05 * along))
+                fail_msg("angle %g from %s: J = (%g, %g) A/m, along %g, across %g", st.angle,
+                         src ? "bz" : "bxy", vx, vy, along, across);
+        }
+        svp_image_free(bx);
+        svp_image_free(by);
+        svp_image_free(bz);
+        svp_image_free(jx);
+        svp_image_free(jy);
+    }
+}
+
+/* ---- ODMR ------------------------------------------------------------------------------- */
+
+static void test_centroid_closed_form(void **state)
+{
+    (void)state;
+    const int w = 48, h = 40, nf = 161;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    ASSERT_CLOSE(od.gamma_hz_per_t, 28.033e9, 0);
+    ASSERT_CLOSE(od.zero_field_hz, 2.870e9, 0);
+    /* a widefield CW linewidth; the round-off of the cube path grows like
+     * eps sqrt(n_freq) span / (C Γ): far-off frames add only FFT noise to the sums */
+    od.linewidth_hz = 4e6;
+    /* PL: a Gaussian spot times a chessboard of levels {0.1, 0.8, 1}; field: a 3 mT bias on
+     * the NV axis plus a flake-like step; contrast varies independently of the PL */
+    svp_image *pl = test_image(w, h), *field = test_image(w, h), *contrast = test_image(w, h);
+    const double levels[] = {0.1, 0.8, 1.0};
+    uint64_t seed = 12345;
+    int board[8][8];
+    for (int a = 0; a < 8; a++)
+        for (int b = 0; b < 8; b++) board[a][b] = (int)(3 * test_rand(&seed));
+    for (int j = 0; j < h; j++)
+        for (int i = 0; i < w; i++) {
+            size_t p = (size_t)j * w + i;
+            double r2 = (i - 23.5) * (i - 23.5) + (j - 19.5) * (j - 19.5);
+            pl->data[p] = 1000 * exp(-r2 / (2 * 15.0 * 15.0)) * levels[board[j / 6][i / 6]];
+            field->data[p] = 3e-3 + ((i > 14 && i < 34 && j > 10 && j < 30) ? 0.8e-3 : -0.2e-3);
+            contrast->data[p] = 0.015 + 0.01 * (i % 7) / 6.0;
+        }
+    double *freq = malloc(nf * sizeof(double));
+    ASSERT_OK(svp_odmr_sweep(&od, 4e-3, 25, nf, freq));
+    svp_cube *cube = NULL, *blurred = NULL;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &cube));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &blurred));
+    ASSERT_OK(svp_odmr_simulate(&od, pl, field, contrast, NULL, cube));
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.model = SVP_PSF_LORENTZIAN;
+    psf.fwhm = 3;
+    psf.halo = 0.2;
+    svp_blur *blur = NULL;
+    ASSERT_OK(svp_blur_new(&psf, w, h, SVP_BOUNDARY_ZERO, &blur));
+    for (int f = 0; f < nf; f++) ASSERT_OK(svp_blur_apply(blur, cube->frame[f], blurred->frame[f]));
+    svp_image *pl_b = test_image(w, h);
+    ASSERT_OK(svp_blur_apply(blur, pl, pl_b));
+    /* the estimator on the true and on the blurred cube */
+    svp_image *b_true = test_image(w, h), *wt_true = test_image(w, h);
+    svp_image *b_cube = test_image(w, h), *wt_cube = test_image(w, h);
+    ASSERT_OK(svp_odmr_centroid(&od, cube, pl, 0, 0, b_true, wt_true));
+    ASSERT_OK(svp_odmr_centroid(&od, blurred, pl_b, 0, 0, b_cube, wt_cube));
+    /* eq. (3): B̃ = H(B I_m) / H(I_m) with I_m the estimator's weight */
+    svp_image *num = test_image(w, h), *num_b = test_image(w, h), *den_b = test_image(w, h);
+    for (size_t p = 0; p < (size_t)w * h; p++) num->data[p] = b_true->data[p] * wt_true->data[p];
+    ASSERT_OK(svp_blur_apply(blur, num, num_b));
+    ASSERT_OK(svp_blur_apply(blur, wt_true, den_b));
+    /* Round-off: the blurred frames carry FFT errors ~ eps max(I) everywhere, and the depth
+     * b − I is 1.5–2.5 % of I, so dim pixels lose digits: compare relative to the field where
+     * the blurred PL is >= 10 % of its peak, and state the worst pixel. */
+    double worst = 0, worst_dim = 0, bmax = test_max_abs(b_cube), plmax = test_max_abs(pl_b);
+    for (size_t p = 0; p < (size_t)w * h; p++) {
+        double d = fabs(num_b->data[p] / den_b->data[p] - b_cube->data[p]);
+        if (pl_b->data[p] >= 0.1 * plmax) worst = fmax(worst, d);
+        else worst_dim = fmax(worst_dim, d);
+    }
+    print_message("centroid of the blurred cube vs eq. (3): max difference %.2e relative where "
+                  "the PL >= 10 %% of its peak, %.2e in dimmer pixels\n", worst / bmax,
+                  worst_dim / bmax);
+    if (worst > 1e-12 * bmax) fail_msg("centroid vs closed form: %g T of %g T", worst, bmax);
+    if (worst_dim > 1e-10 * bmax) fail_msg("centroid vs closed form: %g T of %g T", worst_dim, bmax);
+    /* the estimator on the unblurred cube against the true field, and its weight against
+     * PL · C (the dip area): both hold to the Lorentzian tail truncation */
+    double bias = 0, wdev = 0, wref = 0;
+    for (size_t p = 0; p < (size_t)w * h; p++) {
+        bias = fmax(bias, fabs(b_true->data[p] - field->data[p]));
+        double ratio = wt_true->data[p] / (pl->data[p] * contrast->data[p]);
+        if (p == 0) wref = ratio;
+        wdev = fmax(wdev, fabs(ratio / wref - 1));
+    }
+    print_message("centroid of the true cube vs the true field: max |bias| %.2f uT (linewidth "
+                  "%.1f MHz, sweep +-%.0f MHz); weight / (PL C) constant to %.1e\n", bias * 1e6,
+                  od.linewidth_hz * 1e-6, (freq[nf - 1] - freq[0]) * 0.5e-6, wdev);
+    if (bias > 0.05 * 3e-3) fail_msg("centroid bias %g T", bias);
+    svp_blur_free(blur);
+    svp_cube_free(cube);
+    svp_cube_free(blurred);
+    free(freq);
+    svp_image *all[] = {pl, field, contrast, pl_b, b_true, wt_true, b_cube, wt_cube, num, num_b, den_b};
+    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++) svp_image_free(all[k]);
+}
+
+/* A symmetric line inside its half of the window on a flat baseline: the split centroid is
+ * exact. Lines built by hand (triangular dips), not by svp_odmr_simulate. */
+static void test_centroid_exact_symmetric(void **state)
+{
+    (void)state;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    const int nf = 401;
+    double freq[401];
+    for (int f = 0; f < nf; f++) freq[f] = od.zero_field_hz - 200e6 + f * 1e6;
+    svp_cube *cube = NULL;
+    ASSERT_OK(svp_cube_new(3, 1, nf, freq, &cube));
+    svp_image *base = test_image(3, 1), *b = test_image(3, 1);
+    const double fields[3] = {2e-3, 3.3e-3, 5.01e-3};
+    for (int p = 0; p < 3; p++) {
+        base->data[p] = 100 + p;
+        double split = od.gamma_hz_per_t * fields[p];
+        for (int f = 0; f < nf; f++) {
+            double u = freq[f] - od.zero_field_hz;
+            double tri = fmax(0, 1 - fabs(fabs(u) - split) / 20e6);
+            cube->frame[f]->data[p] = base->data[p] * (1 - 0.03 * tri);
+        }
+    }
+    ASSERT_OK(svp_odmr_centroid(&od, cube, base, 0, 0, b, NULL));
+    for (int p = 0; p < 3; p++) ASSERT_CLOSE(b->data[p], fields[p], 1e-12 * fields[p]);
+    svp_cube_free(cube);
+    svp_image_free(base);
+    svp_image_free(b);
+}
+
+
+/* The per-pixel Lorentzian fit: exact on the model's own spectra; on a blurred cube it differs
+ * from the PL-weighted closed form (eq. 3 with I_m = PL) where the contrast varies, and by how
+ * much. A 50 µT field step (1.4 MHz, below the 4 MHz linewidth: the fit stays in its linear
+ * regime) at column 20; contrast 1 % | 3 % across that step on the upper rows, uniform 2 % on
+ * the lower rows; uniform PL. */
+static void test_fit_vs_centroid(void **state)
+{
+    (void)state;
+    const int w = 40, h = 32, nf = 121;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    od.linewidth_hz = 4e6;
+    svp_image *pl = test_image(w, h), *field = test_image(w, h), *contrast = test_image(w, h);
+    for (int j = 0; j < h; j++)
+        for (int i = 0; i < w; i++) {
+            size_t p = (size_t)j * w + i;
+            pl->data[p] = 1000;
+            field->data[p] = i >= 20 ? 3.05e-3 : 3e-3;
+            contrast->data[p] = j >= 16 ? 0.02 : (i >= 20 ? 0.03 : 0.01);
+        }
+    double *freq = malloc(nf * sizeof(double));
+    ASSERT_OK(svp_odmr_sweep(&od, 3.05e-3, 15, nf, freq));
+    svp_cube *cube = NULL, *blurred = NULL;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &cube));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &blurred));
+    ASSERT_OK(svp_odmr_simulate(&od, pl, field, contrast, NULL, cube));
+    svp_image *fit = test_image(w, h), *fc = test_image(w, h), *fg = test_image(w, h);
+    size_t failed = 99;
+    ASSERT_OK(svp_odmr_fit(&od, cube, NULL, fit, fc, NULL, fg, &failed));
+    assert_int_equal(failed, 0);
+    double err = test_max_abs_diff(fit, field), cerr = test_max_abs_diff(fc, contrast);
+    print_message("Lorentzian fit of the true cube: max |B - B_true| = %.2e T, |C - C_true| = "
+                  "%.2e\n", err, cerr);
+    if (err > 1e-9 || cerr > 1e-9) fail_msg("fit of the exact model: %g T, %g", err, cerr);
+    /* blur every frame (Gaussian, FWHM 4 px, mirror boundary), then estimate */
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.fwhm = 4;
+    svp_blur *blur = NULL;
+    ASSERT_OK(svp_blur_new(&psf, w, h, SVP_BOUNDARY_MIRROR, &blur));
+    for (int f = 0; f < nf; f++) ASSERT_OK(svp_blur_apply(blur, cube->frame[f], blurred->frame[f]));
+    svp_image *pl_b = test_image(w, h), *cen = test_image(w, h), *num = test_image(w, h);
+    svp_image *num_b = test_image(w, h);
+    ASSERT_OK(svp_blur_apply(blur, pl, pl_b));
+    ASSERT_OK(svp_odmr_centroid(&od, blurred, pl_b, 0, 0, cen, NULL));
+    ASSERT_OK(svp_odmr_fit(&od, blurred, NULL, fit, NULL, NULL, NULL, &failed));
+    assert_int_equal(failed, 0);
+    /* the closed form a scene uses without a cube: eq. (3) with the PL as I_m */
+    for (size_t p = 0; p < (size_t)w * h; p++) num->data[p] = field->data[p] * pl->data[p];
+    ASSERT_OK(svp_blur_apply(blur, num, num_b));
+    double far = 0, fit_uni = 0, fit_var = 0, cen_uni = 0, cen_var = 0, fc_uni = 0, fc_var = 0;
+    for (int j = 0; j < h; j++)
+        for (int i = 0; i < w; i++) {
+            size_t p = (size_t)j * w + i;
+            double closed = num_b->data[p] / pl_b->data[p];
+            if (i < 8 || i > 31) far = fmax(far, fabs(fit->data[p] - field->data[p]));
+            double dfit = fabs(fit->data[p] - closed), dcen = fabs(cen->data[p] - closed);
+            double dfc = fabs(fit->data[p] - cen->data[p]);
+            if (j < 10) {
+                fit_var = fmax(fit_var, dfit);
+                cen_var = fmax(cen_var, dcen);
+                fc_var = fmax(fc_var, dfc);
+            } else if (j >= 22) {
+                fit_uni = fmax(fit_uni, dfit);
+                cen_uni = fmax(cen_uni, dcen);
+                fc_uni = fmax(fc_uni, dfc);
+            }
+        }
+    print_message("blurred cube, 50 uT step: fit exact to %.1e T away from it; vs the "
+                  "PL-weighted closed form: fit %.2f uT, centroid %.2f uT where the contrast "
+                  "is uniform; fit %.2f uT, centroid %.2f uT where it steps 1 -> 3 %%; "
+                  "|fit - centroid| %.2f / %.2f uT\n", far, fit_uni * 1e6, cen_uni * 1e6,
+                  fit_var * 1e6, cen_var * 1e6, fc_uni * 1e6, fc_var * 1e6);
+    if (far > 1e-8) fail_msg("fit away from the step: %g T", far);
+    /* uniform contrast: the fit follows the closed form to its nonlinearity (a few % of the
+     * step); stepped contrast: it leaves it by ~ 1/4 of the step (weights PL·C, not PL). The
+     * centroid's numbers include its Lorentzian-tail bias (the same on both halves). */
+    if (!(fit_uni < 2.5e-6 && fit_var > 8e-6 && fit_var > 5 * fit_uni))
+        fail_msg("fit vs closed form: %g T (uniform contrast), %g T (stepped)", fit_uni,
+                 fit_var);
+    svp_blur_free(blur);
+    svp_cube_free(cube);
+    svp_cube_free(blurred);
+    free(freq);
+    svp_image *all[] = {pl, field, contrast, fit, fc, fg, pl_b, cen, num, num_b};
+    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++) svp_image_free(all[k]);
+}
+
+/* Noisy spectra: the fit must not fall into wrong minima (a centroid start did, for ~2 % of
+ * the pixels, ~1 mT off). Uniform noise of ±1 count on a 1000-count PL with 2 % contrast,
+ * Γ = 4 MHz, 100 frames: the statistical error is a few µT at 3 mT. */
+static void test_fit_noisy(void **state)
+{
+    (void)state;
+    const int w = 48, h = 32, nf = 100;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    od.linewidth_hz = 4e6;
+    svp_image *pl = test_image(w, h), *field = test_image(w, h), *fit = test_image(w, h);
+    for (size_t p = 0; p < (size_t)w * h; p++) {
+        pl->data[p] = 1000;
+        field->data[p] = 3e-3 + 1e-4 * sin(0.01 * (double)p);
+    }
+    double *freq = malloc(nf * sizeof(double));
+    ASSERT_OK(svp_odmr_sweep(&od, 3.2e-3, 15, nf, freq));
+    svp_cube *cube = NULL;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &cube));
+    ASSERT_OK(svp_odmr_simulate(&od, pl, field, NULL, NULL, cube));
+    uint64_t seed = 99;
+    for (int f = 0; f < nf; f++)
+        for (size_t p = 0; p < (size_t)w * h; p++)
+            cube->frame[f]->data[p] += 2 * test_rand(&seed) - 1;
+    size_t failed = 99;
+    ASSERT_OK(svp_odmr_fit(&od, cube, NULL, fit, NULL, NULL, NULL, &failed));
+    double worst = 0, mean = 0;
+    for (size_t p = 0; p < (size_t)w * h; p++) {
+        double d = fabs(fit->data[p] - field->data[p]);
+        worst = fmax(worst, d);
+        mean += d / ((double)w * h);
+    }
+    print_message("noisy fits: %zu not converged, mean |error| %.2f uT, max %.2f uT\n", failed,
+                  mean * 1e6, worst * 1e6);
+    assert_int_equal(failed, 0);
+    if (!(worst < 20e-6 && mean < 5e-6)) fail_msg("noisy fits: mean %g T, max %g T", mean, worst);
+    svp_cube_free(cube);
+    free(freq);
+    svp_image_free(pl);
+    svp_image_free(field);
+    svp_image_free(fit);
+}
+
+/* ---- bad input -------------------------------------------------------------------------- */
+
+static void test_bad_input(void **state)
+{
+    (void)state;
+    svp_image *a = test_image(8, 8), *b = test_image(9, 8);
+    svp_sensor s = sensor_of(100e-9, 100e-9, 1);
+    s.standoff_m = -1;
+    assert_int_equal(svp_flake_field(a, 0, &s, 2, NULL, NULL, a), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "sensor standoff_m -1: must be a finite length > 0 m");
+    s = sensor_of(100e-9, 100e-9, 0);
+    assert_int_equal(svp_sensor_validate(&s), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "sensor side 0: must be +1 (above) or -1 (below)");
+    s = sensor_of(100e-9, 100e-9, 1);
+    s.nv_thickness_m = 300e-9;
+    assert_int_equal(svp_sensor_validate(&s), SVP_ERR_INVALID);
+    s = sensor_of(100e-9, 100e-9, 1);
+    assert_int_equal(svp_flake_field(a, 0, &s, 2, NULL, NULL, b), SVP_ERR_SIZE);
+    svp_recon_options o;
+    svp_recon_defaults(&o);
+    o.pad_factor = 1;
+    assert_int_equal(svp_reconstruct_magnetisation(a, &o, a), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "reconstruction pad_factor 1: must be in [2, 16]");
+    svp_recon_defaults(&o);
+    a->data[3] = NAN;
+    assert_int_equal(svp_reconstruct_current_from_bz(a, &o, b, NULL), SVP_ERR_SIZE);
+    svp_image *c = test_image(8, 8);
+    assert_int_equal(svp_reconstruct_current_from_bz(a, &o, c, NULL), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "reconstruction input bz has NaN or Inf pixels");
+    const double axis[3] = {0, 0.5, 1};
+    assert_int_equal(svp_field_project(NULL, NULL, c, axis, c), SVP_ERR_INVALID);
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    double freq[2] = {2.8e9, 2.9e9};
+    svp_cube *cube = NULL;
+    ASSERT_OK(svp_cube_new(8, 8, 2, freq, &cube));
+    double drift[4] = {0};
+    a->data[3] = 1;
+    assert_int_equal(svp_odmr_simulate(&od, a, c, NULL, drift, cube), SVP_ERR_UNSUPPORTED);
+    assert_int_equal(svp_odmr_centroid(&od, cube, a, 3e9, 3.1e9, c, NULL), SVP_ERR_INVALID);
+    freq[1] = 2.8e9;
+    svp_cube *bad = NULL;
+    assert_int_equal(svp_cube_new(8, 8, 2, freq, &bad), SVP_ERR_INVALID);
+    assert_null(bad);
+    od.contrast = 0.7;
+    assert_int_equal(svp_odmr_simulate(&od, a, c, NULL, NULL, cube), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "ODMR contrast 0.7: must be in [0, 0.5]");
+    svp_cube_free(cube);
+    svp_image_free(a);
+    svp_image_free(b);
+    svp_image_free(c);
+}
+
+static void test_projection(void **state)
+{
+    (void)state;
+    svp_image *bx = test_random_image(5, 4, 1), *by = test_random_image(5, 4, 2);
+    svp_image *bz = test_random_image(5, 4, 3), *out = test_image(5, 4);
+    const double axis[3] = {1, -2, 2}; /* |axis| = 3 */
+    ASSERT_OK(svp_field_project(bx, by, bz, axis, out));
+    for (size_t p = 0; p < 20; p++)
+        ASSERT_CLOSE(out->data[p], (bx->data[p] - 2 * by->data[p] + 2 * bz->data[p]) / 3, 1e-15);
+    svp_image_free(bx);
+    svp_image_free(by);
+    svp_image_free(bz);
+    svp_image_free(out);
+}
+
 int main(void)
 {
-    const struct CMUnitTest tests[] = {cmocka_unit_test(test_pending)};
-    return cmocka_run_group_tests_name("physics", tests, NULL, NULL);
+    svp_set_fft_effort(SVP_FFT_ESTIMATE);
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_strip_closed_form),
+        cmocka_unit_test(test_strip_biot_savart),
+        cmocka_unit_test(test_strip_y_orientation),
+        cmocka_unit_test(test_strip_nv_layer),
+        cmocka_unit_test(test_raster_shapes),
+        cmocka_unit_test(test_flake_fourier_vs_closed_form),
+        cmocka_unit_test(test_flake_flux),
+        cmocka_unit_test(test_flake_thickness),
+        cmocka_unit_test(test_inplane_from_bz),
+        cmocka_unit_test(test_reconstruct_magnetisation),
+        cmocka_unit_test(test_reconstruct_current),
+        cmocka_unit_test(test_reconstruct_current_direction),
+        cmocka_unit_test(test_centroid_closed_form),
+        cmocka_unit_test(test_centroid_exact_symmetric),
+        cmocka_unit_test(test_fit_vs_centroid),
+        cmocka_unit_test(test_fit_noisy),
+        cmocka_unit_test(test_projection),
+        cmocka_unit_test(test_bad_input),
+    };
+    int rc = cmocka_run_group_tests_name("physics", tests, NULL, NULL);
+    svp_fft_cleanup();
+    return rc;
 }

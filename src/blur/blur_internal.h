@@ -43,7 +43,15 @@ void svp_frame_fold(const svp_frame *f, const double *restrict frame, double *re
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale);
 
-typedef enum svp_blur_kind { SVP_BLUR_INVARIANT = 0 } svp_blur_kind;
+typedef enum svp_blur_kind {
+    SVP_BLUR_INVARIANT = 0,
+    SVP_BLUR_TENT = 1,    /* space-variant: tent-weighted overlap-add (variant.c) */
+    SVP_BLUR_LOWRANK = 2, /* space-variant: eigen-PSFs and coefficient maps (variant.c) */
+    SVP_BLUR_EXACT = 3    /* space-variant: the per-source reference sum (exact.c) */
+} svp_blur_kind;
+
+typedef struct svp_variant_data svp_variant_data; /* variant.c */
+typedef struct svp_exact_data svp_exact_data;     /* exact.c */
 
 struct svp_blur {
     svp_blur_kind kind;
@@ -58,6 +66,44 @@ struct svp_blur {
     svp_frame frame;
     double *work_r;       /* ny * nx */
     fftw_complex *work_c; /* ny * ncx */
+    /* Space-variant kinds only (NULL otherwise). For them kernel / psf / halo / has_model
+     * describe the PSF at the image centre (for solvers that need one invariant stand-in,
+     * e.g. the CG preconditioner), and frame holds the shared geometry without an OTF. */
+    svp_psf_field *field;
+    svp_variant_data *variant;
+    svp_exact_data *exact;
+    double *work_r_image; /* width x height work image */
 };
+
+/* Dispatch targets of svp_blur_apply / _adjoint / _free / _memory for kind != INVARIANT
+ * (variant.c; it forwards SVP_BLUR_EXACT to the svp_exact_* functions of exact.c). Image
+ * sizes are checked by the caller. */
+svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y);
+svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x);
+void svp_variant_release(svp_blur *b);
+size_t svp_variant_memory(const svp_blur *b);
+svp_status svp_exact_apply(svp_blur *b, const double *restrict x, double *restrict y);
+svp_status svp_exact_adjoint(svp_blur *b, const double *restrict y, double *restrict x);
+void svp_exact_release(svp_blur *b);
+const double *svp_exact_halo_map(const svp_blur *b);
+size_t svp_exact_memory(const svp_blur *b);
+/* Shared set-up of the variant kinds (variant.c): checks, the field's copy, kernel radii
+ * (rx, ry) and support as svp_blur_new would choose them, the central PSF as stand-in. */
+svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
+                             svp_boundary boundary, double support, svp_blur_kind kind,
+                             svp_blur **out, int *rx, int *ry, double *support_used);
+/* svp_blur_new_exact with the kernel table forced on (1), off (0) or automatic (-1: on when
+ * N · kernel area <= 2^23 values). Tests compare both paths. */
+svp_status svp_blur_new_exact_tab(const svp_psf_field *field, int width, int height,
+                                  svp_boundary boundary, double support, int tabulate,
+                                  svp_blur **out);
+/* The operator's per-pixel halo fraction α (width x height, owned by the operator), or NULL
+ * when it has none (invariant operators, or no halo anywhere): then b->halo holds it. Space-variant operators with a varying halo
+ * have Hᵀ1 = 1 and H applies (1 − α_s) per source: code that inverts the halo term pointwise
+ * (e.g. coverage of missing pixels) should use this map, not b->halo. */
+const double *svp_blur_halo_map(const svp_blur *b);
+/* Per-pixel halo fraction of a field (NULL when zero everywhere). */
+svp_status svp_variant_halo_map(const svp_psf_field *field, int width, int height,
+                                double **alpha);
 
 #endif

@@ -128,7 +128,7 @@ void svp_frame_extend(const svp_frame *f, const double *restrict image, double *
 {
     const int nx = f->nx, w = f->width;
     const int *sx = f->src_x, *sy = f->src_y;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
     for (int j = 0; j < f->ny; j++) {
         double *out = frame + (size_t)j * nx;
         if (sy[j] < 0) {
@@ -143,7 +143,7 @@ void svp_frame_extend(const svp_frame *f, const double *restrict image, double *
 void svp_frame_crop(const svp_frame *f, const double *restrict frame, double *restrict image)
 {
     const int w = f->width;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
     for (int y = 0; y < f->height; y++)
         memcpy(image + (size_t)y * w, frame + (size_t)(y + f->off_y) * f->nx + f->off_x,
                (size_t)w * sizeof(double));
@@ -152,7 +152,7 @@ void svp_frame_crop(const svp_frame *f, const double *restrict frame, double *re
 void svp_frame_embed(const svp_frame *f, const double *restrict image, double *restrict frame)
 {
     const int w = f->width, nx = f->nx;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
     for (int j = 0; j < f->ny; j++) {
         double *out = frame + (size_t)j * nx;
         memset(out, 0, (size_t)nx * sizeof(double));
@@ -167,7 +167,7 @@ void svp_frame_fold(const svp_frame *f, const double *restrict frame, double *re
     const int w = f->width, h = f->height, nx = f->nx;
     const int *sx = f->src_x, *sy = f->src_y;
     /* Each image row gathers the frame rows that copy it, in frame order (deterministic). */
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
     for (int y = 0; y < h; y++) {
         double *out = image + (size_t)y * w;
         memset(out, 0, (size_t)w * sizeof(double));
@@ -186,10 +186,10 @@ void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int
     const size_t n = (size_t)f->ny * f->ncx;
     const fftw_complex *restrict otf = f->otf;
     if (conjugate) {
-#pragma omp parallel for schedule(static) if (n > 32768)
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
         for (size_t i = 0; i < n; i++) spectrum[i] *= scale * conj(otf[i]);
     } else {
-#pragma omp parallel for schedule(static) if (n > 32768)
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
         for (size_t i = 0; i < n; i++) spectrum[i] *= scale * otf[i];
     }
 }
@@ -303,6 +303,7 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
 void svp_blur_free(svp_blur *b)
 {
     if (!b) return;
+    if (b->kind != SVP_BLUR_INVARIANT) svp_variant_release(b);
     svp_frame_release(&b->frame);
     svp_image_free(b->kernel);
     svp_free(b->work_r);
@@ -317,6 +318,7 @@ double svp_blur_halo(const svp_blur *b) { return b->halo; }
 
 size_t svp_blur_memory(const svp_blur *b)
 {
+    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_memory(b);
     return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
            (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
            (size_t)b->kernel->width * b->kernel->height * sizeof(double);
@@ -350,6 +352,7 @@ static void add_halo(const svp_blur *b, const double *in, double *out)
 svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
 {
     SVP_CHECK(check_io(b, x, y, "svp_blur_apply"));
+    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_apply(b, x->data, y->data);
     svp_frame *f = &b->frame;
     svp_frame_extend(f, x->data, b->work_r);
     svp_fft_forward(f->plan, b->work_r, b->work_c);
@@ -363,6 +366,7 @@ svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
 svp_status svp_blur_adjoint(svp_blur *b, const svp_image *y, svp_image *x)
 {
     SVP_CHECK(check_io(b, y, x, "svp_blur_adjoint"));
+    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_adjoint(b, y->data, x->data);
     svp_frame *f = &b->frame;
     svp_frame_embed(f, y->data, b->work_r);
     svp_fft_forward(f->plan, b->work_r, b->work_c);

@@ -1,2 +1,627 @@
-/* (module under construction) */
-#include "../core/internal.h"
+/* The space-variant blur operator (PHYSICS.md §6): tent-weighted overlap-add and low rank.
+ *
+ * Both are H x = Σ_k P_k ⊛ (c_k ⊙ s ⊙ x) + <α x>_FOV with one shared FFT frame:
+ *   tent:     P_k the normalised core kernel of the field at node k, c_k the bilinear hat of
+ *             node k (c_k >= 0, Σ_k c_k = 1 at every pixel);
+ *   low rank: P_k the k-th eigen-PSF of the sampled kernels, c_k its coefficient map
+ *             (bilinear between the samples);
+ *   s = 1 − α per pixel (the halo keeps (1 − α) of each source's light in the core), divided
+ *   by the expansion's flux for a renormalised low-rank operator.
+ * The node spectra are accumulated in the Fourier domain: one application is K forward FFTs
+ * and one inverse; the adjoint Hᵀ y = Σ_k s c_k ⊙ (P̃_k ⋆ y) + α <y> is one forward and K
+ * inverse FFTs. */
+#include "blur_internal.h"
+#include "../psf/field_internal.h"
+
+#include <lapacke.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+struct svp_variant_data {
+    int n_terms;        /* K nodes or R eigen-PSFs */
+    fftw_complex **otf; /* n_terms spectra (ny x ncx), each scaled by 1 / (nx ny) */
+    fftw_complex *acc;  /* ny x ncx accumulator */
+    double *tmp;        /* width x height */
+    double *scale;      /* s per pixel, NULL = 1 */
+    double *alpha;      /* halo fraction per pixel, NULL = no halo anywhere */
+    /* node / sample grid: per column x the lower node ix0[x] and the fraction fx[x] towards
+     * node ix0[x] + 1 (likewise rows) */
+    int gx, gy;
+    int *ix0, *iy0;
+    double *fx, *fy;
+    double *coef; /* low rank: coef[(r gy + j) gx + i], the coefficient of e_r at sample (i, j) */
+};
+
+void svp_variant_defaults(svp_variant_options *o)
+{
+    memset(o, 0, sizeof *o);
+    o->representation = SVP_VARIANT_TENT;
+    o->grid_x = 8;
+    o->grid_y = 8;
+    o->rank = 6;
+    o->samples_x = 8;
+    o->samples_y = 8;
+    o->renormalise = 1;
+    o->lowrank_mean = 1;
+    o->support = 0;
+}
+
+/* ---- node grids -------------------------------------------------------------------------- */
+
+/* Node i of g along an axis of `size` pixels sits at i (size − 1) / (g − 1) (the centre when
+ * g = 1): the hats then cover the image exactly and sum to one everywhere. */
+static double node_pos(int i, int g, int size)
+{
+    return g == 1 ? 0.5 * (size - 1) : (double)i * (size - 1) / (g - 1);
+}
+
+static svp_status axis_hats(int g, int size, int **i0, double **frac)
+{
+    *i0 = malloc((size_t)size * sizeof(int));
+    *frac = malloc((size_t)size * sizeof(double));
+    if (!*i0 || !*frac) return svp_fail(SVP_ERR_NOMEM, "out of memory for node weights");
+    for (int x = 0; x < size; x++) {
+        if (g == 1) {
+            (*i0)[x] = 0;
+            (*frac)[x] = 0;
+            continue;
+        }
+        double t = (double)x * (g - 1) / (size - 1);
+        int i = (int)floor(t);
+        if (i > g - 2) i = g - 2;
+        (*i0)[x] = i;
+        (*frac)[x] = t - i;
+    }
+    return SVP_OK;
+}
+
+static inline double hat(const int *i0, const double *frac, int node, int x)
+{
+    if (node == i0[x]) return 1.0 - frac[x];
+    if (node == i0[x] + 1) return frac[x];
+    return 0.0;
+}
+
+/* tmp = c_k ⊙ s ⊙ in for term k. */
+static void fill_term(const svp_blur *b, int k, const double *restrict in, double *restrict tmp)
+{
+    const svp_variant_data *v = b->variant;
+    const int w = b->width, h = b->height, gx = v->gx, gy = v->gy;
+    const double *restrict scale = v->scale;
+    if (b->kind == SVP_BLUR_TENT) {
+        const int i = k % gx, j = k / gx;
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+        for (int y = 0; y < h; y++) {
+            double *out = tmp + (size_t)y * w;
+            const double hy = hat(v->iy0, v->fy, j, y);
+            if (hy == 0) {
+                memset(out, 0, (size_t)w * sizeof(double));
+                continue;
+            }
+            const double *row = in + (size_t)y * w;
+            const double *srow = scale ? scale + (size_t)y * w : NULL;
+            for (int x = 0; x < w; x++) {
+                double c = hy * hat(v->ix0, v->fx, i, x);
+                out[x] = c * (srow ? srow[x] : 1.0) * row[x];
+            }
+        }
+    } else {
+        const double *cr = v->coef + (size_t)k * gx * gy;
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+        for (int y = 0; y < h; y++) {
+            double *out = tmp + (size_t)y * w;
+            const int j0 = v->iy0[y], j1 = j0 + 1 < gy ? j0 + 1 : j0;
+            const double ty = v->fy[y];
+            const double *c0 = cr + (size_t)j0 * gx, *c1 = cr + (size_t)j1 * gx;
+            const double *row = in + (size_t)y * w;
+            const double *srow = scale ? scale + (size_t)y * w : NULL;
+            for (int x = 0; x < w; x++) {
+                const int i0 = v->ix0[x], i1 = i0 + 1 < gx ? i0 + 1 : i0;
+                const double tx = v->fx[x];
+                double c = (1 - ty) * ((1 - tx) * c0[i0] + tx * c0[i1]) +
+                           ty * ((1 - tx) * c1[i0] + tx * c1[i1]);
+                out[x] = c * (srow ? srow[x] : 1.0) * row[x];
+            }
+        }
+    }
+}
+
+/* ---- apply / adjoint --------------------------------------------------------------------- */
+
+/* <α x>_FOV added to every output pixel (scatter), or α(s) <y> (its adjoint, gather). */
+static void add_halo_scatter(const svp_blur *b, const double *in, double *out)
+{
+    const svp_variant_data *v = b->variant;
+    const size_t n = (size_t)b->width * b->height;
+    double *restrict tmp = v->tmp;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++) tmp[i] = v->alpha[i] * in[i];
+    const double add = svp_sum(tmp, n) / (double)n;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++) out[i] += add;
+}
+
+static void add_halo_gather(const svp_blur *b, const double *in, double *out)
+{
+    const svp_variant_data *v = b->variant;
+    const size_t n = (size_t)b->width * b->height;
+    const double mean = svp_sum(in, n) / (double)n;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++) out[i] += v->alpha[i] * mean;
+}
+
+svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
+{
+    if (b->kind == SVP_BLUR_EXACT) return svp_exact_apply(b, x, y);
+    svp_variant_data *v = b->variant;
+    svp_frame *f = &b->frame;
+    const size_t ns = (size_t)f->ny * f->ncx;
+    fftw_complex *restrict acc = v->acc;
+    const fftw_complex *restrict spec = b->work_c;
+    memset(acc, 0, ns * sizeof(fftw_complex));
+    for (int k = 0; k < v->n_terms; k++) {
+        fill_term(b, k, x, v->tmp);
+        svp_frame_extend(f, v->tmp, b->work_r);
+        svp_fft_forward(f->plan, b->work_r, b->work_c);
+        const fftw_complex *restrict otf = v->otf[k];
+#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
+        for (size_t i = 0; i < ns; i++) acc[i] += otf[i] * spec[i];
+    }
+    svp_fft_inverse_unscaled(f->plan, acc, b->work_r);
+    svp_frame_crop(f, b->work_r, y);
+    if (v->alpha) add_halo_scatter(b, x, y);
+    return SVP_OK;
+}
+
+svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
+{
+    if (b->kind == SVP_BLUR_EXACT) return svp_exact_adjoint(b, y, x);
+    svp_variant_data *v = b->variant;
+    svp_frame *f = &b->frame;
+    const size_t ns = (size_t)f->ny * f->ncx, n = (size_t)b->width * b->height;
+    fftw_complex *restrict spec_y = v->acc;
+    fftw_complex *restrict spec = b->work_c;
+    svp_frame_embed(f, y, b->work_r);
+    svp_fft_forward(f->plan, b->work_r, spec_y);
+    memset(x, 0, n * sizeof(double));
+    for (int k = 0; k < v->n_terms; k++) {
+        const fftw_complex *restrict otf = v->otf[k];
+#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
+        for (size_t i = 0; i < ns; i++) spec[i] = conj(otf[i]) * spec_y[i];
+        svp_fft_inverse_unscaled(f->plan, spec, b->work_r);
+        svp_frame_fold(f, b->work_r, b->work_r_image);
+        /* x += c_k s ⊙ (P̃_k ⋆ y): fill_term applies the same weights */
+        fill_term(b, k, b->work_r_image, v->tmp);
+        const double *restrict t = v->tmp;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+        for (size_t i = 0; i < n; i++) x[i] += t[i];
+    }
+    if (v->alpha) add_halo_gather(b, y, x);
+    return SVP_OK;
+}
+
+void svp_variant_release(svp_blur *b)
+{
+    if (b->kind == SVP_BLUR_EXACT) svp_exact_release(b);
+    svp_variant_data *v = b->variant;
+    if (v) {
+        if (v->otf)
+            for (int k = 0; k < v->n_terms; k++) svp_free(v->otf[k]);
+        free(v->otf);
+        svp_free(v->acc);
+        svp_free(v->tmp);
+        svp_free(v->scale);
+        svp_free(v->alpha);
+        free(v->ix0);
+        free(v->iy0);
+        free(v->fx);
+        free(v->fy);
+        free(v->coef);
+        free(v);
+        b->variant = NULL;
+    }
+    svp_free(b->work_r_image);
+    b->work_r_image = NULL;
+    svp_psf_field_free(b->field);
+    b->field = NULL;
+}
+
+size_t svp_variant_memory(const svp_blur *b)
+{
+    size_t bytes = sizeof *b;
+    const size_t n = (size_t)b->width * b->height;
+    if (b->kernel) bytes += (size_t)b->kernel->width * b->kernel->height * sizeof(double);
+    if (b->work_r_image) bytes += n * sizeof(double);
+    if (b->kind == SVP_BLUR_EXACT) return bytes + svp_exact_memory(b);
+    const svp_variant_data *v = b->variant;
+    const size_t spectrum = (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex);
+    bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
+    bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double); /* work_r */
+    if (v) {
+        bytes += (size_t)v->n_terms * spectrum; /* node / eigen-PSF spectra */
+        bytes += spectrum;                      /* accumulator (work_c counted by frame) */
+        bytes += n * sizeof(double) * (1 + (v->scale != NULL) + (v->alpha != NULL));
+        bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
+        if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
+    }
+    return bytes;
+}
+
+int svp_blur_is_variant(const svp_blur *b) { return b && b->kind != SVP_BLUR_INVARIANT; }
+
+const double *svp_blur_halo_map(const svp_blur *b)
+{
+    if (!b) return NULL;
+    if (b->kind == SVP_BLUR_TENT || b->kind == SVP_BLUR_LOWRANK)
+        return b->variant ? b->variant->alpha : NULL;
+    if (b->kind == SVP_BLUR_EXACT) return svp_exact_halo_map(b);
+    return NULL;
+}
+
+svp_status svp_blur_psf_at(const svp_blur *b, double x, double y, svp_psf *out)
+{
+    if (!b || !out) return svp_fail(SVP_ERR_INVALID, "svp_blur_psf_at: NULL argument");
+    if (b->field) return svp_psf_field_at(b->field, x, y, out);
+    if (!b->has_model)
+        return svp_fail(SVP_ERR_UNSUPPORTED,
+                        "the operator was built from a sampled kernel: it has no PSF model");
+    *out = b->psf;
+    return SVP_OK;
+}
+
+/* ---- construction ------------------------------------------------------------------------ */
+
+static svp_status check_options(const svp_variant_options *o)
+{
+    if (o->representation != SVP_VARIANT_TENT && o->representation != SVP_VARIANT_LOWRANK)
+        return svp_fail(SVP_ERR_INVALID,
+                        "variant representation %d is not tent (0) or low "
+                        "rank (1)",
+                        (int)o->representation);
+    if (o->grid_x < 1 || o->grid_y < 1 || o->grid_x > 64 || o->grid_y > 64)
+        return svp_fail(SVP_ERR_INVALID, "tent node grid %d x %d: each side must be in 1..64",
+                        o->grid_x, o->grid_y);
+    if (o->samples_x < 1 || o->samples_y < 1 || o->samples_x > 64 || o->samples_y > 64)
+        return svp_fail(SVP_ERR_INVALID, "low-rank sample grid %d x %d: each side must be in 1..64",
+                        o->samples_x, o->samples_y);
+    if (o->representation == SVP_VARIANT_LOWRANK &&
+        (o->rank < 1 || o->rank > o->samples_x * o->samples_y))
+        return svp_fail(SVP_ERR_INVALID,
+                        "low rank %d: must be in 1..%d (the number of sampled PSFs, %d x %d)",
+                        o->rank, o->samples_x * o->samples_y, o->samples_x, o->samples_y);
+    if (!(o->support >= 0) || !isfinite(o->support))
+        return svp_fail(SVP_ERR_INVALID, "variant kernel support must be >= 0 pixels, got %g",
+                        o->support);
+    return SVP_OK;
+}
+
+/* The common part of every space-variant kind: geometry checks, the field's copy, the kernel
+ * radius, the central PSF as the invariant stand-in, per-pixel halo. */
+svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
+                             svp_boundary boundary, double support, svp_blur_kind kind,
+                             svp_blur **out, int *rx, int *ry, double *support_used)
+{
+    *out = NULL;
+    if (!field) return svp_fail(SVP_ERR_INVALID, "PSF field is NULL");
+    if (width < 1 || height < 1)
+        return svp_fail(SVP_ERR_INVALID, "image size %d x %d: both must be at least 1", width,
+                        height);
+    if (boundary != SVP_BOUNDARY_ZERO && boundary != SVP_BOUNDARY_MIRROR &&
+        boundary != SVP_BOUNDARY_PERIODIC)
+        return svp_fail(SVP_ERR_INVALID, "unknown boundary mode %d", (int)boundary);
+    if (field->width != 0 && (field->width != width || field->height != height))
+        return svp_fail(SVP_ERR_SIZE,
+                        "the PSF field is for a %d x %d image, the operator for "
+                        "%d x %d",
+                        field->width, field->height, width, height);
+    if (!(support >= 0) || !isfinite(support))
+        return svp_fail(SVP_ERR_INVALID, "kernel support must be >= 0 pixels, got %g", support);
+    double sup = support > 0 ? support : svp_psf_field_base(field)->support;
+    /* as svp_blur_new: every offset that joins two pixels, or the support radius */
+    *rx = width - 1;
+    *ry = height - 1;
+    if (sup > 0) *rx = *ry = (int)ceil(sup);
+    *support_used = sup;
+
+    svp_blur *b = calloc(1, sizeof *b);
+    if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
+    b->kind = kind;
+    b->width = width;
+    b->height = height;
+    b->boundary = boundary;
+    svp_status st = svp_psf_field_copy(field, &b->field);
+    if (st == SVP_OK) st = svp_psf_field_at(field, 0.5 * (width - 1), 0.5 * (height - 1), &b->psf);
+    if (st == SVP_OK) {
+        b->psf.support = sup;
+        b->has_model = 1;
+        b->halo = b->psf.halo;
+        b->kcx = *rx;
+        b->kcy = *ry;
+        st = svp_psf_render(&b->psf, *rx, *ry, &b->kernel);
+    }
+    if (st == SVP_OK) {
+        b->work_r_image = svp_alloc((size_t)width * height * sizeof(double));
+        if (!b->work_r_image) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    }
+    if (st != SVP_OK) {
+        svp_blur_free(b);
+        return st;
+    }
+    *out = b;
+    return SVP_OK;
+}
+
+/* Per-pixel halo fraction; NULL when it is zero everywhere. */
+svp_status svp_variant_halo_map(const svp_psf_field *field, int width, int height, double **alpha)
+{
+    *alpha = NULL;
+    const size_t n = (size_t)width * height;
+    double *a = svp_alloc(n * sizeof(double));
+    if (!a) return svp_fail(SVP_ERR_NOMEM, "out of memory for a halo map");
+    int any = 0;
+    svp_status st = SVP_OK;
+    for (int y = 0; y < height && st == SVP_OK; y++)
+        for (int x = 0; x < width; x++) {
+            double p[SVP_FIELD_NPARAM];
+            st = svp_psf_field_params_at(field, x, y, p);
+            if (st != SVP_OK) break;
+            a[(size_t)y * width + x] = p[SVP_FIELD_HALO];
+            any |= p[SVP_FIELD_HALO] != 0;
+        }
+    if (st != SVP_OK || !any) {
+        svp_free(a);
+        return st;
+    }
+    *alpha = a;
+    return SVP_OK;
+}
+
+/* Renders the field's PSF at (x, y) with the operator's support. */
+static svp_status render_at(const svp_blur *b, double x, double y, double support, int rx, int ry,
+                            svp_image **kernel)
+{
+    svp_psf psf;
+    SVP_CHECK(svp_psf_field_at(b->field, x, y, &psf));
+    psf.support = support;
+    svp_status st = svp_psf_render(&psf, rx, ry, kernel);
+    if (st != SVP_OK)
+        return svp_fail_context(st, "PSF of the field at (%g, %g) (fwhm %g, beta %g)", x, y,
+                                psf.fwhm, psf.beta);
+    return SVP_OK;
+}
+
+/* OTF of a kernel on the shared frame, scaled by 1 / (nx ny) (the inverse FFT is unscaled). */
+static svp_status term_otf(svp_blur *b, const svp_image *kernel, int rx, int ry, fftw_complex **otf)
+{
+    svp_frame *f = &b->frame;
+    *otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
+    if (!*otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d spectrum", f->nx, f->ny);
+    f->otf = *otf; /* svp_frame_set_kernel writes into the frame's OTF slot */
+    svp_status st = svp_frame_set_kernel(f, kernel, rx, ry, b->boundary);
+    f->otf = NULL;
+    if (st != SVP_OK) return st;
+    const size_t ns = (size_t)f->ny * f->ncx;
+    const double inv = 1.0 / ((double)f->nx * f->ny);
+    for (size_t i = 0; i < ns; i++) (*otf)[i] *= inv;
+    return SVP_OK;
+}
+
+static svp_status build_tent(svp_blur *b, const svp_variant_options *o, double support, int rx,
+                             int ry)
+{
+    svp_variant_data *v = b->variant;
+    const int K = v->gx * v->gy;
+    v->otf = calloc((size_t)K, sizeof *v->otf);
+    if (!v->otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d node spectra", K);
+    v->n_terms = K;
+    for (int k = 0; k < K; k++) {
+        const int i = k % v->gx, j = k / v->gx;
+        svp_image *kernel = NULL;
+        SVP_CHECK(render_at(b, node_pos(i, v->gx, b->width), node_pos(j, v->gy, b->height), support,
+                            rx, ry, &kernel));
+        svp_status st = term_otf(b, kernel, rx, ry, &v->otf[k]);
+        svp_image_free(kernel);
+        SVP_CHECK(st);
+        SVP_CHECK(svp_report_progress(o->progress, o->progress_user, (k + 1.0) / K));
+    }
+    return SVP_OK;
+}
+
+/* Low rank. Plain: a = [K_1 .. K_S] = U Σ Vᵀ, e_r = u_r, c_r(j) = σ_r v_jr. Mean-centred (the
+ * default): e_0 = K̄ (the mean kernel, c_0 = 1) and the SVD of the deviations K_j − K̄ gives
+ * e_1 .. e_{R−1}; the deviations sum to zero, so every e_r (r >= 1) does too and each source
+ * keeps unit flux at every rank. */
+static svp_status build_lowrank(svp_blur *b, const svp_variant_options *o, double support, int rx,
+                                int ry)
+{
+    svp_variant_data *v = b->variant;
+    const int S = v->gx * v->gy, R = o->rank, centred = o->lowrank_mean != 0;
+    const int kw = 2 * rx + 1, kh = 2 * ry + 1;
+    const size_t m = (size_t)kw * kh;
+    if (m > (size_t)INT32_MAX / 2 || m * (size_t)S > ((size_t)1 << 27))
+        return svp_fail(SVP_ERR_NOMEM,
+                        "low rank: %d sampled %d x %d kernels are too large for the SVD; set a "
+                        "smaller support or fewer samples",
+                        S, kw, kh);
+    const int mn = (int)m < S ? (int)m : S;
+    if (R > mn + centred)
+        return svp_fail(SVP_ERR_INVALID, "low rank %d exceeds min(kernel size %zu, samples %d)", R,
+                        m, S);
+    svp_status st = SVP_OK;
+    double *a = malloc(m * (size_t)S * sizeof(double)); /* column j: kernel of sample j */
+    double *mean = centred ? calloc(m, sizeof(double)) : NULL;
+    double *u = NULL, *sv = malloc((size_t)mn * sizeof(double));
+    double *vt = malloc((size_t)mn * S * sizeof(double));
+    double *flux = calloc((size_t)R, sizeof(double));
+    if (!a || !sv || !vt || !flux || (centred && !mean)) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for %d sampled %d x %d kernels", S, kw, kh);
+        goto cleanup;
+    }
+    for (int j = 0; j < S && st == SVP_OK; j++) {
+        svp_image *kernel = NULL;
+        st = render_at(b, node_pos(j % v->gx, v->gx, b->width),
+                       node_pos(j / v->gx, v->gy, b->height), support, rx, ry, &kernel);
+        if (st != SVP_OK) break;
+        memcpy(a + m * (size_t)j, kernel->data, m * sizeof(double));
+        svp_image_free(kernel);
+        st = svp_report_progress(o->progress, o->progress_user, 0.5 * (j + 1.0) / S);
+    }
+    if (st != SVP_OK) goto cleanup;
+    if (centred) {
+        for (int j = 0; j < S; j++)
+            for (size_t i = 0; i < m; i++) mean[i] += a[m * (size_t)j + i];
+        for (size_t i = 0; i < m; i++) mean[i] /= S;
+        for (int j = 0; j < S; j++)
+            for (size_t i = 0; i < m; i++) a[m * (size_t)j + i] -= mean[i];
+    }
+    /* a = U Σ Vᵀ; with m >= S the left vectors overwrite a ('O'), else they go to u. */
+    lapack_int info;
+    const double *uvec;
+    if ((int)m >= S) {
+        double dummy = 0;
+        info = LAPACKE_dgesdd(LAPACK_COL_MAJOR, 'O', (lapack_int)m, S, a, (lapack_int)m, sv, &dummy,
+                              1, vt, mn);
+        uvec = a;
+    } else {
+        u = malloc(m * (size_t)mn * sizeof(double));
+        if (!u) {
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the SVD");
+            goto cleanup;
+        }
+        info = LAPACKE_dgesdd(LAPACK_COL_MAJOR, 'S', (lapack_int)m, S, a, (lapack_int)m, sv, u,
+                              (lapack_int)m, vt, mn);
+        uvec = u;
+    }
+    if (info != 0) {
+        st = svp_fail(SVP_ERR_NUMERIC,
+                      "low rank: the SVD of the sampled PSFs failed (LAPACK "
+                      "dgesdd info %d)",
+                      (int)info);
+        goto cleanup;
+    }
+    v->coef = malloc((size_t)R * S * sizeof(double));
+    v->otf = calloc((size_t)R, sizeof *v->otf);
+    if (!v->coef || !v->otf) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for %d eigen-PSFs", R);
+        goto cleanup;
+    }
+    v->n_terms = R;
+    for (int r = 0; r < R && st == SVP_OK; r++) {
+        const int q = r - centred; /* singular triplet of term r (−1: the mean) */
+        for (int j = 0; j < S; j++)
+            v->coef[(size_t)r * S + j] = q < 0 ? 1.0 : sv[q] * vt[q + (size_t)j * mn];
+        const svp_image eigen = {kw, kh, q < 0 ? mean : (double *)(uvec + m * (size_t)q)};
+        flux[r] = svp_sum(eigen.data, m);
+        st = term_otf(b, &eigen, rx, ry, &v->otf[r]);
+        if (st == SVP_OK)
+            st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / R);
+    }
+    if (st != SVP_OK) goto cleanup;
+    if (o->renormalise) {
+        /* flux of the expansion for a point source at each pixel: Σ_r c_r(x) sum(e_r), bilinear
+         * in the samples like c_r; dividing by it gives every source unit flux. */
+        const size_t n = (size_t)b->width * b->height;
+        double *fs = malloc((size_t)S * sizeof(double));
+        if (!v->scale) v->scale = svp_alloc(n * sizeof(double));
+        if (!fs || !v->scale) {
+            free(fs);
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the flux map");
+            goto cleanup;
+        }
+        for (int j = 0; j < S; j++) {
+            double acc = 0;
+            for (int r = 0; r < R; r++) acc += v->coef[(size_t)r * S + j] * flux[r];
+            fs[j] = acc;
+        }
+        for (int y = 0; y < b->height && st == SVP_OK; y++) {
+            const int j0 = v->iy0[y], j1 = j0 + 1 < v->gy ? j0 + 1 : j0;
+            const double ty = v->fy[y];
+            for (int x = 0; x < b->width; x++) {
+                const int i0 = v->ix0[x], i1 = i0 + 1 < v->gx ? i0 + 1 : i0;
+                const double tx = v->fx[x];
+                double F = (1 - ty) * ((1 - tx) * fs[j0 * v->gx + i0] + tx * fs[j0 * v->gx + i1]) +
+                           ty * ((1 - tx) * fs[j1 * v->gx + i0] + tx * fs[j1 * v->gx + i1]);
+                if (!(F > 1e-3)) {
+                    st = svp_fail(SVP_ERR_NUMERIC,
+                                  "low rank %d: the expansion's flux at pixel (%d, %d) is %g; "
+                                  "raise the rank",
+                                  R, x, y, F);
+                    break;
+                }
+                const size_t i = (size_t)y * b->width + x;
+                v->scale[i] = (v->alpha ? 1.0 - v->alpha[i] : 1.0) / F;
+            }
+        }
+        free(fs);
+    }
+cleanup:
+    free(a);
+    free(mean);
+    free(u);
+    free(sv);
+    free(vt);
+    free(flux);
+    return st;
+}
+
+svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
+                              svp_boundary boundary, const svp_variant_options *options,
+                              svp_blur **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new_field: out is NULL");
+    *out = NULL;
+    svp_variant_options o;
+    if (options)
+        o = *options;
+    else
+        svp_variant_defaults(&o);
+    SVP_CHECK(check_options(&o));
+    const int lowrank = o.representation == SVP_VARIANT_LOWRANK;
+    svp_blur *b = NULL;
+    int rx, ry;
+    double support;
+    SVP_CHECK(svp_variant_begin(field, width, height, boundary, o.support,
+                                lowrank ? SVP_BLUR_LOWRANK : SVP_BLUR_TENT, &b, &rx, &ry,
+                                &support));
+    svp_status st = svp_frame_init(&b->frame, width, height, rx, ry, boundary);
+    svp_variant_data *v = NULL;
+    if (st == SVP_OK) {
+        v = b->variant = calloc(1, sizeof *v);
+        b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
+        b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
+        if (!v || !b->work_r || !b->work_c)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    }
+    if (st == SVP_OK) {
+        v->acc = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
+        v->tmp = svp_alloc((size_t)width * height * sizeof(double));
+        if (!v->acc || !v->tmp) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    }
+    if (st == SVP_OK) {
+        /* no more nodes than pixels along an axis */
+        v->gx = lowrank ? o.samples_x : o.grid_x;
+        v->gy = lowrank ? o.samples_y : o.grid_y;
+        if (v->gx > width) v->gx = width;
+        if (v->gy > height) v->gy = height;
+        st = axis_hats(v->gx, width, &v->ix0, &v->fx);
+        if (st == SVP_OK) st = axis_hats(v->gy, height, &v->iy0, &v->fy);
+    }
+    if (st == SVP_OK) st = svp_variant_halo_map(b->field, width, height, &v->alpha);
+    if (st == SVP_OK && v->alpha) {
+        const size_t n = (size_t)width * height;
+        v->scale = svp_alloc(n * sizeof(double));
+        if (!v->scale)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for a halo map");
+        else
+            for (size_t i = 0; i < n; i++) v->scale[i] = 1.0 - v->alpha[i];
+    }
+    if (st == SVP_OK)
+        st = lowrank ? build_lowrank(b, &o, support, rx, ry) : build_tent(b, &o, support, rx, ry);
+    if (st != SVP_OK) {
+        svp_blur_free(b);
+        return st;
+    }
+    *out = b;
+    return SVP_OK;
+}

@@ -87,7 +87,8 @@ svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out)
 {
     if (ny < 1 || nx < 1) return svp_fail(SVP_ERR_INVALID, "FFT size %d x %d", ny, nx);
     pthread_once(&fft_once, fft_init);
-    int threads = svp_get_threads();
+    /* Threads cost more than they save on small transforms (and oversubscribe badly). */
+    int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();
     pthread_mutex_lock(&fft_lock);
     for (plan_entry *e = plan_cache; e; e = e->next) {
         if (e->plan.ny == ny && e->plan.nx == nx && e->threads == threads) {

@@ -106,7 +106,7 @@ double svp_sum(const double *restrict x, size_t n)
         }
         return s;
     }
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
     for (size_t b = 0; b < nblocks; b++) {
         double sb = 0;
         size_t end = (b + 1) * SUM_BLOCK < n ? (b + 1) * SUM_BLOCK : n;

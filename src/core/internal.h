@@ -9,6 +9,8 @@
 #include <stddef.h>
 
 #define SVP_ALIGN 64
+/* Loops and FFTs over fewer values than this run on one thread. */
+#define SVP_PARALLEL_MIN 65536
 
 #if defined(__GNUC__)
 #define SVP_PRINTF(a, b) __attribute__((format(printf, a, b)))

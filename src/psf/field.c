@@ -1,2 +1,1037 @@
-/* (module under construction) */
-#include "../core/internal.h"
+/* PSF fields: how the PSF parameters vary over the image (PHYSICS.md §6).
+ *
+ * Everything that varies is the parameter vector p = {fwhm, e1, e2, beta, halo} (svpsf.h):
+ * mean FWHM, ellipticity as (e cos 2θ, e sin 2θ) so that orientation interpolates without the
+ * θ = 0 / π wrap, Moffat beta and halo fraction. Model, support and subsample are one per
+ * field. The kinds store their data in parameter space and svp_psf_field_params_at turns a
+ * position into a parameter vector; svp_psf_from_params makes the local PSF. */
+#include "field_internal.h"
+#include "../io/yaml.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* ---- parameter vectors ------------------------------------------------------------------- */
+
+#define FWHM_MIN 0.05
+#define ELLIPTICITY_MAX 0.95
+#define BETA_MIN 0.05
+#define HALO_MAX 0.999
+
+svp_status svp_psf_to_params(const svp_psf *psf, double p[SVP_FIELD_NPARAM])
+{
+    SVP_CHECK(svp_psf_validate(psf));
+    double a = psf->fwhm;
+    double b = psf->fwhm_minor > 0 ? psf->fwhm_minor : psf->fwhm;
+    /* signed ellipticity: b > a is the same shape turned by 90°, which the sign encodes */
+    double e = (a - b) / (a + b);
+    p[SVP_FIELD_FWHM] = 0.5 * (a + b);
+    p[SVP_FIELD_E1] = e == 0 ? 0.0 : e * cos(2.0 * psf->angle);
+    p[SVP_FIELD_E2] = e == 0 ? 0.0 : e * sin(2.0 * psf->angle);
+    p[SVP_FIELD_BETA] = psf->model == SVP_PSF_LORENTZIAN ? 1.0 : psf->beta;
+    p[SVP_FIELD_HALO] = psf->halo;
+    return SVP_OK;
+}
+
+static double clamp(double v, double lo, double hi)
+{
+    if (!(v >= lo)) return lo; /* also NaN → lo */
+    return v > hi ? hi : v;
+}
+
+void svp_psf_from_params(const svp_psf *base, const double p[SVP_FIELD_NPARAM], svp_psf *out)
+{
+    svp_psf psf = *base;
+    double s = clamp(p[SVP_FIELD_FWHM], FWHM_MIN, INFINITY);
+    double e1 = isfinite(p[SVP_FIELD_E1]) ? p[SVP_FIELD_E1] : 0.0;
+    double e2 = isfinite(p[SVP_FIELD_E2]) ? p[SVP_FIELD_E2] : 0.0;
+    double e = hypot(e1, e2);
+    if (e > 0) {
+        double theta = 0.5 * atan2(e2, e1);
+        if (e > ELLIPTICITY_MAX) e = ELLIPTICITY_MAX;
+        psf.fwhm = s * (1.0 + e);
+        psf.fwhm_minor = s * (1.0 - e);
+        psf.angle = theta;
+    } else {
+        psf.fwhm = s;
+        psf.fwhm_minor = 0.0;
+        psf.angle = 0.0;
+    }
+    psf.beta = psf.model == SVP_PSF_LORENTZIAN ? 1.0 : clamp(p[SVP_FIELD_BETA], BETA_MIN, 1e6);
+    if (psf.model == SVP_PSF_GAUSSIAN) psf.beta = base->beta > 0 ? base->beta : 2.5;
+    psf.halo = clamp(p[SVP_FIELD_HALO], 0.0, HALO_MAX);
+    *out = psf;
+}
+
+/* ---- construction ------------------------------------------------------------------------ */
+
+static svp_status check_size(int width, int height, int allow_zero)
+{
+    if (allow_zero && width == 0 && height == 0) return SVP_OK;
+    if (width < 1 || height < 1)
+        return svp_fail(SVP_ERR_INVALID, "PSF field image size %d x %d: both must be >= 1", width,
+                        height);
+    return SVP_OK;
+}
+
+static svp_status field_alloc(svp_psf_field_kind kind, int width, int height, const svp_psf *base,
+                              svp_psf_field **out)
+{
+    svp_psf_field *f = calloc(1, sizeof *f);
+    if (!f) return svp_fail(SVP_ERR_NOMEM, "out of memory for a PSF field");
+    f->kind = kind;
+    f->width = width;
+    f->height = height;
+    f->base = *base;
+    if (f->base.model == SVP_PSF_LORENTZIAN) f->base.beta = 1.0;
+    *out = f;
+    return SVP_OK;
+}
+
+/* Every PSF of a field shares the model, support and subsample of the first one. */
+static svp_status check_member(const svp_psf *first, const svp_psf *psf, const char *what,
+                               int index)
+{
+    svp_status st = svp_psf_validate(psf);
+    if (st != SVP_OK) return svp_fail_context(st, "%s %d", what, index);
+    if (psf->model != first->model)
+        return svp_fail(SVP_ERR_INVALID,
+                        "%s %d has model %d but the field's model is %d: one model per field "
+                        "(use a Moffat with a large beta for Gaussian-like parts)",
+                        what, index, (int)psf->model, (int)first->model);
+    if (psf->support != first->support || psf->subsample != first->subsample)
+        return svp_fail(SVP_ERR_INVALID,
+                        "%s %d: support %g / subsample %d differ from the field's %g / %d", what,
+                        index, psf->support, psf->subsample, first->support, first->subsample);
+    return SVP_OK;
+}
+
+svp_status svp_psf_field_new_uniform(const svp_psf *psf, int width, int height, svp_psf_field **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_new_uniform: out is NULL");
+    *out = NULL;
+    SVP_CHECK(svp_psf_validate(psf));
+    SVP_CHECK(check_size(width, height, 1));
+    svp_psf_field *f = NULL;
+    SVP_CHECK(field_alloc(SVP_FIELD_UNIFORM, width, height, psf, &f));
+    f->uniform = *psf;
+    SVP_CHECK(svp_psf_to_params(psf, f->uniform_p));
+    *out = f;
+    return SVP_OK;
+}
+
+static svp_status check_positions(const double *pos, int n, const char *axis)
+{
+    for (int i = 0; i < n; i++) {
+        if (!isfinite(pos[i]))
+            return svp_fail(SVP_ERR_INVALID, "node %s position %d is not finite", axis, i);
+        if (i > 0 && !(pos[i] > pos[i - 1]))
+            return svp_fail(SVP_ERR_INVALID,
+                            "node %s positions must increase strictly: %g at %d after %g", axis,
+                            pos[i], i, pos[i - 1]);
+    }
+    return SVP_OK;
+}
+
+svp_status svp_psf_field_new_grid(int width, int height, int nx, int ny, const double *node_x,
+                                  const double *node_y, const svp_psf *node_psfs,
+                                  svp_psf_field **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_new_grid: out is NULL");
+    *out = NULL;
+    SVP_CHECK(check_size(width, height, 0));
+    if (nx < 1 || ny < 1 || nx > 4096 || ny > 4096)
+        return svp_fail(SVP_ERR_INVALID, "node grid %d x %d: each side must be in 1..4096", nx, ny);
+    if (!node_psfs) return svp_fail(SVP_ERR_INVALID, "node PSFs are missing");
+    const size_t nk = (size_t)nx * ny;
+    for (size_t k = 0; k < nk; k++)
+        SVP_CHECK(check_member(&node_psfs[0], &node_psfs[k], "node PSF", (int)k));
+    if (node_x) SVP_CHECK(check_positions(node_x, nx, "x"));
+    if (node_y) SVP_CHECK(check_positions(node_y, ny, "y"));
+    svp_psf_field *f = NULL;
+    SVP_CHECK(field_alloc(SVP_FIELD_GRID, width, height, &node_psfs[0], &f));
+    f->nx = nx;
+    f->ny = ny;
+    f->grid_default_nodes = !node_x && !node_y;
+    f->node_x = malloc((size_t)nx * sizeof(double));
+    f->node_y = malloc((size_t)ny * sizeof(double));
+    f->node_p = malloc(nk * SVP_FIELD_NPARAM * sizeof(double));
+    if (!f->node_x || !f->node_y || !f->node_p) {
+        svp_psf_field_free(f);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d node grid", nx, ny);
+    }
+    for (int i = 0; i < nx; i++) f->node_x[i] = node_x ? node_x[i] : (i + 0.5) * width / nx - 0.5;
+    for (int j = 0; j < ny; j++) f->node_y[j] = node_y ? node_y[j] : (j + 0.5) * height / ny - 0.5;
+    for (size_t k = 0; k < nk; k++)
+        svp_psf_to_params(&node_psfs[k], f->node_p + k * SVP_FIELD_NPARAM);
+    *out = f;
+    return SVP_OK;
+}
+
+int svp_psf_field_poly_terms(int degree)
+{
+    if (degree < 0) return 0;
+    return (degree + 1) * (degree + 2) / 2;
+}
+
+void svp_psf_field_poly_basis(int degree, int width, int height, double x, double y, double *basis)
+{
+    double u = (2.0 * x - (width - 1)) / (width > 1 ? width - 1 : 1);
+    double v = (2.0 * y - (height - 1)) / (height > 1 ? height - 1 : 1);
+    double up[SVP_FIELD_POLY_MAX_DEGREE + 1], vp[SVP_FIELD_POLY_MAX_DEGREE + 1];
+    if (degree > SVP_FIELD_POLY_MAX_DEGREE) degree = SVP_FIELD_POLY_MAX_DEGREE;
+    up[0] = vp[0] = 1.0;
+    for (int k = 1; k <= degree; k++) {
+        up[k] = up[k - 1] * u;
+        vp[k] = vp[k - 1] * v;
+    }
+    int t = 0;
+    for (int k = 0; k <= degree; k++)
+        for (int j = 0; j <= k; j++) basis[t++] = up[k - j] * vp[j];
+}
+
+svp_status svp_psf_field_new_poly(const svp_psf *base, int width, int height, int degree,
+                                  const double *coeffs, svp_psf_field **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_new_poly: out is NULL");
+    *out = NULL;
+    SVP_CHECK(svp_psf_validate(base));
+    SVP_CHECK(check_size(width, height, 0));
+    if (degree < 0 || degree > SVP_FIELD_POLY_MAX_DEGREE)
+        return svp_fail(SVP_ERR_INVALID, "polynomial degree %d: must be in 0..%d", degree,
+                        SVP_FIELD_POLY_MAX_DEGREE);
+    if (!coeffs) return svp_fail(SVP_ERR_INVALID, "polynomial coefficients are missing");
+    const int nt = svp_psf_field_poly_terms(degree);
+    for (int i = 0; i < nt * SVP_FIELD_NPARAM; i++)
+        if (!isfinite(coeffs[i]))
+            return svp_fail(SVP_ERR_INVALID,
+                            "polynomial coefficient %d of parameter %d is not "
+                            "finite",
+                            i % nt, i / nt);
+    svp_psf_field *f = NULL;
+    SVP_CHECK(field_alloc(SVP_FIELD_POLY, width, height, base, &f));
+    f->degree = degree;
+    f->coeffs = malloc((size_t)nt * SVP_FIELD_NPARAM * sizeof(double));
+    if (!f->coeffs) {
+        svp_psf_field_free(f);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for polynomial coefficients");
+    }
+    memcpy(f->coeffs, coeffs, (size_t)nt * SVP_FIELD_NPARAM * sizeof(double));
+    *out = f;
+    return SVP_OK;
+}
+
+/* Separable Gaussian smoothing of one map in place, mirror (half-sample) boundary; kernel
+ * normalised, so smoothing a constant returns it and smoothed one-hot maps sum to 1. */
+static int reflect_index(int t, int size)
+{
+    int period = 2 * size;
+    t %= period;
+    if (t < 0) t += period;
+    return t < size ? t : period - 1 - t;
+}
+
+static svp_status smooth_map(double *map, int width, int height, double sigma)
+{
+    int r = (int)ceil(4.0 * sigma);
+    if (r < 1) r = 1;
+    double *g = malloc((size_t)(2 * r + 1) * sizeof(double));
+    double *tmp = svp_alloc((size_t)width * height * sizeof(double));
+    if (!g || !tmp) {
+        free(g);
+        svp_free(tmp);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory smoothing a region map");
+    }
+    double sum = 0;
+    for (int d = -r; d <= r; d++) sum += g[d + r] = exp(-0.5 * d * d / (sigma * sigma));
+    for (int d = 0; d <= 2 * r; d++) g[d] /= sum;
+#pragma omp parallel for schedule(static) if ((size_t)width * height > SVP_PARALLEL_MIN)
+    for (int y = 0; y < height; y++) {
+        const double *row = map + (size_t)y * width;
+        for (int x = 0; x < width; x++) {
+            double acc = 0;
+            for (int d = -r; d <= r; d++) acc += g[d + r] * row[reflect_index(x + d, width)];
+            tmp[(size_t)y * width + x] = acc;
+        }
+    }
+#pragma omp parallel for schedule(static) if ((size_t)width * height > SVP_PARALLEL_MIN)
+    for (int y = 0; y < height; y++) {
+        for (int x = 0; x < width; x++) {
+            double acc = 0;
+            for (int d = -r; d <= r; d++)
+                acc += g[d + r] * tmp[(size_t)reflect_index(y + d, height) * width + x];
+            map[(size_t)y * width + x] = acc;
+        }
+    }
+    free(g);
+    svp_free(tmp);
+    return SVP_OK;
+}
+
+/* Blend sigma from the 10 %–90 % transition width of a smoothed step: 2 · 1.2816 σ. */
+#define TRANSITION_PER_SIGMA 2.5631
+
+svp_status svp_psf_field_new_regions(int width, int height, const int *labels, int n_labels,
+                                     const svp_psf *region_psfs, double transition,
+                                     svp_psf_field **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_new_regions: out is NULL");
+    *out = NULL;
+    SVP_CHECK(check_size(width, height, 0));
+    if (!labels) return svp_fail(SVP_ERR_INVALID, "label image is missing");
+    if (n_labels < 1 || n_labels > 65536)
+        return svp_fail(SVP_ERR_INVALID, "number of regions %d: must be in 1..65536", n_labels);
+    if (!region_psfs) return svp_fail(SVP_ERR_INVALID, "region PSFs are missing");
+    if (!(transition >= 0) || !isfinite(transition))
+        return svp_fail(SVP_ERR_INVALID, "region transition width must be >= 0 pixels, got %g",
+                        transition);
+    for (int l = 0; l < n_labels; l++)
+        SVP_CHECK(check_member(&region_psfs[0], &region_psfs[l], "region PSF", l));
+    const size_t n = (size_t)width * height;
+    for (size_t i = 0; i < n; i++)
+        if (labels[i] < 0 || labels[i] >= n_labels)
+            return svp_fail(
+                SVP_ERR_INVALID, "label %d at pixel (%d, %d) is outside 0..%d (one PSF per label)",
+                labels[i], (int)(i % (size_t)width), (int)(i / (size_t)width), n_labels - 1);
+    svp_psf_field *f = NULL;
+    SVP_CHECK(field_alloc(SVP_FIELD_REGIONS, width, height, &region_psfs[0], &f));
+    svp_status st = SVP_OK;
+    double *onehot = NULL;
+    f->n_labels = n_labels;
+    f->transition = transition;
+    f->labels = malloc(n * sizeof(int));
+    f->region_psfs = malloc((size_t)n_labels * sizeof(svp_psf));
+    f->region_p = malloc((size_t)n_labels * SVP_FIELD_NPARAM * sizeof(double));
+    f->pmap = svp_calloc(n * SVP_FIELD_NPARAM, sizeof(double));
+    if (!f->labels || !f->region_psfs || !f->region_p || !f->pmap) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d region field", width, height);
+        goto cleanup;
+    }
+    memcpy(f->labels, labels, n * sizeof(int));
+    memcpy(f->region_psfs, region_psfs, (size_t)n_labels * sizeof(svp_psf));
+    for (int l = 0; l < n_labels; l++)
+        svp_psf_to_params(&region_psfs[l], f->region_p + (size_t)l * SVP_FIELD_NPARAM);
+    if (transition == 0) {
+        for (size_t i = 0; i < n; i++)
+            for (int q = 0; q < SVP_FIELD_NPARAM; q++)
+                f->pmap[(size_t)q * n + i] = f->region_p[(size_t)labels[i] * SVP_FIELD_NPARAM + q];
+    } else {
+        /* p(x) = Σ_l w_l(x) p_l with w_l the smoothed one-hot map of label l: w_l >= 0 and
+         * Σ_l w_l = 1 (the smoothing of a constant), so blended parameters stay in the hull. */
+        onehot = svp_alloc(n * sizeof(double));
+        if (!onehot) {
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for a region weight map");
+            goto cleanup;
+        }
+        for (int l = 0; l < n_labels; l++) {
+            size_t count = 0;
+            for (size_t i = 0; i < n; i++) count += onehot[i] = labels[i] == l;
+            if (!count) continue;
+            st = smooth_map(onehot, width, height, transition / TRANSITION_PER_SIGMA);
+            if (st != SVP_OK) goto cleanup;
+            const double *pl = f->region_p + (size_t)l * SVP_FIELD_NPARAM;
+            for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+                double *mq = f->pmap + (size_t)q * n;
+                for (size_t i = 0; i < n; i++) mq[i] += onehot[i] * pl[q];
+            }
+        }
+    }
+cleanup:
+    svp_free(onehot);
+    if (st != SVP_OK) {
+        svp_psf_field_free(f);
+        return st;
+    }
+    *out = f;
+    return SVP_OK;
+}
+
+svp_status svp_psf_field_copy(const svp_psf_field *src, svp_psf_field **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_copy: out is NULL");
+    *out = NULL;
+    if (!src) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_copy: field is NULL");
+    switch (src->kind) {
+    case SVP_FIELD_UNIFORM:
+        return svp_psf_field_new_uniform(&src->uniform, src->width, src->height, out);
+    case SVP_FIELD_GRID: {
+        svp_psf_field *f = NULL;
+        SVP_CHECK(field_alloc(SVP_FIELD_GRID, src->width, src->height, &src->base, &f));
+        size_t nk = (size_t)src->nx * src->ny;
+        f->nx = src->nx;
+        f->ny = src->ny;
+        f->grid_default_nodes = src->grid_default_nodes;
+        f->node_x = malloc((size_t)f->nx * sizeof(double));
+        f->node_y = malloc((size_t)f->ny * sizeof(double));
+        f->node_p = malloc(nk * SVP_FIELD_NPARAM * sizeof(double));
+        if (!f->node_x || !f->node_y || !f->node_p) {
+            svp_psf_field_free(f);
+            return svp_fail(SVP_ERR_NOMEM, "out of memory copying a node grid");
+        }
+        memcpy(f->node_x, src->node_x, (size_t)f->nx * sizeof(double));
+        memcpy(f->node_y, src->node_y, (size_t)f->ny * sizeof(double));
+        memcpy(f->node_p, src->node_p, nk * SVP_FIELD_NPARAM * sizeof(double));
+        *out = f;
+        return SVP_OK;
+    }
+    case SVP_FIELD_POLY:
+        return svp_psf_field_new_poly(&src->base, src->width, src->height, src->degree, src->coeffs,
+                                      out);
+    case SVP_FIELD_REGIONS:
+        return svp_psf_field_new_regions(src->width, src->height, src->labels, src->n_labels,
+                                         src->region_psfs, src->transition, out);
+    }
+    return svp_fail(SVP_ERR_INTERNAL, "PSF field of unknown kind %d", (int)src->kind);
+}
+
+void svp_psf_field_free(svp_psf_field *f)
+{
+    if (!f) return;
+    free(f->node_x);
+    free(f->node_y);
+    free(f->node_p);
+    free(f->coeffs);
+    free(f->labels);
+    free(f->region_psfs);
+    free(f->region_p);
+    svp_free(f->pmap);
+    free(f);
+}
+
+svp_psf_field_kind svp_psf_field_get_kind(const svp_psf_field *f) { return f->kind; }
+int svp_psf_field_width(const svp_psf_field *f) { return f->width; }
+int svp_psf_field_height(const svp_psf_field *f) { return f->height; }
+
+/* ---- evaluation -------------------------------------------------------------------------- */
+
+/* Interval i and fraction t with pos[i] + t (pos[i+1] − pos[i]) = v, clamped to the ends. */
+static void locate(const double *pos, int n, double v, int *i, double *t)
+{
+    if (n == 1 || v <= pos[0]) {
+        *i = 0;
+        *t = 0;
+        return;
+    }
+    if (v >= pos[n - 1]) {
+        *i = n - 2;
+        *t = 1;
+        return;
+    }
+    int lo = 0, hi = n - 1; /* pos[lo] <= v < pos[hi] */
+    while (hi - lo > 1) {
+        int mid = (lo + hi) / 2;
+        if (pos[mid] <= v)
+            lo = mid;
+        else
+            hi = mid;
+    }
+    *i = lo;
+    *t = (v - pos[lo]) / (pos[hi] - pos[lo]);
+}
+
+static void clamp_params(double p[SVP_FIELD_NPARAM])
+{
+    p[SVP_FIELD_FWHM] = clamp(p[SVP_FIELD_FWHM], FWHM_MIN, INFINITY);
+    double e = hypot(p[SVP_FIELD_E1], p[SVP_FIELD_E2]);
+    if (!isfinite(e)) {
+        p[SVP_FIELD_E1] = p[SVP_FIELD_E2] = 0;
+    } else if (e > ELLIPTICITY_MAX) {
+        p[SVP_FIELD_E1] *= ELLIPTICITY_MAX / e;
+        p[SVP_FIELD_E2] *= ELLIPTICITY_MAX / e;
+    }
+    p[SVP_FIELD_BETA] = clamp(p[SVP_FIELD_BETA], BETA_MIN, 1e6);
+    p[SVP_FIELD_HALO] = clamp(p[SVP_FIELD_HALO], 0.0, HALO_MAX);
+}
+
+svp_status svp_psf_field_params_at(const svp_psf_field *f, double x, double y,
+                                   double p[SVP_FIELD_NPARAM])
+{
+    if (!f) return svp_fail(SVP_ERR_INVALID, "PSF field is NULL");
+    if (!isfinite(x) || !isfinite(y))
+        return svp_fail(SVP_ERR_INVALID, "PSF field position (%g, %g) is not finite", x, y);
+    switch (f->kind) {
+    case SVP_FIELD_UNIFORM: memcpy(p, f->uniform_p, sizeof f->uniform_p); return SVP_OK;
+    case SVP_FIELD_GRID: {
+        int i, j;
+        double tx, ty;
+        locate(f->node_x, f->nx, x, &i, &tx);
+        locate(f->node_y, f->ny, y, &j, &ty);
+        int i1 = f->nx > 1 ? i + 1 : i, j1 = f->ny > 1 ? j + 1 : j;
+        const double *p00 = f->node_p + ((size_t)j * f->nx + i) * SVP_FIELD_NPARAM;
+        const double *p10 = f->node_p + ((size_t)j * f->nx + i1) * SVP_FIELD_NPARAM;
+        const double *p01 = f->node_p + ((size_t)j1 * f->nx + i) * SVP_FIELD_NPARAM;
+        const double *p11 = f->node_p + ((size_t)j1 * f->nx + i1) * SVP_FIELD_NPARAM;
+        for (int q = 0; q < SVP_FIELD_NPARAM; q++)
+            p[q] = (1 - ty) * ((1 - tx) * p00[q] + tx * p10[q]) +
+                   ty * ((1 - tx) * p01[q] + tx * p11[q]);
+        break;
+    }
+    case SVP_FIELD_POLY: {
+        double basis[(SVP_FIELD_POLY_MAX_DEGREE + 1) * (SVP_FIELD_POLY_MAX_DEGREE + 2) / 2];
+        const int nt = svp_psf_field_poly_terms(f->degree);
+        svp_psf_field_poly_basis(f->degree, f->width, f->height, x, y, basis);
+        for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+            double acc = 0;
+            for (int t = 0; t < nt; t++) acc += f->coeffs[q * nt + t] * basis[t];
+            p[q] = acc;
+        }
+        break;
+    }
+    case SVP_FIELD_REGIONS: {
+        /* bilinear between pixel centres, clamped to the image */
+        double cx = clamp(x, 0, f->width - 1), cy = clamp(y, 0, f->height - 1);
+        int i = (int)floor(cx), j = (int)floor(cy);
+        double tx = cx - i, ty = cy - j;
+        int i1 = i + 1 < f->width ? i + 1 : i, j1 = j + 1 < f->height ? j + 1 : j;
+        const size_t n = (size_t)f->width * f->height, w = (size_t)f->width;
+        for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+            const double *m = f->pmap + (size_t)q * n;
+            double v = (1 - ty) * (1 - tx) * m[j * w + i];
+            if (tx > 0) v += (1 - ty) * tx * m[j * w + i1];
+            if (ty > 0) v += ty * (1 - tx) * m[j1 * w + i];
+            if (tx > 0 && ty > 0) v += ty * tx * m[j1 * w + i1];
+            p[q] = v;
+        }
+        break;
+    }
+    default: return svp_fail(SVP_ERR_INTERNAL, "PSF field of unknown kind %d", (int)f->kind);
+    }
+    clamp_params(p);
+    return SVP_OK;
+}
+
+svp_status svp_psf_field_at(const svp_psf_field *f, double x, double y, svp_psf *out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_at: out is NULL");
+    if (f && f->kind == SVP_FIELD_UNIFORM) {
+        /* the PSF itself, not its round trip through parameters: uniform fields reproduce
+         * the invariant operator bit for bit */
+        *out = f->uniform;
+        return SVP_OK;
+    }
+    double p[SVP_FIELD_NPARAM];
+    SVP_CHECK(svp_psf_field_params_at(f, x, y, p));
+    svp_psf_from_params(&f->base, p, out);
+    return SVP_OK;
+}
+
+const svp_psf *svp_psf_field_base(const svp_psf_field *f) { return &f->base; }
+
+/* ---- PSF-map files (YAML) ---------------------------------------------------------------- */
+
+static const char *const model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
+#define RAD_PER_DEG (3.14159265358979323846 / 180.0)
+
+/* One PSF entry {fwhm_um, fwhm_minor_um, angle_deg, beta, halo} (plus `extra` keys the caller
+ * reads) into psf (model, support, subsample from base). */
+static svp_status read_psf_entry(const svp_yaml_node *n, const char *what, const svp_psf *base,
+                                 double pixel_um, const char *const *extra, svp_psf *psf)
+{
+    const char *keys[16] = {"fwhm_um", "fwhm_minor_um", "angle_deg", "beta", "halo"};
+    int nk = 5;
+    for (int i = 0; extra && extra[i] && nk < 15; i++) keys[nk++] = extra[i];
+    keys[nk] = NULL;
+    SVP_CHECK(svp_yaml_expect_mapping(n, what));
+    SVP_CHECK(svp_yaml_check_keys(n, what, keys));
+    const svp_yaml_node *v = NULL;
+    double fwhm, minor = 0, angle = 0, beta = base->beta, halo = 0;
+    SVP_CHECK(svp_yaml_require(n, "fwhm_um", what, &v));
+    SVP_CHECK(svp_yaml_number_in(v, "fwhm_um", 0, INFINITY, SVP_YAML_OPEN_LO, &fwhm));
+    SVP_CHECK(svp_yaml_get_number(n, "fwhm_minor_um", 0, INFINITY, 0, &minor, NULL));
+    SVP_CHECK(svp_yaml_get_number(n, "angle_deg", -INFINITY, INFINITY, 0, &angle, NULL));
+    int has_beta = 0;
+    SVP_CHECK(svp_yaml_get_number(n, "beta", 0, INFINITY, SVP_YAML_OPEN_LO, &beta, &has_beta));
+    if (!has_beta && base->model == SVP_PSF_MOFFAT)
+        return svp_yaml_fail(n, SVP_ERR_FORMAT,
+                             "missing required key 'beta' in %s (a Moffat "
+                             "field)",
+                             what);
+    /* as the plain PSF file: beta belongs to Moffat fields (1 for Lorentzian) */
+    if (has_beta && base->model == SVP_PSF_GAUSSIAN)
+        return svp_yaml_fail(svp_yaml_get(n, "beta"), SVP_ERR_INVALID,
+                             "beta does not apply to a gaussian field (use model: moffat)");
+    if (has_beta && base->model == SVP_PSF_LORENTZIAN && beta != 1.0)
+        return svp_yaml_fail(svp_yaml_get(n, "beta"), SVP_ERR_INVALID,
+                             "beta must be 1 in a lorentzian field, got %g (use model: moffat)",
+                             beta);
+    SVP_CHECK(svp_yaml_get_number(n, "halo", 0, 1, SVP_YAML_OPEN_HI, &halo, NULL));
+    *psf = *base;
+    psf->fwhm = fwhm / pixel_um;
+    psf->fwhm_minor = minor / pixel_um;
+    psf->angle = angle * RAD_PER_DEG;
+    psf->beta = base->model == SVP_PSF_LORENTZIAN ? 1.0 : beta;
+    psf->halo = halo;
+    svp_status st = svp_psf_validate(psf);
+    if (st != SVP_OK) return svp_yaml_fail(n, st, "%s: %s", what, svp_last_error());
+    return SVP_OK;
+}
+
+static svp_status write_psf_entry(svp_yaml_writer *w, const svp_psf *psf, double pixel_um)
+{
+    SVP_CHECK(svp_yaml_begin_mapping(w));
+    SVP_CHECK(svp_yaml_write_key_number(w, "fwhm_um", psf->fwhm * pixel_um));
+    if (psf->fwhm_minor > 0) {
+        SVP_CHECK(svp_yaml_write_key_number(w, "fwhm_minor_um", psf->fwhm_minor * pixel_um));
+        SVP_CHECK(svp_yaml_write_key_number(w, "angle_deg", psf->angle / RAD_PER_DEG));
+    }
+    if (psf->model == SVP_PSF_MOFFAT) SVP_CHECK(svp_yaml_write_key_number(w, "beta", psf->beta));
+    SVP_CHECK(svp_yaml_write_key_number(w, "halo", psf->halo));
+    return svp_yaml_end_mapping(w);
+}
+
+/* "dir/map.yaml" + "x.npy" → "dir/x.npy" (absolute names are kept). Caller frees. */
+static char *sibling_path(const char *yaml_path, const char *name)
+{
+    if (name[0] == '/') return strdup(name);
+    const char *slash = strrchr(yaml_path, '/');
+    size_t dir = slash ? (size_t)(slash - yaml_path + 1) : 0;
+    char *out = malloc(dir + strlen(name) + 1);
+    if (!out) return NULL;
+    memcpy(out, yaml_path, dir);
+    strcpy(out + dir, name);
+    return out;
+}
+
+/* The labels file written beside a map: "<path without .yaml/.yml>.labels.npy". */
+static char *labels_path_for(const char *path)
+{
+    size_t n = strlen(path);
+    if (n > 5 && strcmp(path + n - 5, ".yaml") == 0)
+        n -= 5;
+    else if (n > 4 && strcmp(path + n - 4, ".yml") == 0)
+        n -= 4;
+    char *out = malloc(n + sizeof ".labels.npy");
+    if (!out) return NULL;
+    memcpy(out, path, n);
+    strcpy(out + n, ".labels.npy");
+    return out;
+}
+
+static const char *const map_keys[] = {
+    "version",     "pixel_um",      "image",   "model",      "support_um", "subsample",
+    "kind",        "psf",           "nodes",   "node_psfs",  "degree",     "coefficients",
+    "labels_file", "transition_um", "regions", "provenance", "comment",    NULL};
+static const char *const kind_names[] = {"uniform", "grid", "poly", "regions", NULL};
+static const char *const coef_names[] = {"fwhm_um", "e1", "e2", "beta", "halo", NULL};
+
+static svp_status read_map(const char *path, const svp_yaml_node *root, svp_psf_field **out,
+                           double *pixel_um_out)
+{
+    svp_status st = SVP_OK;
+    const svp_yaml_node *v = NULL;
+    double pixel_um, support_um = 0;
+    long long width = 0, height = 0, subsample = 0, version = 1;
+    int model = 0, kind = 0, found = 0;
+    svp_psf *psfs = NULL;
+    double *values = NULL, *nx = NULL, *ny = NULL;
+    int *labels = NULL;
+    svp_image *label_image = NULL;
+    char *labels_path = NULL;
+
+    SVP_CHECK(svp_yaml_check_keys(root, NULL, map_keys));
+    SVP_CHECK(svp_yaml_get_int(root, "version", 1, 1, &version, NULL));
+    SVP_CHECK(svp_yaml_require(root, "pixel_um", NULL, &v));
+    SVP_CHECK(svp_yaml_number_in(v, "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &pixel_um));
+    SVP_CHECK(svp_yaml_require(root, "kind", NULL, &v));
+    SVP_CHECK(svp_yaml_choice(v, "kind", kind_names, &kind));
+    SVP_CHECK(svp_yaml_require(root, "model", NULL, &v));
+    SVP_CHECK(svp_yaml_choice(v, "model", model_names, &model));
+    SVP_CHECK(svp_yaml_get_number(root, "support_um", 0, INFINITY, 0, &support_um, NULL));
+    SVP_CHECK(svp_yaml_get_int(root, "subsample", 0, 64, &subsample, NULL));
+    const svp_yaml_node *image = svp_yaml_get(root, "image");
+    if (image) {
+        static const char *const image_keys[] = {"width", "height", NULL};
+        SVP_CHECK(svp_yaml_expect_mapping(image, "image"));
+        SVP_CHECK(svp_yaml_check_keys(image, "image", image_keys));
+        SVP_CHECK(svp_yaml_require(image, "width", "image", &v));
+        SVP_CHECK(svp_yaml_int(v, "width", 1, 1 << 20, &width));
+        SVP_CHECK(svp_yaml_require(image, "height", "image", &v));
+        SVP_CHECK(svp_yaml_int(v, "height", 1, 1 << 20, &height));
+    } else if (kind != SVP_FIELD_UNIFORM) {
+        return svp_yaml_fail(root, SVP_ERR_FORMAT,
+                             "missing required key 'image' (a %s map "
+                             "needs the image size)",
+                             kind_names[kind]);
+    }
+    /* keys that belong to another kind are mistakes worth naming */
+    static const char *const kind_keys[4][4] = {{"psf", NULL},
+                                                {"nodes", "node_psfs", NULL},
+                                                {"degree", "coefficients", NULL},
+                                                {"labels_file", "transition_um", "regions", NULL}};
+    for (int k = 0; k < 4; k++)
+        for (int i = 0; k != kind && kind_keys[k][i]; i++)
+            if ((v = svp_yaml_get(root, kind_keys[k][i])))
+                return svp_yaml_fail(v, SVP_ERR_FORMAT, "key '%s' does not belong to a %s map",
+                                     kind_keys[k][i], kind_names[kind]);
+    svp_psf base;
+    svp_psf_defaults(&base);
+    base.model = (svp_psf_model)model;
+    base.beta = model == SVP_PSF_LORENTZIAN ? 1.0 : 2.5;
+    base.support = support_um / pixel_um;
+    base.subsample = (int)subsample;
+
+    switch (kind) {
+    case SVP_FIELD_UNIFORM: {
+        svp_psf psf;
+        SVP_CHECK(svp_yaml_require(root, "psf", NULL, &v));
+        SVP_CHECK(read_psf_entry(v, "psf", &base, pixel_um, NULL, &psf));
+        st = svp_psf_field_new_uniform(&psf, (int)width, (int)height, out);
+        break;
+    }
+    case SVP_FIELD_GRID: {
+        const svp_yaml_node *list = NULL, *nodes = svp_yaml_get(root, "nodes");
+        size_t cx = 0, cy = 0;
+        SVP_CHECK(svp_yaml_require(root, "node_psfs", NULL, &list));
+        if (svp_yaml_type_of(list) != SVP_YAML_SEQUENCE || svp_yaml_size(list) == 0)
+            return svp_yaml_fail(list, SVP_ERR_FORMAT, "node_psfs must be a non-empty list");
+        const size_t nk = svp_yaml_size(list);
+        nx = malloc(4096 * sizeof(double));
+        ny = malloc(4096 * sizeof(double));
+        psfs = malloc(nk * sizeof(svp_psf));
+        if (!nx || !ny || !psfs) {
+            st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+            goto cleanup;
+        }
+        if (!nodes) {
+            st = svp_yaml_fail(root, SVP_ERR_FORMAT,
+                               "missing required key 'nodes' (give "
+                               "{nx: .., ny: ..} or {x_px: [..], y_px: [..]})");
+            goto cleanup;
+        }
+        static const char *const node_keys[] = {"nx", "ny", "x_px", "y_px", NULL};
+        if ((st = svp_yaml_expect_mapping(nodes, "nodes")) ||
+            (st = svp_yaml_check_keys(nodes, "nodes", node_keys)))
+            goto cleanup;
+        int has_x = 0, has_y = 0;
+        long long lnx = 0, lny = 0;
+        if ((v = svp_yaml_get(nodes, "x_px"))) {
+            if ((st = svp_yaml_number_list(v, "x_px", 1, 4096, nx, &cx))) goto cleanup;
+            has_x = 1;
+        }
+        if ((v = svp_yaml_get(nodes, "y_px"))) {
+            if ((st = svp_yaml_number_list(v, "y_px", 1, 4096, ny, &cy))) goto cleanup;
+            has_y = 1;
+        }
+        if ((st = svp_yaml_get_int(nodes, "nx", 1, 4096, &lnx, &found))) goto cleanup;
+        if (found) {
+            if (has_x && (size_t)lnx != cx) {
+                st = svp_yaml_fail(nodes, SVP_ERR_FORMAT,
+                                   "nodes: nx = %lld but x_px has %zu "
+                                   "values",
+                                   lnx, cx);
+                goto cleanup;
+            }
+            cx = (size_t)lnx;
+        }
+        if ((st = svp_yaml_get_int(nodes, "ny", 1, 4096, &lny, &found))) goto cleanup;
+        if (found) {
+            if (has_y && (size_t)lny != cy) {
+                st = svp_yaml_fail(nodes, SVP_ERR_FORMAT,
+                                   "nodes: ny = %lld but y_px has %zu "
+                                   "values",
+                                   lny, cy);
+                goto cleanup;
+            }
+            cy = (size_t)lny;
+        }
+        if (!cx || !cy || has_x != has_y) {
+            st = svp_yaml_fail(nodes, SVP_ERR_FORMAT,
+                               "nodes needs both x_px and y_px, or nx and ny (then the nodes "
+                               "sit at cell centres)");
+            goto cleanup;
+        }
+        if (cx * cy != nk) {
+            st = svp_yaml_fail(list, SVP_ERR_FORMAT,
+                               "node_psfs has %zu entries but the node grid is %zu x %zu = %zu", nk,
+                               cx, cy, cx * cy);
+            goto cleanup;
+        }
+        for (size_t k = 0; k < nk; k++) {
+            char what[48];
+            snprintf(what, sizeof what, "node_psfs[%zu]", k);
+            if ((st =
+                     read_psf_entry(svp_yaml_item(list, k), what, &base, pixel_um, NULL, &psfs[k])))
+                goto cleanup;
+        }
+        st = svp_psf_field_new_grid((int)width, (int)height, (int)cx, (int)cy, has_x ? nx : NULL,
+                                    has_y ? ny : NULL, psfs, out);
+        if (st != SVP_OK) st = svp_yaml_fail(nodes, st, "%s", svp_last_error());
+        break;
+    }
+    case SVP_FIELD_POLY: {
+        long long degree = 0;
+        const svp_yaml_node *coefs = NULL;
+        SVP_CHECK(svp_yaml_require(root, "degree", NULL, &v));
+        SVP_CHECK(svp_yaml_int(v, "degree", 0, SVP_FIELD_POLY_MAX_DEGREE, &degree));
+        const int nt = svp_psf_field_poly_terms((int)degree);
+        SVP_CHECK(svp_yaml_require(root, "coefficients", NULL, &coefs));
+        SVP_CHECK(svp_yaml_expect_mapping(coefs, "coefficients"));
+        SVP_CHECK(svp_yaml_check_keys(coefs, "coefficients", coef_names));
+        values = calloc((size_t)nt * SVP_FIELD_NPARAM, sizeof(double));
+        if (!values) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+        for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+            size_t count = 0;
+            v = svp_yaml_get(coefs, coef_names[q]);
+            if (!v) {
+                /* absent: constant — beta defaults to the model's, others to 0 */
+                if (q == SVP_FIELD_FWHM) {
+                    st = svp_yaml_fail(coefs, SVP_ERR_FORMAT,
+                                       "missing required key 'fwhm_um' in coefficients");
+                    goto cleanup;
+                }
+                if (q == SVP_FIELD_BETA) values[q * nt] = base.beta;
+                continue;
+            }
+            if ((st = svp_yaml_number_list(v, coef_names[q], (size_t)nt, (size_t)nt,
+                                           values + (size_t)q * nt, &count)))
+                goto cleanup;
+        }
+        for (int t = 0; t < nt; t++) values[SVP_FIELD_FWHM * nt + t] /= pixel_um;
+        st = svp_psf_field_new_poly(&base, (int)width, (int)height, (int)degree, values, out);
+        if (st != SVP_OK) st = svp_yaml_fail(coefs, st, "%s", svp_last_error());
+        break;
+    }
+    case SVP_FIELD_REGIONS: {
+        const svp_yaml_node *list = NULL;
+        const char *labels_file = NULL;
+        double transition_um = 0;
+        SVP_CHECK(svp_yaml_require(root, "labels_file", NULL, &v));
+        SVP_CHECK(svp_yaml_string(v, "labels_file", &labels_file));
+        const svp_yaml_node *labels_node = v;
+        SVP_CHECK(svp_yaml_get_number(root, "transition_um", 0, INFINITY, 0, &transition_um, NULL));
+        SVP_CHECK(svp_yaml_require(root, "regions", NULL, &list));
+        if (svp_yaml_type_of(list) != SVP_YAML_SEQUENCE || svp_yaml_size(list) == 0)
+            return svp_yaml_fail(list, SVP_ERR_FORMAT, "regions must be a non-empty list");
+        const size_t nl = svp_yaml_size(list);
+        psfs = calloc(nl, sizeof(svp_psf));
+        int *seen = calloc(nl, sizeof(int));
+        if (!psfs || !seen) {
+            free(seen);
+            st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+            goto cleanup;
+        }
+        static const char *const region_extra[] = {"label", "name", NULL};
+        for (size_t k = 0; k < nl && st == SVP_OK; k++) {
+            const svp_yaml_node *item = svp_yaml_item(list, k);
+            char what[48];
+            long long label = 0;
+            snprintf(what, sizeof what, "regions[%zu]", k);
+            svp_psf psf;
+            if ((st = read_psf_entry(item, what, &base, pixel_um, region_extra, &psf))) break;
+            if ((st = svp_yaml_require(item, "label", what, &v))) break;
+            if ((st = svp_yaml_int(v, "label", 0, (long long)nl - 1, &label))) break;
+            if (seen[label]) {
+                st =
+                    svp_yaml_fail(v, SVP_ERR_FORMAT, "label %lld is given twice in regions", label);
+                break;
+            }
+            const char *name = NULL;
+            if ((st = svp_yaml_get_string(item, "name", &name, NULL))) break;
+            seen[label] = 1;
+            psfs[label] = psf;
+        }
+        free(seen);
+        if (st != SVP_OK) goto cleanup;
+        labels_path = sibling_path(path, labels_file);
+        if (!labels_path) {
+            st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+            goto cleanup;
+        }
+        if ((st = svp_image_read(labels_path, &label_image)) != SVP_OK) {
+            st = svp_yaml_fail(labels_node, st, "labels_file: %s", svp_last_error());
+            goto cleanup;
+        }
+        if (label_image->width != width || label_image->height != height) {
+            st = svp_yaml_fail(labels_node, SVP_ERR_SIZE,
+                               "labels_file %s is %d x %d but the image is %lld x %lld",
+                               labels_path, label_image->width, label_image->height, width, height);
+            goto cleanup;
+        }
+        const size_t n = (size_t)width * height;
+        labels = malloc(n * sizeof(int));
+        if (!labels) {
+            st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+            goto cleanup;
+        }
+        for (size_t i = 0; i < n; i++) {
+            double l = label_image->data[i];
+            if (!(l >= 0 && l < (double)nl && l == floor(l))) {
+                st = svp_yaml_fail(labels_node, SVP_ERR_FORMAT,
+                                   "%s: pixel (%zu, %zu) has label %g; labels must be integers "
+                                   "0..%zu (one per entry of regions)",
+                                   labels_path, i % (size_t)width, i / (size_t)width, l, nl - 1);
+                goto cleanup;
+            }
+            labels[i] = (int)l;
+        }
+        st = svp_psf_field_new_regions((int)width, (int)height, labels, (int)nl, psfs,
+                                       transition_um / pixel_um, out);
+        break;
+    }
+    }
+cleanup:
+    free(psfs);
+    free(values);
+    free(nx);
+    free(ny);
+    free(labels);
+    free(labels_path);
+    svp_image_free(label_image);
+    if (st == SVP_OK && pixel_um_out) *pixel_um_out = pixel_um;
+    return st;
+}
+
+svp_status svp_psf_field_read(const char *path, svp_psf_field **out, double *pixel_um)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_read: out is NULL");
+    *out = NULL;
+    if (!path) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_read: path is NULL");
+    svp_yaml_doc *doc = NULL;
+    SVP_CHECK(svp_yaml_load_file(path, &doc));
+    const svp_yaml_node *root = svp_yaml_root(doc);
+    svp_status st = svp_yaml_expect_mapping(root, NULL);
+    if (st == SVP_OK && !svp_yaml_get(root, "kind")) {
+        /* no `kind`: the plain PSF file of the foundation issue, a uniform field for any size */
+        svp_yaml_free(doc);
+        doc = NULL;
+        svp_psf psf;
+        double px = 0;
+        st = svp_psf_file_read(path, &psf, &px, NULL);
+        if (st == SVP_OK) st = svp_psf_field_new_uniform(&psf, 0, 0, out);
+        if (st == SVP_OK && pixel_um) *pixel_um = px;
+    } else if (st == SVP_OK) {
+        st = read_map(path, root, out, pixel_um);
+    }
+    svp_yaml_free(doc);
+    return st;
+}
+
+static svp_status write_map(svp_yaml_writer *w, const svp_psf_field *f, double pixel_um,
+                            const char *provenance, const char *labels_name)
+{
+    char comment[128];
+    snprintf(comment, sizeof comment, "PSF map written by svpsf %s (lengths in micrometres)",
+             svp_version());
+    SVP_CHECK(svp_yaml_write_comment(w, comment));
+    SVP_CHECK(svp_yaml_begin_mapping(w));
+    SVP_CHECK(svp_yaml_write_key_int(w, "version", 1));
+    SVP_CHECK(svp_yaml_write_key_number(w, "pixel_um", pixel_um));
+    if (f->width > 0) {
+        SVP_CHECK(svp_yaml_write_key(w, "image"));
+        SVP_CHECK(svp_yaml_begin_mapping(w));
+        SVP_CHECK(svp_yaml_write_key_int(w, "width", f->width));
+        SVP_CHECK(svp_yaml_write_key_int(w, "height", f->height));
+        SVP_CHECK(svp_yaml_end_mapping(w));
+    }
+    SVP_CHECK(svp_yaml_write_key_string(w, "model", model_names[f->base.model]));
+    SVP_CHECK(svp_yaml_write_key_number(w, "support_um", f->base.support * pixel_um));
+    SVP_CHECK(svp_yaml_write_key_int(w, "subsample", f->base.subsample));
+    SVP_CHECK(svp_yaml_write_key_string(w, "kind", kind_names[f->kind]));
+    switch (f->kind) {
+    case SVP_FIELD_UNIFORM:
+        SVP_CHECK(svp_yaml_write_key(w, "psf"));
+        SVP_CHECK(write_psf_entry(w, &f->uniform, pixel_um));
+        break;
+    case SVP_FIELD_GRID:
+        SVP_CHECK(svp_yaml_write_key(w, "nodes"));
+        SVP_CHECK(svp_yaml_begin_mapping(w));
+        if (f->grid_default_nodes) {
+            SVP_CHECK(svp_yaml_write_key_int(w, "nx", f->nx));
+            SVP_CHECK(svp_yaml_write_key_int(w, "ny", f->ny));
+        } else {
+            SVP_CHECK(svp_yaml_write_key_number_list(w, "x_px", f->node_x, (size_t)f->nx));
+            SVP_CHECK(svp_yaml_write_key_number_list(w, "y_px", f->node_y, (size_t)f->ny));
+        }
+        SVP_CHECK(svp_yaml_end_mapping(w));
+        SVP_CHECK(svp_yaml_write_comment(w, "one entry per node, x fastest"));
+        SVP_CHECK(svp_yaml_write_key(w, "node_psfs"));
+        SVP_CHECK(svp_yaml_begin_sequence(w));
+        for (size_t k = 0; k < (size_t)f->nx * f->ny; k++) {
+            svp_psf psf;
+            svp_psf_from_params(&f->base, f->node_p + k * SVP_FIELD_NPARAM, &psf);
+            SVP_CHECK(write_psf_entry(w, &psf, pixel_um));
+        }
+        SVP_CHECK(svp_yaml_end_sequence(w));
+        break;
+    case SVP_FIELD_POLY: {
+        const int nt = svp_psf_field_poly_terms(f->degree);
+        double scaled[(SVP_FIELD_POLY_MAX_DEGREE + 1) * (SVP_FIELD_POLY_MAX_DEGREE + 2) / 2];
+        SVP_CHECK(svp_yaml_write_key_int(w, "degree", f->degree));
+        SVP_CHECK(svp_yaml_write_comment(w, "terms 1, u, v, u^2, u v, v^2, ...; u, v in [-1, 1] "
+                                            "across the image"));
+        SVP_CHECK(svp_yaml_write_key(w, "coefficients"));
+        SVP_CHECK(svp_yaml_begin_mapping(w));
+        for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+            for (int t = 0; t < nt; t++)
+                scaled[t] = f->coeffs[q * nt + t] * (q == SVP_FIELD_FWHM ? pixel_um : 1.0);
+            SVP_CHECK(svp_yaml_write_key_number_list(w, coef_names[q], scaled, (size_t)nt));
+        }
+        SVP_CHECK(svp_yaml_end_mapping(w));
+        break;
+    }
+    case SVP_FIELD_REGIONS:
+        SVP_CHECK(svp_yaml_write_key_string(w, "labels_file", labels_name));
+        SVP_CHECK(svp_yaml_write_key_number(w, "transition_um", f->transition * pixel_um));
+        SVP_CHECK(svp_yaml_write_key(w, "regions"));
+        SVP_CHECK(svp_yaml_begin_sequence(w));
+        for (int l = 0; l < f->n_labels; l++) {
+            /* write_psf_entry's mapping, with the label first */
+            const svp_psf *psf = &f->region_psfs[l];
+            SVP_CHECK(svp_yaml_begin_mapping(w));
+            SVP_CHECK(svp_yaml_write_key_int(w, "label", l));
+            SVP_CHECK(svp_yaml_write_key_number(w, "fwhm_um", psf->fwhm * pixel_um));
+            if (psf->fwhm_minor > 0) {
+                SVP_CHECK(
+                    svp_yaml_write_key_number(w, "fwhm_minor_um", psf->fwhm_minor * pixel_um));
+                SVP_CHECK(svp_yaml_write_key_number(w, "angle_deg", psf->angle / RAD_PER_DEG));
+            }
+            if (psf->model == SVP_PSF_MOFFAT)
+                SVP_CHECK(svp_yaml_write_key_number(w, "beta", psf->beta));
+            SVP_CHECK(svp_yaml_write_key_number(w, "halo", psf->halo));
+            SVP_CHECK(svp_yaml_end_mapping(w));
+        }
+        SVP_CHECK(svp_yaml_end_sequence(w));
+        break;
+    }
+    if (provenance) SVP_CHECK(svp_yaml_write_key_string(w, "provenance", provenance));
+    return svp_yaml_end_mapping(w);
+}
+
+svp_status svp_psf_field_write(const char *path, const svp_psf_field *field, double pixel_um,
+                               const char *provenance, int overwrite)
+{
+    if (!path || !field) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_write: NULL argument");
+    if (!(pixel_um > 0) || !isfinite(pixel_um))
+        return svp_fail(SVP_ERR_INVALID, "%s: pixel size must be > 0 micrometres, got %g", path,
+                        pixel_um);
+    svp_status st = SVP_OK;
+    svp_yaml_writer *w = NULL;
+    char *labels_path = NULL;
+    svp_image *label_image = NULL;
+    const char *labels_name = NULL;
+    if (field->kind == SVP_FIELD_REGIONS) {
+        labels_path = labels_path_for(path);
+        if (!labels_path) return svp_fail(SVP_ERR_NOMEM, "out of memory");
+        const char *slash = strrchr(labels_path, '/');
+        labels_name = slash ? slash + 1 : labels_path;
+        const size_t n = (size_t)field->width * field->height;
+        if ((st = svp_image_new(field->width, field->height, &label_image)) != SVP_OK) goto cleanup;
+        for (size_t i = 0; i < n; i++) label_image->data[i] = field->labels[i];
+    }
+    if ((st = svp_yaml_writer_new(&w)) != SVP_OK) goto cleanup;
+    if ((st = write_map(w, field, pixel_um, provenance, labels_name)) != SVP_OK) goto cleanup;
+    const char *text = NULL;
+    if ((st = svp_yaml_writer_finish(w, &text)) != SVP_OK) goto cleanup;
+    /* labels first: a map never names a labels file that was not written */
+    if (label_image &&
+        (st = svp_image_write(labels_path, label_image, SVP_FORMAT_NPY, overwrite)) != SVP_OK)
+        goto cleanup;
+    st = svp_yaml_writer_write_file(w, path, overwrite);
+cleanup:
+    svp_yaml_writer_free(w);
+    svp_image_free(label_image);
+    free(labels_path);
+    return st;
+}

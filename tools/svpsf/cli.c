@@ -1,2 +1,1027 @@
-/* (command under construction) */
+/* Shared helpers of the svpsf command-line program (see cli.h for how a command uses them). */
 #include "cli.h"
+
+#include "io/image_io.h"
+#include "io/json.h"
+
+#include <errno.h>
+#include <libfyaml.h>
+#include <limits.h>
+#include <math.h>
+#include <stdarg.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/resource.h>
+#include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
+
+/* ---- private record types ------------------------------------------------------------------ */
+
+typedef enum kv_kind { KV_STR, KV_NUM, KV_INT } kv_kind;
+
+struct cli_kv {
+    char *key;
+    kv_kind kind;
+    char *str;
+    double num;
+    long long integer;
+};
+
+struct cli_input {
+    char *role;
+    char *path;
+    int width, height; /* 0 when not an image */
+    long long bytes;   /* file size, -1 when unknown */
+    long long n_nonfinite;
+};
+
+struct cli_output {
+    char *role;
+    char *path;
+    int exact; /* planned by exact path: its own extension decides the format */
+};
+
+struct cli_stage {
+    char *name;
+    double seconds;
+};
+
+static int program_argc;
+static char **program_argv;
+
+void cli_set_program_args(int argc, char **argv)
+{
+    /* a copy of the pointers: getopt_long permutes argv while parsing */
+    static char *copy[256];
+    if (argc > 255) argc = 255;
+    for (int i = 0; i < argc; i++) copy[i] = argv[i];
+    copy[argc] = NULL;
+    program_argc = argc;
+    program_argv = copy;
+}
+
+/* Out of memory in the CLI's own bookkeeping is not worth a recovery path. */
+static void *xrealloc(void *p, size_t size)
+{
+    void *q = realloc(p, size ? size : 1);
+    if (!q) {
+        fputs("svpsf: out of memory\n", stderr);
+        exit(CLI_EXIT_RUNTIME);
+    }
+    return q;
+}
+
+static char *xstrdup(const char *s)
+{
+    size_t n = strlen(s ? s : "") + 1;
+    char *d = xrealloc(NULL, n);
+    memcpy(d, s ? s : "", n);
+    return d;
+}
+
+/* ---- exit codes, versions ------------------------------------------------------------------ */
+
+int cli_exit_code(svp_status status)
+{
+    switch (status) {
+    case SVP_OK: return CLI_EXIT_OK;
+    case SVP_ERR_INVALID:
+    case SVP_ERR_IO:
+    case SVP_ERR_FORMAT:
+    case SVP_ERR_SIZE:
+    case SVP_ERR_EXISTS: return CLI_EXIT_USAGE;
+    default: return CLI_EXIT_RUNTIME;
+    }
+}
+
+void cli_get_versions(cli_versions *v)
+{
+    v->svpsf = svp_version();
+    v->fftw = svp_fftw_version();
+    v->opencv = svp_io_opencv_version();
+    v->libfyaml = fy_library_version();
+}
+
+/* ---- the run -------------------------------------------------------------------------------- */
+
+double cli_now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+void cli_run_init(cli_run *run, const char *command, int argc, char **argv, unsigned common)
+{
+    memset(run, 0, sizeof *run);
+    run->command = command;
+    run->argc = argc;
+    run->argv = argv;
+    run->common = common;
+    run->format = SVP_FORMAT_TIFF;
+    run->fft_measure = 1;
+    run->stderr_tty = isatty(STDERR_FILENO);
+    run->t_start = cli_now();
+    run->progress_last_decile = -1;
+}
+
+static void free_kvs(cli_kv *kv, int n)
+{
+    for (int i = 0; i < n; i++) {
+        free(kv[i].key);
+        free(kv[i].str);
+    }
+    free(kv);
+}
+
+int cli_run_finish(cli_run *run, int exit_code)
+{
+    if (run->stage_open) cli_stage_end(run);
+    if (run->wisdom && exit_code == CLI_EXIT_OK) {
+        svp_status st = svp_fft_wisdom_save(run->wisdom);
+        if (st != SVP_OK) exit_code = cli_fail(run, st, "--wisdom");
+    }
+    for (int i = 0; i < run->n_inputs; i++) {
+        free(run->inputs[i].role);
+        free(run->inputs[i].path);
+    }
+    free(run->inputs);
+    for (int i = 0; i < run->n_outputs; i++) {
+        free(run->outputs[i].role);
+        free(run->outputs[i].path);
+    }
+    free(run->outputs);
+    for (int i = 0; i < run->n_stages; i++) free(run->stages[i].name);
+    free(run->stages);
+    free_kvs(run->settings, run->n_settings);
+    free_kvs(run->results, run->n_results);
+    run->inputs = NULL;
+    run->outputs = NULL;
+    run->stages = NULL;
+    run->settings = run->results = NULL;
+    run->n_inputs = run->n_outputs = run->n_stages = run->n_settings = run->n_results = 0;
+    return exit_code;
+}
+
+/* ---- messages ------------------------------------------------------------------------------- */
+
+int cli_error(const cli_run *run, const char *fmt, ...)
+{
+    va_list ap;
+    fflush(stdout);
+    fprintf(stderr, "svpsf %s: ", run->command);
+    va_start(ap, fmt);
+    vfprintf(stderr, fmt, ap);
+    va_end(ap);
+    fputc('\n', stderr);
+    return CLI_EXIT_USAGE;
+}
+
+void cli_note(const cli_run *run, const char *fmt, ...)
+{
+    if (run->quiet) return;
+    va_list ap;
+    fflush(stdout);
+    fprintf(stderr, "svpsf %s: ", run->command);
+    va_start(ap, fmt);
+    vfprintf(stderr, fmt, ap);
+    va_end(ap);
+    fputc('\n', stderr);
+}
+
+int cli_fail(const cli_run *run, svp_status status, const char *context)
+{
+    const char *msg = svp_last_error();
+    if (!msg || !msg[0]) msg = svp_status_string(status);
+    if (context && context[0] && !strstr(msg, context))
+        cli_error(run, "%s: %s", context, msg);
+    else
+        cli_error(run, "%s", msg);
+    return cli_exit_code(status);
+}
+
+/* ---- option parsing ------------------------------------------------------------------------ */
+
+enum {
+    OPT_FORMAT = 900,
+    OPT_FORCE,
+    OPT_THREADS,
+    OPT_WISDOM,
+    OPT_FFT,
+};
+
+#define MAX_OPTIONS 64
+
+int cli_parse_double(const cli_run *run, const char *option, const char *text, double *out)
+{
+    char *end = NULL;
+    errno = 0;
+    double v = strtod(text, &end);
+    if (end == text || *end != '\0' || !isfinite(v) || errno == ERANGE)
+        return cli_error(run, "%s: '%s' is not a finite number", option, text);
+    *out = v;
+    return 0;
+}
+
+int cli_parse_int(const cli_run *run, const char *option, const char *text, int min, int max,
+                  int *out)
+{
+    char *end = NULL;
+    errno = 0;
+    long v = strtol(text, &end, 10);
+    if (end == text || *end != '\0' || errno == ERANGE)
+        return cli_error(run, "%s: '%s' is not an integer", option, text);
+    if (v < min || v > max)
+        return cli_error(run, "%s: %ld is out of range (%d to %d)", option, v, min, max);
+    *out = (int)v;
+    return 0;
+}
+
+int cli_parse_choice(const cli_run *run, const char *option, const char *text,
+                     const char *const *choices, int *out)
+{
+    char list[256] = "";
+    for (int i = 0; choices[i]; i++) {
+        if (strcmp(text, choices[i]) == 0) {
+            *out = i;
+            return 0;
+        }
+        size_t n = strlen(list);
+        snprintf(list + n, sizeof list - n, "%s%s", i ? ", " : "", choices[i]);
+    }
+    return cli_error(run, "%s: unknown value '%s' (expected one of: %s)", option, text, list);
+}
+
+static const char *const boundary_names[] = {"zero", "mirror", "periodic", NULL};
+
+int cli_parse_boundary(const cli_run *run, const char *option, const char *text, svp_boundary *out)
+{
+    int i = 0;
+    if (cli_parse_choice(run, option, text, boundary_names, &i)) return CLI_EXIT_USAGE;
+    *out = (svp_boundary)i;
+    return 0;
+}
+
+const char *cli_boundary_name(svp_boundary b)
+{
+    return (unsigned)b < 3 ? boundary_names[b] : "unknown";
+}
+
+/* Applies --threads, --fft and --wisdom once all options are known. */
+static int apply_common(cli_run *run)
+{
+    if (run->threads > 0) svp_set_threads(run->threads);
+    svp_set_fft_effort(run->fft_measure ? SVP_FFT_MEASURE : SVP_FFT_ESTIMATE);
+    if (run->wisdom && access(run->wisdom, F_OK) == 0) {
+        svp_status st = svp_fft_wisdom_load(run->wisdom);
+        if (st != SVP_OK) return cli_fail(run, st, run->wisdom);
+    }
+    return 0;
+}
+
+int cli_next_option(cli_run *run, const struct option *own)
+{
+    struct option opts[MAX_OPTIONS];
+    int n = 0;
+    for (; own && own[n].name && n < MAX_OPTIONS - 12; n++) opts[n] = own[n];
+    opts[n++] = (struct option){"help", no_argument, NULL, 'h'};
+    opts[n++] = (struct option){"quiet", no_argument, NULL, 'q'};
+    opts[n++] = (struct option){"threads", required_argument, NULL, OPT_THREADS};
+    if (run->common & CLI_COMMON_OUTPUT) {
+        opts[n++] = (struct option){"output", required_argument, NULL, 'o'};
+        opts[n++] = (struct option){"force", no_argument, NULL, OPT_FORCE};
+    }
+    if (run->common & CLI_COMMON_FORMAT)
+        opts[n++] = (struct option){"format", required_argument, NULL, OPT_FORMAT};
+    if (run->common & CLI_COMMON_FFT) {
+        opts[n++] = (struct option){"wisdom", required_argument, NULL, OPT_WISDOM};
+        opts[n++] = (struct option){"fft", required_argument, NULL, OPT_FFT};
+    }
+    opts[n] = (struct option){NULL, 0, NULL, 0};
+    const char *shorts = (run->common & CLI_COMMON_OUTPUT) ? ":hqo:" : ":hq";
+
+    if (run->argc > 0 && optind == 0) optind = 1;
+    opterr = 0;
+    for (;;) {
+        int c = getopt_long(run->argc, run->argv, shorts, opts, NULL);
+        const char *text = optind > 0 && optind <= run->argc ? run->argv[optind - 1] : "?";
+        switch (c) {
+        case -1: return apply_common(run) ? CLI_OPTION_ERROR : CLI_OPTIONS_DONE;
+        case '?':
+            if (optopt && optopt < 256 && text[0] == '-' && text[1] != '-')
+                cli_error(run, "unknown option -%c (see svpsf %s --help)", optopt, run->command);
+            else
+                cli_error(run, "unknown option %s (see svpsf %s --help)", text, run->command);
+            return CLI_OPTION_ERROR;
+        case ':':
+            cli_error(run, "option %s needs a value (see svpsf %s --help)", text, run->command);
+            return CLI_OPTION_ERROR;
+        case 'h': return CLI_OPTION_HELP;
+        case 'q': run->quiet = 1; break;
+        case 'o': run->output = optarg; break;
+        case OPT_FORCE: run->force = 1; break;
+        case OPT_THREADS:
+            if (cli_parse_int(run, "--threads", optarg, 1, 4096, &run->threads))
+                return CLI_OPTION_ERROR;
+            break;
+        case OPT_FORMAT: {
+            static const char *const names[] = {"tif", "npy", "txt", "tiff", NULL};
+            static const svp_file_format formats[] = {SVP_FORMAT_TIFF, SVP_FORMAT_NPY,
+                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF};
+            int i = 0;
+            if (cli_parse_choice(run, "--format", optarg, names, &i)) return CLI_OPTION_ERROR;
+            run->format = formats[i];
+            run->format_given = 1;
+            break;
+        }
+        case OPT_WISDOM: run->wisdom = optarg; break;
+        case OPT_FFT: {
+            static const char *const names[] = {"estimate", "measure", NULL};
+            int i = 0;
+            if (cli_parse_choice(run, "--fft", optarg, names, &i)) return CLI_OPTION_ERROR;
+            run->fft_measure = i;
+            break;
+        }
+        default: return c;
+        }
+    }
+}
+
+void cli_print_common_help(const cli_run *run, FILE *out)
+{
+    if (run->common & CLI_COMMON_FORMAT)
+        fputs("  --format tif|npy|txt  format of the image outputs: float32 TIFF, float64 .npy,\n"
+              "                        or numpy.savetxt text (default tif)\n",
+              out);
+    if (run->common & CLI_COMMON_OUTPUT)
+        fputs("  --force               overwrite existing outputs (default: refuse, and write\n"
+              "                        nothing when any output exists)\n",
+              out);
+    fprintf(out,
+            "  --threads N           threads for FFTs and loops (default: all cores, %d here)\n",
+            svp_get_threads());
+    if (run->common & CLI_COMMON_FFT)
+        fprintf(out,
+                "  --fft estimate|measure  FFT planning: measure is slower to plan, faster to\n"
+                "                        run (default %s)\n"
+                "  --wisdom FILE         load FFTW wisdom from FILE when it exists and save it\n"
+                "                        there after a successful run (default: none)\n",
+                run->fft_measure ? "measure" : "estimate");
+    fputs("  -q, --quiet           no progress and no notes on stderr (errors still shown)\n"
+          "  -h, --help            this help\n",
+          out);
+}
+
+void cli_path_stem(const char *path, char *stem, size_t size)
+{
+    const char *base = strrchr(path, '/');
+    base = base ? base + 1 : path;
+    const char *dot = strrchr(base, '.');
+    size_t n = dot && dot != base ? (size_t)(dot - base) : strlen(base);
+    if (n >= size) n = size - 1;
+    memcpy(stem, base, n);
+    stem[n] = '\0';
+}
+
+/* ---- inputs --------------------------------------------------------------------------------- */
+
+static long long file_size(const char *path)
+{
+    struct stat st;
+    return stat(path, &st) == 0 ? (long long)st.st_size : -1;
+}
+
+void cli_record_input(cli_run *run, const char *role, const char *path, int width, int height)
+{
+    run->inputs = xrealloc(run->inputs, (size_t)(run->n_inputs + 1) * sizeof *run->inputs);
+    cli_input *in = &run->inputs[run->n_inputs++];
+    in->role = xstrdup(role);
+    in->path = xstrdup(path);
+    in->width = width;
+    in->height = height;
+    in->bytes = file_size(path);
+    in->n_nonfinite = 0;
+}
+
+int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out)
+{
+    *out = NULL;
+    svp_status st = svp_image_read(path, out);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    cli_record_input(run, role, path, (*out)->width, (*out)->height);
+    run->inputs[run->n_inputs - 1].n_nonfinite = (long long)svp_image_count_nonfinite(*out);
+    return 0;
+}
+
+int cli_check_same_size(const cli_run *run, const svp_image *a, const char *role_a,
+                        const char *path_a, const svp_image *b, const char *role_b,
+                        const char *path_b)
+{
+    if (a->width == b->width && a->height == b->height) return 0;
+    return cli_error(run, "size mismatch: %s %s is %d x %d (width x height) but %s %s is %d x %d",
+                     role_a, path_a, a->width, a->height, role_b, path_b, b->width, b->height);
+}
+
+static int has_extension(const char *path, const char *ext)
+{
+    const char *dot = strrchr(path, '.');
+    const char *slash = strrchr(path, '/');
+    if (!dot || (slash && dot < slash)) return 0;
+    return strcasecmp(dot + 1, ext) == 0;
+}
+
+int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
+{
+    memset(psf, 0, sizeof *psf);
+    psf->path = path;
+    if (has_extension(path, "yaml") || has_extension(path, "yml")) {
+        svp_psf_defaults(&psf->model);
+        psf->boundary = (svp_boundary)-1;
+        svp_status st = svp_psf_file_read(path, &psf->model, &psf->pixel_um, &psf->boundary);
+        if (st != SVP_OK) return cli_fail(run, st, path);
+        psf->is_model = 1;
+        psf->has_boundary = (unsigned)psf->boundary < 3;
+        if (!psf->has_boundary) psf->boundary = SVP_BOUNDARY_ZERO;
+        cli_record_input(run, "psf", path, 0, 0);
+        return 0;
+    }
+    int code = cli_read_image(run, "psf", path, &psf->kernel_raw);
+    if (code) return code;
+    const svp_image *k = psf->kernel_raw;
+    size_t n = (size_t)k->width * k->height;
+    if (svp_image_count_nonfinite(k))
+        return cli_error(run, "%s: the PSF kernel has NaN or Inf pixels", path);
+    double sum = 0;
+    for (size_t i = 0; i < n; i++) sum += k->data[i];
+    if (!(sum > 0))
+        return cli_error(run,
+                         "%s: the PSF kernel sums to %g: it cannot be normalised to unit "
+                         "sum",
+                         path, sum);
+    psf->kernel_sum = sum;
+    return 0;
+}
+
+int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
+                 svp_blur **out)
+{
+    svp_status st;
+    if (psf->is_model)
+        st = svp_blur_new(&psf->model, width, height, boundary, out);
+    else
+        st = svp_blur_new_kernel(psf->kernel_raw, -1, -1, 1, width, height, boundary, out);
+    if (st != SVP_OK) return cli_fail(run, st, psf->path);
+    return 0;
+}
+
+void cli_psf_release(cli_psf *psf)
+{
+    svp_image_free(psf->kernel_raw);
+    psf->kernel_raw = NULL;
+}
+
+static const char *model_name(svp_psf_model m)
+{
+    switch (m) {
+    case SVP_PSF_GAUSSIAN: return "gaussian";
+    case SVP_PSF_LORENTZIAN: return "lorentzian";
+    case SVP_PSF_MOFFAT: return "moffat";
+    }
+    return "unknown";
+}
+
+void cli_psf_describe(cli_run *run, const cli_psf *psf)
+{
+    cli_setting_str(run, "psf_file", psf->path);
+    if (!psf->is_model) {
+        char buf[64];
+        snprintf(buf, sizeof buf, "%d x %d", psf->kernel_raw->width, psf->kernel_raw->height);
+        cli_setting_str(run, "psf_kind", "kernel image");
+        cli_setting_str(run, "psf_kernel_size", buf);
+        cli_setting_num(run, "psf_kernel_sum_as_read", psf->kernel_sum);
+        return;
+    }
+    const svp_psf *p = &psf->model;
+    cli_setting_str(run, "psf_kind", "model");
+    cli_setting_str(run, "psf_model", model_name(p->model));
+    cli_setting_num(run, "pixel_um", psf->pixel_um);
+    cli_setting_num(run, "psf_fwhm_px", p->fwhm);
+    if (p->fwhm_minor > 0) {
+        cli_setting_num(run, "psf_fwhm_minor_px", p->fwhm_minor);
+        cli_setting_num(run, "psf_angle_deg", p->angle * 180.0 / M_PI);
+    }
+    if (p->model == SVP_PSF_MOFFAT) cli_setting_num(run, "psf_beta", p->beta);
+    cli_setting_num(run, "psf_halo", p->halo);
+    cli_setting_num(run, "psf_support_px", p->support);
+}
+
+/* ---- outputs -------------------------------------------------------------------------------- */
+
+const char *cli_format_extension(svp_file_format format)
+{
+    switch (format) {
+    case SVP_FORMAT_NPY: return "npy";
+    case SVP_FORMAT_TXT: return "txt";
+    case SVP_FORMAT_PNG16: return "png";
+    default: return "tif";
+    }
+}
+
+svp_file_format cli_format_of_path(const char *path)
+{
+    if (has_extension(path, "tif") || has_extension(path, "tiff")) return SVP_FORMAT_TIFF;
+    if (has_extension(path, "npy")) return SVP_FORMAT_NPY;
+    if (has_extension(path, "txt") || has_extension(path, "csv") || has_extension(path, "dat"))
+        return SVP_FORMAT_TXT;
+    if (has_extension(path, "png")) return SVP_FORMAT_PNG16;
+    return SVP_FORMAT_AUTO;
+}
+
+static const char *add_output(cli_run *run, const char *role, char *path, int exact)
+{
+    run->outputs = xrealloc(run->outputs, (size_t)(run->n_outputs + 1) * sizeof *run->outputs);
+    cli_output *o = &run->outputs[run->n_outputs++];
+    o->role = xstrdup(role);
+    o->path = path;
+    o->exact = exact;
+    return path;
+}
+
+const char *cli_output_in_dir(cli_run *run, const char *role, const char *name, int ext_from_format)
+{
+    const char *dir = run->output ? run->output : ".";
+    size_t n = strlen(dir) + strlen(name) + 8;
+    char *path = xrealloc(NULL, n);
+    int slash = dir[0] && dir[strlen(dir) - 1] == '/';
+    if (ext_from_format)
+        snprintf(path, n, "%s%s%s.%s", dir, slash ? "" : "/", name,
+                 cli_format_extension(run->format));
+    else
+        snprintf(path, n, "%s%s%s", dir, slash ? "" : "/", name);
+    return add_output(run, role, path, 0);
+}
+
+const char *cli_output_file(cli_run *run, const char *role, const char *path)
+{
+    return add_output(run, role, xstrdup(path), 1);
+}
+
+/* mkdir -p for the folder part of `path` (dir_itself: path is the folder). */
+static int make_dirs(const cli_run *run, const char *path)
+{
+    char buf[PATH_MAX];
+    if (strlen(path) >= sizeof buf) return cli_error(run, "%s: path too long", path);
+    strcpy(buf, path);
+    for (char *p = buf + 1;; p++) {
+        if (*p == '/' || *p == '\0') {
+            char saved = *p;
+            *p = '\0';
+            if (buf[0] && mkdir(buf, 0777) != 0 && errno != EEXIST)
+                return cli_error(run, "%s: cannot create the output folder (%s)", buf,
+                                 strerror(errno));
+            struct stat st;
+            if (buf[0] && (stat(buf, &st) != 0 || !S_ISDIR(st.st_mode)))
+                return cli_error(run, "%s exists and is not a folder", buf);
+            *p = saved;
+            if (saved == '\0') break;
+        }
+    }
+    return 0;
+}
+
+static void dir_of(const char *path, char *dir, size_t size)
+{
+    const char *slash = strrchr(path, '/');
+    if (!slash) {
+        snprintf(dir, size, ".");
+        return;
+    }
+    size_t n = (size_t)(slash - path);
+    if (n == 0) n = 1; /* "/file" */
+    if (n >= size) n = size - 1;
+    memcpy(dir, path, n);
+    dir[n] = '\0';
+}
+
+int cli_outputs_check(cli_run *run)
+{
+    for (int i = 0; i < run->n_outputs; i++)
+        for (int j = 0; j < i; j++)
+            if (strcmp(run->outputs[i].path, run->outputs[j].path) == 0)
+                return cli_error(run, "two outputs (%s and %s) would both be written to %s",
+                                 run->outputs[j].role, run->outputs[i].role, run->outputs[i].path);
+    int n_existing = 0;
+    const char *first = NULL;
+    for (int i = 0; i < run->n_outputs; i++) {
+        struct stat st;
+        const char *path = run->outputs[i].path;
+        if (stat(path, &st) != 0) continue;
+        if (S_ISDIR(st.st_mode)) return cli_error(run, "%s exists and is a folder", path);
+        if (!run->force && n_existing++ == 0) first = path;
+    }
+    if (n_existing == 1)
+        return cli_error(run, "%s exists (use --force to overwrite); nothing was written", first);
+    if (n_existing > 1)
+        return cli_error(run,
+                         "%s exists, and %d more of the %d outputs (use --force to "
+                         "overwrite); nothing was written",
+                         first, n_existing - 1, run->n_outputs);
+    for (int i = 0; i < run->n_outputs; i++) {
+        char dir[PATH_MAX];
+        dir_of(run->outputs[i].path, dir, sizeof dir);
+        int code = make_dirs(run, dir);
+        if (code) return code;
+        if (access(dir, W_OK) != 0)
+            return cli_error(run, "%s: the output folder is not writable (%s)", dir,
+                             strerror(errno));
+    }
+    return 0;
+}
+
+static const cli_output *find_output(const cli_run *run, const char *path)
+{
+    for (int i = 0; i < run->n_outputs; i++)
+        if (strcmp(run->outputs[i].path, path) == 0) return &run->outputs[i];
+    return NULL;
+}
+
+int cli_write_image(cli_run *run, const char *path, const svp_image *image)
+{
+    const cli_output *o = find_output(run, path);
+    svp_file_format format = run->format;
+    if (!o || o->exact) format = cli_format_of_path(path);
+    if (format == SVP_FORMAT_AUTO) format = run->format;
+    svp_status st = svp_image_write(path, image, format, run->force);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    return 0;
+}
+
+int cli_write_text(cli_run *run, const char *path, const char *text)
+{
+    svp_status st = svp_io_atomic_write_text(path, text, run->force);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    return 0;
+}
+
+/* ---- stages --------------------------------------------------------------------------------- */
+
+static double stage_t0;
+
+void cli_stage_begin(cli_run *run, const char *name)
+{
+    if (run->stage_open) cli_stage_end(run);
+    run->stages = xrealloc(run->stages, (size_t)(run->n_stages + 1) * sizeof *run->stages);
+    run->stages[run->n_stages].name = xstrdup(name);
+    run->stages[run->n_stages].seconds = 0;
+    run->n_stages++;
+    run->stage_open = 1;
+    stage_t0 = cli_now();
+}
+
+void cli_stage_end(cli_run *run)
+{
+    if (!run->stage_open) return;
+    run->stages[run->n_stages - 1].seconds = cli_now() - stage_t0;
+    run->stage_open = 0;
+}
+
+double cli_stage_seconds(const cli_run *run, const char *name)
+{
+    double s = 0;
+    for (int i = 0; i < run->n_stages; i++)
+        if (strcmp(run->stages[i].name, name) == 0) s += run->stages[i].seconds;
+    return s;
+}
+
+/* ---- progress ------------------------------------------------------------------------------ */
+
+void cli_progress_start(cli_run *run, const char *label)
+{
+    run->progress_label = label;
+    run->progress_lo = 0;
+    run->progress_hi = 1;
+    run->progress_t0 = cli_now();
+    run->progress_last_draw = 0;
+    run->progress_shown = 0;
+    run->progress_last_decile = -1;
+}
+
+void cli_progress_part(cli_run *run, double lo, double hi)
+{
+    run->progress_lo = lo;
+    run->progress_hi = hi;
+}
+
+static void format_seconds(double s, char *buf, size_t size)
+{
+    if (s < 60)
+        snprintf(buf, size, "%.0f s", s);
+    else if (s < 3600)
+        snprintf(buf, size, "%d min %02d s", (int)(s / 60), (int)fmod(s, 60));
+    else
+        snprintf(buf, size, "%d h %02d min", (int)(s / 3600), (int)fmod(s / 60, 60));
+}
+
+int cli_progress(void *user, double fraction)
+{
+    cli_run *run = user;
+    if (run->quiet || !run->progress_label) return 0;
+    if (fraction < 0) fraction = 0;
+    if (fraction > 1) fraction = 1;
+    double f = run->progress_lo + (run->progress_hi - run->progress_lo) * fraction;
+    double now = cli_now(), elapsed = now - run->progress_t0;
+    /* Only work that lasts: nothing in the first second. */
+    if (elapsed < 1.0 || f <= 0) return 0;
+    char eta[32] = "";
+    if (f < 1) format_seconds(elapsed * (1 - f) / f, eta, sizeof eta);
+    if (run->stderr_tty) {
+        if (now - run->progress_last_draw < 0.1 && f < 1) return 0;
+        enum { WIDTH = 30 };
+        int filled = (int)(f * WIDTH + 0.5);
+        char bar[WIDTH + 1];
+        for (int i = 0; i < WIDTH; i++) bar[i] = i < filled ? '#' : '.';
+        bar[WIDTH] = '\0';
+        fprintf(stderr, "\r%s [%s] %3.0f %%%s%s   ", run->progress_label, bar, 100 * f,
+                eta[0] ? "  ETA " : "", eta);
+        fflush(stderr);
+        run->progress_last_draw = now;
+        run->progress_shown = 1;
+    } else {
+        int decile = (int)floor(f * 10 + 1e-9);
+        if (decile == 0 || decile <= run->progress_last_decile) return 0;
+        run->progress_last_decile = decile;
+        fprintf(stderr, "svpsf %s: %s %3.0f %%%s%s\n", run->command, run->progress_label,
+                10.0 * decile, eta[0] ? ", ETA " : "", eta);
+        run->progress_shown = 1;
+    }
+    return 0;
+}
+
+void cli_progress_done(cli_run *run)
+{
+    if (run->progress_shown && !run->quiet) {
+        if (run->stderr_tty) {
+            cli_progress(run, 1.0);
+            fputc('\n', stderr);
+        } else if (run->progress_last_decile < 10) {
+            fprintf(stderr, "svpsf %s: %s 100 %%\n", run->command, run->progress_label);
+        }
+    }
+    run->progress_label = NULL;
+    run->progress_shown = 0;
+}
+
+/* ---- summary values ------------------------------------------------------------------------- */
+
+static cli_kv *kv_add(cli_kv **list, int *n, const char *key)
+{
+    for (int i = 0; i < *n; i++)
+        if (strcmp((*list)[i].key, key) == 0) { /* a later value replaces an earlier one */
+            free((*list)[i].str);
+            (*list)[i].str = NULL;
+            return &(*list)[i];
+        }
+    *list = xrealloc(*list, (size_t)(*n + 1) * sizeof **list);
+    cli_kv *kv = &(*list)[(*n)++];
+    memset(kv, 0, sizeof *kv);
+    kv->key = xstrdup(key);
+    return kv;
+}
+
+void cli_setting_str(cli_run *run, const char *key, const char *value)
+{
+    cli_kv *kv = kv_add(&run->settings, &run->n_settings, key);
+    kv->kind = KV_STR;
+    kv->str = xstrdup(value);
+}
+
+void cli_setting_num(cli_run *run, const char *key, double value)
+{
+    cli_kv *kv = kv_add(&run->settings, &run->n_settings, key);
+    kv->kind = KV_NUM;
+    kv->num = value;
+}
+
+void cli_setting_int(cli_run *run, const char *key, long long value)
+{
+    cli_kv *kv = kv_add(&run->settings, &run->n_settings, key);
+    kv->kind = KV_INT;
+    kv->integer = value;
+}
+
+void cli_result_str(cli_run *run, const char *key, const char *value)
+{
+    cli_kv *kv = kv_add(&run->results, &run->n_results, key);
+    kv->kind = KV_STR;
+    kv->str = xstrdup(value);
+}
+
+void cli_result_num(cli_run *run, const char *key, double value)
+{
+    cli_kv *kv = kv_add(&run->results, &run->n_results, key);
+    kv->kind = KV_NUM;
+    kv->num = value;
+}
+
+void cli_result_int(cli_run *run, const char *key, long long value)
+{
+    cli_kv *kv = kv_add(&run->results, &run->n_results, key);
+    kv->kind = KV_INT;
+    kv->integer = value;
+}
+
+double cli_peak_memory_bytes(void)
+{
+    struct rusage ru;
+    if (getrusage(RUSAGE_SELF, &ru) != 0) return 0;
+    return (double)ru.ru_maxrss * 1024.0; /* Linux reports KiB */
+}
+
+/* ---- summary.json --------------------------------------------------------------------------- */
+
+static void json_kvs(svp_json *j, const char *name, const cli_kv *kv, int n)
+{
+    svp_json_key(j, name);
+    svp_json_begin_object(j);
+    for (int i = 0; i < n; i++) {
+        svp_json_key(j, kv[i].key);
+        switch (kv[i].kind) {
+        case KV_STR: svp_json_string(j, kv[i].str); break;
+        case KV_NUM: svp_json_number(j, kv[i].num); break;
+        case KV_INT: svp_json_int(j, kv[i].integer); break;
+        }
+    }
+    svp_json_end_object(j);
+}
+
+int cli_summary_write(cli_run *run, const char *path)
+{
+    if (run->stage_open) cli_stage_end(run);
+    double total = cli_now() - run->t_start;
+    cli_versions v;
+    cli_get_versions(&v);
+    char cwd[PATH_MAX];
+    if (!getcwd(cwd, sizeof cwd)) snprintf(cwd, sizeof cwd, "?");
+    char started[64] = "";
+    time_t now = time(NULL) - (time_t)total;
+    struct tm tm;
+    if (gmtime_r(&now, &tm)) strftime(started, sizeof started, "%Y-%m-%dT%H:%M:%SZ", &tm);
+
+    svp_json *j = NULL;
+    svp_status st = svp_json_new(&j);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    svp_json_begin_object(j);
+    svp_json_key(j, "svpsf_summary");
+    svp_json_int(j, 1);
+    svp_json_key(j, "command");
+    svp_json_string(j, run->command);
+    svp_json_key(j, "command_line");
+    svp_json_begin_array(j);
+    if (program_argv)
+        for (int i = 0; i < program_argc; i++) svp_json_string(j, program_argv[i]);
+    else
+        for (int i = 0; i < run->argc; i++) svp_json_string(j, run->argv[i]);
+    svp_json_end_array(j);
+    svp_json_key(j, "working_directory");
+    svp_json_string(j, cwd);
+    svp_json_key(j, "started_utc");
+    svp_json_string(j, started);
+
+    svp_json_key(j, "inputs");
+    svp_json_begin_array(j);
+    for (int i = 0; i < run->n_inputs; i++) {
+        const cli_input *in = &run->inputs[i];
+        svp_json_begin_object(j);
+        svp_json_key(j, "role");
+        svp_json_string(j, in->role);
+        svp_json_key(j, "path");
+        svp_json_string(j, in->path);
+        svp_json_key(j, "bytes");
+        svp_json_int(j, in->bytes);
+        if (in->width > 0) {
+            svp_json_key(j, "width");
+            svp_json_int(j, in->width);
+            svp_json_key(j, "height");
+            svp_json_int(j, in->height);
+            svp_json_key(j, "n_nonfinite");
+            svp_json_int(j, in->n_nonfinite);
+        }
+        svp_json_end_object(j);
+    }
+    svp_json_end_array(j);
+
+    svp_json_key(j, "outputs");
+    svp_json_begin_object(j);
+    for (int i = 0; i < run->n_outputs; i++) {
+        svp_json_key(j, run->outputs[i].role);
+        svp_json_string(j, run->outputs[i].path);
+    }
+    svp_json_end_object(j);
+
+    json_kvs(j, "settings", run->settings, run->n_settings);
+    json_kvs(j, "results", run->results, run->n_results);
+
+    svp_json_key(j, "versions");
+    svp_json_begin_object(j);
+    svp_json_key(j, "svpsf");
+    svp_json_string(j, v.svpsf);
+    svp_json_key(j, "fftw");
+    svp_json_string(j, v.fftw);
+    svp_json_key(j, "opencv");
+    svp_json_string(j, v.opencv);
+    svp_json_key(j, "libfyaml");
+    svp_json_string(j, v.libfyaml);
+    svp_json_end_object(j);
+
+    svp_json_key(j, "threads");
+    svp_json_int(j, svp_get_threads());
+    svp_json_key(j, "fft_planning");
+    svp_json_string(j, run->fft_measure ? "measure" : "estimate");
+
+    svp_json_key(j, "timings_s");
+    svp_json_begin_object(j);
+    for (int i = 0; i < run->n_stages; i++) {
+        /* repeated stage names add up */
+        int first = 1;
+        for (int k = 0; k < i; k++)
+            if (strcmp(run->stages[k].name, run->stages[i].name) == 0) first = 0;
+        if (!first) continue;
+        svp_json_key(j, run->stages[i].name);
+        svp_json_number(j, cli_stage_seconds(run, run->stages[i].name));
+    }
+    svp_json_key(j, "total");
+    svp_json_number(j, total);
+    svp_json_end_object(j);
+
+    svp_json_key(j, "peak_memory_bytes");
+    svp_json_number(j, cli_peak_memory_bytes());
+    svp_json_end_object(j);
+
+    const char *text = NULL;
+    st = svp_json_finish(j, &text);
+    int code = st != SVP_OK ? cli_fail(run, st, path) : cli_write_text(run, path, text);
+    svp_json_free(j);
+    return code;
+}
+
+/* ---- field + PL map sets -------------------------------------------------------------------- */
+
+int cli_maps_add_field(cli_run *run, cli_maps *maps, const char *path)
+{
+    if (maps->n_fields >= CLI_MAX_FIELDS)
+        return cli_error(run, "--field: at most %d field maps per run", CLI_MAX_FIELDS);
+    maps->field_paths[maps->n_fields++] = path;
+    return 0;
+}
+
+int cli_maps_read(cli_run *run, cli_maps *maps)
+{
+    int code = cli_read_image(run, "pl", maps->pl_path, &maps->pl);
+    if (code) return code;
+    for (int i = 0; i < maps->n_fields; i++) {
+        code = cli_read_image(run, "field", maps->field_paths[i], &maps->fields[i]);
+        if (code) return code;
+        code = cli_check_same_size(run, maps->fields[i], "field", maps->field_paths[i], maps->pl,
+                                   "PL", maps->pl_path);
+        if (code) return code;
+    }
+    return 0;
+}
+
+int cli_maps_plan(cli_run *run, cli_maps *maps)
+{
+    maps->pl_out = cli_output_in_dir(run, "pl", "pl", 1);
+    if (maps->n_fields == 1) {
+        maps->field_out[0] = cli_output_in_dir(run, "field", "field", 1);
+    } else {
+        char stems[CLI_MAX_FIELDS][256];
+        for (int i = 0; i < maps->n_fields; i++) {
+            cli_path_stem(maps->field_paths[i], stems[i], sizeof stems[i]);
+            for (int k = 0; k < i; k++)
+                if (strcmp(stems[i], stems[k]) == 0)
+                    return cli_error(run,
+                                     "--field %s and --field %s have the same name '%s': their "
+                                     "outputs field_%s would collide (rename one)",
+                                     maps->field_paths[k], maps->field_paths[i], stems[i],
+                                     stems[i]);
+            char name[300];
+            snprintf(name, sizeof name, "field_%s", stems[i]);
+            maps->field_out[i] = cli_output_in_dir(run, name, name, 1);
+        }
+    }
+    maps->validity_out = cli_output_in_dir(run, "validity", "validity", 1);
+    maps->summary_out = cli_output_in_dir(run, "summary", "summary.json", 0);
+    return 0;
+}
+
+void cli_maps_release(cli_maps *maps)
+{
+    svp_image_free(maps->pl);
+    maps->pl = NULL;
+    for (int i = 0; i < maps->n_fields; i++) {
+        svp_image_free(maps->fields[i]);
+        maps->fields[i] = NULL;
+    }
+}

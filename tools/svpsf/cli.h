@@ -1,5 +1,312 @@
-/* Shared helpers of the svpsf command-line program. */
+/*
+ * Shared helpers of the svpsf command-line program.
+ *
+ * Adding a command (e.g. for issues 3-5: simulate, fit-psf, map-psf, psf-compare, reconstruct,
+ * register):
+ *   1. write `int cmd_NAME(int argc, char **argv)` in tools/svpsf/cmd_NAME.c (its prototype is
+ *      already declared below); argv[0] is the command name, the options follow;
+ *   2. add ONE line to the `commands` table in tools/svpsf/main.c:
+ *          {"fit-psf", "fit a Moffat PSF to a spot image pair", cmd_fit_psf},
+ *      The table is what `svpsf --help` lists and what `svpsf NAME` dispatches to; a command
+ *      that is not in the table does not exist for the user.
+ *
+ * The shape of a command (see cmd_forward.c for a complete one):
+ *
+ *   cli_run run;
+ *   cli_run_init(&run, "forward", argc, argv, CLI_COMMON_OUTPUT_DIR);
+ *   struct option own[] = {{"pl", required_argument, NULL, OPT_PL}, ..., {0}};
+ *   int c;
+ *   while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+ *       switch (c) {
+ *       case CLI_OPTION_HELP: print_help(stdout); return cli_run_finish(&run, 0);
+ *       case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+ *       case OPT_PL: ...
+ *       }
+ *   }
+ *   ... read inputs with cli_read_image / cli_psf_load (they record them for the summary),
+ *   plan every output with cli_output_in_dir / cli_output_file, then cli_outputs_check (no
+ *   file is written before all are known to be writable), compute inside
+ *   cli_stage_begin/cli_stage_end, write with cli_write_image, cli_summary_write, and
+ *   return cli_run_finish(&run, status).
+ *
+ * Conventions every command follows (docs/cli.md):
+ *   - exit 0 ok, 1 bad usage or bad input (CLI_EXIT_USAGE), 2 runtime failure;
+ *   - every message is one line on stderr prefixed "svpsf COMMAND: " and names the file or
+ *     option at fault;
+ *   - outputs are written atomically (temporary name, then rename) and never overwrite an
+ *     existing file unless --force;
+ *   - progress goes to stderr only for work that lasts more than about a second, as a bar
+ *     with ETA on a terminal, as plain lines every 10 % otherwise, never with --quiet.
+ */
 #ifndef SVPSF_CLI_H
 #define SVPSF_CLI_H
+
 #include "svpsf.h"
+
+#include <getopt.h>
+#include <stddef.h>
+#include <stdio.h>
+
+/* ---- commands ----------------------------------------------------------------------------- */
+
+typedef int (*cli_command_fn)(int argc, char **argv);
+
+typedef struct cli_command {
+    const char *name;    /* as typed: "forward", "fit-psf" */
+    const char *summary; /* one line for `svpsf --help` */
+    cli_command_fn run;
+} cli_command;
+
+int cmd_forward(int argc, char **argv);
+int cmd_correct(int argc, char **argv);
+int cmd_deconvolve(int argc, char **argv);
+int cmd_psf(int argc, char **argv);
+int cmd_demo(int argc, char **argv);
+/* Planned by later issues; defined in their own files when they exist. */
+int cmd_simulate(int argc, char **argv);
+int cmd_fit_psf(int argc, char **argv);
+int cmd_map_psf(int argc, char **argv);
+int cmd_psf_compare(int argc, char **argv);
+int cmd_reconstruct(int argc, char **argv);
+int cmd_register(int argc, char **argv);
+
+/* ---- exit codes ---------------------------------------------------------------------------- */
+
+enum {
+    CLI_EXIT_OK = 0,
+    CLI_EXIT_USAGE = 1,  /* bad usage or bad input: the message names the file or option */
+    CLI_EXIT_RUNTIME = 2 /* a runtime failure (memory, numerics, a bug) */
+};
+
+/* INVALID, IO, FORMAT, SIZE, EXISTS → 1 (the user can fix the input); others → 2. */
+int cli_exit_code(svp_status status);
+
+/* ---- versions ------------------------------------------------------------------------------ */
+
+typedef struct cli_versions {
+    const char *svpsf, *fftw, *opencv, *libfyaml;
+} cli_versions;
+void cli_get_versions(cli_versions *v);
+
+/* The whole command line as typed (main.c records it; the summary repeats it). */
+void cli_set_program_args(int argc, char **argv);
+
+/* ---- the run: common options, inputs, outputs, stages, summary ----------------------------- */
+
+/* Which of the common options a command accepts (bit set). --help, --quiet and --threads are
+ * always accepted. */
+enum {
+    CLI_COMMON_OUTPUT = 1u << 0, /* -o/--output PATH, --force */
+    CLI_COMMON_FORMAT = 1u << 1, /* --format tif|npy|txt (default tif) */
+    CLI_COMMON_FFT = 1u << 2,    /* --wisdom FILE, --fft estimate|measure */
+    CLI_COMMON_OUTPUT_DIR = CLI_COMMON_OUTPUT | CLI_COMMON_FORMAT | CLI_COMMON_FFT
+};
+
+/* Codes cli_next_option returns besides a command's own option values. Commands give their
+ * own options values from CLI_OPTION_FIRST upwards (or a plain short-option character). */
+enum {
+    CLI_OPTIONS_DONE = -1,
+    CLI_OPTION_ERROR = -2, /* a message was printed; exit CLI_EXIT_USAGE */
+    CLI_OPTION_HELP = -3,  /* --help/-h: print the help on stdout and exit 0 */
+    CLI_OPTION_FIRST = 1000
+};
+
+typedef struct cli_kv cli_kv;         /* a named value of the summary (opaque) */
+typedef struct cli_input cli_input;   /* an input file and what was read from it */
+typedef struct cli_output cli_output; /* a planned output file */
+typedef struct cli_stage cli_stage;   /* a timed stage */
+
+typedef struct cli_run {
+    const char *command; /* "forward" */
+    int argc;
+    char **argv; /* argv[0] = the command name */
+    unsigned common;
+
+    /* common options (after parsing) */
+    const char *output;     /* -o: directory or file, NULL when not given */
+    svp_file_format format; /* --format: default SVP_FORMAT_TIFF */
+    int format_given;
+    int force;          /* --force */
+    int quiet;          /* --quiet: no progress, no notes */
+    int threads;        /* --threads: 0 = library default (all cores) */
+    const char *wisdom; /* --wisdom FILE: loaded before, saved after the run */
+    int fft_measure;    /* --fft: 1 measure (default), 0 estimate */
+
+    int stderr_tty;
+    double t_start; /* monotonic seconds */
+
+    /* what the run read, will write, did (for the checks and the summary) */
+    cli_input *inputs;
+    int n_inputs;
+    cli_output *outputs;
+    int n_outputs;
+    cli_stage *stages;
+    int n_stages;
+    int stage_open;
+    cli_kv *settings;
+    int n_settings;
+    cli_kv *results;
+    int n_results;
+
+    /* progress state */
+    const char *progress_label;
+    double progress_lo, progress_hi;
+    double progress_t0, progress_last_draw;
+    int progress_shown, progress_last_decile;
+} cli_run;
+
+/* Starts a run: records the command, applies nothing yet. `common` is a CLI_COMMON_* set. */
+void cli_run_init(cli_run *run, const char *command, int argc, char **argv, unsigned common);
+/* Saves FFTW wisdom when asked, frees what the run holds and returns exit_code (so
+ * `return cli_run_finish(&run, code);`). */
+int cli_run_finish(cli_run *run, int exit_code);
+
+/* getopt_long over run->argv with the command's own options (terminated by a zero entry)
+ * plus the common ones. Handles the common options itself; returns the command's option
+ * value (optarg holds its argument), CLI_OPTION_HELP, CLI_OPTION_ERROR or CLI_OPTIONS_DONE.
+ * After DONE, run->argv[optind .. argc-1] are the positional arguments. When DONE is
+ * returned the common settings are applied (threads, FFT effort, wisdom loaded): a failure
+ * there returns CLI_OPTION_ERROR. */
+int cli_next_option(cli_run *run, const struct option *own);
+
+/* Prints the help lines of the common options the run accepts (with their defaults). */
+void cli_print_common_help(const cli_run *run, FILE *out);
+
+/* "svpsf COMMAND: message\n" on stderr. Returns CLI_EXIT_USAGE for `return cli_error(...)`. */
+int cli_error(const cli_run *run, const char *fmt, ...) __attribute__((format(printf, 2, 3)));
+/* A note on stderr ("svpsf COMMAND: ..."), silent with --quiet. */
+void cli_note(const cli_run *run, const char *fmt, ...) __attribute__((format(printf, 2, 3)));
+/* Prints svp_last_error() (prefixed with `context: ` when context is not NULL and the message
+ * does not already contain it) and returns cli_exit_code(status). */
+int cli_fail(const cli_run *run, svp_status status, const char *context);
+
+/* Number parsing with errors naming the option: "--balance: 'x' is not a number". */
+int cli_parse_double(const cli_run *run, const char *option, const char *text, double *out);
+/* Integer in [min, max]; the message states the range. */
+int cli_parse_int(const cli_run *run, const char *option, const char *text, int min, int max,
+                  int *out);
+/* One of `choices` (NULL-terminated); *out = its index. */
+int cli_parse_choice(const cli_run *run, const char *option, const char *text,
+                     const char *const *choices, int *out);
+/* zero | mirror | periodic. */
+int cli_parse_boundary(const cli_run *run, const char *option, const char *text, svp_boundary *out);
+const char *cli_boundary_name(svp_boundary b);
+/* The file name without folders and without its last extension ("a/b/Bz.npy" → "Bz"). */
+void cli_path_stem(const char *path, char *stem, size_t size);
+
+/* ---- inputs ------------------------------------------------------------------------------ */
+
+/* Reads an image (svp_image_read) and records it as an input with `role` ("pl", "field").
+ * On failure prints the message (it names the file) and returns the exit code; 0 on success. */
+int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out);
+/* Records a non-image input (a YAML file) for the summary. */
+void cli_record_input(cli_run *run, const char *role, const char *path, int width, int height);
+/* "size mismatch: ROLE_A PATH_A is W x H but ROLE_B PATH_B is W x H" → exit 1; 0 if equal. */
+int cli_check_same_size(const cli_run *run, const svp_image *a, const char *role_a,
+                        const char *path_a, const svp_image *b, const char *role_b,
+                        const char *path_b);
+
+/* A PSF given either as a YAML PSF file (.yaml/.yml) or as a kernel image (.npy, .tif, .txt,
+ * ...). A kernel image is normalised to unit sum with its centre at the middle pixel
+ * (width / 2, height / 2); `kernel_raw` keeps it as read (for --compat skimage). */
+typedef struct cli_psf {
+    const char *path;
+    int is_model;          /* 1: YAML model, 0: kernel image */
+    svp_psf model;         /* when is_model (lengths in pixels) */
+    double pixel_um;       /* from the YAML file; 0 for a kernel image */
+    int has_boundary;      /* the YAML file names a boundary */
+    svp_boundary boundary; /* that boundary */
+    svp_image *kernel_raw; /* when !is_model: the kernel as read */
+    double kernel_sum;     /* its sum */
+} cli_psf;
+
+int cli_psf_load(cli_run *run, const char *path, cli_psf *psf);
+/* The blur operator for a width x height image (boundary as decided by the caller). */
+int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
+                 svp_blur **out);
+void cli_psf_release(cli_psf *psf);
+/* Records the PSF's description in the summary settings (model, FWHM, beta, ...). */
+void cli_psf_describe(cli_run *run, const cli_psf *psf);
+
+/* ---- outputs ----------------------------------------------------------------------------- */
+
+/* The extension of a format ("tif", "npy", "txt"). */
+const char *cli_format_extension(svp_file_format format);
+/* The format of a file name's extension, SVP_FORMAT_AUTO when unknown. */
+svp_file_format cli_format_of_path(const char *path);
+
+/* Plans output DIR/NAME.EXT (EXT from --format; `name` may carry its own extension, e.g.
+ * "summary.json", when ext_from_format is 0). Returns the path (owned by the run). */
+const char *cli_output_in_dir(cli_run *run, const char *role, const char *name,
+                              int ext_from_format);
+/* Plans an output at an exact path. */
+const char *cli_output_file(cli_run *run, const char *role, const char *path);
+/* Checks every planned output at once: no two the same, none existing unless --force, the
+ * output directory creatable (it is created here when missing). Prints the fault and returns
+ * the exit code; 0 when all can be written. Call before any computation that writes. */
+int cli_outputs_check(cli_run *run);
+/* Writes an image to a planned output path with the run's format (or the path's extension
+ * when the run planned an exact file), atomically, overwriting only with --force. */
+int cli_write_image(cli_run *run, const char *path, const svp_image *image);
+/* Writes a text file atomically (temporary name + rename), overwriting only with --force. */
+int cli_write_text(cli_run *run, const char *path, const char *text);
+
+/* ---- timing, progress, summary ------------------------------------------------------------ */
+
+double cli_now(void); /* monotonic seconds */
+/* Timed stages for the summary ("read", "plan", "transform", "write"). Beginning one ends the
+ * one that is open. */
+void cli_stage_begin(cli_run *run, const char *name);
+void cli_stage_end(cli_run *run);
+double cli_stage_seconds(const cli_run *run, const char *name); /* 0 when absent */
+
+/* Progress: an svp_progress_fn whose user pointer is the run. Fractions of the current part
+ * [lo, hi] of the whole job; start a part with cli_progress_part. Nothing is drawn during
+ * the first second of the job, or with --quiet. */
+void cli_progress_start(cli_run *run, const char *label);
+void cli_progress_part(cli_run *run, double lo, double hi);
+int cli_progress(void *run, double fraction);
+void cli_progress_done(cli_run *run);
+
+/* Named values for summary.json: "settings" (what was asked) and "results" (what came out). */
+void cli_setting_str(cli_run *run, const char *key, const char *value);
+void cli_setting_num(cli_run *run, const char *key, double value);
+void cli_setting_int(cli_run *run, const char *key, long long value);
+void cli_result_str(cli_run *run, const char *key, const char *value);
+void cli_result_num(cli_run *run, const char *key, double value);
+void cli_result_int(cli_run *run, const char *key, long long value);
+
+/* Peak resident memory of the process so far, bytes (getrusage ru_maxrss). */
+double cli_peak_memory_bytes(void);
+
+/* Writes the planned "summary" output (a JSON object: command, command line, working
+ * directory, inputs with sizes, outputs, settings, results, versions, threads, timings per
+ * stage, peak memory). */
+int cli_summary_write(cli_run *run, const char *path);
+
+/* ---- field + PL map sets (forward, correct; reusable by simulate) ------------------------- */
+
+#define CLI_MAX_FIELDS 16
+
+/* One or several field-component maps sharing one PL map, and where each goes. */
+typedef struct cli_maps {
+    int n_fields;
+    const char *field_paths[CLI_MAX_FIELDS]; /* --field, in order */
+    const char *pl_path;                     /* --pl */
+    svp_image *fields[CLI_MAX_FIELDS];
+    svp_image *pl;
+    /* planned outputs (cli_maps_plan) */
+    const char *field_out[CLI_MAX_FIELDS];
+    const char *pl_out, *validity_out, *summary_out;
+} cli_maps;
+
+/* Adds a --field path (at most CLI_MAX_FIELDS). */
+int cli_maps_add_field(cli_run *run, cli_maps *maps, const char *path);
+/* Reads --pl and every --field and checks that all have the PL's size. */
+int cli_maps_read(cli_run *run, cli_maps *maps);
+/* Plans DIR/pl, DIR/field (or DIR/field_<stem> per input when several), DIR/validity,
+ * DIR/summary.json, refusing two inputs with the same stem. */
+int cli_maps_plan(cli_run *run, cli_maps *maps);
+void cli_maps_release(cli_maps *maps);
+
 #endif

@@ -1,2 +1,244 @@
-/* (command under construction) */
+/* svpsf correct: the inverse transform T⁻¹ (eq. 4): the true maps from measured ones. */
 #include "cli.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+enum {
+    OPT_FIELD = CLI_OPTION_FIRST,
+    OPT_PL,
+    OPT_PSF,
+    OPT_BOUNDARY,
+    OPT_METHOD,
+    OPT_ITERATIONS,
+    OPT_BALANCE,
+    OPT_PL_FLOOR,
+    OPT_SHIFT,
+};
+
+static const char *const method_names[] = {"rw", "r", "w", "rl-signed", NULL};
+static const svp_method method_values[] = {SVP_METHOD_RW, SVP_METHOD_R, SVP_METHOD_W,
+                                           SVP_METHOD_RL_SIGNED};
+
+static const char *method_long_name(svp_method m)
+{
+    switch (m) {
+    case SVP_METHOD_RW: return "R&W (Richardson-Lucy on the PL, Wiener-Hunt on field x PL)";
+    case SVP_METHOD_R: return "R (Richardson-Lucy on both, signed numerator by a shift)";
+    case SVP_METHOD_W: return "W (Wiener-Hunt on both)";
+    case SVP_METHOD_RL_SIGNED:
+        return "RL-signed (Richardson-Lucy on the PL and on the shifted "
+               "numerator)";
+    }
+    return "?";
+}
+
+static void print_help(const cli_run *run, FILE *out)
+{
+    svp_correct_options d;
+    svp_correct_defaults(&d);
+    fputs("usage: svpsf correct --field Bt.npy [--field ...] --pl It.npy --psf PSF -o DIR\n"
+          "                     [--method rw|r|w|rl-signed] [options]\n"
+          "\n"
+          "The inverse transform T^-1 (eq. 4 of docs/model.md): from the measured (apparent)\n"
+          "field map(s) Bt and PL map It, recovers\n"
+          "    pl = It (/) p,   field = ((Bt It) (/) p) / max(pl, floor)\n"
+          "with two deconvolutions (/) instead of one per spectral frame. Several --field maps\n"
+          "share the one deconvolution of the PL. NaN/Inf input pixels (failed fits) are\n"
+          "missing data: they are not smeared over the image, and they are counted.\n"
+          "\n"
+          "inputs (TIFF float32/16-bit, 16-bit PNG, .npy, .txt as numpy.savetxt writes them):\n"
+          "  --field FILE          a measured field map (repeat for several components)\n"
+          "  --pl FILE             the measured PL map (same size)\n"
+          "  --psf FILE            a YAML PSF file (docs/cli.md) or a kernel image (.npy, .tif,\n"
+          "                        .txt; normalised to unit sum, centre at the middle pixel)\n"
+          "options:\n"
+          "  -o, --output DIR      output folder, created when missing (required)\n",
+          out);
+    fprintf(out,
+            "  --method rw|r|w|rl-signed  the deconvolutions (default rw):\n"
+            "                        rw: Richardson-Lucy on the PL, Wiener-Hunt on field x PL\n"
+            "                        r: Richardson-Lucy on both (signed data through a shift)\n"
+            "                        w: Wiener-Hunt on both\n"
+            "                        rl-signed: as r, named for what it does\n"
+            "  --iterations N        Richardson-Lucy iterations (default %d)\n"
+            "  --balance L           Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
+            "                        (default %g)\n"
+            "  --pl-floor F          the recovered PL is floored at F x max(PL) before dividing;\n"
+            "                        pixels below it get validity < 1 (default %g)\n"
+            "  --shift C             the constant c of the signed shift for r/rl-signed\n"
+            "                        (default: automatic, 0.1 range(Bt) - min(Bt) per map)\n"
+            "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
+            "                        PSF file's boundary, else zero)\n",
+            d.deconv.iterations, d.deconv.balance, d.pl_floor);
+    cli_print_common_help(run, out);
+    fputs("\n"
+          "outputs in DIR: pl.EXT (recovered PL), field.EXT (recovered field; field_<stem>.EXT\n"
+          "per input when several), validity.EXT (in [0, 1]: 1 where the recovered PL is above\n"
+          "the floor, 0 at missing pixels nothing covers), summary.json. No NaN or Inf is ever\n"
+          "written.\n",
+          out);
+}
+
+int cmd_correct(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "correct", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    static const struct option own[] = {
+        {"field", required_argument, NULL, OPT_FIELD},
+        {"pl", required_argument, NULL, OPT_PL},
+        {"psf", required_argument, NULL, OPT_PSF},
+        {"boundary", required_argument, NULL, OPT_BOUNDARY},
+        {"method", required_argument, NULL, OPT_METHOD},
+        {"iterations", required_argument, NULL, OPT_ITERATIONS},
+        {"balance", required_argument, NULL, OPT_BALANCE},
+        {"pl-floor", required_argument, NULL, OPT_PL_FLOOR},
+        {"shift", required_argument, NULL, OPT_SHIFT},
+        {NULL, 0, NULL, 0},
+    };
+    cli_maps maps;
+    memset(&maps, 0, sizeof maps);
+    cli_psf psf;
+    memset(&psf, 0, sizeof psf);
+    const char *psf_path = NULL;
+    svp_boundary boundary = SVP_BOUNDARY_ZERO;
+    int boundary_given = 0, method = 0;
+    svp_correct_options opt;
+    svp_correct_defaults(&opt);
+    svp_blur *blur = NULL;
+    svp_image *pl_true = NULL, *validity = NULL;
+    svp_image *field_true[CLI_MAX_FIELDS] = {NULL};
+    int code = 0;
+
+    int c;
+    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        int bad = 0;
+        switch (c) {
+        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
+        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+        case OPT_FIELD: bad = cli_maps_add_field(&run, &maps, optarg); break;
+        case OPT_PL: maps.pl_path = optarg; break;
+        case OPT_PSF: psf_path = optarg; break;
+        case OPT_BOUNDARY:
+            bad = cli_parse_boundary(&run, "--boundary", optarg, &boundary);
+            boundary_given = 1;
+            break;
+        case OPT_METHOD:
+            bad = cli_parse_choice(&run, "--method", optarg, method_names, &method);
+            opt.method = method_values[method];
+            break;
+        case OPT_ITERATIONS:
+            bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.deconv.iterations);
+            break;
+        case OPT_BALANCE:
+            bad = cli_parse_double(&run, "--balance", optarg, &opt.deconv.balance);
+            if (!bad && !(opt.deconv.balance >= 0))
+                bad = cli_error(&run, "--balance must be >= 0, got %s", optarg);
+            break;
+        case OPT_PL_FLOOR:
+            bad = cli_parse_double(&run, "--pl-floor", optarg, &opt.pl_floor);
+            if (!bad && !(opt.pl_floor > 0 && opt.pl_floor < 1))
+                bad = cli_error(&run, "--pl-floor must be in (0, 1), got %s", optarg);
+            break;
+        case OPT_SHIFT: bad = cli_parse_double(&run, "--shift", optarg, &opt.shift); break;
+        default: bad = cli_error(&run, "internal: option %d", c);
+        }
+        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+    }
+    if (optind < argc)
+        return cli_run_finish(&run, cli_error(&run,
+                                              "unexpected argument '%s' (inputs are "
+                                              "given with --field, --pl and --psf)",
+                                              argv[optind]));
+    if (maps.n_fields == 0)
+        return cli_run_finish(&run, cli_error(&run, "--field is required (see --help)"));
+    if (!maps.pl_path) return cli_run_finish(&run, cli_error(&run, "--pl is required"));
+    if (!psf_path) return cli_run_finish(&run, cli_error(&run, "--psf is required"));
+    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
+
+    cli_stage_begin(&run, "read");
+    if ((code = cli_psf_load(&run, psf_path, &psf))) goto cleanup;
+    if ((code = cli_maps_read(&run, &maps))) goto cleanup;
+    if (!boundary_given && psf.has_boundary) boundary = psf.boundary;
+    if ((code = cli_maps_plan(&run, &maps))) goto cleanup;
+    if ((code = cli_outputs_check(&run))) goto cleanup;
+
+    const int w = maps.pl->width, h = maps.pl->height;
+    const size_t n = (size_t)w * h;
+    cli_psf_describe(&run, &psf);
+    cli_setting_str(&run, "boundary", cli_boundary_name(boundary));
+    cli_setting_int(&run, "n_fields", maps.n_fields);
+    cli_setting_str(&run, "method", method_names[method]);
+    cli_setting_int(&run, "iterations", opt.deconv.iterations);
+    cli_setting_num(&run, "balance", opt.deconv.balance);
+    cli_setting_num(&run, "pl_floor", opt.pl_floor);
+    cli_setting_num(&run, "shift", opt.shift);
+    cli_setting_str(&run, "format", cli_format_extension(run.format));
+
+    cli_stage_begin(&run, "plan");
+    if ((code = cli_psf_blur(&run, &psf, w, h, boundary, &blur))) goto cleanup;
+
+    cli_stage_begin(&run, "transform");
+    svp_status st = svp_image_new(w, h, &pl_true);
+    if (st == SVP_OK) st = svp_image_new(w, h, &validity);
+    for (int i = 0; i < maps.n_fields && st == SVP_OK; i++)
+        st = svp_image_new(w, h, &field_true[i]);
+    size_t n_missing = 0;
+    if (st == SVP_OK) {
+        opt.deconv.progress = cli_progress;
+        opt.deconv.progress_user = &run;
+        cli_progress_start(&run, "correcting");
+        st = svp_inverse_transform(blur, maps.pl, (const svp_image *const *)maps.fields,
+                                   maps.n_fields, &opt, pl_true, field_true, validity, &n_missing);
+        cli_progress_done(&run);
+    }
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+    size_t n_flagged = 0, n_invalid = 0;
+    for (size_t i = 0; i < n; i++) {
+        n_flagged += validity->data[i] < 1;
+        n_invalid += validity->data[i] <= 0;
+    }
+    cli_result_int(&run, "n_missing", (long long)n_missing);
+    cli_result_int(&run, "n_flagged", (long long)n_flagged);
+    cli_result_num(&run, "flagged_fraction", (double)n_flagged / (double)n);
+    cli_result_int(&run, "n_invalid", (long long)n_invalid);
+
+    cli_stage_begin(&run, "write");
+    if ((code = cli_write_image(&run, maps.pl_out, pl_true))) goto cleanup;
+    for (int i = 0; i < maps.n_fields; i++)
+        if ((code = cli_write_image(&run, maps.field_out[i], field_true[i]))) goto cleanup;
+    if ((code = cli_write_image(&run, maps.validity_out, validity))) goto cleanup;
+    cli_stage_end(&run);
+    if ((code = cli_summary_write(&run, maps.summary_out))) goto cleanup;
+
+    {
+        char iters[96] = "";
+        if (opt.method != SVP_METHOD_W)
+            snprintf(iters, sizeof iters, ", %d RL iterations", opt.deconv.iterations);
+        char bal[64] = "";
+        if (opt.method == SVP_METHOD_RW || opt.method == SVP_METHOD_W)
+            snprintf(bal, sizeof bal, ", balance %g", opt.deconv.balance);
+        printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
+               "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "
+               "%zu pixels (%.2f %%) are flagged (validity < 1), %zu of them with no "
+               "information (validity 0). Time %.2f s (deconvolutions %.2f s). "
+               "Outputs in %s.\n",
+               maps.n_fields, maps.n_fields > 1 ? "s" : "", w, h, method_long_name(opt.method),
+               iters, bal, n_missing, n_missing == 1 ? "" : "s", n_flagged,
+               100.0 * (double)n_flagged / (double)n, n_invalid, cli_now() - run.t_start,
+               cli_stage_seconds(&run, "transform"), run.output);
+    }
+
+cleanup:
+    svp_blur_free(blur);
+    svp_image_free(pl_true);
+    svp_image_free(validity);
+    for (int i = 0; i < CLI_MAX_FIELDS; i++) svp_image_free(field_true[i]);
+    cli_maps_release(&maps);
+    cli_psf_release(&psf);
+    return cli_run_finish(&run, code);
+}

@@ -1,2 +1,308 @@
-/* (command under construction) */
+/* svpsf reconstruct: source reconstruction from measured field maps (PHYSICS.md §7, the physics
+ * section of svpsf.h): areal magnetisation from B_z, sheet current density from B_z or from
+ * B_x, B_y. */
 #include "cli.h"
+
+#include "scene/scene_internal.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+enum {
+    OPT_BX = CLI_OPTION_FIRST,
+    OPT_BY,
+    OPT_BZ,
+    OPT_QUANTITY,
+    OPT_PIXEL,
+    OPT_STANDOFF,
+    OPT_UNIT,
+    OPT_NV,
+    OPT_SIDE,
+    OPT_CUTOFF,
+    OPT_NO_WINDOW,
+    OPT_PAD,
+    OPT_THICKNESS
+};
+
+static const char *const quantity_names[] = {"magnetisation", "current_from_bz", "current_from_bxy",
+                                             NULL};
+static const char *const unit_names[] = {"T", "mT", "uT", "nT", NULL};
+static const double unit_scale[] = {1, 1e-3, 1e-6, 1e-9};
+static const char *const pad_names[] = {"taper", "mean", "none", NULL};
+
+static void print_help(const cli_run *run, FILE *out)
+{
+    fputs("usage: svpsf reconstruct --quantity magnetisation --bz Bz.tif --pixel-um P\n"
+          "                         --standoff-nm H -o DIR [options]\n"
+          "       svpsf reconstruct --quantity current_from_bz --bz Bz.tif ...\n"
+          "       svpsf reconstruct --quantity current_from_bxy --bx Bx.tif [--by By.tif] ...\n"
+          "\n"
+          "Source reconstruction by the Fourier method (PHYSICS.md §7): the areal magnetisation\n"
+          "m_z = M_z t (A) from B_z, or the sheet current density J (A/m) from B_z or from the\n"
+          "in-plane field. A radial Hann window W = (1 + cos(pi k / k_c)) / 2 (k_c = 2 pi /\n"
+          "standoff by default) tames the e^(kh) gain; the maps are padded (x2, tapered) against\n"
+          "wrap-around. k = 0 is set to 0: the mean of m_z is lost (restored by setting the\n"
+          "outermost pixel ring to zero) and a uniform current makes no B_z. Frame: x along the\n"
+          "columns, y along the rows (down), z = x cross y, sensor above the sources unless\n"
+          "--side below (docs/model.md).\n"
+          "\n"
+          "inputs (TIFF float32/16-bit, 16-bit PNG, .npy, .txt as numpy.savetxt writes them):\n"
+          "  --bz FILE / --bx FILE / --by FILE   field component maps (same size)\n"
+          "  --unit T|mT|uT|nT     unit of the field maps (default T)\n"
+          "  --quantity magnetisation|current_from_bz|current_from_bxy   (required)\n"
+          "  --pixel-um P          pixel size in the sample plane, um (required)\n"
+          "  --standoff-nm H       source plane to the centre of the NV layer, nm (required)\n"
+          "options:\n"
+          "  -o, --output DIR      output folder, created when missing (required)\n"
+          "  --nv-thickness-nm T   NV layer thickness, averaged over (default 0)\n"
+          "  --side above|below    sensor side of the sources (default above)\n"
+          "  --thickness-nm T      flake thickness for the magnetisation (default 0: thin film)\n"
+          "  --cutoff-per-um K     window cut-off k_c, rad/um (default 2 pi / standoff)\n"
+          "  --no-window           no Hann window (the gain is capped at e^700)\n"
+          "  --pad taper|mean|none padding of the maps before the FFT (default taper)\n",
+          out);
+    cli_print_common_help(run, out);
+    fputs("\n"
+          "outputs in DIR: m_z.EXT (A) or J_x.EXT, J_y.EXT, J_norm.EXT (A/m), a figure of each\n"
+          "(.png, diverging colour map centred on zero, colour bar in mA or A/m, scale bar),\n"
+          "summary.json (inputs, settings, mean/peak values, timings).\n",
+          out);
+}
+
+static int figure(cli_run *run, const char *dir, const char *name, const svp_image *img,
+                  double scale, const char *label, double pixel_um, int diverging)
+{
+    char path[4096], title[256];
+    snprintf(path, sizeof path, "%s/%s.png", dir, name);
+    size_t n = (size_t)img->width * img->height;
+    double m = 0, lo = 0;
+    for (size_t i = 0; i < n; i++)
+        if (isfinite(img->data[i])) m = fmax(m, fabs(img->data[i]) * scale);
+    if (diverging) lo = -m;
+    snprintf(title, sizeof title, "%s (svpsf reconstruct)", label);
+    char bar[128];
+    snprintf(bar, sizeof bar, "%s", label);
+    svp_status st =
+        scene_map_figure(path, img, scale, lo, m, diverging, title, bar, pixel_um, run->force);
+    return st == SVP_OK ? 0 : cli_fail(run, st, path);
+}
+
+int cmd_reconstruct(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "reconstruct", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    run.fft_measure = 0;
+    static const struct option own[] = {
+        {"bx", required_argument, NULL, OPT_BX},
+        {"by", required_argument, NULL, OPT_BY},
+        {"bz", required_argument, NULL, OPT_BZ},
+        {"quantity", required_argument, NULL, OPT_QUANTITY},
+        {"pixel-um", required_argument, NULL, OPT_PIXEL},
+        {"standoff-nm", required_argument, NULL, OPT_STANDOFF},
+        {"unit", required_argument, NULL, OPT_UNIT},
+        {"nv-thickness-nm", required_argument, NULL, OPT_NV},
+        {"side", required_argument, NULL, OPT_SIDE},
+        {"cutoff-per-um", required_argument, NULL, OPT_CUTOFF},
+        {"no-window", no_argument, NULL, OPT_NO_WINDOW},
+        {"pad", required_argument, NULL, OPT_PAD},
+        {"thickness-nm", required_argument, NULL, OPT_THICKNESS},
+        {NULL, 0, NULL, 0},
+    };
+    const char *paths[3] = {NULL, NULL, NULL};
+    int quantity = -1, unit = 0, side = 0, pad = 0, window = 1;
+    double pixel_um = 0, standoff_nm = 0, nv_nm = 0, cutoff = 0, thickness_nm = 0;
+    svp_image *b[3] = {NULL, NULL, NULL}, *out[3] = {NULL, NULL, NULL};
+    const char *out_path[3] = {NULL, NULL, NULL};
+    int code = 0;
+    int c;
+    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        switch (c) {
+        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
+        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+        case OPT_BX: paths[0] = optarg; break;
+        case OPT_BY: paths[1] = optarg; break;
+        case OPT_BZ: paths[2] = optarg; break;
+        case OPT_QUANTITY:
+            if (cli_parse_choice(&run, "--quantity", optarg, quantity_names, &quantity))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_UNIT:
+            if (cli_parse_choice(&run, "--unit", optarg, unit_names, &unit))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_SIDE: {
+            static const char *const sides[] = {"above", "below", NULL};
+            if (cli_parse_choice(&run, "--side", optarg, sides, &side))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        }
+        case OPT_PAD:
+            if (cli_parse_choice(&run, "--pad", optarg, pad_names, &pad))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_NO_WINDOW: window = 0; break;
+        case OPT_PIXEL:
+        case OPT_STANDOFF:
+        case OPT_NV:
+        case OPT_CUTOFF:
+        case OPT_THICKNESS: {
+            const char *names[] = {"--pixel-um", "--standoff-nm", "--nv-thickness-nm",
+                                   "--cutoff-per-um", "--thickness-nm"};
+            double *targets[] = {&pixel_um, &standoff_nm, &nv_nm, &cutoff, &thickness_nm};
+            int k = c == OPT_PIXEL      ? 0
+                    : c == OPT_STANDOFF ? 1
+                    : c == OPT_NV       ? 2
+                    : c == OPT_CUTOFF   ? 3
+                                        : 4;
+            if (cli_parse_double(&run, names[k], optarg, targets[k]))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            if (!(*targets[k] >= 0) || ((k < 2 || k == 3) && !(*targets[k] > 0)))
+                return cli_run_finish(&run, cli_error(&run, "%s must be %s, got %s", names[k],
+                                                      k < 2 || k == 3 ? "> 0" : ">= 0", optarg));
+            break;
+        }
+        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+        }
+    }
+    if (optind < argc)
+        return cli_run_finish(&run, cli_error(&run,
+                                              "unexpected argument '%s' (maps are given "
+                                              "with --bx, --by, --bz)",
+                                              argv[optind]));
+    if (quantity < 0)
+        return cli_run_finish(&run, cli_error(&run, "--quantity is required: magnetisation, "
+                                                    "current_from_bz or current_from_bxy"));
+    if (quantity < 2 && !paths[2])
+        return cli_run_finish(
+            &run, cli_error(&run, "--quantity %s needs --bz", quantity_names[quantity]));
+    if (quantity < 2 && (paths[0] || paths[1]))
+        return cli_run_finish(&run, cli_error(&run,
+                                              "--quantity %s uses --bz only (drop --bx, "
+                                              "--by)",
+                                              quantity_names[quantity]));
+    if (quantity == 2 && !paths[0] && !paths[1])
+        return cli_run_finish(&run, cli_error(&run, "--quantity current_from_bxy needs --bx "
+                                                    "and/or --by"));
+    if (quantity == 2 && paths[2])
+        return cli_run_finish(&run, cli_error(&run, "--quantity current_from_bxy uses --bx, --by "
+                                                    "(drop --bz, or use current_from_bz)"));
+    if (!(pixel_um > 0)) return cli_run_finish(&run, cli_error(&run, "--pixel-um is required"));
+    if (!(standoff_nm > 0))
+        return cli_run_finish(&run, cli_error(&run, "--standoff-nm is required"));
+    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
+
+    cli_stage_begin(&run, "read");
+    const char *roles[3] = {"bx", "by", "bz"};
+    const svp_image *first = NULL;
+    const char *first_path = NULL, *first_role = NULL;
+    for (int k = 0; k < 3; k++) {
+        if (!paths[k]) continue;
+        if ((code = cli_read_image(&run, roles[k], paths[k], &b[k]))) goto cleanup;
+        for (size_t i = 0; i < (size_t)b[k]->width * b[k]->height; i++)
+            b[k]->data[i] *= unit_scale[unit];
+        if (first && (code = cli_check_same_size(&run, first, first_role, first_path, b[k],
+                                                 roles[k], paths[k])))
+            goto cleanup;
+        if (!first) first = b[k], first_path = paths[k], first_role = roles[k];
+    }
+    const int w = first->width, h = first->height;
+    const char *names[3];
+    int n_out;
+    if (quantity == 0) {
+        names[0] = "m_z";
+        n_out = 1;
+    } else {
+        names[0] = "J_x", names[1] = "J_y", names[2] = "J_norm";
+        n_out = 3;
+    }
+    for (int k = 0; k < n_out; k++) out_path[k] = cli_output_in_dir(&run, names[k], names[k], 1);
+    char fig[3][64];
+    for (int k = 0; k < n_out; k++) {
+        snprintf(fig[k], sizeof fig[k], "%s.png", names[k]);
+        cli_output_in_dir(&run, fig[k], fig[k], 0);
+    }
+    const char *summary = cli_output_in_dir(&run, "summary", "summary.json", 0);
+    if ((code = cli_outputs_check(&run))) goto cleanup;
+
+    svp_recon_options o;
+    svp_recon_defaults(&o);
+    o.sensor.pixel_m = pixel_um * 1e-6;
+    o.sensor.standoff_m = standoff_nm * 1e-9;
+    o.sensor.nv_thickness_m = nv_nm * 1e-9;
+    o.sensor.side = side ? -1 : 1;
+    o.cutoff = cutoff * 1e6;
+    o.window = window;
+    o.pad = (svp_pad_mode)pad;
+    o.source_thickness_m = thickness_nm * 1e-9;
+    svp_status st = svp_sensor_validate(&o.sensor);
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+    cli_setting_str(&run, "quantity", quantity_names[quantity]);
+    cli_setting_str(&run, "unit", unit_names[unit]);
+    cli_setting_num(&run, "pixel_um", pixel_um);
+    cli_setting_num(&run, "standoff_nm", standoff_nm);
+    cli_setting_num(&run, "nv_thickness_nm", nv_nm);
+    cli_setting_str(&run, "side", side ? "below" : "above");
+    cli_setting_num(&run, "cutoff_per_um", cutoff > 0 ? cutoff : 2 * M_PI / (standoff_nm * 1e-3));
+    cli_setting_int(&run, "window", window);
+    cli_setting_str(&run, "pad", pad_names[pad]);
+
+    cli_stage_begin(&run, "reconstruct");
+    for (int k = 0; k < n_out && st == SVP_OK; k++) st = svp_image_new(w, h, &out[k]);
+    if (st == SVP_OK) {
+        if (quantity == 0)
+            st = svp_reconstruct_magnetisation(b[2], &o, out[0]);
+        else if (quantity == 1)
+            st = svp_reconstruct_current_from_bz(b[2], &o, out[0], out[1]);
+        else
+            st = svp_reconstruct_current_from_bxy(b[0], b[1], &o, b[1] ? out[0] : NULL,
+                                                  b[0] ? out[1] : NULL);
+    }
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+    if (quantity > 0)
+        for (size_t i = 0; i < (size_t)w * h; i++)
+            out[2]->data[i] = hypot(out[0]->data[i], out[1]->data[i]);
+    for (int k = 0; k < n_out; k++) {
+        double mean = 0, peak = 0;
+        for (size_t i = 0; i < (size_t)w * h; i++) {
+            mean += out[k]->data[i];
+            peak = fmax(peak, fabs(out[k]->data[i]));
+        }
+        char key[64];
+        snprintf(key, sizeof key, "%s_mean", names[k]);
+        cli_result_num(&run, key, mean / ((double)w * h));
+        snprintf(key, sizeof key, "%s_peak_abs", names[k]);
+        cli_result_num(&run, key, peak);
+    }
+
+    cli_stage_begin(&run, "write");
+    for (int k = 0; k < n_out; k++) {
+        if ((code = cli_write_image(&run, out_path[k], out[k]))) goto cleanup;
+        int is_norm = k == 2;
+        char label[64];
+        snprintf(label, sizeof label, "%s (%s)", names[k], quantity == 0 ? "mA" : "A/m");
+        if ((code = figure(&run, run.output, names[k], out[k], quantity == 0 ? 1e3 : 1, label,
+                           pixel_um, !is_norm)))
+            goto cleanup;
+    }
+    cli_stage_end(&run);
+    if ((code = cli_summary_write(&run, summary))) goto cleanup;
+    printf("svpsf reconstruct: %s from %d x %d map%s (pixel %g um, standoff %g nm) written to %s\n",
+           quantity_names[quantity], w, h, quantity == 2 && b[0] && b[1] ? "s" : "", pixel_um,
+           standoff_nm, run.output);
+
+cleanup:
+    for (int k = 0; k < 3; k++) {
+        svp_image_free(b[k]);
+        svp_image_free(out[k]);
+    }
+    scene_figures_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
+    return cli_run_finish(&run, code);
+}

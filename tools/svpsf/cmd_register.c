@@ -1,2 +1,454 @@
-/* (command under construction) */
+/* svpsf register: the transform between two images of the same scene (phase correlation or
+ * ECC), printed and optionally written to a JSON/YAML file; optionally a third image (a label
+ * mask from a layout drawing, or any image in the moving image's frame) warped onto the
+ * reference grid. */
 #include "cli.h"
+
+#include "io/json.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <strings.h>
+
+enum {
+    OPT_METHOD = CLI_OPTION_FIRST,
+    OPT_MOTION,
+    OPT_WARP,
+    OPT_TRANSFORM_OUT,
+    OPT_INTERP,
+    OPT_BORDER,
+    OPT_SMOOTH,
+    OPT_NO_WINDOW,
+    OPT_ITERATIONS,
+    OPT_EPSILON
+};
+
+static void print_help(const cli_run *run, FILE *out)
+{
+    fputs("usage: svpsf register REFERENCE MOVING [--method phase|ecc]\n"
+          "                      [--motion translation|euclidean|affine]\n"
+          "                      [--warp IMAGE -o OUT] [--transform-out FILE] [options]\n"
+          "\n"
+          "Finds the transform that maps REFERENCE pixel coordinates to MOVING pixel\n"
+          "coordinates (pixel centres at integers; x = column, y = row):\n"
+          "    x_moving = a0 x_ref + a1 y_ref + a2,   y_moving = a3 x_ref + a4 y_ref + a5\n"
+          "and prints it with its quality: the correlation and the RMS difference of the two\n"
+          "images (each scaled to zero mean and unit variance) over their overlap after\n"
+          "warping. Both images must have the same size.\n"
+          "\n"
+          "  REFERENCE, MOVING        images (.tif, .png, .npy, .txt); NaN pixels are filled\n"
+          "                           from their neighbours for the estimate\n"
+          "  --method phase|ecc       phase: phase correlation, translation only, sub-pixel\n"
+          "                           (default); ecc: OpenCV's enhanced correlation\n"
+          "                           coefficient, started from the phase-correlation shift\n"
+          "  --motion M               translation | euclidean (rotation + shift) | affine;\n"
+          "                           default translation for phase, affine for ecc\n"
+          "  --warp IMAGE             warp IMAGE (in MOVING's frame, any size) onto REFERENCE's\n"
+          "                           grid and write it to -o OUT\n"
+          "  -o, --output OUT         with --warp: the warped image (.tif, .npy or .txt);\n"
+          "                           without --warp: the transform file (.json, .yaml, .yml)\n"
+          "  --transform-out FILE     the transform file (.json, .yaml or .yml)\n"
+          "  --interp auto|nearest|linear\n"
+          "                           warp interpolation; auto (default): nearest when every\n"
+          "                           finite pixel of IMAGE is an integer (a label mask), else\n"
+          "                           linear\n"
+          "  --border V               value where the warped image has no data (outside\n"
+          "                           MOVING's frame); a number or nan; default 0 for nearest,\n"
+          "                           nan for linear\n"
+          "  --smooth SIGMA           Gaussian pre-smoothing of both images, pixels (default 1;\n"
+          "                           0 = none)\n"
+          "  --no-window              phase correlation without the Hann window (isolated\n"
+          "                           spots on a flat background, periodic images)\n"
+          "  --iterations N           most ECC iterations (default 100)\n"
+          "  --epsilon E              ECC stops when the correlation changes by less than E\n"
+          "                           between iterations (default 1e-6); not reached within N\n"
+          "                           iterations: exit 2\n",
+          out);
+    cli_print_common_help(run, out);
+    fputs("\nA result whose phase-correlation peak is not significant (peak-to-sidelobe ratio\n"
+          "below 10: the images may not overlap or lack common texture) is written but a\n"
+          "warning is printed, and the transform file says \"low_significance\": true.\n",
+          out);
+}
+
+static int is_transform_path(const char *path)
+{
+    const char *dot = strrchr(path, '.');
+    const char *slash = strrchr(path, '/');
+    if (!dot || (slash && dot < slash)) return 0;
+    if (strcasecmp(dot, ".json") == 0) return 1;
+    if (strcasecmp(dot, ".yaml") == 0 || strcasecmp(dot, ".yml") == 0) return 2;
+    return 0;
+}
+
+static const char *const method_names[] = {"phase", "ecc", NULL};
+static const char *const motion_names[] = {"translation", "euclidean", "affine", NULL};
+static const char *const interp_names[] = {"auto", "nearest", "linear", NULL};
+
+/* A label mask: every finite pixel an integer. */
+static int looks_like_labels(const svp_image *img)
+{
+    const size_t n = (size_t)img->width * img->height;
+    for (size_t i = 0; i < n; i++)
+        if (isfinite(img->data[i]) && img->data[i] != floor(img->data[i])) return 0;
+    return 1;
+}
+
+/* YAML text of the transform (the JSON file carries the same keys). Numbers are written so
+ * that YAML 1.1 readers (PyYAML) also see floats: "1e-06" becomes "1.0e-06", NaN ".nan". */
+static char *yaml_double(char buf[40], double v)
+{
+    if (isnan(v)) return strcpy(buf, ".nan");
+    if (isinf(v)) return strcpy(buf, v > 0 ? ".inf" : "-.inf");
+    char num[32];
+    svp_format_double(num, v);
+    char *e = strchr(num, 'e');
+    if (e && !strchr(num, '.'))
+        snprintf(buf, 40, "%.*s.0%s", (int)(e - num), num, e);
+    else
+        snprintf(buf, 40, "%s", num);
+    return buf;
+}
+
+static void yaml_number(svp_strbuf *b, const char *key, double v)
+{
+    char num[40];
+    svp_strbuf_printf(b, "%s: %s\n", key, yaml_double(num, v));
+}
+
+static void yaml_string(svp_strbuf *b, const char *key, const char *value)
+{
+    svp_strbuf_printf(b, "%s: \"", key);
+    for (const char *p = value; *p; p++) {
+        if (*p == '"' || *p == '\\')
+            svp_strbuf_printf(b, "\\%c", *p);
+        else if ((unsigned char)*p < 0x20)
+            svp_strbuf_printf(b, "\\x%02x", (unsigned char)*p);
+        else
+            svp_strbuf_append(b, p, 1);
+    }
+    svp_strbuf_puts(b, "\"\n");
+}
+
+typedef struct transform_doc {
+    const char *reference, *moving;
+    int width, height;
+    const svp_register_options *options;
+    const svp_register_result *result;
+} transform_doc;
+
+static const char *convention =
+    "x_moving = a[0][0] x_ref + a[0][1] y_ref + a[0][2]; y_moving = a[1][0] x_ref + a[1][1] "
+    "y_ref + a[1][2]; pixel centres at integer coordinates, x = column, y = row";
+
+static svp_status transform_json(const transform_doc *d, svp_json *j)
+{
+    const svp_register_result *r = d->result;
+    const svp_register_options *o = d->options;
+    svp_json_begin_object(j);
+    svp_json_key_int(j, "svpsf_register", 1);
+    svp_json_key_string(j, "reference", d->reference);
+    svp_json_key_string(j, "moving", d->moving);
+    svp_json_key_int(j, "width", d->width);
+    svp_json_key_int(j, "height", d->height);
+    svp_json_key_string(j, "method", method_names[o->method]);
+    svp_json_key_string(j, "motion", motion_names[o->motion]);
+    svp_json_key_string(j, "convention", convention);
+    svp_json_key(j, "affine");
+    svp_json_begin_array(j);
+    svp_json_number_array(j, r->affine, 3);
+    svp_json_number_array(j, r->affine + 3, 3);
+    svp_json_end_array(j);
+    const double shift[2] = {r->shift_x, r->shift_y};
+    svp_json_key(j, "shift_px");
+    svp_json_number_array(j, shift, 2);
+    svp_json_key_number(j, "rotation_deg", r->rotation * 180 / M_PI);
+    svp_json_key_number(j, "scale", r->scale);
+    svp_json_key_number(j, "correlation", r->correlation);
+    svp_json_key_number(j, "residual_rms", r->residual_rms);
+    svp_json_key_number(j, "overlap", r->overlap);
+    svp_json_key_number(j, "response", r->response);
+    svp_json_key_number(j, "significance", r->significance);
+    svp_json_key_bool(j, "low_significance", r->low_significance);
+    svp_json_key_int(j, "iterations", r->iterations);
+    svp_json_key_int(j, "nonfinite_reference", (long long)r->nonfinite_reference);
+    svp_json_key_int(j, "nonfinite_moving", (long long)r->nonfinite_moving);
+    svp_json_key(j, "settings");
+    svp_json_begin_object(j);
+    svp_json_key_number(j, "smooth_sigma", o->smooth_sigma);
+    svp_json_key_bool(j, "window", o->window);
+    svp_json_key_number(j, "whitening", o->whitening);
+    svp_json_key_int(j, "iterations", o->iterations);
+    svp_json_key_number(j, "epsilon", o->epsilon);
+    svp_json_end_object(j);
+    svp_json_key_string(j, "svpsf_version", svp_version());
+    return svp_json_end_object(j);
+}
+
+static void transform_yaml(const transform_doc *d, svp_strbuf *b)
+{
+    const svp_register_result *r = d->result;
+    const svp_register_options *o = d->options;
+    char n[6][40];
+    svp_strbuf_puts(b, "svpsf_register: 1\n");
+    yaml_string(b, "reference", d->reference);
+    yaml_string(b, "moving", d->moving);
+    svp_strbuf_printf(b, "width: %d\nheight: %d\n", d->width, d->height);
+    svp_strbuf_printf(b, "method: %s\nmotion: %s\n", method_names[o->method],
+                      motion_names[o->motion]);
+    yaml_string(b, "convention", convention);
+    for (int i = 0; i < 6; i++) yaml_double(n[i], r->affine[i]);
+    svp_strbuf_printf(b, "affine:\n  - [%s, %s, %s]\n  - [%s, %s, %s]\n", n[0], n[1], n[2], n[3],
+                      n[4], n[5]);
+    svp_strbuf_printf(b, "shift_px: [%s, %s]\n", yaml_double(n[0], r->shift_x),
+                      yaml_double(n[1], r->shift_y));
+    yaml_number(b, "rotation_deg", r->rotation * 180 / M_PI);
+    yaml_number(b, "scale", r->scale);
+    yaml_number(b, "correlation", r->correlation);
+    yaml_number(b, "residual_rms", r->residual_rms);
+    yaml_number(b, "overlap", r->overlap);
+    yaml_number(b, "response", r->response);
+    yaml_number(b, "significance", r->significance);
+    svp_strbuf_printf(b, "low_significance: %s\n", r->low_significance ? "true" : "false");
+    svp_strbuf_printf(b, "iterations: %d\n", r->iterations);
+    svp_strbuf_printf(b, "nonfinite_reference: %zu\nnonfinite_moving: %zu\n",
+                      r->nonfinite_reference, r->nonfinite_moving);
+    svp_strbuf_puts(b, "settings:\n");
+    yaml_number(b, "  smooth_sigma", o->smooth_sigma);
+    svp_strbuf_printf(b, "  window: %s\n", o->window ? "true" : "false");
+    yaml_number(b, "  whitening", o->whitening);
+    svp_strbuf_printf(b, "  iterations: %d\n", o->iterations);
+    yaml_number(b, "  epsilon", o->epsilon);
+    yaml_string(b, "svpsf_version", svp_version());
+}
+
+static int write_transform(cli_run *run, const char *path, const transform_doc *d)
+{
+    if (is_transform_path(path) == 1) {
+        svp_json *j = NULL;
+        svp_status st = svp_json_new(&j);
+        const char *text = NULL;
+        if (st == SVP_OK) st = transform_json(d, j);
+        if (st == SVP_OK) st = svp_json_finish(j, &text);
+        int code = st == SVP_OK ? cli_write_text(run, path, text) : cli_fail(run, st, path);
+        svp_json_free(j);
+        return code;
+    }
+    svp_strbuf b;
+    svp_strbuf_init(&b);
+    transform_yaml(d, &b);
+    int code = b.failed ? cli_error(run, "%s: out of memory", path)
+                        : cli_write_text(run, path, b.data);
+    svp_strbuf_free(&b);
+    return code;
+}
+
+int cmd_register(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "register", argc, argv, CLI_COMMON_OUTPUT);
+    static const struct option own[] = {
+        {"method", required_argument, NULL, OPT_METHOD},
+        {"motion", required_argument, NULL, OPT_MOTION},
+        {"warp", required_argument, NULL, OPT_WARP},
+        {"transform-out", required_argument, NULL, OPT_TRANSFORM_OUT},
+        {"interp", required_argument, NULL, OPT_INTERP},
+        {"border", required_argument, NULL, OPT_BORDER},
+        {"smooth", required_argument, NULL, OPT_SMOOTH},
+        {"no-window", no_argument, NULL, OPT_NO_WINDOW},
+        {"iterations", required_argument, NULL, OPT_ITERATIONS},
+        {"epsilon", required_argument, NULL, OPT_EPSILON},
+        {NULL, 0, NULL, 0},
+    };
+    svp_register_options opt;
+    svp_register_defaults(&opt);
+    int method = 0, motion = -1, interp = 0, border_given = 0;
+    double border = 0;
+    const char *warp_path = NULL, *transform_path = NULL;
+    svp_image *reference = NULL, *moving = NULL, *to_warp = NULL, *warped = NULL;
+    int code = 0;
+
+    int c;
+    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        switch (c) {
+        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
+        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+        case OPT_METHOD:
+            if (cli_parse_choice(&run, "--method", optarg, method_names, &method))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_MOTION:
+            if (cli_parse_choice(&run, "--motion", optarg, motion_names, &motion))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_WARP: warp_path = optarg; break;
+        case OPT_TRANSFORM_OUT: transform_path = optarg; break;
+        case OPT_INTERP:
+            if (cli_parse_choice(&run, "--interp", optarg, interp_names, &interp))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_BORDER:
+            border_given = 1;
+            if (strcasecmp(optarg, "nan") == 0)
+                border = NAN;
+            else if (cli_parse_double(&run, "--border", optarg, &border))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_SMOOTH:
+            if (cli_parse_double(&run, "--smooth", optarg, &opt.smooth_sigma))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            if (opt.smooth_sigma < 0)
+                return cli_run_finish(&run, cli_error(&run, "--smooth %s: must be >= 0 "
+                                                      "pixels",
+                                                      optarg));
+            break;
+        case OPT_NO_WINDOW: opt.window = 0; break;
+        case OPT_ITERATIONS:
+            if (cli_parse_int(&run, "--iterations", optarg, 2, 1000000, &opt.iterations))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        case OPT_EPSILON:
+            if (cli_parse_double(&run, "--epsilon", optarg, &opt.epsilon))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            if (!(opt.epsilon > 0))
+                return cli_run_finish(&run, cli_error(&run, "--epsilon %s: must be > 0",
+                                                      optarg));
+            break;
+        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+        }
+    }
+    if (argc - optind < 2)
+        return cli_run_finish(&run, cli_error(&run, "REFERENCE and MOVING images are required "
+                                              "(see --help)"));
+    if (argc - optind > 2)
+        return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s'",
+                                              argv[optind + 2]));
+    const char *reference_path = argv[optind], *moving_path = argv[optind + 1];
+    /* a handful of transforms of one size: measuring plans would cost more than it saves */
+    svp_set_fft_effort(SVP_FFT_ESTIMATE);
+
+    opt.method = method == 1 ? SVP_REGISTER_ECC : SVP_REGISTER_PHASE;
+    if (motion < 0) motion = opt.method == SVP_REGISTER_ECC ? 2 : 0;
+    opt.motion = (svp_register_motion)motion;
+    if (opt.method == SVP_REGISTER_PHASE && opt.motion != SVP_MOTION_TRANSLATION)
+        return cli_run_finish(&run, cli_error(&run, "--motion %s needs --method ecc (phase "
+                                              "correlation finds a translation only)",
+                                              motion_names[motion]));
+
+    /* outputs: -o is the warped image with --warp, else the transform file */
+    const char *warp_out = NULL;
+    if (warp_path) {
+        if (!run.output)
+            return cli_run_finish(&run, cli_error(&run, "--warp %s needs -o OUT for the warped "
+                                                  "image",
+                                                  warp_path));
+        svp_file_format f = cli_format_of_path(run.output);
+        if (f == SVP_FORMAT_AUTO || f == SVP_FORMAT_PNG16)
+            return cli_run_finish(&run, cli_error(&run, "-o %s: the warped image needs a .tif, "
+                                                  ".npy or .txt name",
+                                                  run.output));
+        warp_out = run.output;
+    } else if (run.output) {
+        if (transform_path)
+            return cli_run_finish(&run, cli_error(&run, "-o %s and --transform-out %s: without "
+                                                  "--warp both name the transform file; give "
+                                                  "one",
+                                                  run.output, transform_path));
+        transform_path = run.output;
+    }
+    if (transform_path && !is_transform_path(transform_path))
+        return cli_run_finish(&run, cli_error(&run, "%s: the transform file needs a .json, "
+                                              ".yaml or .yml name",
+                                              transform_path));
+
+    cli_stage_begin(&run, "read");
+    if ((code = cli_read_image(&run, "reference", reference_path, &reference))) goto cleanup;
+    if ((code = cli_read_image(&run, "moving", moving_path, &moving))) goto cleanup;
+    if ((code = cli_check_same_size(&run, reference, "reference", reference_path, moving,
+                                    "moving", moving_path)))
+        goto cleanup;
+    if (warp_path && (code = cli_read_image(&run, "warp", warp_path, &to_warp))) goto cleanup;
+    if (warp_out) cli_output_file(&run, "warped", warp_out);
+    if (transform_path) cli_output_file(&run, "transform", transform_path);
+    if ((code = cli_outputs_check(&run))) goto cleanup;
+
+    cli_stage_begin(&run, "register");
+    if (opt.method == SVP_REGISTER_ECC) {
+        cli_progress_start(&run, "ECC");
+        opt.progress = cli_progress;
+        opt.progress_user = &run;
+    }
+    svp_register_result r;
+    svp_status st = svp_register(reference, moving, &opt, &r);
+    if (opt.method == SVP_REGISTER_ECC) cli_progress_done(&run);
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+
+    const double *a = r.affine;
+    printf("registration of %s onto %s (%d x %d), %s, %s\n", moving_path, reference_path,
+           reference->width, reference->height,
+           opt.method == SVP_REGISTER_ECC ? "ECC" : "phase correlation", motion_names[motion]);
+    printf("  affine      x_moving = %.8g x_ref %+.8g y_ref %+.6f\n", a[0], a[1], a[2]);
+    printf("              y_moving = %.8g x_ref %+.8g y_ref %+.6f\n", a[3], a[4], a[5]);
+    printf("              (reference -> moving pixel coordinates, pixel centres at integers)\n");
+    printf("  shift       %+.4f %+.4f px (where the reference centre lies in the moving image, "
+           "minus the centre)\n",
+           r.shift_x, r.shift_y);
+    printf("  rotation    %+.5f deg   scale %.6f\n", r.rotation * 180 / M_PI, r.scale);
+    printf("  residual    RMS %.4g (in standard deviations) over %.1f %% of the reference; "
+           "correlation %.5f\n",
+           r.residual_rms, 100 * r.overlap, r.correlation);
+    if (isfinite(r.response))
+        printf("  phase peak  response %.3f, significance %.1f\n", r.response, r.significance);
+    if (opt.method == SVP_REGISTER_ECC) printf("  ECC         %d iterations\n", r.iterations);
+    if (r.nonfinite_reference || r.nonfinite_moving)
+        printf("  NaN/Inf     %zu reference and %zu moving pixels, filled from their neighbours "
+               "for the estimate and left out of the residual\n",
+               r.nonfinite_reference, r.nonfinite_moving);
+    if (r.low_significance)
+        fprintf(stderr,
+                "svpsf register: warning: the phase-correlation peak is not significant "
+                "(%.1f < %g): the images may not overlap or share no texture; the transform is "
+                "unreliable\n",
+                r.significance, opt.min_significance);
+
+    if (warp_path) {
+        cli_stage_begin(&run, "warp");
+        const int labels = looks_like_labels(to_warp);
+        const svp_interpolation how =
+            interp == 1 || (interp == 0 && labels) ? SVP_INTERP_NEAREST : SVP_INTERP_LINEAR;
+        if (!border_given) border = how == SVP_INTERP_NEAREST ? 0 : NAN;
+        if ((st = svp_image_new(reference->width, reference->height, &warped)) != SVP_OK ||
+            (st = svp_warp(to_warp, a, how, border, warped)) != SVP_OK) {
+            code = cli_fail(&run, st, warp_path);
+            goto cleanup;
+        }
+        cli_stage_begin(&run, "write");
+        if ((code = cli_write_image(&run, warp_out, warped))) goto cleanup;
+        printf("  warped      %s (%d x %d) -> %s (%d x %d), %s interpolation%s, border %g\n",
+               warp_path, to_warp->width, to_warp->height, warp_out, warped->width,
+               warped->height, how == SVP_INTERP_NEAREST ? "nearest" : "linear",
+               interp == 0 ? (labels ? " (integer pixels: a label mask)"
+                                     : " (non-integer pixels: an image)")
+                           : "",
+               border);
+    }
+    if (transform_path) {
+        cli_stage_begin(&run, "write");
+        const transform_doc doc = {reference_path, moving_path, reference->width,
+                                   reference->height, &opt, &r};
+        if ((code = write_transform(&run, transform_path, &doc))) goto cleanup;
+        printf("  transform   written to %s\n", transform_path);
+    }
+    cli_stage_end(&run);
+
+cleanup:
+    svp_image_free(reference);
+    svp_image_free(moving);
+    svp_image_free(to_warp);
+    svp_image_free(warped);
+    return cli_run_finish(&run, code);
+}

@@ -1,0 +1,196 @@
+#!/bin/sh
+# Runs every shipped scene of the reference study and writes the tables of
+# docs/reference-study.md from their summary.json files.
+#   docs/scenes/run-study.sh [SVPSF [OUT]]
+#   docs/scenes/run-study.sh --tables-only [OUT]     (the tables from an earlier run)
+# SVPSF: the svpsf program (default build/tools/svpsf/svpsf), OUT: the output folder (default
+# out/study). Each scene goes to OUT/<scene name>/ (report.md, figures/, tables/, summary.json);
+# the tables go to OUT/tables.md. About 6 minutes on 2 cores. Python 3 (standard library only)
+# formats the tables.
+set -eu
+HERE=$(cd "$(dirname "$0")" && pwd)
+if [ "${1:-}" = --tables-only ]; then
+    OUT=${2:-out/study}
+else
+    SVPSF=${1:-build/tools/svpsf/svpsf}
+    OUT=${2:-out/study}
+    mkdir -p "$OUT"
+    for scene in "$HERE"/*.yaml; do
+        name=$(basename "$scene" .yaml)
+        echo "== $name" >&2
+        "$SVPSF" simulate "$scene" -o "$OUT/$name" --force --quiet
+    done
+fi
+python3 - "$OUT" >"$OUT/tables.md" <<'EOF'
+import json, math, os, sys
+
+out = sys.argv[1]
+S = {}
+for name in sorted(os.listdir(out)):
+    p = os.path.join(out, name, "summary.json")
+    if os.path.exists(p):
+        with open(p) as f:
+            S[name] = json.load(f)
+
+def v(name, key):
+    x = S[name]["results"].get(key)
+    return float("nan") if x is None else x
+
+def f(x, fmt="%.3g"):
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else fmt % x
+
+def total(name):
+    return S[name]["timings_s"]["total"]
+
+print("## Micromagnet: 3 emission patterns x 5 PSFs\n")
+print("m_z = M_z t inside the flake (mask `flake`: the 100 µm square eroded by 2 µm). "
+      "Reductions: 1 − mean|m_z| / mean|m_z,true| and 1 − peak|m_z| / peak|m_z,true| of the "
+      "apparent map; medians of |relative error| (histogram medians) before (apparent) and "
+      "after correction. B_z: peak reduction over the whole view.\n")
+print("| emission | PSF | m_z mean red. % | m_z peak red. % | B_z peak red. % (view) | "
+      "median abs err. % apparent | R&W | R | time (s) |")
+print("|---|---|---|---|---|---|---|---|---|")
+for em in ["uniform", "spot", "chessboard"]:
+    for psf in ["gaussian-300nm", "gaussian-1um", "gaussian-300nm-halo", "lorentzian-300nm",
+                "lorentzian-1um"]:
+        n = "micromagnet-%s-%s" % (em, psf)
+        if n not in S:
+            continue
+        print("| %s | %s | %s | %s | %s | %s | %s | %s | %.1f |" % (
+            em, psf,
+            f(v(n, "m_z/flake/apparent/mean_reduction_pct")),
+            f(v(n, "m_z/flake/apparent/peak_reduction_pct")),
+            f(v(n, "B_z/view/apparent/peak_reduction_pct")),
+            f(v(n, "m_z/flake/apparent/median_abs_rel_err_pct")),
+            f(v(n, "m_z/flake/corrected_rw/median_abs_rel_err_pct")),
+            f(v(n, "m_z/flake/corrected_r/median_abs_rel_err_pct")), total(n)))
+
+def corrections(n, quantities, masks):
+    versions = ["apparent"] + ["corrected_" + c["name"] for c in S[n]["settings"]["corrections"]]
+    print("| quantity | mask | version | mean | mean red. % | peak red. % | median err. % | "
+          "median abs err. % | p95 abs err. % |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for q, scale, unit in quantities:
+        for m in masks:
+            t = v(n, "%s/%s/true/mean" % (q, m))
+            print("| %s | %s | true | %s %s | | | | | |" % (q, m, f(t * scale, "%.4g"), unit))
+            for ver in versions:
+                k = "%s/%s/%s/" % (q, m, ver)
+                print("| %s | %s | %s | %s %s | %s | %s | %s | %s | %s |" % (
+                    q, m, ver, f(v(n, k + "mean") * scale, "%.4g"), unit,
+                    f(v(n, k + "mean_reduction_pct")), f(v(n, k + "peak_reduction_pct")),
+                    f(v(n, k + "median_rel_err_pct")), f(v(n, k + "median_abs_rel_err_pct")),
+                    f(v(n, k + "p95_abs_rel_err_pct"))))
+    print()
+
+for n, qs, ms in [
+        ("micromagnet-chessboard-lorentzian-1um", [("m_z", 1e3, "mA"), ("B_z", 1e6, "µT")],
+         ["flake", "lit_flake", "outside"]),
+        ("strip-chessboard-lorentzian-1um", [("J_bxy", 1, "A/m"), ("J_bz", 1, "A/m"),
+                                             ("B_x", 1e6, "µT")], ["strip", "middle"]),
+        ("device-wire-on-ramp", [("J_bxy", 1, "A/m"), ("J_bz", 1, "A/m"), ("B_x", 1e6, "µT")],
+         ["wire", "beside_wire"])]:
+    if n not in S:
+        continue
+    print("\n## %s: corrections compared (%.1f s)\n" % (n, total(n)))
+    corrections(n, qs, ms)
+
+import array, ast, struct
+
+def npy(name, map_name):
+    """A float64 .npy map written by the scene (stdlib only)."""
+    with open(os.path.join(out, name, "maps", map_name + ".npy"), "rb") as fh:
+        if fh.read(6) != b"\x93NUMPY":
+            raise ValueError("not a .npy file")
+        major = fh.read(2)[0]
+        n = struct.unpack("<H" if major == 1 else "<I", fh.read(2 if major == 1 else 4))[0]
+        header = ast.literal_eval(fh.read(n).decode("latin1"))
+        assert header["descr"] == "<f8" and not header["fortran_order"]
+        a = array.array("d")
+        a.frombytes(fh.read())
+        return a
+
+def rms_diff(a, b, mask=None):
+    s, k = 0.0, 0
+    for i in range(len(a)):
+        if mask is None or mask[i] != 0:
+            s += (a[i] - b[i]) ** 2
+            k += 1
+    return math.sqrt(s / k) if k else float("nan")
+
+print("\n## Noise: the flagship scene at falling photon counts\n")
+print("Shot noise with N photons at the brightest pixel over the whole measurement: the PL "
+      "gets sqrt(N) noise, the field 0.77 Γ / (γ C sqrt(N)) (Γ = 1 MHz, C = 2 %), larger in dim "
+      "pixels as 1/sqrt(PL). The noise part is the rms difference from the same scene without "
+      "noise (micromagnet-noise-none): B_z over the view in % of the peak |B_z|, m_z inside the "
+      "flake in % of 1 mA. Total: the median |relative error| of m_z inside the flake against "
+      "the truth.\n")
+print("| photons N | field SNR at the brightest pixel | sigma_B there (µT) | B_z noise, apparent "
+      "% | B_z noise, corrected R % | m_z noise, R&W % | m_z noise, R % | m_z total, apparent % "
+      "| R&W % | R % |")
+print("|---|---|---|---|---|---|---|---|---|---|")
+ref = "micromagnet-noise-none"
+rows = sorted((v(n, "noise/photons_per_pixel"), n) for n in S
+              if n.startswith("micromagnet-noise-") and n != ref)
+if ref in S:
+    mask = npy(ref, "mask_flake")
+    peak = max(abs(x) for x in npy(ref, "B_z_true"))
+    base = {m: npy(ref, m) for m in ["B_z_apparent", "B_z_corrected_r", "m_z_corrected_rw",
+                                     "m_z_corrected_r"]}
+    print("| no noise | ∞ | 0 | 0 | 0 | 0 | 0 | %s | %s | %s |" % (
+        f(v(ref, "m_z/flake/apparent/median_abs_rel_err_pct")),
+        f(v(ref, "m_z/flake/corrected_rw/median_abs_rel_err_pct")),
+        f(v(ref, "m_z/flake/corrected_r/median_abs_rel_err_pct"))))
+    for photons, n in sorted(rows, reverse=True):
+        noise = [100 * rms_diff(npy(n, "B_z_apparent"), base["B_z_apparent"]) / peak,
+                 100 * rms_diff(npy(n, "B_z_corrected_r"), base["B_z_corrected_r"]) / peak,
+                 100 * rms_diff(npy(n, "m_z_corrected_rw"), base["m_z_corrected_rw"], mask) / 1e-3,
+                 100 * rms_diff(npy(n, "m_z_corrected_r"), base["m_z_corrected_r"], mask) / 1e-3]
+        print("| %.0e | %s | %s | %s | %s | %s | %s | %s | %s | %s |" % (
+            photons, f(v(n, "noise/field_snr")), f(1e6 * v(n, "noise/sigma_B_at_brightest_T")),
+            f(noise[0]), f(noise[1]), f(noise[2]), f(noise[3]),
+            f(v(n, "m_z/flake/apparent/median_abs_rel_err_pct")),
+            f(v(n, "m_z/flake/corrected_rw/median_abs_rel_err_pct")),
+            f(v(n, "m_z/flake/corrected_r/median_abs_rel_err_pct"))))
+
+print("\n## The ODMR cube against the closed form\n")
+print("| scene | estimator | mean abs diff (µT) | max abs diff (µT) | where contrast varies "
+      "(mean µT) | elsewhere (mean µT) | m_z median abs err. % apparent | R | cube + "
+      "estimate time (s) |")
+print("|---|---|---|---|---|---|---|---|---|")
+for n in ["spectrum-centroid", "spectrum-fit", "spectrum-fit-contrast", "spectrum-drift"]:
+    if n not in S:
+        continue
+    est = [p["detail"] for p in S[n]["plan"] if p["stage"] == "estimate"][0].split(" per")[0]
+    t = sum(p["seconds"] for p in S[n]["plan"] if p["stage"] in ("cube", "drift", "estimate"))
+    print("| %s | %s | %s | %s | %s | %s | %s | %s | %.1f |" % (
+        n, est, f(1e6 * v(n, "cube_vs_closed_form/B_z/mean_abs_T")),
+        f(1e6 * v(n, "cube_vs_closed_form/B_z/max_abs_T")),
+        f(1e6 * v(n, "cube_vs_closed_form/B_z/contrast_varies/mean_abs_T")),
+        f(1e6 * v(n, "cube_vs_closed_form/B_z/contrast_uniform/mean_abs_T")),
+        f(v(n, "m_z/flake/apparent/median_abs_rel_err_pct")),
+        f(v(n, "m_z/flake/corrected_r/median_abs_rel_err_pct")), t))
+
+if "spectrum-fit" in S and "spectrum-fit-contrast" in S:
+    a = npy("spectrum-fit-contrast", "B_z_apparent")
+    b = npy("spectrum-fit", "B_z_apparent")
+    c = npy("spectrum-fit-contrast", "B_z_closed_form")
+    peak = max(abs(x) for x in npy("spectrum-fit", "B_z_true"))
+    print("\nThe contrast pattern's own effect on the fitted map: rms %.3g µT, max %.3g µT "
+          "(%.2g %% and %.2g %% of the peak |B_z| = %.3g µT); the fit against the closed form "
+          "with uniform contrast: rms %.3g µT." % (
+              1e6 * rms_diff(a, b), 1e6 * max(abs(x - y) for x, y in zip(a, b)),
+              100 * rms_diff(a, b) / peak, 100 * max(abs(x - y) for x, y in zip(a, b)) / peak,
+              1e6 * peak, 1e6 * rms_diff(b, npy("spectrum-fit", "B_z_closed_form"))))
+
+print("\n## Run times\n")
+print("| scene | view | stages | total (s) | slowest stage |")
+print("|---|---|---|---|---|")
+for n in S:
+    g = S[n]["geometry"]
+    slow = max(S[n]["plan"], key=lambda p: p["seconds"])
+    print("| %s | %d x %d (canvas %d x %d) | %d | %.1f | %s %.1f s |" % (
+        n, g["view_width"], g["view_height"], g["canvas_width"], g["canvas_height"],
+        len(S[n]["plan"]), total(n), slow["stage"], slow["seconds"]))
+EOF
+echo "tables: $OUT/tables.md" >&2

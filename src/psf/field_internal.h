@@ -1,0 +1,34 @@
+/* The PSF field's layout, shared by field.c and the operators that sample it (blur/). */
+#ifndef SVP_FIELD_INTERNAL_H
+#define SVP_FIELD_INTERNAL_H
+
+#include "../core/internal.h"
+
+#define SVP_FIELD_POLY_MAX_DEGREE 8
+
+struct svp_psf_field {
+    svp_psf_field_kind kind;
+    int width, height; /* 0 x 0: a uniform field valid for any size */
+    svp_psf base;      /* model, support, subsample (and, for Gaussian fields, beta unused) */
+    /* uniform */
+    svp_psf uniform;
+    double uniform_p[SVP_FIELD_NPARAM];
+    /* grid: nx x ny nodes, node_p[(j nx + i) NPARAM + q] */
+    int nx, ny, grid_default_nodes;
+    double *node_x, *node_y, *node_p;
+    /* poly: coeffs[q n_terms + t] */
+    int degree;
+    double *coeffs;
+    /* regions: labels, per-label PSFs and parameters, blended parameter maps pmap[q N + i] */
+    int n_labels;
+    int *labels;
+    svp_psf *region_psfs;
+    double *region_p;
+    double transition;
+    double *pmap;
+};
+
+/* The field's common model / support / subsample. */
+const svp_psf *svp_psf_field_base(const svp_psf_field *field);
+
+#endif

@@ -1,0 +1,349 @@
+/* Scenes: the parsed scene file, its plan, and the pieces the runner, the metrics and the
+ * figures share. Library-internal (docs/scenes.md describes the file; include/svpsf.h the API).
+ *
+ * Geometry. The view is view_w x view_h pixels of pixel_um; the canvas adds margin_px on every
+ * side. Positions in the file are micrometres from the centre of the view, +x along the
+ * columns (right), +y along the rows (down), the frame of the physics section of svpsf.h.
+ * Canvas pixel (i, j) has its centre at
+ *     x_um = (i - (canvas_w - 1) / 2) pixel_um,   y_um = (j - (canvas_h - 1) / 2) pixel_um. */
+#ifndef SVP_SCENE_INTERNAL_H
+#define SVP_SCENE_INTERNAL_H
+
+#include "../core/internal.h"
+
+#include <stdint.h>
+
+#define SCENE_MAX_FIELDS 4  /* x, y, z, nv */
+#define SCENE_MAX_LEVELS 16 /* chessboard levels */
+#define SCENE_MAX_CORRECT 8 /* corrections compared in one scene */
+#define SCENE_MAX_RECON 3   /* reconstructions */
+#define SCENE_MAX_MASKS 16
+#define SCENE_MAX_CUTS 16
+#define SCENE_WHERE 48 /* "file:line:col" of a node, for run-time messages */
+
+/* ---- sources ------------------------------------------------------------------------------ */
+typedef enum { SRC_FLAKE = 0, SRC_STRIP = 1, SRC_FIELD_FILE = 2 } scene_source_kind;
+typedef enum { SHAPE_RECTANGLE = 0, SHAPE_DISK = 1, SHAPE_POLYGON = 2, SHAPE_MASK = 3 } scene_shape;
+
+typedef struct scene_source {
+    scene_source_kind kind;
+    char where[SCENE_WHERE];
+    double standoff_nm; /* flake and strip */
+    /* flake */
+    scene_shape shape;
+    double size_um[2];  /* rectangle */
+    double diameter_um; /* disk */
+    double angle_deg;   /* rectangle rotation; strip: current direction */
+    double centre_um[2];
+    double *vertices_um; /* polygon: x0, y0, x1, y1, ... */
+    int n_vertices;
+    char *mask_path;       /* mask image (resolved path) */
+    double mask_threshold; /* coverage = clamp(value / mask_scale); see docs */
+    double magnetisation_A_per_m;
+    double thickness_nm;
+    /* strip */
+    double width_um;
+    double sheet_current_A_per_m; /* J = I / w when given as current_mA */
+    /* field file */
+    char *path;
+    int component;   /* 0 x, 1 y, 2 z */
+    double to_tesla; /* unit factor */
+} scene_source;
+
+/* ---- emission ----------------------------------------------------------------------------- */
+typedef enum {
+    EM_UNIFORM = 0,
+    EM_GAUSSIAN = 1,
+    EM_CHESSBOARD = 2,
+    EM_QUENCH = 3,
+    EM_IMAGE = 4,
+    EM_FRINGES = 5
+} scene_emission_kind;
+
+typedef enum { UNDER_SOURCES = 0, UNDER_FLAKES = 1, UNDER_STRIPS = 2, UNDER_MASK = 3 } scene_under;
+
+typedef struct scene_factor {
+    scene_emission_kind kind;
+    char where[SCENE_WHERE];
+    double level;   /* uniform */
+    double fwhm_um; /* gaussian */
+    double centre_um[2];
+    double square_um; /* chessboard */
+    double levels[SCENE_MAX_LEVELS];
+    int n_levels;
+    uint64_t seed;
+    double offset_um[2];
+    scene_under under; /* quench */
+    double factor;
+    char *path;       /* quench mask / emission image (resolved) */
+    double period_um; /* fringes: I = 1 + V cos(2π ξ / period + φ) along angle_deg, with ξ
+                                clamped to [from_um, to_um] (flat beyond the ramp) */
+    double visibility;
+    double angle_deg;
+    double phase_deg;
+    double from_um, to_um;
+} scene_factor;
+
+/* ---- the PSF and corrections --------------------------------------------------------------- */
+typedef struct scene_psf {
+    int from_file; /* 1: psf file or PSF-map file (svp_psf_field_read) */
+    char *path;
+    svp_psf psf; /* inline model, pixels */
+    svp_boundary boundary;
+    char where[SCENE_WHERE];
+    char describe[160]; /* "lorentzian FWHM 1 um" */
+} scene_psf;
+
+typedef struct scene_correct {
+    char name[32]; /* "rw", "w", ... unique; names the outputs */
+    svp_method method;
+    int iterations; /* RL */
+    double balance; /* Wiener */
+    double pl_floor;
+    int has_psf; /* an assumed PSF different from the scene's */
+    scene_psf psf;
+    char where[SCENE_WHERE];
+} scene_correct;
+
+typedef enum {
+    RECON_MAGNETISATION = 0,
+    RECON_CURRENT_BZ = 1,
+    RECON_CURRENT_BXY = 2
+} scene_recon_kind;
+
+typedef struct scene_recon {
+    scene_recon_kind kind;
+    char name[16]; /* "m_z", "J_bz", "J_bxy": names the outputs */
+    double standoff_nm;
+    double cutoff_per_um; /* k_c in rad/µm; 0 = 2π / standoff */
+    int window;           /* Hann window on (default 1) */
+    svp_pad_mode pad;
+    char where[SCENE_WHERE];
+} scene_recon;
+
+/* ---- metrics ------------------------------------------------------------------------------- */
+typedef enum {
+    MASK_ALL = 0,
+    MASK_SOURCES = 1,
+    MASK_FLAKES = 2,
+    MASK_STRIPS = 3,
+    MASK_FILE = 4,
+    MASK_NONE_REGION = 5
+} scene_mask_region;
+
+typedef struct scene_mask {
+    char name[32];
+    scene_mask_region inside; /* region the pixel must be inside (coverage >= 0.5) */
+    int outside;              /* 1: invert the region */
+    double erode_um;          /* shrink the region by this distance (>= 0) */
+    double lit_above;         /* true PL >= lit_above · max (0 = no condition) */
+    char *path;               /* inside: file */
+    char where[SCENE_WHERE];
+} scene_mask;
+
+typedef struct scene_cut {
+    char name[32];
+    double from_um[2], to_um[2];
+    char where[SCENE_WHERE];
+} scene_cut;
+
+/* ---- the scene ----------------------------------------------------------------------------- */
+typedef struct scene_stage_entry {
+    char name[32];
+    char detail[200];
+} scene_stage_entry;
+
+struct svp_scene {
+    char *path; /* the scene file as given */
+    char *dir;  /* its folder: relative paths start here */
+    char *name; /* name: or the file stem */
+    char *description;
+
+    /* grid */
+    double pixel_um;
+    double size_um[2];
+    double margin_um;
+    int view_w, view_h, margin_px, canvas_w, canvas_h;
+
+    /* sensor */
+    double nv_thickness_nm;
+    int side; /* +1 above, -1 below */
+
+    scene_source *sources;
+    int n_sources, n_flakes, n_strips, n_files;
+
+    /* measured field components: 0 x, 1 y, 2 z, 3 nv (projection on nv_axis) */
+    int n_fields;
+    int field_comp[SCENE_MAX_FIELDS];
+    double nv_axis[3];
+
+    scene_factor *emission;
+    int n_emission;
+
+    scene_psf psf;
+
+    /* effects */
+    int noise;
+    double photons; /* photons at the brightest apparent pixel, whole measurement */
+    uint64_t noise_seed;
+    double noise_linewidth_hz, noise_contrast;
+    int spectrum;
+    int spectrum_points;
+    double linewidth_hz, contrast, zero_field_hz, bias_t, span_linewidths;
+    int estimator; /* 0 centroid, 1 lorentzian_fit */
+    scene_factor *contrast_pattern;
+    int n_contrast_pattern;
+    int drift;
+    double drift_um[2];
+
+    scene_correct correct[SCENE_MAX_CORRECT];
+    int n_correct;
+    scene_recon recon[SCENE_MAX_RECON];
+    int n_recon;
+
+    scene_mask masks[SCENE_MAX_MASKS];
+    int n_masks;
+    scene_cut cuts[SCENE_MAX_CUTS];
+    int n_cuts;
+    int hist_bins;
+    double hist_range_pct; /* 0 = automatic */
+    double local_floor;
+
+    /* outputs */
+    int write_maps, write_figures, write_canvas;
+    svp_file_format format;
+
+    /* the plan (compiled at load) and the public view of it */
+    scene_stage_entry *plan;
+    svp_scene_stage *stages;
+    int n_stages;
+    /* files a run writes, relative to the output folder */
+    char **outputs;
+    int n_outputs;
+};
+
+/* ---- quantities and versions (shared by plan, runner, metrics, figures) ------------------- */
+#define SCENE_MAX_QUANTITIES 12
+#define SCENE_MAX_VERSIONS (2 + SCENE_MAX_CORRECT)
+
+typedef struct scene_quantity {
+    char name[24];        /* "pl", "B_z", "B_nv", "m_z", "J_bz", "J_bxy" (|J|) */
+    char label[48];       /* axis label: "B_z", "m_z = M_z t", "|J|" */
+    char unit[12];        /* display unit, UTF-8: "µT", "mA", "A/m", "a.u." */
+    double display_scale; /* SI value × scale = displayed value */
+    int diverging;        /* signed quantity: diverging colour map centred on zero */
+    int ref_local;        /* relative error against the local true value (else the view's peak) */
+    int field;            /* index into the measured components, or -1 */
+    int recon;            /* index into recon[], or -1 */
+} scene_quantity;
+
+/* The quantities of a scene, in a fixed order: pl, the field components, the reconstructions. */
+int scene_quantities(const struct svp_scene *s, scene_quantity *q);
+/* Version names: "true", "apparent", "corrected_<name>" per correction. Returns the count. */
+int scene_versions(const struct svp_scene *s, char names[][48]);
+
+/* ---- shared helpers ---------------------------------------------------------------------- */
+
+/* Canvas pixel centre in µm from the view centre. */
+static inline double scene_x_um(const struct svp_scene *s, double i)
+{
+    return (i - 0.5 * (s->canvas_w - 1)) * s->pixel_um;
+}
+static inline double scene_y_um(const struct svp_scene *s, double j)
+{
+    return (j - 0.5 * (s->canvas_h - 1)) * s->pixel_um;
+}
+/* µm → canvas pixel coordinate. */
+static inline double scene_i_px(const struct svp_scene *s, double x_um)
+{
+    return x_um / s->pixel_um + 0.5 * (s->canvas_w - 1);
+}
+static inline double scene_j_px(const struct svp_scene *s, double y_um)
+{
+    return y_um / s->pixel_um + 0.5 * (s->canvas_h - 1);
+}
+
+/* Names of field components ("x", "y", "z", "nv"). */
+const char *scene_component_name(int comp);
+
+/* Compiles the plan of a parsed scene (scene.c). */
+svp_status scene_compile_plan(struct svp_scene *s);
+
+/* ---- the result of a run ------------------------------------------------------------------ */
+struct svp_scene_result {
+    int n_stages;
+    double *seconds; /* per plan stage */
+    int n_maps, cap_maps;
+    char **map_names;
+    svp_image **maps;
+    int n_values, cap_values;
+    char **keys;
+    double *values;
+};
+
+/* Takes ownership of img (replacing a map of the same name). */
+svp_status scene_result_put(struct svp_scene_result *r, const char *name, svp_image *img);
+/* A new zero map registered under name; NULL (and a message) on failure. */
+svp_image *scene_result_new_map(struct svp_scene_result *r, const char *name, int w, int h);
+svp_image *scene_result_get(const struct svp_scene_result *r, const char *name);
+svp_status scene_result_set(struct svp_scene_result *r, const char *key, double value);
+
+/* ---- metrics (metrics.c) and figures (report.c) ------------------------------------------- */
+typedef struct scene_hist {
+    int q, m;      /* quantity and mask */
+    double lo, hi; /* bin range, percent */
+    int bins;
+    double *fraction; /* (n_versions − 1) × bins: fraction of the mask's used pixels */
+    int n_used;
+} scene_hist;
+
+typedef struct scene_cutdata {
+    int n;
+    double *s_um, *x_um, *y_um;
+    double *values; /* [q][v][n], display units */
+} scene_cutdata;
+
+typedef struct scene_analysis {
+    int nq, nv;
+    scene_quantity q[SCENE_MAX_QUANTITIES];
+    char versions[SCENE_MAX_VERSIONS][48];
+    scene_hist *hists; /* nq × n_masks, index q * n_masks + m */
+    int n_hists;
+    scene_cutdata cuts[SCENE_MAX_CUTS];
+    double err_range_pct[SCENE_MAX_QUANTITIES]; /* colour range of the error maps */
+    double map_lo[SCENE_MAX_QUANTITIES], map_hi[SCENE_MAX_QUANTITIES]; /* display units */
+    char *metrics_csv, *hist_csv, *cut_csv[SCENE_MAX_CUTS];
+} scene_analysis;
+
+/* Masks ("mask_<name>", view-sized) from the run's maps: "canvas_cover_flakes",
+ * "canvas_cover_strips" (coverage), "pl_true". Idempotent. */
+svp_status scene_make_masks(const struct svp_scene *s, struct svp_scene_result *r);
+/* Relative-error maps, statistics, histograms, line cuts, CSV texts; values into r. */
+svp_status scene_analyse(const struct svp_scene *s, struct svp_scene_result *r, scene_analysis *a);
+void scene_analysis_free(scene_analysis *a);
+/* Every figure of the plan into out_dir/figures/. */
+svp_status scene_figures(const struct svp_scene *s, const struct svp_scene_result *r,
+                         const scene_analysis *a, const char *out_dir, int overwrite,
+                         svp_progress_fn progress, void *progress_user);
+/* One map as a PNG figure: the colour map over [lo, hi] (display units = value × display_scale;
+ * diverging: blue–white–red, else viridis), a colour bar with ticks and `bar_label`, a scale bar
+ * (pixel_um per pixel) and a title. Atomic write. */
+svp_status scene_map_figure(const char *path, const svp_image *img, double display_scale, double lo,
+                            double hi, int diverging, const char *title, const char *bar_label,
+                            double pixel_um, int overwrite);
+/* Defined in src/io/image_io.cpp (the only C++ file): the colour maps of
+ * svp_io_write_colormap_png as RGB bytes, values[n] over [lo, hi], NaN/Inf grey. */
+svp_status svp_io_colormap_rgb(const double *values, size_t n, double lo, double hi, int diverging,
+                               unsigned char *rgb);
+/* Releases cairo's process-wide font caches: call at exit from tools and tests (after every
+ * figure is written), never while another thread draws. */
+void scene_figures_cleanup(void);
+/* report.md text (malloc'd). */
+svp_status scene_report_text(const struct svp_scene *s, const struct svp_scene_result *r,
+                             const scene_analysis *a, char **text);
+
+/* Deterministic standard normal number for (seed, stream, index): counter-based, so the noise
+ * is the same for every thread count and order of evaluation. */
+double scene_gauss(uint64_t seed, uint64_t stream, uint64_t index);
+
+#endif

@@ -1,0 +1,304 @@
+#!/bin/bash
+# End-to-end tests of the svpsf program: runs the real binary in a temporary folder on inputs
+# it writes itself (printf/awk text matrices, or files made by svpsf), compares numbers with
+# awk (no Python), and checks every bad input exits exactly 1 with a message that names the
+# file and the fault.
+#   usage: cli_test.sh /path/to/svpsf
+# Prints one line per check and a final "N passed, M failed"; exits nonzero on any failure.
+set -u
+
+SVPSF=${1:?usage: cli_test.sh /path/to/svpsf}
+case $SVPSF in /*) ;; *) SVPSF=$PWD/$SVPSF ;; esac
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/svpsf-cli.XXXXXX")
+trap 'rm -rf "$WORK"' EXIT
+cd "$WORK" || exit 1
+# One thread: the test machine is shared, and the results must not depend on it anyway.
+export OMP_NUM_THREADS=1
+FAST="--fft estimate"
+
+n_pass=0
+n_fail=0
+pass() { n_pass=$((n_pass + 1)); echo "ok    $1"; }
+fail() { n_fail=$((n_fail + 1)); echo "FAIL  $1: $2"; }
+
+# run NAME CMD...: runs svpsf with CMD, keeping stdout/stderr in out.NAME / err.NAME
+run() {
+    local name=$1
+    shift
+    "$SVPSF" "$@" >"out.$name" 2>"err.$name"
+    echo $? >"rc.$name"
+}
+
+# expect_ok NAME CMD...: exit 0
+expect_ok() {
+    local name=$1
+    shift
+    run "$name" "$@"
+    local rc
+    rc=$(cat "rc.$name")
+    if [ "$rc" = 0 ]; then pass "$name"; else fail "$name" "exit $rc: $(head -c 400 "err.$name")"; fi
+}
+
+# expect_bad NAME "TEXT1|TEXT2|..." CMD...: exit exactly 1, one message line on stderr starting
+# with "svpsf", containing every TEXT (fixed strings)
+expect_bad() {
+    local name=$1 texts=$2
+    shift 2
+    run "$name" "$@"
+    local rc msg
+    rc=$(cat "rc.$name")
+    msg=$(cat "err.$name")
+    if [ "$rc" != 1 ]; then
+        fail "$name" "exit $rc (expected 1): $msg"
+        return
+    fi
+    case $msg in svpsf*) ;; *) fail "$name" "message does not start with 'svpsf': $msg"; return ;; esac
+    local IFS='|'
+    for t in $texts; do
+        if ! grep -qiF -- "$t" "err.$name"; then
+            fail "$name" "message lacks '$t': $msg"
+            return
+        fi
+    done
+    pass "$name ($msg)"
+}
+
+# maxdiff A B: "max|A-B| max|A|" over two numpy.savetxt matrices of the same shape
+maxdiff() {
+    awk 'NR == FNR { for (i = 1; i <= NF; i++) a[FNR, i] = $i; rows = FNR; cols = NF; next }
+         { if (NF != cols) bad = 1
+           for (i = 1; i <= NF; i++) {
+               d = $i - a[FNR, i]; if (d < 0) d = -d; if (d > m) m = d
+               v = a[FNR, i]; if (v < 0) v = -v; if (v > peak) peak = v } }
+         END { if (bad || FNR != rows) print "shape-mismatch 1"; else printf "%.6g %.6g\n", m, peak }' "$1" "$2"
+}
+
+# check_close NAME A B REL: max|A-B| <= REL * max|A|
+check_close() {
+    local name=$1 a=$2 b=$3 rel=$4 r
+    if [ ! -f "$a" ] || [ ! -f "$b" ]; then fail "$name" "missing $a or $b"; return; fi
+    r=$(maxdiff "$a" "$b")
+    if awk -v r="$r" -v rel="$rel" 'BEGIN { split(r, x, " "); exit !(x[1] != "shape-mismatch" && x[1] <= rel * x[2]) }'; then
+        pass "$name (max error $(echo "$r" | cut -d' ' -f1) of peak $(echo "$r" | cut -d' ' -f2), bound $rel x peak)"
+    else
+        fail "$name" "max error / peak = $r exceeds $rel"
+    fi
+}
+
+# ---- inputs written by awk/printf -------------------------------------------------------------
+# 32 x 32: a signed field (two Gaussian bumps) and a smooth PL that never reaches 0
+awk 'BEGIN { n = 32; for (y = 0; y < n; y++) { l = ""; for (x = 0; x < n; x++) {
+    v = 10 * exp(-((x - 12) ^ 2 + (y - 14) ^ 2) / 50) - 6 * exp(-((x - 22) ^ 2 + (y - 18) ^ 2) / 30)
+    l = l (x ? " " : "") sprintf("%.17g", v) }; print l } }' >Bz.txt
+awk 'BEGIN { n = 32; for (y = 0; y < n; y++) { l = ""; for (x = 0; x < n; x++) {
+    v = 3 * sin(x / 5) * cos(y / 7)
+    l = l (x ? " " : "") sprintf("%.17g", v) }; print l } }' >Bx.txt
+awk 'BEGIN { n = 32; for (y = 0; y < n; y++) { l = ""; for (x = 0; x < n; x++) {
+    v = 0.3 + 0.7 * exp(-((x - 15.5) ^ 2 + (y - 15.5) ^ 2) / 300)
+    l = l (x ? " " : "") sprintf("%.17g", v) }; print l } }' >pl.txt
+awk 'BEGIN { for (y = 0; y < 33; y++) { l = ""; for (x = 0; x < 32; x++) l = l (x ? " " : "") 1; print l } }' >pl33.txt
+printf '0 0 0\n0 1 0\n0 0 0\n' >delta.txt
+printf 'pixel_um: 0.5\npsf: {model: moffat, fwhm_um: 1.0, beta: 2.5}\n' >moffat.yaml
+printf 'pixel_um: 0.5\npsf: {model: moffat, fwhm_um: 1.0, beta: 2.5}\nboundary: periodic\n' >moffat_periodic.yaml
+printf 'pixel_um: 1\npsf: {model: gaussian, fwhm_um: -2}\n' >neg_fwhm.yaml
+printf 'pixel_um: 1\npsf: {model: gaussian, fwhm_um: 0}\n' >zero_fwhm.yaml
+printf 'pixel_um: 1\npsf: {model: moffat, fwhm_um: 2, beta: 0}\n' >beta0.yaml
+printf 'pixel_um: 1\npsf: {model: moffat, fwhm_um: 2, beta: -1.5}\n' >beta_neg.yaml
+printf 'pixel_um: 1\npsf:\n  model: gaussian\n  fwhm_um: 2\n  fwhm_umm: 3\n' >typo.yaml
+
+# ---- --version, --help ------------------------------------------------------------------------
+run version --version
+if [ "$(cat rc.version)" = 0 ] && grep -qE '^svpsf [0-9]+\.[0-9]+' out.version &&
+    grep -qE '^FFTW .*[0-9]' out.version && grep -qE '^OpenCV [0-9]' out.version &&
+    grep -qE '^libfyaml [0-9]' out.version; then
+    pass "--version prints svpsf, FFTW, OpenCV, libfyaml: $(tr '\n' ';' <out.version)"
+else
+    fail "--version" "$(cat out.version err.version)"
+fi
+run help --help
+if [ "$(cat rc.help)" = 0 ] && grep -q forward out.help && grep -q correct out.help &&
+    grep -q deconvolve out.help && grep -q demo out.help; then
+    pass "--help lists the commands"
+else
+    fail "--help" "$(cat out.help err.help)"
+fi
+# every command's help exits 0 and describes every option it accepts, with defaults
+check_help() {
+    local cmd=$1
+    shift
+    run "help_$cmd" "$cmd" --help
+    if [ "$(cat "rc.help_$cmd")" != 0 ]; then fail "$cmd --help" "exit $(cat "rc.help_$cmd")"; return; fi
+    for opt in "$@"; do
+        if ! grep -qF -- "$opt" "out.help_$cmd"; then fail "$cmd --help" "does not describe $opt"; return; fi
+    done
+    if ! grep -q default "out.help_$cmd"; then fail "$cmd --help" "states no defaults"; return; fi
+    pass "$cmd --help (exit 0, describes $*)"
+}
+check_help forward --field --pl --psf --output --boundary --format --force --threads --fft --wisdom --quiet
+check_help correct --field --pl --psf --output --method --iterations --balance --pl-floor --shift --boundary --format --force --threads --quiet
+check_help deconvolve --psf --output --method --balance --iterations --boundary --compat --format --force --quiet
+check_help psf --output --size --force --quiet
+check_help demo --output --format --force --threads --quiet
+run help_word help correct
+if [ "$(cat rc.help_word)" = 0 ] && cmp -s out.help_word out.help_correct; then
+    pass "svpsf help correct = svpsf correct --help"
+else
+    fail "svpsf help correct" "differs from correct --help"
+fi
+
+# ---- demo -------------------------------------------------------------------------------------
+expect_ok demo demo -o demo
+missing=""
+for f in field_true pl_true field_apparent pl_apparent field_corrected pl_corrected validity; do
+    [ -s "demo/$f.tif" ] || missing="$missing $f.tif"
+done
+for f in psf.yaml summary.json field_corrected.png; do [ -s "demo/$f" ] || missing="$missing $f"; done
+if [ -z "$missing" ]; then pass "demo writes its maps, psf.yaml, figures, summary.json"; else fail "demo files" "missing:$missing"; fi
+# the corrected error in the lit regions is smaller than the apparent one
+errs=$(awk '/apparent  \(T\)/ { a = $4 } /corrected \(T\^-1\)/ { c = $4 } END { print a, c }' out.demo)
+if awk -v e="$errs" 'BEGIN { split(e, x, " "); exit !(x[1] > 0 && x[2] > 0 && x[2] < x[1]) }'; then
+    pass "demo: max error in lit regions apparent $(echo "$errs" | cut -d' ' -f1) uT > corrected $(echo "$errs" | cut -d' ' -f2) uT"
+else
+    fail "demo errors" "apparent/corrected = '$errs': $(cat out.demo)"
+fi
+sum_before=$(cat demo/*.tif demo/summary.json | cksum)
+expect_bad demo_exists "demo/|exists|--force" demo -o demo
+if [ "$(cat demo/*.tif demo/summary.json | cksum)" = "$sum_before" ]; then
+    pass "demo without --force leaves the old outputs unchanged"
+else
+    fail "demo without --force" "old outputs changed"
+fi
+# the demo's PSF file is a valid PSF file
+expect_ok psf_demo psf demo/psf.yaml -o demo_kernel.tif
+if grep -q "1 um = 10 px" out.psf_demo && grep -qi lorentzian out.psf_demo &&
+    grep -q "50 %" out.psf_demo && grep -q "95 %" out.psf_demo; then
+    pass "psf prints the demo PSF's FWHM (1 um = 10 px), model and encircled-energy radii"
+else
+    fail "psf output" "$(cat out.psf_demo)"
+fi
+
+# ---- forward: identity for a delta kernel -----------------------------------------------------
+expect_ok fwd_delta forward --field Bz.txt --pl pl.txt --psf delta.txt -o fwd_delta --format txt $FAST
+check_close "delta PSF: apparent field = true field" Bz.txt fwd_delta/field.txt 1e-12
+check_close "delta PSF: apparent PL = true PL" pl.txt fwd_delta/pl.txt 1e-12
+
+# ---- forward then correct reproduce the inputs ------------------------------------------------
+expect_ok fwd_periodic forward --field Bz.txt --pl pl.txt --psf moffat_periodic.yaml -o fwd_p --format npy $FAST
+expect_ok corr_w correct --field fwd_p/field.npy --pl fwd_p/pl.npy --psf moffat_periodic.yaml \
+    --method w --balance 1e-10 -o corr_w --format txt $FAST
+check_close "T^-1(T(B)), W balance 1e-10, periodic: field" Bz.txt corr_w/field.txt 1e-4
+check_close "T^-1(T(B)), W balance 1e-10, periodic: PL" pl.txt corr_w/pl.txt 1e-4
+expect_ok fwd_mirror forward --field Bz.txt --pl pl.txt --psf moffat.yaml --boundary mirror -o fwd_m --format npy $FAST
+expect_ok corr_rw correct --field fwd_m/field.npy --pl fwd_m/pl.npy --psf moffat.yaml --boundary mirror \
+    --method rw --iterations 500 --balance 1e-8 -o corr_rw --format txt $FAST
+check_close "T^-1(T(B)), R&W 500 iterations, mirror: field" Bz.txt corr_rw/field.txt 1e-3
+expect_ok fwd_zero forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_z --format tif $FAST
+expect_ok corr_r correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
+    --method rl-signed --iterations 500 -o corr_r --format txt $FAST
+# float32 TIFF inputs: 1e-7 relative rounding before the deconvolution
+check_close "T^-1(T(B)), signed RL 500 iterations, zero boundary, float32 TIFF: field" Bz.txt corr_r/field.txt 5e-3
+if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then
+    pass "correct prints its result paragraph (missing, flagged, time)"
+else
+    fail "correct paragraph" "$(cat out.corr_r)"
+fi
+
+# ---- several field components share the PL -----------------------------------------------------
+expect_ok fwd_two forward --field Bz.txt --field Bx.txt --pl pl.txt --psf moffat_periodic.yaml -o fwd_two --format txt $FAST
+expect_ok fwd_x forward --field Bx.txt --pl pl.txt --psf moffat_periodic.yaml -o fwd_x --format txt $FAST
+expect_ok fwd_zp forward --field Bz.txt --pl pl.txt --psf moffat_periodic.yaml -o fwd_zp --format txt $FAST
+if [ -f fwd_two/field_Bz.txt ] && [ -f fwd_two/field_Bx.txt ] && [ ! -e fwd_two/field.txt ]; then
+    pass "two --field inputs give field_Bz and field_Bx"
+else
+    fail "two fields" "$(ls fwd_two)"
+fi
+check_close "field_Bx of a two-field run = the one-field run" fwd_x/field.txt fwd_two/field_Bx.txt 1e-12
+check_close "field_Bz of a two-field run = the one-field run" fwd_zp/field.txt fwd_two/field_Bz.txt 1e-12
+expect_bad same_stem "Bz.txt|same name" forward --field Bz.txt --field ./Bz.txt --pl pl.txt --psf moffat.yaml -o same_stem $FAST
+
+# ---- a kernel image made by `svpsf psf` acts as the YAML model ---------------------------------
+# 32 x 32 with the whole field of view as support: the model's kernel is 63 x 63
+expect_ok psf_k63 psf moffat.yaml --size 63 -o k63.txt
+expect_ok fwd_kernel forward --field Bz.txt --pl pl.txt --psf k63.txt -o fwd_k --format txt $FAST
+expect_ok fwd_model forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_model --format txt $FAST
+check_close "kernel image from svpsf psf = YAML model (forward field)" fwd_model/field.txt fwd_k/field.txt 1e-10
+
+# ---- 1 and 2 threads agree ----------------------------------------------------------------------
+expect_ok fwd_t2 forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_t2 --format txt --threads 2 $FAST
+check_close "forward with 2 threads = 1 thread" fwd_model/field.txt fwd_t2/field.txt 1e-12
+
+# ---- deconvolve -------------------------------------------------------------------------------
+expect_ok dec_w deconvolve fwd_p/pl.npy --psf moffat_periodic.yaml -o dec/pl_w.txt --method wiener --balance 1e-10 $FAST
+check_close "deconvolve wiener recovers the PL" pl.txt dec/pl_w.txt 1e-4
+[ -s dec/pl_w.summary.json ] && pass "deconvolve writes OUT_STEM.summary.json" || fail "deconvolve summary" "$(ls dec)"
+expect_ok dec_rl deconvolve fwd_m/pl.npy --psf moffat.yaml --boundary mirror -o dec/pl_rl.txt --method rl --iterations 300 $FAST
+check_close "deconvolve rl (300 iterations, mirror) recovers the PL" pl.txt dec/pl_rl.txt 1e-2
+expect_ok psf_k19 psf moffat.yaml -o k19.txt
+expect_ok dec_sk deconvolve fwd_zp/field.txt --psf k19.txt -o dec/sk.txt --method wiener --compat skimage --balance 0.1
+if awk '{ for (i = 1; i <= NF; i++) if ($i < -1 || $i > 1) bad = 1 } END { exit bad }' dec/sk.txt; then
+    pass "deconvolve --compat skimage clips to [-1, 1] as scikit-image does"
+else
+    fail "skimage clip" "values outside [-1, 1]"
+fi
+expect_bad dec_sk_large "k63.txt|larger" deconvolve fwd_zp/field.txt --psf k63.txt -o dec/sk2.txt --method rl --compat skimage
+expect_bad dec_no_method "--method" deconvolve fwd_p/pl.npy --psf moffat.yaml -o dec/x.txt
+
+# ---- missing data ------------------------------------------------------------------------------
+awk 'NR == 10 { $7 = "nan"; $8 = "nan" } { print }' fwd_z/../fwd_zp/field.txt >field_nan.txt
+expect_ok corr_nan correct --field field_nan.txt --pl fwd_zp/pl.txt --psf moffat_periodic.yaml -o corr_nan --format txt $FAST
+if grep -q '"n_missing": 2' corr_nan/summary.json && ! grep -qiE 'nan|inf' corr_nan/field.txt corr_nan/validity.txt corr_nan/pl.txt; then
+    pass "NaN input pixels: n_missing = 2 in summary.json, no NaN/Inf in the outputs"
+else
+    fail "missing data" "$(grep n_missing corr_nan/summary.json) $(grep -ciE 'nan|inf' corr_nan/field.txt)"
+fi
+
+# ---- summary.json -----------------------------------------------------------------------------
+s=corr_w/summary.json
+ok=1
+for key in '"command": "correct"' '"command_line"' '"inputs"' '"width": 32' '"bytes"' '"settings"' \
+    '"method": "w"' '"versions"' '"fftw"' '"opencv"' '"libfyaml"' '"timings_s"' '"transform"' \
+    '"total"' '"peak_memory_bytes"' '"n_missing"' '"flagged_fraction"'; do
+    grep -qF -- "$key" "$s" || { ok=0; fail "summary.json" "lacks $key"; break; }
+done
+[ $ok = 1 ] && pass "summary.json has command line, inputs with sizes, settings, versions, timings, peak memory, n_missing"
+
+# ---- wisdom -----------------------------------------------------------------------------------
+expect_ok wisdom forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis --wisdom wisdom.dat --fft measure
+[ -s wisdom.dat ] && pass "--wisdom saves FFTW wisdom" || fail "--wisdom" "wisdom.dat not written"
+expect_ok wisdom2 forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis2 --wisdom wisdom.dat --fft measure
+
+# ---- bad input: exit 1, the message names the file and the fault --------------------------------
+expect_bad missing_file "nope.npy|no such file" forward --field nope.npy --pl pl.txt --psf moffat.yaml -o bad $FAST
+head -c 1000 fwd_p/field.npy >trunc.npy
+expect_bad truncated_npy "trunc.npy|truncated" correct --field trunc.npy --pl fwd_p/pl.npy --psf moffat.yaml -o bad $FAST
+head -c 2000 demo/pl_true.tif >trunc.tif
+expect_bad truncated_tiff "trunc.tif|TIFF" correct --field fwd_z/field.tif --pl trunc.tif --psf moffat.yaml -o bad $FAST
+expect_bad size_mismatch "size mismatch|Bz.txt|pl33.txt|32 x 33" forward --field Bz.txt --pl pl33.txt --psf moffat.yaml -o bad $FAST
+expect_bad negative_fwhm "neg_fwhm.yaml|fwhm|-2" forward --field Bz.txt --pl pl.txt --psf neg_fwhm.yaml -o bad $FAST
+expect_bad zero_fwhm "zero_fwhm.yaml|fwhm" forward --field Bz.txt --pl pl.txt --psf zero_fwhm.yaml -o bad $FAST
+expect_bad beta_zero "beta0.yaml|beta" correct --field Bz.txt --pl pl.txt --psf beta0.yaml -o bad $FAST
+expect_bad beta_negative "beta_neg.yaml|beta" psf beta_neg.yaml -o bad.tif
+expect_bad unknown_yaml_key "typo.yaml:5:3|fwhm_umm" forward --field Bz.txt --pl pl.txt --psf typo.yaml -o bad $FAST
+[ -e bad ] && fail "bad inputs" "the output folder 'bad' was created" || pass "no output folder after bad inputs"
+mkdir -p exists
+echo "old validity" >exists/validity.txt
+expect_bad output_exists "exists/validity.txt|exists|--force" forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o exists --format txt $FAST
+if [ "$(cat exists/validity.txt)" = "old validity" ] && [ ! -e exists/pl.txt ] && [ ! -e exists/field.txt ]; then
+    pass "output exists: the old file is unchanged and no other output was written"
+else
+    fail "output exists" "$(ls exists)"
+fi
+expect_ok output_force forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o exists --format txt --force $FAST
+[ "$(cat exists/validity.txt)" != "old validity" ] && pass "--force overwrites" || fail "--force" "not overwritten"
+expect_bad unknown_option "--bogus|unknown option" forward --bogus
+expect_bad unknown_command "frobnicate|unknown command" frobnicate
+expect_bad bad_number "--balance|abc" correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o bad --balance abc
+expect_bad bad_method "--method|foo" correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o bad --method foo
+expect_bad missing_value "--pl|needs a value" forward --field Bz.txt --pl
+expect_bad missing_required "--psf|required" forward --field Bz.txt --pl pl.txt -o bad
+expect_bad even_size "--size|odd" psf moffat.yaml -o k.tif --size 4
+run no_args
+[ "$(cat rc.no_args)" = 1 ] && grep -q usage err.no_args && pass "no command: usage on stderr, exit 1" || fail "no command" "exit $(cat rc.no_args)"
+
+echo "$n_pass passed, $n_fail failed"
+[ "$n_fail" = 0 ]

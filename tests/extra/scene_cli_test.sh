@@ -1,0 +1,106 @@
+#!/bin/sh
+# svpsf simulate / svpsf reconstruct from the command line: bad scene files exit 1 with
+# FILE:LINE:COLUMN, --dry-run prints the plan and writes nothing, a small scene writes every
+# output it lists, refuses to overwrite without --force, and `reconstruct` runs on its maps.
+# usage: scene_cli_test.sh path/to/svpsf
+set -u
+SVPSF=$1
+T=$(mktemp -d "${TMPDIR:-/tmp}/svpsf_scene_cli.XXXXXX")
+trap 'rm -rf "$T"' EXIT
+fails=0
+fail() { echo "FAIL: $*"; fails=$((fails + 1)); }
+
+# expect_bad NAME LINE:COL SUBSTRING: the scene $T/NAME.yaml must give exit 1 and a message
+# starting with its path and LINE:COL and containing SUBSTRING.
+expect_bad() {
+    out=$("$SVPSF" simulate "$T/$1.yaml" -o "$T/out_$1" 2>&1)
+    rc=$?
+    [ $rc -eq 1 ] || fail "$1: exit $rc, expected 1 ($out)"
+    case $out in
+    *"$T/$1.yaml:$2: "*"$3"*) echo "ok: $1: $out" ;;
+    *) fail "$1: message '$out' lacks '$T/$1.yaml:$2: ... $3'" ;;
+    esac
+    [ ! -e "$T/out_$1" ] || fail "$1: an output folder was created"
+}
+
+head='grid: {pixel_um: 0.1, size_um: [4.8, 4.8]}
+sources:
+  - flake: {shape: rectangle, size_um: [2.4, 2.4], magnetisation_A_per_m: 1.0e6,
+            thickness_nm: 1, standoff_nm: 100}'
+
+printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\nemision: []\n' "$head" >"$T/unknown_key.yaml"
+expect_bad unknown_key 6:1 "unknown key 'emision'"
+
+printf '%s\npsf: {model: gaussian, fwhm_nm: 300}\n' "$head" >"$T/wrong_unit.yaml"
+expect_bad wrong_unit 5:24 "wrong or missing unit"
+
+printf '%s\npsf: {model: gaussian, fwhm_um: [0.3]}\n' "$head" >"$T/wrong_type.yaml"
+expect_bad wrong_type 5:33 "must be a number, got a list"
+
+printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\ncorrect: {method: rw, iterations: 0}\n' \
+    "$head" >"$T/impossible.yaml"
+expect_bad impossible 6:35 "iterations must be"
+
+printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\nemission: [{image: {path: missing.npy}}]\n' \
+    "$head" >"$T/missing_file.yaml"
+expect_bad missing_file 6:27 "missing.npy: no such file"
+
+printf '%s\npsf: {file: no_psf.yaml}\n' "$head" >"$T/missing_psf.yaml"
+expect_bad missing_psf 5:13 "no_psf.yaml"
+
+# a good scene
+printf '%s
+emission: [{gaussian: {fwhm_um: 4}}, {chessboard: {square_um: 0.6, levels: [0.2, 1], seed: 3}}]
+psf: {model: lorentzian, fwhm_um: 0.4}
+correct: {method: rw, iterations: 5, balance: 0.01}
+reconstruct: magnetisation
+' "$head" >"$T/good.yaml"
+
+out=$("$SVPSF" simulate "$T/good.yaml" --dry-run -o "$T/dry" 2>&1) || fail "dry run: exit $? ($out)"
+case $out in
+*"forward"*"closed form"*"correct"*"reconstruct"*"nothing was computed or written"*) ;;
+*) fail "dry run output: $out" ;;
+esac
+if printf '%s\n' "$out" | grep -Eq '^ *[0-9]+\. +(cube|noise|estimate) '; then
+    fail "dry run plan has a cube or noise stage: $out"
+fi
+[ ! -e "$T/dry" ] || fail "dry run created $T/dry"
+
+out=$("$SVPSF" simulate "$T/good.yaml" -o "$T/run" --quiet 2>&1) || fail "run: exit $? ($out)"
+case $out in *"$T/run/report.md"*) ;; *) fail "run does not say where the report is: $out" ;; esac
+n_listed=$("$SVPSF" simulate "$T/good.yaml" --dry-run | sed -n '/^outputs/,/^dry run/p' | grep -c '^  ')
+n_written=$(cd "$T/run" && find . -type f | wc -l)
+[ "$n_listed" -eq "$n_written" ] || fail "$n_written files written, $n_listed listed"
+for f in report.md summary.json maps/m_z_corrected_rw.tif figures/B_z_apparent.png \
+    figures/hist_m_z_view.png figures/cut_horizontal_m_z.png tables/metrics.csv; do
+    [ -s "$T/run/$f" ] || fail "missing output $f"
+done
+grep -q '"stage": "forward"' "$T/run/summary.json" || fail "summary.json has no plan"
+grep -q '"seconds"' "$T/run/summary.json" || fail "summary.json has no stage times"
+grep -q '"m_z/view/corrected_rw/median_abs_rel_err_pct"' "$T/run/summary.json" ||
+    fail "summary.json has no metrics"
+head -c 8 "$T/run/figures/B_z_true.png" | od -An -c | grep -q 'P   N   G' || fail "not a PNG"
+
+# no overwrite without --force, nothing touched
+out=$("$SVPSF" simulate "$T/good.yaml" -o "$T/run" 2>&1)
+rc=$?
+[ $rc -eq 1 ] || fail "second run: exit $rc, expected 1"
+case $out in *"exists (use --force"*) ;; *) fail "second run message: $out" ;; esac
+"$SVPSF" simulate "$T/good.yaml" -o "$T/run" --force --quiet >/dev/null 2>&1 ||
+    fail "--force run failed"
+
+# reconstruct on the scene's own true map: the same m_z as the scene's
+out=$("$SVPSF" reconstruct --quantity magnetisation --bz "$T/run/maps/B_z_true.tif" \
+    --pixel-um 0.1 --standoff-nm 100 -o "$T/rec" 2>&1) || fail "reconstruct: exit $? ($out)"
+for f in m_z.tif m_z.png summary.json; do
+    [ -s "$T/rec/$f" ] || fail "reconstruct: missing $f"
+done
+out=$("$SVPSF" reconstruct --quantity current_from_bxy --bz "$T/run/maps/B_z_true.tif" \
+    --pixel-um 0.1 --standoff-nm 100 -o "$T/rec2" 2>&1)
+[ $? -eq 1 ] || fail "reconstruct with the wrong map: exit 1 expected ($out)"
+
+if [ $fails -ne 0 ]; then
+    echo "$fails failure(s)"
+    exit 1
+fi
+echo "all scene CLI checks passed"
