@@ -236,6 +236,8 @@ static void test_end_to_end_matches_transforms(void **state)
     svp_scene_result *r = run_nowrite(s);
     const svp_image *pl = map(r, "pl_true"), *bz = map(r, "B_z_true");
     const int w = pl->width, h = pl->height;
+    /* a space-invariant PSF: one OTF, no variant operator */
+    assert_true(value(r, "operator/variant") == 0);
     assert_int_equal(w, 64);
     assert_int_equal(h, 64);
     /* every map finite except the relative-error maps (NaN marks "undefined") */

@@ -99,6 +99,24 @@ out=$("$SVPSF" reconstruct --quantity current_from_bxy --bz "$T/run/maps/B_z_tru
     --pixel-um 0.1 --standoff-nm 100 -o "$T/rec2" 2>&1)
 [ $? -eq 1 ] || fail "reconstruct with the wrong map: exit 1 expected ($out)"
 
+# every shipped scene of docs/scenes/ loads (keys, units, files) and compiles to its plan;
+# run-study.sh runs them in full
+SCENES=$(cd "$(dirname "$0")/../../docs/scenes" 2>/dev/null && pwd)
+n_scenes=0
+for f in "$SCENES"/*.yaml; do
+    [ -f "$f" ] || continue
+    n_scenes=$((n_scenes + 1))
+    out=$("$SVPSF" simulate "$f" --dry-run -o "$T/shipped" 2>&1) || fail "shipped scene $f: $out"
+    case $out in *"nothing was computed or written"*) ;; *) fail "shipped scene $f: $out" ;; esac
+done
+[ "$n_scenes" -ge 20 ] || fail "only $n_scenes shipped scenes found in '$SCENES'"
+# the flagship: closed form and one OTF, no cube, no noise
+out=$("$SVPSF" simulate "$SCENES/micromagnet-chessboard-lorentzian-1um.yaml" --dry-run -o "$T/f")
+case $out in *"invariant: one OTF"*"closed form, eq. (3)"*) ;; *) fail "flagship plan: $out" ;; esac
+if printf '%s\n' "$out" | grep -Eq '^ *[0-9]+\. +(cube|noise|estimate|drift) '; then
+    fail "flagship plan has a cube or noise stage"
+fi
+
 if [ $fails -ne 0 ]; then
     echo "$fails failure(s)"
     exit 1
