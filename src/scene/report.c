@@ -417,6 +417,25 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
     return finish_png(fig, cr, path, overwrite);
 }
 
+/* For tools (svpsf fit-psf): plot_write over plain arrays, series k in palette colour k. */
+svp_status scene_line_plot(const char *path, const char *title, const char *xlabel,
+                           const char *ylabel, int n_series, const double *const *x,
+                           const double *const *y, const int *n, const char *const *labels,
+                           int overwrite)
+{
+    plot_series ser[10];
+    if (n_series < 1 || n_series > 10) return svp_fail(SVP_ERR_INVALID, "%s: 1 to 10 series", path);
+    for (int k = 0; k < n_series; k++) {
+        memset(&ser[k], 0, sizeof ser[k]);
+        ser[k].x = x[k];
+        ser[k].y = y[k];
+        ser[k].n = n[k];
+        ser[k].label = labels[k];
+        memcpy(ser[k].rgb, palette[k], sizeof ser[k].rgb);
+    }
+    return plot_write(path, title, xlabel, ylabel, ser, n_series, overwrite);
+}
+
 /* ---- all figures of a scene ------------------------------------------------------------- */
 
 static void version_label(const char *v, char *buf, size_t size)

@@ -1,2 +1,8 @@
-/* (command under construction) */
+/* svpsf map-psf (under construction) */
 #include "cli.h"
+int cmd_map_psf(int argc, char **argv)
+{
+    (void)argc;
+    (void)argv;
+    return 2;
+}

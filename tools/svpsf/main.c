@@ -19,6 +19,12 @@ static const cli_command commands[] = {
      cmd_register},
     {"simulate", "run a scene file: simulate, correct, reconstruct, report", cmd_simulate},
     {"reconstruct", "magnetisation or current density from field maps", cmd_reconstruct},
+    {"fit-psf", "fit a Moffat PSF to a spot image, or derive it from an excitation/emission pair",
+     cmd_fit_psf},
+    {"map-psf", "map PSF parameters over the field (or per region) from many spot fits",
+     cmd_map_psf},
+    {"psf-compare", "compare two PSF maps: parameter differences, effect on a corrected field",
+     cmd_psf_compare},
 };
 
 static const int n_commands = (int)(sizeof commands / sizeof commands[0]);
