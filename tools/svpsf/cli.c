@@ -468,7 +468,11 @@ int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_bo
                  svp_blur **out)
 {
     svp_status st;
-    if (psf->is_model)
+    if (psf->field) {
+        st = svp_blur_new_field(psf->field, width, height, boundary, &psf->variant, out);
+        if (st == SVP_OK)
+            cli_setting_int(run, "psf_operator_bytes", (long long)svp_blur_memory(*out));
+    } else if (psf->is_model)
         st = svp_blur_new(&psf->model, width, height, boundary, out);
     else
         st = svp_blur_new_kernel(psf->kernel_raw, -1, -1, 1, width, height, boundary, out);
@@ -480,6 +484,97 @@ void cli_psf_release(cli_psf *psf)
 {
     svp_image_free(psf->kernel_raw);
     psf->kernel_raw = NULL;
+    svp_psf_field_free(psf->field);
+    psf->field = NULL;
+}
+
+void cli_variant_defaults(svp_variant_options *variant)
+{
+    svp_variant_defaults(variant);
+    variant->samples_x = variant->grid_x;
+    variant->samples_y = variant->grid_y;
+}
+
+int cli_variant_option(const cli_run *run, svp_variant_options *variant, int option,
+                       const char *arg)
+{
+    if (option == CLI_OPT_RANK) {
+        if (cli_parse_int(run, "--rank", arg, 1, 4096, &variant->rank)) return CLI_EXIT_USAGE;
+        variant->representation = SVP_VARIANT_LOWRANK;
+        return 0;
+    }
+    /* --nodes N or NxM */
+    int nx = 0, ny = 0, used = 0;
+    if (sscanf(arg, "%d%n", &nx, &used) == 1 && arg[used] == '\0')
+        ny = nx;
+    else if (!(sscanf(arg, "%dx%d%n", &nx, &ny, &used) == 2 && arg[used] == '\0'))
+        return cli_error(run, "--nodes: '%s' is not N or NxM (e.g. 8x8)", arg);
+    if (nx < 1 || ny < 1 || nx > 64 || ny > 64)
+        return cli_error(run, "--nodes %s: each side must be in 1..64", arg);
+    variant->grid_x = variant->samples_x = nx;
+    variant->grid_y = variant->samples_y = ny;
+    return 0;
+}
+
+void cli_print_variant_help(FILE *out)
+{
+    fputs("PSF maps (--psf a PSF-map YAML file of kind grid, poly or regions; docs/cli.md):\n"
+          "  --nodes NxM           tent node grid of the space-variant operator (default 8x8;\n"
+          "                        N alone = NxN; error falls as the node spacing squared)\n"
+          "  --rank R              use the low-rank (eigen-PSF) operator with R terms instead,\n"
+          "                        the PSF sampled on the --nodes grid (R <= N M)\n",
+          out);
+}
+
+int cli_psf_check(const cli_run *run, const cli_psf *psf, int width, int height)
+{
+    if (!psf->field) return 0;
+    const int fw = svp_psf_field_width(psf->field), fh = svp_psf_field_height(psf->field);
+    if (fw != 0 && (fw != width || fh != height))
+        return cli_error(run,
+                         "%s: the PSF map is for a %d x %d image but the inputs are %d x %d "
+                         "(width x height)",
+                         psf->path, fw, fh, width, height);
+    const svp_variant_options *v = &psf->variant;
+    if (v->representation == SVP_VARIANT_LOWRANK && v->rank > v->samples_x * v->samples_y)
+        return cli_error(run,
+                         "%s: low rank %d: must be in 1..%d (the number of sampled PSFs, %d x %d; "
+                         "see --nodes)",
+                         psf->path, v->rank, v->samples_x * v->samples_y, v->samples_x,
+                         v->samples_y);
+    return 0;
+}
+
+int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
+                     cli_psf *psf)
+{
+    if (!(has_extension(path, "yaml") || has_extension(path, "yml")))
+        return cli_psf_load(run, path, psf);
+    /* a plain PSF file first (it may name a boundary), then a PSF map */
+    svp_psf model;
+    svp_psf_defaults(&model);
+    double pixel_um = 0;
+    svp_boundary boundary = (svp_boundary)-1;
+    if (svp_psf_file_read(path, &model, &pixel_um, &boundary) == SVP_OK)
+        return cli_psf_load(run, path, psf);
+    memset(psf, 0, sizeof *psf);
+    psf->path = path;
+    psf->variant = *variant;
+    psf->boundary = SVP_BOUNDARY_ZERO;
+    svp_psf_field *field = NULL;
+    svp_status st = svp_psf_field_read(path, &field, &psf->pixel_um);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    cli_record_input(run, "psf", path, svp_psf_field_width(field), svp_psf_field_height(field));
+    if (svp_psf_field_get_kind(field) == SVP_FIELD_UNIFORM) {
+        /* one PSF everywhere: the invariant operator */
+        st = svp_psf_field_at(field, 0, 0, &psf->model);
+        svp_psf_field_free(field);
+        if (st != SVP_OK) return cli_fail(run, st, path);
+        psf->is_model = 1;
+        return 0;
+    }
+    psf->field = field;
+    return 0;
 }
 
 static const char *model_name(svp_psf_model m)
@@ -495,6 +590,30 @@ static const char *model_name(svp_psf_model m)
 void cli_psf_describe(cli_run *run, const cli_psf *psf)
 {
     cli_setting_str(run, "psf_file", psf->path);
+    if (psf->field) {
+        static const char *kinds[] = {"uniform", "grid", "poly", "regions"};
+        const svp_variant_options *v = &psf->variant;
+        const int lowrank = v->representation == SVP_VARIANT_LOWRANK;
+        char buf[64];
+        svp_psf centre;
+        cli_setting_str(run, "psf_kind", "map");
+        cli_setting_str(run, "psf_map_kind", kinds[svp_psf_field_get_kind(psf->field) & 3]);
+        cli_setting_num(run, "pixel_um", psf->pixel_um);
+        if (svp_psf_field_at(psf->field, 0.5 * (svp_psf_field_width(psf->field) - 1),
+                             0.5 * (svp_psf_field_height(psf->field) - 1), &centre) == SVP_OK) {
+            cli_setting_str(run, "psf_model", model_name(centre.model));
+            cli_setting_num(run, "psf_centre_fwhm_px", centre.fwhm);
+            if (centre.model == SVP_PSF_MOFFAT)
+                cli_setting_num(run, "psf_centre_beta", centre.beta);
+            cli_setting_num(run, "psf_support_px", centre.support);
+        }
+        cli_setting_str(run, "psf_representation", lowrank ? "low rank" : "tent");
+        snprintf(buf, sizeof buf, "%d x %d", lowrank ? v->samples_x : v->grid_x,
+                 lowrank ? v->samples_y : v->grid_y);
+        cli_setting_str(run, lowrank ? "psf_samples" : "psf_nodes", buf);
+        if (lowrank) cli_setting_int(run, "psf_rank", v->rank);
+        return;
+    }
     if (!psf->is_model) {
         char buf[64];
         snprintf(buf, sizeof buf, "%d x %d", psf->kernel_raw->width, psf->kernel_raw->height);

@@ -218,6 +218,9 @@ typedef struct cli_psf {
     svp_boundary boundary; /* that boundary */
     svp_image *kernel_raw; /* when !is_model: the kernel as read */
     double kernel_sum;     /* its sum */
+    svp_psf_field *field;  /* a non-uniform PSF map (cli_psf_load_map); is_model is 0 */
+    /* a PSF map's operator representation (cli_variant_option) */
+    svp_variant_options variant;
 } cli_psf;
 
 int cli_psf_load(cli_run *run, const char *path, cli_psf *psf);
@@ -227,6 +230,28 @@ int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_bo
 void cli_psf_release(cli_psf *psf);
 /* Records the PSF's description in the summary settings (model, FWHM, beta, ...). */
 void cli_psf_describe(cli_run *run, const cli_psf *psf);
+
+/* PSF maps (forward, correct): --psf may also be a PSF-map file (svp_psf_field_read; a map of
+ * kind uniform or a plain PSF file is the single-PSF case above). A command adds
+ * CLI_VARIANT_LONGOPTS to its option table, calls cli_variant_defaults once, passes
+ * CLI_OPT_NODES / CLI_OPT_RANK to cli_variant_option, loads with cli_psf_load_map and prints
+ * cli_print_variant_help in its --help. --nodes NxM: tent node grid (default 8x8; "N" = NxN);
+ * --rank R: low rank with R eigen-PSFs sampled on the --nodes grid instead. */
+enum { CLI_OPT_NODES = 1900, CLI_OPT_RANK };
+/* clang-format off */
+#define CLI_VARIANT_LONGOPTS \
+    {"nodes", required_argument, NULL, CLI_OPT_NODES}, {"rank", required_argument, NULL, CLI_OPT_RANK}
+/* clang-format on */
+void cli_variant_defaults(svp_variant_options *variant);
+/* 0, or CLI_EXIT_USAGE after a message naming the option. */
+int cli_variant_option(const cli_run *run, svp_variant_options *variant, int option,
+                       const char *arg);
+void cli_print_variant_help(FILE *out);
+int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
+                     cli_psf *psf);
+/* Before any output is written: a PSF map fits a width x height image and its options are
+ * valid (0, or CLI_EXIT_USAGE after a message naming the file). No-op for a single PSF. */
+int cli_psf_check(const cli_run *run, const cli_psf *psf, int width, int height);
 
 /* ---- outputs ----------------------------------------------------------------------------- */
 

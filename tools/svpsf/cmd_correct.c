@@ -51,8 +51,9 @@ static void print_help(const cli_run *run, FILE *out)
           "inputs (TIFF float32/16-bit, 16-bit PNG, .npy, .txt as numpy.savetxt writes them):\n"
           "  --field FILE          a measured field map (repeat for several components)\n"
           "  --pl FILE             the measured PL map (same size)\n"
-          "  --psf FILE            a YAML PSF file (docs/cli.md) or a kernel image (.npy, .tif,\n"
-          "                        .txt; normalised to unit sum, centre at the middle pixel)\n"
+          "  --psf FILE            a YAML PSF file or PSF-map file (docs/cli.md) or a kernel\n"
+          "                        image (.npy, .tif, .txt; normalised to unit sum, centre at\n"
+          "                        the middle pixel)\n"
           "options:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n",
           out);
@@ -72,6 +73,7 @@ static void print_help(const cli_run *run, FILE *out)
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
             d.deconv.iterations, d.deconv.balance, d.pl_floor);
+    cli_print_variant_help(out);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: pl.EXT (recovered PL), field.EXT (recovered field; field_<stem>.EXT\n"
@@ -89,6 +91,7 @@ int cmd_correct(int argc, char **argv)
         {"field", required_argument, NULL, OPT_FIELD},
         {"pl", required_argument, NULL, OPT_PL},
         {"psf", required_argument, NULL, OPT_PSF},
+        CLI_VARIANT_LONGOPTS,
         {"boundary", required_argument, NULL, OPT_BOUNDARY},
         {"method", required_argument, NULL, OPT_METHOD},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
@@ -103,6 +106,9 @@ int cmd_correct(int argc, char **argv)
     memset(&psf, 0, sizeof psf);
     const char *psf_path = NULL;
     svp_boundary boundary = SVP_BOUNDARY_ZERO;
+    svp_variant_options variant;
+    cli_variant_defaults(&variant);
+    int variant_given = 0;
     int boundary_given = 0, method = 0;
     svp_correct_options opt;
     svp_correct_defaults(&opt);
@@ -120,6 +126,11 @@ int cmd_correct(int argc, char **argv)
         case OPT_FIELD: bad = cli_maps_add_field(&run, &maps, optarg); break;
         case OPT_PL: maps.pl_path = optarg; break;
         case OPT_PSF: psf_path = optarg; break;
+        case CLI_OPT_NODES:
+        case CLI_OPT_RANK:
+            bad = cli_variant_option(&run, &variant, c, optarg);
+            variant_given = 1;
+            break;
         case OPT_BOUNDARY:
             bad = cli_parse_boundary(&run, "--boundary", optarg, &boundary);
             boundary_given = 1;
@@ -158,10 +169,14 @@ int cmd_correct(int argc, char **argv)
     if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
 
     cli_stage_begin(&run, "read");
-    if ((code = cli_psf_load(&run, psf_path, &psf))) goto cleanup;
+    if ((code = cli_psf_load_map(&run, psf_path, &variant, &psf))) goto cleanup;
+    if (variant_given && !psf.field)
+        cli_note(&run, "--nodes / --rank ignored: %s is a single PSF, not a space-variant map",
+                 psf_path);
     if ((code = cli_maps_read(&run, &maps))) goto cleanup;
     if (!boundary_given && psf.has_boundary) boundary = psf.boundary;
     if ((code = cli_maps_plan(&run, &maps))) goto cleanup;
+    if ((code = cli_psf_check(&run, &psf, maps.pl->width, maps.pl->height))) goto cleanup;
     if ((code = cli_outputs_check(&run))) goto cleanup;
 
     const int w = maps.pl->width, h = maps.pl->height;

@@ -19,13 +19,15 @@ static void print_help(const cli_run *run, FILE *out)
           "inputs (TIFF float32/16-bit, 16-bit PNG, .npy, .txt as numpy.savetxt writes them):\n"
           "  --field FILE          a true field map (any unit; repeat for several components)\n"
           "  --pl FILE             the true PL map (same size, >= 0)\n"
-          "  --psf FILE            a YAML PSF file (docs/cli.md) or a kernel image (.npy, .tif,\n"
-          "                        .txt; normalised to unit sum, centre at the middle pixel)\n"
+          "  --psf FILE            a YAML PSF file or PSF-map file (docs/cli.md) or a kernel\n"
+          "                        image (.npy, .tif, .txt; normalised to unit sum, centre at\n"
+          "                        the middle pixel)\n"
           "options:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n"
           "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
           "                        PSF file's boundary, else zero)\n",
           out);
+    cli_print_variant_help(out);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: pl.EXT (apparent PL), field.EXT (apparent field; field_<stem>.EXT\n"
@@ -42,6 +44,7 @@ int cmd_forward(int argc, char **argv)
         {"field", required_argument, NULL, OPT_FIELD},
         {"pl", required_argument, NULL, OPT_PL},
         {"psf", required_argument, NULL, OPT_PSF},
+        CLI_VARIANT_LONGOPTS,
         {"boundary", required_argument, NULL, OPT_BOUNDARY},
         {NULL, 0, NULL, 0},
     };
@@ -51,6 +54,9 @@ int cmd_forward(int argc, char **argv)
     memset(&psf, 0, sizeof psf);
     const char *psf_path = NULL;
     svp_boundary boundary = SVP_BOUNDARY_ZERO;
+    svp_variant_options variant;
+    cli_variant_defaults(&variant);
+    int variant_given = 0;
     int boundary_given = 0;
     svp_blur *blur = NULL;
     svp_image *pl_apparent = NULL, *validity = NULL;
@@ -68,6 +74,12 @@ int cmd_forward(int argc, char **argv)
             break;
         case OPT_PL: maps.pl_path = optarg; break;
         case OPT_PSF: psf_path = optarg; break;
+        case CLI_OPT_NODES:
+        case CLI_OPT_RANK:
+            if (cli_variant_option(&run, &variant, c, optarg))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            variant_given = 1;
+            break;
         case OPT_BOUNDARY:
             if (cli_parse_boundary(&run, "--boundary", optarg, &boundary))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
@@ -89,10 +101,14 @@ int cmd_forward(int argc, char **argv)
 
     /* Everything that can be wrong with the inputs or outputs is found before any work. */
     cli_stage_begin(&run, "read");
-    if ((code = cli_psf_load(&run, psf_path, &psf))) goto cleanup;
+    if ((code = cli_psf_load_map(&run, psf_path, &variant, &psf))) goto cleanup;
+    if (variant_given && !psf.field)
+        cli_note(&run, "--nodes / --rank ignored: %s is a single PSF, not a space-variant map",
+                 psf_path);
     if ((code = cli_maps_read(&run, &maps))) goto cleanup;
     if (!boundary_given && psf.has_boundary) boundary = psf.boundary;
     if ((code = cli_maps_plan(&run, &maps))) goto cleanup;
+    if ((code = cli_psf_check(&run, &psf, maps.pl->width, maps.pl->height))) goto cleanup;
     if ((code = cli_outputs_check(&run))) goto cleanup;
 
     const int w = maps.pl->width, h = maps.pl->height;
