@@ -9,7 +9,7 @@
  *                     (+2.4, -1.3) px
  *     field.npy       400 x 400 with 25 spots on a 5 x 5 grid: FWHM linear, beta quadratic in
  *                     the normalised position (truth below), round
- *     cut_KK.npy      the same 25 spots as 25 x 25 cut-outs, and spots.yaml listing them
+ *     cut_KK.npy      the same 25 spots as 29 x 29 cut-outs, and spots.yaml listing them
  *                     (origin of each cut-out in the field); field.yaml (the one image)
  *     labels.npy      400 x 400: 0 left half (oxide), 1 right half (metal)
  *     regions_same.npy / regions_diff.npy: 400 x 400, 36 spots, 18 per half, the same PSF in
@@ -178,13 +178,13 @@ static int make(const char *dir)
 
     /* the field: 25 spots, as one image and as cut-outs */
     {
-        enum { W = 400, CUT = 25 };
+        enum { W = 400, CUT = 29 };
         svp_image *field = NULL, *cut = NULL;
         svp_image_new(W, W, &field);
         svp_image_new(CUT, CUT, &cut);
         char *yaml = malloc(8192);
         int n = snprintf(yaml, 8192, "# 25 spot cut-outs of field.npy\npixel_um: 0.05\n"
-                                     "image: {width: 400, height: 400}\nspots:\n");
+                                     "field: {width: 400, height: 400}\nspots:\n");
         for (int k = 0; k < 25; k++) {
             double cx = 40 + 80 * (k % 5) + 10 * (rnd() - 0.5);
             double cy = 40 + 80 * (k / 5) + 10 * (rnd() - 0.5);
@@ -207,7 +207,7 @@ static int make(const char *dir)
         rc |= write_text(dir, "spots.yaml", yaml);
         rc |= write_text(dir, "field.yaml",
                          "# one image with 25 spots to detect\npixel_um: 0.05\nimage: field.npy\n"
-                         "window: 25\n");
+                         "window: 31\n");
         free(yaml);
         /* labels: oxide | metal */
         for (int y = 0; y < W; y++)
@@ -226,8 +226,8 @@ static int make(const char *dir)
             noisy(field, 100);
             rc |= save(dir, differ ? "regions_diff.npy" : "regions_same.npy", field);
             rc |= write_text(dir, differ ? "regions_diff.yaml" : "regions_same.yaml",
-                             differ ? "pixel_um: 0.05\nimage: regions_diff.npy\nwindow: 25\n"
-                                    : "pixel_um: 0.05\nimage: regions_same.npy\nwindow: 25\n");
+                             differ ? "pixel_um: 0.05\nimage: regions_diff.npy\nwindow: 31\n"
+                                    : "pixel_um: 0.05\nimage: regions_same.npy\nwindow: 31\n");
         }
         svp_image_free(field);
         svp_image_free(cut);

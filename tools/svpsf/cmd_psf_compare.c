@@ -1,8 +1,281 @@
-/* svpsf psf-compare (under construction) */
+/* svpsf psf-compare: compare two PSF maps (or PSF files): parameter differences over the
+ * field, and how much the corrected field of a reference scene changes between them. */
 #include "cli.h"
+
+#include "scene/scene_internal.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+enum { OPT_SIZE = CLI_OPTION_FIRST, OPT_SCENE_SIZE };
+
+static void print_help(const cli_run *run, FILE *out)
+{
+    fputs("usage: svpsf psf-compare A.yaml B.yaml [-o DIR] [--size WxH] [--scene-size N]\n"
+          "\n"
+          "Compares two PSF maps (PSF-map files or plain PSF files; e.g. the maps of two\n"
+          "samples from svpsf map-psf):\n"
+          "  1. parameter differences B - A at every pixel of the field: max and mean |dFWHM|\n"
+          "     (um and relative to A), |dbeta|, |de| (ellipticity);\n"
+          "  2. a reference scene: a built-in micromagnet-like field (a 1 mT out-of-plane flake\n"
+          "     with a -0.4 mT return rim, PL 0.3 on the flake, 1 elsewhere) of N x N pixels at\n"
+          "     the field's centre is blurred with map A (space-variant, eq. 3), then corrected\n"
+          "     (T^-1, R&W, 75 RL iterations) once with A and once with B: the relative rms and\n"
+          "     max difference of the two corrected fields, and each one's error to the truth.\n"
+          "\n"
+          "  A.yaml, B.yaml        the maps; they must share the pixel size and (when both have\n"
+          "                        one) the field size\n"
+          "  -o, --output DIR      write dfwhm.EXT, dbeta.EXT (B - A over the field), dfwhm.png,\n"
+          "                        dbeta.png, the corrected fields corrected_a.EXT,\n"
+          "                        corrected_b.EXT and summary.json into DIR (default: print\n"
+          "                        only)\n"
+          "  --size WxH            the field size when both are uniform (default 256x256)\n"
+          "  --scene-size N        side of the reference scene, px (default 128, at most the\n"
+          "                        field)\n",
+          out);
+    cli_print_common_help(run, out);
+}
+
+static int load(cli_run *run, const char *path, svp_psf_field **f, double *um)
+{
+    svp_status st = svp_psf_field_read(path, f, um);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    cli_record_input(run, "psf map", path, svp_psf_field_width(*f), svp_psf_field_height(*f));
+    return 0;
+}
+
+/* An N x N grid field (8 x 8 nodes) sampling `f` over the window at (ox, oy). */
+static svp_status window_field(const svp_psf_field *f, int ox, int oy, int n, svp_psf_field **out)
+{
+    enum { G = 8 };
+    svp_psf nodes[G * G];
+    for (int j = 0; j < G; j++)
+        for (int i = 0; i < G; i++) {
+            double x = (i + 0.5) * n / G - 0.5, y = (j + 0.5) * n / G - 0.5;
+            svp_status st = svp_psf_field_at(f, ox + x, oy + y, &nodes[j * G + i]);
+            if (st != SVP_OK) return st;
+        }
+    return svp_psf_field_new_grid(n, n, G, G, NULL, NULL, nodes, out);
+}
+
 int cmd_psf_compare(int argc, char **argv)
 {
-    (void)argc;
-    (void)argv;
-    return 2;
+    cli_run run;
+    cli_run_init(&run, "psf-compare", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    static const struct option own[] = {
+        {"size", required_argument, NULL, OPT_SIZE},
+        {"scene-size", required_argument, NULL, OPT_SCENE_SIZE},
+        {NULL, 0, NULL, 0},
+    };
+    int w = 0, h = 0, scene_n = 128, code = 0;
+    svp_psf_field *fa = NULL, *fb = NULL, *wa = NULL, *wb = NULL;
+    svp_image *dfw = NULL, *dbe = NULL, *btrue = NULL, *pltrue = NULL, *plapp = NULL,
+              *bapp = NULL, *plc = NULL, *bc_a = NULL, *bc_b = NULL;
+    svp_blur *ha = NULL, *hb = NULL;
+    svp_status st;
+    int c;
+    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        switch (c) {
+        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
+        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+        case OPT_SIZE:
+            if (sscanf(optarg, "%dx%d", &w, &h) != 2 || w < 8 || h < 8 || w > 16384 || h > 16384)
+                return cli_run_finish(&run, cli_error(&run, "--size %s: expected WxH, 8..16384 "
+                                                            "each (e.g. 256x256)", optarg));
+            break;
+        case OPT_SCENE_SIZE:
+            if (cli_parse_int(&run, "--scene-size", optarg, 16, 1024, &scene_n))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
+        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+        }
+    }
+    if (argc - optind != 2)
+        return cli_run_finish(&run, cli_error(&run, "two PSF maps A.yaml B.yaml are required (see "
+                                                    "--help)"));
+    const char *pa = argv[optind], *pb = argv[optind + 1];
+    double ua = 0, ub = 0;
+    cli_stage_begin(&run, "read");
+    if ((code = load(&run, pa, &fa, &ua)) || (code = load(&run, pb, &fb, &ub))) goto cleanup;
+    if (fabs(ua - ub) > 1e-9 * ua) {
+        code = cli_error(&run, "%s: pixel_um %g differs from %s's %g: the maps must share the "
+                               "pixel size", pb, ub, pa, ua);
+        goto cleanup;
+    }
+    int aw = svp_psf_field_width(fa), ah = svp_psf_field_height(fa);
+    int bw = svp_psf_field_width(fb), bh = svp_psf_field_height(fb);
+    if (aw && bw && (aw != bw || ah != bh)) {
+        code = cli_error(&run, "size mismatch: %s maps a %d x %d field but %s a %d x %d one", pa,
+                         aw, ah, pb, bw, bh);
+        goto cleanup;
+    }
+    if (aw) w = aw, h = ah;
+    else if (bw) w = bw, h = bh;
+    else if (!w) w = h = 256;
+    if (scene_n > w) scene_n = w;
+    if (scene_n > h) scene_n = h;
+    const double um = ua;
+    const char *out_dfw = NULL, *out_dbe = NULL, *png_dfw = NULL, *png_dbe = NULL, *out_ca = NULL,
+               *out_cb = NULL, *out_sum = NULL;
+    if (run.output) {
+        out_dfw = cli_output_in_dir(&run, "dfwhm", "dfwhm", 1);
+        out_dbe = cli_output_in_dir(&run, "dbeta", "dbeta", 1);
+        png_dfw = cli_output_in_dir(&run, "figure", "dfwhm.png", 0);
+        png_dbe = cli_output_in_dir(&run, "figure", "dbeta.png", 0);
+        out_ca = cli_output_in_dir(&run, "corrected_a", "corrected_a", 1);
+        out_cb = cli_output_in_dir(&run, "corrected_b", "corrected_b", 1);
+        out_sum = cli_output_in_dir(&run, "summary", "summary.json", 0);
+        if ((code = cli_outputs_check(&run))) goto cleanup;
+    }
+    cli_setting_num(&run, "pixel_um", um);
+    cli_setting_int(&run, "width", w);
+    cli_setting_int(&run, "height", h);
+    cli_setting_int(&run, "scene_size", scene_n);
+
+    /* ---- 1. parameters over the field ---- */
+    cli_stage_begin(&run, "parameters");
+    if ((st = svp_image_new(w, h, &dfw)) != SVP_OK || (st = svp_image_new(w, h, &dbe)) != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+    double max_df = 0, sum_df = 0, max_rel = 0, max_db = 0, sum_db = 0, max_de = 0;
+    int moffat = 0;
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            double p[SVP_FIELD_NPARAM], q[SVP_FIELD_NPARAM];
+            if ((st = svp_psf_field_params_at(fa, x, y, p)) != SVP_OK ||
+                (st = svp_psf_field_params_at(fb, x, y, q)) != SVP_OK) {
+                code = cli_fail(&run, st, NULL);
+                goto cleanup;
+            }
+            size_t i = (size_t)y * w + x;
+            double df = (q[SVP_FIELD_FWHM] - p[SVP_FIELD_FWHM]) * um;
+            dfw->data[i] = df;
+            max_df = fmax(max_df, fabs(df));
+            sum_df += fabs(df);
+            max_rel = fmax(max_rel, fabs(df) / (p[SVP_FIELD_FWHM] * um));
+            double db = q[SVP_FIELD_BETA] - p[SVP_FIELD_BETA];
+            dbe->data[i] = db;
+            max_db = fmax(max_db, fabs(db));
+            sum_db += fabs(db);
+            max_de = fmax(max_de, hypot(q[SVP_FIELD_E1] - p[SVP_FIELD_E1],
+                                        q[SVP_FIELD_E2] - p[SVP_FIELD_E2]));
+            moffat |= p[SVP_FIELD_BETA] > 0 || q[SVP_FIELD_BETA] > 0;
+        }
+    const double n_px = (double)w * h;
+    printf("PSF maps %s (A) and %s (B), %d x %d field, pixel %g um:\n", pa, pb, w, h, um);
+    printf("  |dFWHM|  max %.5f um (%.2f %% of A), mean %.5f um\n", max_df, 100 * max_rel,
+           sum_df / n_px);
+    if (moffat) printf("  |dbeta|  max %.4f, mean %.4f\n", max_db, sum_db / n_px);
+    printf("  |de|     max %.4f\n", max_de);
+    cli_result_num(&run, "max_abs_dfwhm_um", max_df);
+    cli_result_num(&run, "mean_abs_dfwhm_um", sum_df / n_px);
+    cli_result_num(&run, "max_rel_dfwhm", max_rel);
+    cli_result_num(&run, "max_abs_dbeta", max_db);
+    cli_result_num(&run, "mean_abs_dbeta", sum_db / n_px);
+    cli_result_num(&run, "max_abs_de", max_de);
+
+    /* ---- 2. the reference scene ---- */
+    cli_stage_begin(&run, "scene");
+    const int n = scene_n, ox = (w - n) / 2, oy = (h - n) / 2;
+    if ((st = window_field(fa, ox, oy, n, &wa)) != SVP_OK ||
+        (st = window_field(fb, ox, oy, n, &wb)) != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+    svp_image **imgs[] = {&btrue, &pltrue, &plapp, &bapp, &plc, &bc_a, &bc_b};
+    for (size_t k = 0; k < sizeof imgs / sizeof imgs[0]; k++)
+        if ((st = svp_image_new(n, n, imgs[k])) != SVP_OK) {
+            code = cli_fail(&run, st, NULL);
+            goto cleanup;
+        }
+    /* flake: a square of side n/2 with edges smoothed over 1 px; a -0.4 mT rim decaying over
+     * n/16 px outside it; PL 0.3 on the flake */
+    for (int y = 0; y < n; y++)
+        for (int x = 0; x < n; x++) {
+            double dx = fabs(x - 0.5 * (n - 1)) - 0.25 * n, dy = fabs(y - 0.5 * (n - 1)) - 0.25 * n;
+            double d = fmax(dx, dy); /* < 0 inside */
+            double inside = 0.5 * (1 - tanh(d));
+            double rim = d > 0 ? -0.4 * exp(-d / (n / 16.0)) * (1 - inside) : 0;
+            btrue->data[(size_t)y * n + x] = inside + rim;
+            pltrue->data[(size_t)y * n + x] = 1.0 - 0.7 * inside;
+        }
+    svp_variant_options vo;
+    svp_variant_defaults(&vo);
+    svp_correct_options co;
+    svp_correct_defaults(&co);
+    if ((st = svp_blur_new_field(wa, n, n, SVP_BOUNDARY_ZERO, &vo, &ha)) != SVP_OK ||
+        (st = svp_blur_new_field(wb, n, n, SVP_BOUNDARY_ZERO, &vo, &hb)) != SVP_OK ||
+        (st = svp_forward_transform(ha, pltrue, (const svp_image *const *)&btrue, 1, plapp, &bapp,
+                                    NULL)) != SVP_OK ||
+        (st = svp_inverse_transform(ha, plapp, (const svp_image *const *)&bapp, 1, &co, plc, &bc_a,
+                                    NULL, NULL)) != SVP_OK ||
+        (st = svp_inverse_transform(hb, plapp, (const svp_image *const *)&bapp, 1, &co, plc, &bc_b,
+                                    NULL, NULL)) != SVP_OK) {
+        code = cli_fail(&run, st, "reference scene");
+        goto cleanup;
+    }
+    double s_ab = 0, s_a = 0, s_at = 0, s_bt = 0, s_t = 0, m_ab = 0, m_t = 0;
+    for (size_t i = 0; i < (size_t)n * n; i++) {
+        double a = bc_a->data[i], b = bc_b->data[i], t = btrue->data[i];
+        s_ab += (b - a) * (b - a);
+        s_a += a * a;
+        s_at += (a - t) * (a - t);
+        s_bt += (b - t) * (b - t);
+        s_t += t * t;
+        m_ab = fmax(m_ab, fabs(b - a));
+        m_t = fmax(m_t, fabs(t));
+    }
+    const double rel = sqrt(s_ab / s_a), rel_a = sqrt(s_at / s_t), rel_b = sqrt(s_bt / s_t);
+    printf("reference scene (%d x %d px at (%d, %d), micromagnet-like flake, blurred with A):\n",
+           n, n, ox, oy);
+    printf("  corrected with B vs with A: relative rms difference %.4f, max |difference| %.4f of "
+           "the field's peak\n",
+           rel, m_ab / m_t);
+    printf("  relative rms error to the truth: corrected with A %.4f, with B %.4f\n", rel_a, rel_b);
+    cli_result_num(&run, "scene_rel_rms_difference", rel);
+    cli_result_num(&run, "scene_max_difference_of_peak", m_ab / m_t);
+    cli_result_num(&run, "scene_rel_rms_error_a", rel_a);
+    cli_result_num(&run, "scene_rel_rms_error_b", rel_b);
+
+    if (run.output) {
+        cli_stage_begin(&run, "write");
+        double lim_f = max_df > 0 ? max_df : 1e-6, lim_b = max_db > 0 ? max_db : 1e-6;
+        if ((code = cli_write_image(&run, out_dfw, dfw)) ||
+            (code = cli_write_image(&run, out_dbe, dbe)) ||
+            (code = cli_write_image(&run, out_ca, bc_a)) ||
+            (code = cli_write_image(&run, out_cb, bc_b)))
+            goto cleanup;
+        if ((st = scene_map_figure(png_dfw, dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
+                                   "FWHM of B - FWHM of A", "dFWHM (nm)", um, run.force)) !=
+                SVP_OK ||
+            (st = scene_map_figure(png_dbe, dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
+                                   "dbeta", um, run.force)) != SVP_OK) {
+            code = cli_fail(&run, st, "figures");
+            goto cleanup;
+        }
+        cli_stage_end(&run);
+        if ((code = cli_summary_write(&run, out_sum))) goto cleanup;
+        printf("svpsf psf-compare: maps and summary written to %s\n", run.output);
+    }
+
+cleanup:
+    svp_blur_free(ha);
+    svp_blur_free(hb);
+    svp_psf_field_free(fa);
+    svp_psf_field_free(fb);
+    svp_psf_field_free(wa);
+    svp_psf_field_free(wb);
+    svp_image_free(dfw);
+    svp_image_free(dbe);
+    svp_image_free(btrue);
+    svp_image_free(pltrue);
+    svp_image_free(plapp);
+    svp_image_free(bapp);
+    svp_image_free(plc);
+    svp_image_free(bc_a);
+    svp_image_free(bc_b);
+    scene_figures_cleanup();
+    return cli_run_finish(&run, code);
 }
