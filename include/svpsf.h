@@ -216,10 +216,12 @@ SVP_API void svp_deconv_defaults(svp_deconv_options *options);
  * from their neighbours (normalised convolution with the PSF, refined by a few conjugate-
  * gradient steps to the fill the regularised model predicts) before filtering. The halo term
  * is inverted exactly (a scalar equation for the mean). Periodic H is filtered at the image
- * size; mirror and zero H in the 2 width x 2 height symmetric frame (zero mode: the data are
- * mirror-extended, because zero-padded data ring at the edges). Space-variant H: calls
- * svp_deconv_tikhonov_cg. Uses options->balance (>= 0); progress once, at the end. x must
- * have y's size and not be y. options NULL = defaults. */
+ * size, mirror H in the 2 width x 2 height symmetric frame. Zero-boundary H (no frame makes it
+ * diagonal): the same problem (Hᵀ M H + λ LᵀL) x = Hᵀ M y of the linear operator, L with
+ * reflecting ends, by CG preconditioned with the Wiener filter on H's padded frame (missing
+ * pixels masked by M, no fill). Space-variant H: calls svp_deconv_tikhonov_cg. Uses
+ * options->balance (>= 0); progress once, at the end. x must have y's size and not be y.
+ * options NULL = defaults. */
 SVP_API svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
                                      const svp_deconv_options *options, svp_image *x);
 /* Richardson–Lucy: x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, started flat at the data mean; m is

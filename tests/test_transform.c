@@ -458,6 +458,65 @@ static void test_round_trip(void **state)
     free_images(b, NF);
 }
 
+/* The same round trip with the ZERO boundary (the default: light leaving the field is lost),
+ * 64 x 64, PL = spot × chessboard, the two smooth signed components; Moffat FWHM 3 px with
+ * β = 2.5 and with the long β = 1.1 tail (which, before W solved the zero-boundary problem
+ * itself, put W's error above the field's peak). Max error in lit pixels (PL > 0.2 max)
+ * relative to max |B|, measured:
+ *   β = 2.5: W (balance 1e-6) 0.52 %, R (1000 it) 0.69 %, RW on the spot-only PL 0.15 %
+ *   β = 1.1: W 0.65 %, R 2.3 %, RW on the spot-only PL 1.7 %
+ * Asserted: < 1 % for the moderate β = 2.5 (the issue's case) and for W with β = 1.1; RL with
+ * the β = 1.1 tail is < 3 %: with the zero boundary its corners converge slowly (RL alone on
+ * the spot PL, corner error 0.48 % of the peak at 1000 it, 0.18 % at 4000, 0.05 % at 16000, so
+ * it is convergence, not bias), and the field divides by the PL there. RW on the chessboard is
+ * biased beside the edges as with the mirror boundary (test_round_trip): not asserted here. */
+static void test_round_trip_zero(void **state)
+{
+    (void)state;
+    const int w = 64, h = 64;
+    const double betas[2] = {2.5, 1.1};
+    svp_image *b[NF] = {field_smooth(w, h, 0), field_smooth(w, h, 1)};
+    svp_image *chess = pl_spot_chessboard(w, h, 8, 7), *spot = test_image(w, h);
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            double r2 = (x - 31.5) * (x - 31.5) + (y - 31.5) * (y - 31.5), s = w / 2.35482;
+            spot->data[(size_t)y * w + x] = exp(-0.5 * r2 / (s * s));
+        }
+    for (int k = 0; k < 2; k++) {
+        svp_blur *op = blur_model(SVP_PSF_MOFFAT, 3.0, betas[k], 0.0, w, h, SVP_BOUNDARY_ZERO);
+        apparent a = forward_run(op, chess, b, NF);
+        const svp_method methods[2] = {SVP_METHOD_W, SVP_METHOD_R};
+        for (int m = 0; m < 2; m++) {
+            svp_correct_options o = options_for(methods[m], RT_RL_ITERATIONS, 1e-6);
+            restored r = inverse_run(op, a.pl, a.field, NF, &o);
+            double err = lit_error(chess, b, r.field, NF, 0.2, NULL);
+            print_message("round trip zero β %.1f %-2s (RL %d it, balance 1e-6): lit error %.3g "
+                          "%% of max|B|\n",
+                          betas[k], method_names[methods[m]], RT_RL_ITERATIONS, 100 * err);
+            const double bound = methods[m] == SVP_METHOD_R && k == 1 ? 0.03 : 0.01;
+            CHECK_BOUND(err < bound, "zero boundary β %.1f %s: %.3g %% >= %g %%", betas[k],
+                        method_names[methods[m]], 100 * err, 100 * bound);
+            restored_free(&r, NF);
+        }
+        apparent_free(&a, NF);
+        a = forward_run(op, spot, b, NF);
+        svp_correct_options o = options_for(SVP_METHOD_RW, RT_RL_ITERATIONS, 1e-6);
+        restored r = inverse_run(op, a.pl, a.field, NF, &o);
+        double err = lit_error(spot, b, r.field, NF, 0.2, NULL);
+        print_message("round trip zero β %.1f RW on the spot-only PL: lit error %.3g %%\n",
+                      betas[k], 100 * err);
+        const double bound = k == 1 ? 0.03 : 0.01;
+        CHECK_BOUND(err < bound, "zero boundary β %.1f RW, spot-only PL: %.3g %% >= %g %%",
+                    betas[k], 100 * err, 100 * bound);
+        restored_free(&r, NF);
+        apparent_free(&a, NF);
+        svp_blur_free(op);
+    }
+    svp_image_free(chess);
+    svp_image_free(spot);
+    free_images(b, NF);
+}
+
 /* Every component shares the one deconvolution of Ĩ: a component restored alongside another
  * is bit-identical to the same component restored alone. */
 static void test_components_share_pl(void **state)
@@ -570,13 +629,14 @@ static void test_dark_and_faint_regions(void **state)
  * Moffat β 0.9):
  *                      interior (>= 10 px from the border)   all lit pixels
  *   R  (300 it)        7.6 / 14.1                           11.8 / 25.2
- *   W  (balance 1e-6)  4.3 / 5.4                            5e4 / 6e4
- *   RW                 28 / 29                              290 / 300
- * W and RW fail at the border: the Wiener filter works in a mirror frame for the zero boundary
- * (restore/wiener.c), which does not model the light these long tails carry out of the image
- * (a constant PL comes back negative at the corners), and T⁻¹ divides by that PL. With the
- * mirror boundary, where operator and filter agree, W is within 1.5 % / 2.0 % everywhere.
- * Asserted: R interior < 25 %, all < 40 %; W interior < 15 %; mirror W < 5 %. */
+ *   W  (balance 1e-6)  0.63 / 0.59                          1.06 / 1.14
+ *   RW                 31 / 33                              34 / 35
+ * W solves the zero-boundary problem itself (restore/wiener.c: CG on the linear operator's
+ * normal equations), so it is as good as with the mirror boundary (1.5 % / 2.0 % there). Before
+ * that it filtered in a mirror frame that does not model the light these tails carry out of the
+ * image and was off by 5e4 % at the border. R converges slowly with these tails (300 it) and
+ * RW's two deconvolutions resolve the chessboard differently: both carry that bias.
+ * Asserted: R interior < 25 %, all < 40 %; W all < 3 %; mirror W < 5 %. */
 static void test_wide_kernels(void **state)
 {
     (void)state;
@@ -604,7 +664,7 @@ static void test_wide_kernels(void **state)
                 CHECK_BOUND(e_in < 0.25 && e_all < 0.4, "R: lit error %.3g %% / %.3g %%",
                             100 * e_in, 100 * e_all);
             if (methods[m] == SVP_METHOD_W)
-                CHECK_BOUND(e_in < 0.15, "W: interior lit error %.3g %%", 100 * e_in);
+                CHECK_BOUND(e_all < 0.03, "W: lit error %.3g %%", 100 * e_all);
             restored_free(&r, NF);
         }
         apparent_free(&a, NF);
@@ -650,9 +710,9 @@ static void test_sizes(void **state)
     svp_image_free(pl);
     free_images(b, NF);
 
-    /* 2 x 3: with the periodic boundary W at balance 0 is the exact inverse; with the zero
-     * boundary every method stays finite (errors printed: the 6-pixel problem is badly
-     * conditioned and the Wiener filter's mirror frame does not match the zero boundary) */
+    /* 2 x 3: W at balance 0 is the exact inverse with the periodic and with the zero boundary
+     * (measured 1.2e-15 both); every method stays finite (errors printed: RL on the 6-pixel
+     * problem is badly conditioned) */
     for (int m = 0; m < 2; m++) {
         svp_boundary boundary = m == 0 ? SVP_BOUNDARY_PERIODIC : SVP_BOUNDARY_ZERO;
         op = blur_model(SVP_PSF_GAUSSIAN, 1.5, 0, 0.0, 2, 3, boundary);
@@ -668,8 +728,8 @@ static void test_sizes(void **state)
             double e = lit_error(pl, b, r.field, NF, 0.0, NULL);
             print_message("2 x 3 %s, %-9s: error %.3g %%\n", m == 0 ? "periodic" : "zero    ",
                           method_names[method], 100 * e);
-            if (m == 0 && method == SVP_METHOD_W)
-                CHECK_BOUND(e < 1e-9, "2 x 3 periodic W: error %.3g", e);
+            if (method == SVP_METHOD_W)
+                CHECK_BOUND(e < 1e-9, "2 x 3 %s W: error %.3g", m == 0 ? "periodic" : "zero", e);
             restored_free(&r, NF);
         }
         apparent_free(&a, NF);
@@ -784,8 +844,10 @@ static void test_constant_images(void **state)
                     err = fmax(err, fabs(r.field[c]->data[i] - b[c]->data[0]));
             print_message("constant maps, boundary %d, %-9s: error %.3g\n", m, method_names[method],
                           err);
-            /* RW with the zero boundary: not asserted (Wiener's mirror frame vs RL's zero
-             * boundary, see test_wide_kernels); measured 2.04 at the corners for b = 2.5 */
+            /* RW with the zero boundary: not asserted. A constant apparent map is not T of a
+             * constant when light leaves the image (the true PL is brighter at the border): W
+             * solves that problem, 50 RL iterations have not yet reached the corners, and the
+             * ratio of the two is off there (measured 1.72 for b = 2.5). */
             if (!(method == SVP_METHOD_RW && m == SVP_BOUNDARY_ZERO))
                 CHECK_BOUND(err < 1e-9, "constant maps %s boundary %d: error %.3g",
                             method_names[method], m, err);
@@ -1202,6 +1264,7 @@ int main(void)
         cmocka_unit_test(test_uniform_pl_is_blur),
         cmocka_unit_test(test_halo_only),
         cmocka_unit_test(test_round_trip),
+        cmocka_unit_test(test_round_trip_zero),
         cmocka_unit_test(test_components_share_pl),
         cmocka_unit_test(test_dark_and_faint_regions),
         cmocka_unit_test(test_wide_kernels),

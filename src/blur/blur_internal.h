@@ -73,6 +73,10 @@ struct svp_blur {
     svp_variant_data *variant;
     svp_exact_data *exact;
     double *work_r_image; /* width x height work image */
+    /* Zero-boundary Wiener (restore/wiener.c): its preconditioner's filter on `frame` for
+     * wiener_balance, ny x ncx, NULL until first used; freed with the operator. */
+    double *wiener_filter;
+    double wiener_balance;
 };
 
 /* Dispatch targets of svp_blur_apply / _adjoint / _free / _memory for kind != INVARIANT

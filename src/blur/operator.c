@@ -308,6 +308,7 @@ void svp_blur_free(svp_blur *b)
     svp_image_free(b->kernel);
     svp_free(b->work_r);
     svp_free(b->work_c);
+    svp_free(b->wiener_filter);
     free(b);
 }
 

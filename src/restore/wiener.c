@@ -4,8 +4,9 @@
  * filled first (normalised convolution, refined by CG to the masked Tikhonov fill: a plain
  * normalised-convolution fill is inconsistent with the blur and the inverse filter amplifies
  * the mismatch — 0.19 of the peak at balance 1e-4 in tests/test_restore.c, 2e-4 refined).
- * Space-variant operators go to svp_deconv_tikhonov_cg (cg.c), which solves the same
- * regularised problem iteratively. */
+ * The zero boundary (light leaving the field is lost: no frame makes it Fourier-diagonal)
+ * solves the same regularised problem of the linear operator by preconditioned CG
+ * (wiener_zero below). Space-variant operators go to svp_deconv_tikhonov_cg (cg.c). */
 #include "../blur/blur_internal.h"
 
 #include <math.h>
@@ -188,12 +189,9 @@ cleanup:
     return st;
 }
 
-/* Wiener–Hunt for the invariant operator. The frame makes the problem Fourier-diagonal:
- * periodic boundary → the periodic frame at the image size; mirror and zero boundary → the
- * full symmetric period (2 width x 2 height) with the data mirror-extended, so the filter sees
- * no edge discontinuity. In zero mode this is deliberate: zero-padded data ring at the edges
- * under a Wiener filter, mirror-extended data do not (the price is that light the zero-mode
- * operator lost across the edges is not restored).
+/* Wiener–Hunt for the invariant operator with the periodic or mirror boundary, in a frame that
+ * makes the problem Fourier-diagonal: periodic → the periodic frame at the image size; mirror
+ * → the full symmetric period (2 width x 2 height) with the data mirror-extended.
  *
  * Halo α: H = (1 − α) K + α mean. With D the Wiener filter of K, D y = (1 − α) x + α m D1,
  * m = mean(x), so x = (D y − α m D1) / (1 − α) and, taking means,
@@ -207,8 +205,7 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
-    const svp_boundary frame_mode =
-        blur->boundary == SVP_BOUNDARY_PERIODIC ? SVP_BOUNDARY_PERIODIC : SVP_BOUNDARY_MIRROR;
+    const svp_boundary frame_mode = blur->boundary;
     svp_frame f;
     double *frame = NULL, *lap_x = NULL, *lap_y = NULL, *residual = NULL, *scratch = NULL;
     fftw_complex *spectrum = NULL, *gain = NULL;
@@ -295,6 +292,172 @@ cleanup:
     return st;
 }
 
+/* ---- zero boundary: the Tikhonov problem of the linear operator, by PCG ------------------ */
+
+/* With the zero boundary the data are y = C K E0 x (light leaving the field of view is lost),
+ * which no Fourier-diagonal frame reproduces: a mirror-extended frame mistakes the lost light
+ * for a darker object (with a β = 1.1 tail the error reached 2.2 × the peak over the whole
+ * image). So the zero boundary solves the regularised problem of the true operator,
+ *     (Hᵀ M H + λ LᵀL) x = Hᵀ M y,
+ * M the finite-data mask and L the 5-point Laplacian with reflecting (Neumann) ends — the
+ * smoothness prior says nothing about the object beyond the field, a Dirichlet L would pull the
+ * border to zero (measured: 1.6 % of the peak at λ = 1e-6 against 0.05 % with Neumann) — by
+ * conjugate gradients preconditioned with the Wiener filter 1 / (|Ĥ|² + λ|L̂|²) on the
+ * operator's own zero-padded frame: the filter would be exact if the light spilled beyond the
+ * field were observed too, so the preconditioned system differs from the identity only by that
+ * smooth spill term and CG converges in tens of steps (76 to a residual of 1e-10 for 128², β =
+ * 1.1, λ = 1e-6, against 182 with a periodic image-size preconditioner). Each step costs three
+ * FFT pairs at the operator's padded size (H, Hᵀ, the preconditioner). */
+#define ZERO_CG_MAX 400
+#define ZERO_CG_TOL 1e-8
+
+/* out = L in, Neumann ends: Σ over the in-image neighbours of (in(p) − in(q)). */
+static void laplacian_neumann(int w, int h, const double *restrict in, double *restrict out)
+{
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+    for (int y = 0; y < h; y++) {
+        const double *row = in + (size_t)y * w;
+        const double *up = y > 0 ? row - w : row, *down = y < h - 1 ? row + w : row;
+        double *o = out + (size_t)y * w;
+        for (int x = 0; x < w; x++) {
+            const double c = row[x];
+            double v = (c - up[x]) + (c - down[x]);
+            if (x > 0) v += c - row[x - 1];
+            if (x < w - 1) v += c - row[x + 1];
+            o[x] = v;
+        }
+    }
+}
+
+/* The preconditioner's filter on the operator's frame for this balance, cached in the blur. */
+static svp_status zero_filter(svp_blur *blur, double balance, const double **out)
+{
+    const svp_frame *f = &blur->frame;
+    const int ncx = f->ncx, ny = f->ny;
+    const size_t nc = (size_t)ny * ncx;
+    if (blur->wiener_filter && blur->wiener_balance == balance) {
+        *out = blur->wiener_filter;
+        return SVP_OK;
+    }
+    if (!blur->wiener_filter) blur->wiener_filter = svp_alloc(nc * sizeof(double));
+    if (!blur->wiener_filter)
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener filter", f->nx, ny);
+    double *restrict filt = blur->wiener_filter;
+    const fftw_complex *restrict otf = f->otf;
+    const double keep = 1.0 - blur->halo, scale = 1.0 / ((double)f->nx * ny);
+    double hmax2 = 0;
+    for (size_t k = 0; k < nc; k++) {
+        double complex hk = keep * otf[k] + (k == 0 ? blur->halo : 0.0);
+        filt[k] = creal(hk) * creal(hk) + cimag(hk) * cimag(hk);
+        if (filt[k] > hmax2) hmax2 = filt[k];
+    }
+    const double floor = 1e-12 * (hmax2 > 0 ? hmax2 : 1.0);
+#pragma omp parallel for schedule(static) if (nc > SVP_PARALLEL_MIN)
+    for (int v = 0; v < ny; v++) {
+        const double ly = laplacian_axis(v, ny);
+        for (int u = 0; u < ncx; u++) {
+            const double lap = laplacian_axis(u, f->nx) + ly;
+            const size_t k = (size_t)v * ncx + u;
+            const double d = filt[k] + balance * lap * lap;
+            filt[k] = scale / (d > floor ? d : floor);
+        }
+    }
+    blur->wiener_balance = balance;
+    *out = filt;
+    return SVP_OK;
+}
+
+/* out = P in: embed in the zero-padded frame, filter, crop (uses the blur's work buffers). */
+static void zero_precondition(svp_blur *blur, const double *filter, const double *in, double *out)
+{
+    const svp_frame *f = &blur->frame;
+    const size_t nc = (size_t)f->ny * f->ncx;
+    svp_frame_embed(f, in, blur->work_r);
+    svp_fft_forward(f->plan, blur->work_r, blur->work_c);
+    fftw_complex *restrict c = blur->work_c;
+#pragma omp parallel for schedule(static) if (nc > SVP_PARALLEL_MIN / 2)
+    for (size_t k = 0; k < nc; k++) c[k] *= filter[k];
+    svp_fft_inverse_unscaled(f->plan, blur->work_c, blur->work_r);
+    svp_frame_crop(f, blur->work_r, out);
+}
+
+/* Σ a b, in a fixed order whatever the thread count (prod: n scratch values). */
+static double dot_det(const double *a, const double *b, double *prod, size_t n)
+{
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++) prod[i] = a[i] * b[i];
+    return svp_sum(prod, n);
+}
+
+static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_missing,
+                              double balance, double *restrict x_data, int *iterations)
+{
+    const int w = blur->width, h = blur->height;
+    const size_t n = (size_t)w * h;
+    const double *filter = NULL;
+    svp_status st = zero_filter(blur, balance, &filter);
+    if (st != SVP_OK) return st;
+    double *buf = svp_alloc(7 * n * sizeof(double));
+    if (!buf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener solve", w, h);
+    double *r = buf, *z = buf + n, *p = buf + 2 * n, *ap = buf + 3 * n, *t1 = buf + 4 * n,
+           *t2 = buf + 5 * n, *prod = buf + 6 * n;
+    svp_image img_p = {w, h, p}, img_t1 = {w, h, t1}, img_ap = {w, h, ap}, img_r = {w, h, r};
+
+    /* rhs = Hᵀ M y (missing pixels contribute nothing); x0 = 0, r0 = rhs */
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++) t1[i] = isfinite(y_data[i]) ? y_data[i] : 0.0;
+    if ((st = svp_blur_adjoint(blur, &img_t1, &img_r)) != SVP_OK) goto cleanup;
+    memset(x_data, 0, n * sizeof(double));
+    const double rhs_norm = sqrt(dot_det(r, r, prod, n));
+    int it = 0;
+    if (rhs_norm > 0 && isfinite(rhs_norm)) {
+        zero_precondition(blur, filter, r, z);
+        memcpy(p, z, n * sizeof(double));
+        double rz = dot_det(r, z, prod, n);
+        for (it = 0; it < ZERO_CG_MAX; it++) {
+            /* ap = (Hᵀ M H + λ L L) p */
+            if ((st = svp_blur_apply(blur, &img_p, &img_t1)) != SVP_OK) goto cleanup;
+            if (n_missing > 0) {
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+                for (size_t i = 0; i < n; i++)
+                    if (!isfinite(y_data[i])) t1[i] = 0.0;
+            }
+            if ((st = svp_blur_adjoint(blur, &img_t1, &img_ap)) != SVP_OK) goto cleanup;
+            if (balance > 0) {
+                laplacian_neumann(w, h, p, t1);
+                laplacian_neumann(w, h, t1, t2);
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+                for (size_t i = 0; i < n; i++) ap[i] += balance * t2[i];
+            }
+            const double pap = dot_det(p, ap, prod, n);
+            if (!(pap > 0) || !isfinite(pap)) break; /* exact convergence or a flat direction */
+            const double step = rz / pap;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+            for (size_t i = 0; i < n; i++) {
+                x_data[i] += step * p[i];
+                r[i] -= step * ap[i];
+            }
+            if (sqrt(dot_det(r, r, prod, n)) <= ZERO_CG_TOL * rhs_norm) {
+                it++;
+                break;
+            }
+            zero_precondition(blur, filter, r, z);
+            const double rz_new = dot_det(r, z, prod, n);
+            const double beta = rz_new / rz;
+            rz = rz_new;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+            for (size_t i = 0; i < n; i++) p[i] = z[i] + beta * p[i];
+        }
+    }
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++)
+        if (!isfinite(x_data[i])) x_data[i] = 0.0;
+    if (iterations) *iterations = it;
+cleanup:
+    svp_free(buf);
+    return st;
+}
+
 svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
                              const svp_deconv_options *options, svp_image *x)
 {
@@ -319,15 +482,19 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
                         "Wiener deconvolution: all %zu pixels of the data y are NaN or Inf", n);
     svp_status st = SVP_OK;
     double *filled = NULL;
-    if (n_missing > 0) {
-        filled = svp_alloc(n * sizeof(double));
-        if (!filled) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d image",
-                                     y->width, y->height);
-        if ((st = fill_missing(blur, y, n - n_missing, filled)) != SVP_OK) goto cleanup;
+    if (blur->boundary == SVP_BOUNDARY_ZERO) {
+        st = wiener_zero(blur, y->data, n_missing, options->balance, x->data, NULL);
+    } else {
+        if (n_missing > 0) {
+            filled = svp_alloc(n * sizeof(double));
+            if (!filled)
+                return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d image", y->width,
+                                y->height);
+            st = fill_missing(blur, y, n - n_missing, filled);
+        }
+        if (st == SVP_OK) st = wiener_invariant(blur, y->data, filled, options->balance, x->data);
     }
-    st = wiener_invariant(blur, y->data, filled, options->balance, x->data);
     if (st == SVP_OK) st = svp_report_progress(options->progress, options->progress_user, 1.0);
-cleanup:
     svp_free(filled);
     return st;
 }
