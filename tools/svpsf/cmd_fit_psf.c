@@ -22,7 +22,8 @@ enum {
     OPT_REFUSE_BORDER,
     OPT_FIGURES,
     OPT_NO_FIGURES,
-    OPT_USE
+    OPT_USE,
+    OPT_MAX_ITER
 };
 
 static void print_help(const cli_run *run, FILE *out)
@@ -54,6 +55,7 @@ static void print_help(const cli_run *run, FILE *out)
           "  --sigma-bg S          additive (read) noise in data units (default 0)\n"
           "  --saturation L        pixels >= L are saturated and left out (default: detect a\n"
           "                        plateau of >= 3 equal maxima)\n"
+          "  --max-iterations N    Levenberg-Marquardt steps before giving up (default 200)\n"
           "  --refuse-border       a spot within 2 FWHM of an edge is an error (default: fitted\n"
           "                        and flagged)\n"
           "  --figures DIR         where the figures go (default: PSF.figures/ next to\n"
@@ -330,6 +332,7 @@ int cmd_fit_psf(int argc, char **argv)
         {"figures", required_argument, NULL, OPT_FIGURES},
         {"no-figures", no_argument, NULL, OPT_NO_FIGURES},
         {"use", required_argument, NULL, OPT_USE},
+        {"max-iterations", required_argument, NULL, OPT_MAX_ITER},
         {NULL, 0, NULL, 0},
     };
     svp_pair_options po;
@@ -391,6 +394,10 @@ int cmd_fit_psf(int argc, char **argv)
                 return cli_run_finish(&run, cli_error(&run, "--saturation %s: must be > 0", optarg));
             break;
         case OPT_REFUSE_BORDER: so->refuse_near_border = 1; break;
+        case OPT_MAX_ITER:
+            if (cli_parse_int(&run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations))
+                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            break;
         case OPT_FIGURES: figures = optarg; break;
         case OPT_NO_FIGURES: no_figures = 1; break;
         case OPT_USE: {
