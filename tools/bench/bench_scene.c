@@ -1,0 +1,445 @@
+/* Benchmarks of the scenes issue (issue 3; docs/performance.md, section "scene").
+ *
+ *   bench_scene cube --size N --points P [--threads T] [--fit 0|1] [--rl 0|1] [--w 0|1]
+ *                    [--rl-iterations K] [--balance L]
+ *       The closed form (eq. 3 forward, eq. 4 inverse) against the brute-force spectral path
+ *       on one N x N scene: the ODMR cube of P frames is simulated, every frame blurred, and
+ *       the field estimated per pixel (centroid; Lorentzian fit with --fit 1); for the
+ *       correction every blurred frame is deconvolved (with --w 1 Wiener–Hunt with balance L;
+ *       with --rl 1 Richardson–Lucy with K iterations) and the centroid taken again; the
+ *       closed-form T⁻¹ runs with the same settings (methods W and R). Prints the time
+ *       of each path and the difference between the paths, and the error of each against the
+ *       true field.
+ *   bench_scene fit --size N --points P [--threads T] [--reps R]
+ *       per-pixel Lorentzian fits per second (svp_odmr_fit) on the blurred cube of the same
+ *       scene at N x N: median over R repetitions.
+ *
+ * The scene: pixel 0.2 µm, a square flake of 0.6 N pixels (M_z t = 0.1 mA, standoff 100 nm,
+ * B_z only), emission = Gaussian spot (FWHM 0.8 N px) x chessboard (20 px squares, levels 0.1,
+ * 0.8, 1.0), Lorentzian PSF of 1 µm FWHM, zero boundary, no margin; ODMR: D = 2.87 GHz,
+ * Γ = 1 MHz, C = 2 % uniform, the bias and the sweep of `svpsf simulate` (bias = max|B| +
+ * 12 Γ/γ, sweep over the upper dip ± 6 Γ). No noise. Times are wall-clock seconds of single
+ * runs (cube mode) or medians (fit mode); maxrss_mb is the process's peak resident memory.
+ * Errors are in µT over the view without a 16-pixel border (the zero boundary darkens it). */
+#include "core/internal.h" /* svp_fft_cleanup */
+
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/resource.h>
+#include <time.h>
+
+#define GAMMA 28.033e9
+#define D_HZ 2.870e9
+#define LINEWIDTH 1e6
+#define SPAN_LW 6.0
+#define BORDER 16
+
+typedef struct args {
+    const char *mode;
+    int size, points, threads, reps, fit, rl, w, rl_iterations;
+    double balance;
+} args;
+
+static double now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+static double maxrss_mb(void)
+{
+    struct rusage ru;
+    getrusage(RUSAGE_SELF, &ru);
+    return (double)ru.ru_maxrss / 1024.0;
+}
+
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static int fail(svp_status st, const char *what)
+{
+    printf("{\"error\": \"%s\", \"message\": \"%s: %s\"}\n", svp_status_string(st), what,
+           svp_last_error());
+    return st == SVP_ERR_UNSUPPORTED ? 3 : 2;
+}
+
+#define TRY(call, what)                                                                            \
+    do {                                                                                           \
+        svp_status st_ = (call);                                                                   \
+        if (st_ != SVP_OK) return fail(st_, what);                                                 \
+    } while (0)
+
+typedef struct scene {
+    int n;
+    svp_image *pl, *bz;
+    svp_blur *blur;
+    svp_odmr odmr;
+    double bias, bmax, *freq;
+    int nf;
+} scene;
+
+/* the chessboard level of square (a, b): a hash of the square and the seed */
+static double level(int a, int b)
+{
+    static const double levels[3] = {0.1, 0.8, 1.0};
+    uint64_t z = (uint64_t)(a + 1000) * 0x9E3779B97F4A7C15u ^ (uint64_t)(b + 1000) * 0xBF58476D1CE4E5B9u;
+    z ^= z >> 31;
+    z *= 0x94D049BB133111EBu;
+    z ^= z >> 29;
+    return levels[z % 3];
+}
+
+static svp_status scene_make(int n, int nf, scene *s)
+{
+    memset(s, 0, sizeof *s);
+    s->n = n;
+    s->nf = nf;
+    svp_status st;
+    svp_image *moment = NULL;
+    if ((st = svp_image_new(n, n, &moment)) != SVP_OK) return st;
+    if ((st = svp_image_new(n, n, &s->pl)) != SVP_OK) return st;
+    if ((st = svp_image_new(n, n, &s->bz)) != SVP_OK) return st;
+    const double c = 0.5 * (n - 1);
+    if ((st = svp_raster_rectangle(moment, c, c, 0.6 * n, 0.6 * n, 0, 1e-4)) != SVP_OK) return st;
+    svp_sensor sensor;
+    svp_sensor_defaults(&sensor);
+    sensor.pixel_m = 0.2e-6;
+    sensor.standoff_m = 100e-9;
+    if ((st = svp_flake_field(moment, 0, &sensor, 2, NULL, NULL, s->bz)) != SVP_OK) return st;
+    svp_image_free(moment);
+    const double sig = 0.8 * n / 2.3548200450309493;
+    for (int j = 0; j < n; j++)
+        for (int i = 0; i < n; i++) {
+            double r2 = (i - c) * (i - c) + (j - c) * (j - c);
+            s->pl->data[(size_t)j * n + i] = exp(-0.5 * r2 / (sig * sig)) * level(i / 20, j / 20);
+        }
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.model = SVP_PSF_LORENTZIAN;
+    psf.beta = 1;
+    psf.fwhm = 5; /* 1 µm in pixels of 0.2 µm */
+    if ((st = svp_blur_new(&psf, n, n, SVP_BOUNDARY_ZERO, &s->blur)) != SVP_OK) return st;
+    svp_odmr_defaults(&s->odmr);
+    s->odmr.linewidth_hz = LINEWIDTH;
+    s->odmr.contrast = 0.02;
+    double mx = 0;
+    for (size_t p = 0; p < (size_t)n * n; p++) mx = fmax(mx, fabs(s->bz->data[p]));
+    s->bmax = mx;
+    const double span_t = SPAN_LW * LINEWIDTH / GAMMA;
+    s->bias = mx + 2 * span_t;
+    const double lo = D_HZ + GAMMA * (s->bias - mx) - SPAN_LW * LINEWIDTH;
+    const double hi = D_HZ + GAMMA * (s->bias + mx) + SPAN_LW * LINEWIDTH;
+    s->freq = malloc((size_t)nf * sizeof(double));
+    if (!s->freq) return SVP_ERR_NOMEM;
+    for (int f = 0; f < nf; f++) s->freq[f] = lo + (hi - lo) * f / (nf - 1);
+    return SVP_OK;
+}
+
+static void scene_free(scene *s)
+{
+    svp_image_free(s->pl);
+    svp_image_free(s->bz);
+    svp_blur_free(s->blur);
+    free(s->freq);
+}
+
+/* the blurred cube (frames of the true cube blurred one at a time) */
+static svp_status blurred_cube(scene *s, svp_cube **out, double *t_sim, double *t_blur)
+{
+    const int n = s->n;
+    svp_status st;
+    svp_cube *cube = NULL, *one = NULL;
+    svp_image *bnv = NULL;
+    if ((st = svp_cube_new(n, n, s->nf, s->freq, &cube)) != SVP_OK) return st;
+    if ((st = svp_cube_new(n, n, 1, s->freq, &one)) != SVP_OK) return st;
+    if ((st = svp_image_new(n, n, &bnv)) != SVP_OK) return st;
+    for (size_t p = 0; p < (size_t)n * n; p++) bnv->data[p] = s->bz->data[p] + s->bias;
+    *t_sim = *t_blur = 0;
+    for (int f = 0; f < s->nf && st == SVP_OK; f++) {
+        double t0 = now();
+        one->freq[0] = s->freq[f];
+        st = svp_odmr_simulate(&s->odmr, s->pl, bnv, NULL, NULL, one);
+        double t1 = now();
+        if (st == SVP_OK) st = svp_blur_apply(s->blur, one->frame[0], cube->frame[f]);
+        *t_sim += t1 - t0;
+        *t_blur += now() - t1;
+    }
+    svp_cube_free(one);
+    svp_image_free(bnv);
+    if (st != SVP_OK) {
+        svp_cube_free(cube);
+        return st;
+    }
+    *out = cube;
+    return SVP_OK;
+}
+
+/* baseline = mean of the 3 end frames at each side (as `svpsf simulate`); centroid − bias */
+static svp_status centroid(const scene *s, const svp_cube *cube, svp_image *baseline,
+                           svp_image *out)
+{
+    const size_t np = (size_t)s->n * s->n;
+    const int ne = 3;
+    for (size_t p = 0; p < np; p++) {
+        double b = 0;
+        for (int e = 0; e < ne; e++)
+            b += cube->frame[e]->data[p] + cube->frame[s->nf - 1 - e]->data[p];
+        baseline->data[p] = b / (2 * ne);
+    }
+    svp_status st = svp_odmr_centroid(&s->odmr, cube, baseline, 0, 0, out, NULL);
+    for (size_t p = 0; p < np; p++) out->data[p] -= s->bias;
+    return st;
+}
+
+/* rms and max |a − b| (µT) over the view without its border (and, when mask is set, only where
+ * mask >= 1) */
+static const svp_image *g_mask;
+
+static void diff(const scene *s, const svp_image *a, const svp_image *b, double *rms, double *mx)
+{
+    double s2 = 0, m = 0;
+    size_t cnt = 0;
+    for (int j = BORDER; j < s->n - BORDER; j++)
+        for (int i = BORDER; i < s->n - BORDER; i++) {
+            size_t p = (size_t)j * s->n + i;
+            if (g_mask && !(g_mask->data[p] >= 1)) continue;
+            double d = a->data[p] - b->data[p];
+            s2 += d * d;
+            m = fmax(m, fabs(d));
+            cnt++;
+        }
+    *rms = cnt ? 1e6 * sqrt(s2 / (double)cnt) : NAN;
+    *mx = 1e6 * m;
+}
+
+static void print_pair(const char *name, const scene *s, const svp_image *a, const svp_image *b,
+                       int last)
+{
+    double rms, mx;
+    diff(s, a, b, &rms, &mx);
+    printf("\"%s_rms_uT\": %.6g, \"%s_max_uT\": %.6g%s", name, rms, name, mx, last ? "" : ", ");
+}
+
+static int run_cube(const args *a)
+{
+    scene s;
+    TRY(scene_make(a->size, a->points, &s), "scene");
+    const int n = a->size;
+    const size_t np = (size_t)n * n;
+    svp_image *pl_app, *b_cf, *b_cent, *b_fit, *base, *pl_c, *b_cw, *b_cr, *b_bw, *b_br, *val;
+    TRY(svp_image_new(n, n, &pl_app), "alloc");
+    TRY(svp_image_new(n, n, &b_cf), "alloc");
+    TRY(svp_image_new(n, n, &b_cent), "alloc");
+    TRY(svp_image_new(n, n, &b_fit), "alloc");
+    TRY(svp_image_new(n, n, &base), "alloc");
+    TRY(svp_image_new(n, n, &pl_c), "alloc");
+    TRY(svp_image_new(n, n, &b_cw), "alloc");
+    TRY(svp_image_new(n, n, &b_cr), "alloc");
+    TRY(svp_image_new(n, n, &b_bw), "alloc");
+    TRY(svp_image_new(n, n, &b_br), "alloc");
+    TRY(svp_image_new(n, n, &val), "alloc");
+    /* warm the plans (the closed form and the cube share the operator) */
+    TRY(svp_blur_apply(s.blur, s.pl, pl_app), "warm-up");
+
+    /* forward: closed form */
+    const svp_image *ft[1] = {s.bz};
+    svp_image *fa[1] = {b_cf};
+    double t0 = now();
+    TRY(svp_forward_transform(s.blur, s.pl, ft, 1, pl_app, fa, NULL), "closed form");
+    const double t_cf = now() - t0;
+    /* forward: the cube */
+    svp_cube *cube = NULL;
+    double t_sim, t_blur;
+    TRY(blurred_cube(&s, &cube, &t_sim, &t_blur), "cube");
+    t0 = now();
+    TRY(centroid(&s, cube, base, b_cent), "centroid");
+    const double t_cent = now() - t0;
+    double t_fit = 0;
+    size_t failed = 0;
+    if (a->fit) {
+        t0 = now();
+        TRY(svp_odmr_fit(&s.odmr, cube, NULL, b_fit, NULL, NULL, NULL, &failed), "fit");
+        t_fit = now() - t0;
+        for (size_t p = 0; p < np; p++) b_fit->data[p] -= s.bias;
+    }
+
+    /* inverse: closed form (eq. 4) with W and R */
+    svp_correct_options co;
+    svp_correct_defaults(&co);
+    co.method = SVP_METHOD_W;
+    co.deconv.balance = a->balance;
+    const svp_image *fa2[1] = {b_cf};
+    svp_image *fc[1] = {b_cw};
+    t0 = now();
+    TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "T^-1 W");
+    const double t_inv_w = now() - t0;
+    /* W's errors are taken where its recovered PL is above the floor (validity 1) */
+    svp_image *val_w = NULL;
+    TRY(svp_image_copy(val, &val_w), "alloc");
+    size_t n_valid_w = 0;
+    for (int j = BORDER; j < n - BORDER; j++)
+        for (int i = BORDER; i < n - BORDER; i++) n_valid_w += val_w->data[(size_t)j * n + i] >= 1;
+    double t_inv_r = 0;
+    if (a->rl) {
+        co.method = SVP_METHOD_R;
+        co.deconv.iterations = a->rl_iterations;
+        fc[0] = b_cr;
+        t0 = now();
+        TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "T^-1 R");
+        t_inv_r = now() - t0;
+    }
+    /* inverse: deconvolve every frame, then the centroid */
+    svp_cube *dec = NULL;
+    TRY(svp_cube_new(n, n, s.nf, s.freq, &dec), "alloc");
+    svp_deconv_options dopt;
+    svp_deconv_defaults(&dopt);
+    dopt.balance = a->balance;
+    dopt.iterations = a->rl_iterations;
+    double t_brute_w = 0;
+    if (a->w) {
+        t0 = now();
+        for (int f = 0; f < s.nf; f++)
+            TRY(svp_deconv_wiener(s.blur, cube->frame[f], &dopt, dec->frame[f]),
+                "Wiener per frame");
+        TRY(centroid(&s, dec, base, b_bw), "centroid");
+        t_brute_w = now() - t0;
+    }
+    double t_brute_r = 0;
+    if (a->rl) {
+        t0 = now();
+        for (int f = 0; f < s.nf; f++)
+            TRY(svp_deconv_rl(s.blur, cube->frame[f], &dopt, dec->frame[f]), "RL per frame");
+        TRY(centroid(&s, dec, base, b_br), "centroid");
+        t_brute_r = now() - t0;
+    }
+    svp_cube_free(dec);
+    svp_cube_free(cube);
+
+    double step = (s.freq[s.nf - 1] - s.freq[0]) / (s.nf - 1);
+    printf("{\"mode\": \"cube\", \"size\": %d, \"points\": %d, \"threads\": %d, "
+           "\"step_MHz\": %.4g, \"bias_mT\": %.5g, \"bmax_uT\": %.6g, \"balance\": %g, "
+           "\"rl_iterations\": %d, ",
+           n, s.nf, svp_get_threads(), 1e-6 * step, 1e3 * s.bias, 1e6 * s.bmax, a->balance,
+           a->rl ? a->rl_iterations : 0);
+    printf("\"t_closed_forward\": %.6g, \"t_cube_simulate\": %.6g, \"t_cube_blur\": %.6g, "
+           "\"t_centroid\": %.6g, \"t_fit\": %.6g, \"fits_failed\": %zu, ",
+           t_cf, t_sim, t_blur, t_cent, t_fit, failed);
+    printf("\"t_closed_inverse_w\": %.6g, \"t_brute_inverse_w\": %.6g, "
+           "\"t_closed_inverse_r\": %.6g, \"t_brute_inverse_r\": %.6g, ",
+           t_inv_w, t_brute_w, t_inv_r, t_brute_r);
+    print_pair("cf_vs_true", &s, b_cf, s.bz, 0);
+    print_pair("cf_vs_centroid", &s, b_cf, b_cent, 0);
+    print_pair("centroid_vs_true", &s, b_cent, s.bz, 0);
+    if (a->fit) {
+        print_pair("cf_vs_fit", &s, b_cf, b_fit, 0);
+        print_pair("fit_vs_true", &s, b_fit, s.bz, 0);
+    }
+    g_mask = val_w;
+    print_pair("w_cf_vs_true", &s, b_cw, s.bz, 0);
+    if (a->w) {
+        print_pair("w_cf_vs_brute", &s, b_cw, b_bw, 0);
+        print_pair("w_brute_vs_true", &s, b_bw, s.bz, 0);
+    }
+    g_mask = NULL;
+    printf("\"w_valid_fraction\": %.4g, ", (double)n_valid_w / ((double)(n - 2 * BORDER) * (n - 2 * BORDER)));
+    if (a->rl) {
+        print_pair("r_cf_vs_true", &s, b_cr, s.bz, 0);
+        print_pair("r_cf_vs_brute", &s, b_cr, b_br, 0);
+        print_pair("r_brute_vs_true", &s, b_br, s.bz, 0);
+    }
+    printf("\"maxrss_mb\": %.1f}\n", maxrss_mb());
+    fflush(stdout);
+    svp_image_free(val_w);
+    svp_image *imgs[] = {pl_app, b_cf, b_cent, b_fit, base, pl_c, b_cw, b_cr, b_bw, b_br, val};
+    for (size_t i = 0; i < sizeof imgs / sizeof imgs[0]; i++) svp_image_free(imgs[i]);
+    scene_free(&s);
+    return 0;
+}
+
+static int run_fit(const args *a)
+{
+    scene s;
+    TRY(scene_make(a->size, a->points, &s), "scene");
+    const int n = a->size;
+    svp_cube *cube = NULL;
+    double t_sim, t_blur;
+    TRY(blurred_cube(&s, &cube, &t_sim, &t_blur), "cube");
+    svp_image *field = NULL;
+    TRY(svp_image_new(n, n, &field), "alloc");
+    double *t = malloc((size_t)a->reps * sizeof(double));
+    if (!t) return fail(SVP_ERR_NOMEM, "alloc");
+    size_t failed = 0;
+    for (int r = 0; r < a->reps; r++) {
+        double t0 = now();
+        TRY(svp_odmr_fit(&s.odmr, cube, NULL, field, NULL, NULL, NULL, &failed), "fit");
+        t[r] = now() - t0;
+    }
+    qsort(t, (size_t)a->reps, sizeof *t, cmp_double);
+    double med = a->reps % 2 ? t[a->reps / 2] : 0.5 * (t[a->reps / 2 - 1] + t[a->reps / 2]);
+    double rms = 0;
+    for (size_t p = 0; p < (size_t)n * n; p++) {
+        double d = field->data[p] - s.bias - s.bz->data[p];
+        rms += d * d;
+    }
+    rms = 1e6 * sqrt(rms / ((double)n * n));
+    printf("{\"mode\": \"fit\", \"size\": %d, \"points\": %d, \"threads\": %d, \"reps\": %d, "
+           "\"fits\": %zu, \"seconds\": %.6g, \"fits_per_second\": %.6g, \"failed\": %zu, "
+           "\"fit_vs_true_rms_uT\": %.4g, \"maxrss_mb\": %.1f}\n",
+           n, s.nf, svp_get_threads(), a->reps, (size_t)n * n, med, (double)n * n / med, failed,
+           rms, maxrss_mb());
+    fflush(stdout);
+    free(t);
+    svp_image_free(field);
+    svp_cube_free(cube);
+    scene_free(&s);
+    return 0;
+}
+
+static int usage(void)
+{
+    fprintf(stderr,
+            "usage: bench_scene cube --size N --points P [--threads T] [--fit 0|1] [--rl 0|1]\n"
+            "                        [--w 0|1] [--rl-iterations K] [--balance L]\n"
+            "       bench_scene fit --size N --points P [--threads T] [--reps R]\n");
+    return 1;
+}
+
+int main(int argc, char **argv)
+{
+    if (argc < 2) return usage();
+    args a = {.mode = argv[1], .size = 512, .points = 100, .threads = 2, .reps = 3, .fit = 1,
+              .rl = 1, .w = 1, .rl_iterations = 15, .balance = 1e-3};
+    for (int i = 2; i < argc; i++) {
+        const char *k = argv[i];
+        if (i + 1 >= argc) return usage();
+        const char *v = argv[++i];
+        if (!strcmp(k, "--size")) a.size = atoi(v);
+        else if (!strcmp(k, "--points")) a.points = atoi(v);
+        else if (!strcmp(k, "--threads")) a.threads = atoi(v);
+        else if (!strcmp(k, "--reps")) a.reps = atoi(v);
+        else if (!strcmp(k, "--fit")) a.fit = atoi(v);
+        else if (!strcmp(k, "--rl")) a.rl = atoi(v);
+        else if (!strcmp(k, "--w")) a.w = atoi(v);
+        else if (!strcmp(k, "--rl-iterations")) a.rl_iterations = atoi(v);
+        else if (!strcmp(k, "--balance")) a.balance = atof(v);
+        else return usage();
+    }
+    if (a.size < 64 || a.points < 12 || a.threads < 1 || a.reps < 1 || a.rl_iterations < 1 ||
+        !(a.balance >= 0))
+        return usage();
+    svp_set_threads(a.threads);
+    svp_set_fft_effort(SVP_FFT_ESTIMATE);
+    int rc;
+    if (!strcmp(a.mode, "cube")) rc = run_cube(&a);
+    else if (!strcmp(a.mode, "fit")) rc = run_fit(&a);
+    else rc = usage();
+    svp_fft_cleanup();
+    return rc;
+}
