@@ -508,8 +508,51 @@ static svp_status stage_emission(run_ctx *c)
 
 /* ---- operator ------------------------------------------------------------------------------ */
 
-static svp_status make_blur(const svp_scene *s, const scene_psf *p, int w, int h, svp_blur **out)
+/* Region-dependent PSF (psf.regions): labels from the shapes' coverage on the canvas or in the
+ * view (w x h tells which), a regions field, a tent operator on the scene's node grid. */
+static svp_status make_region_blur(run_ctx *c, const scene_psf *p, int w, int h, svp_blur **out)
 {
+    const svp_scene *s = c->s;
+    const int canvas = w == s->canvas_w && h == s->canvas_h;
+    const svp_image *cf = get(c, canvas ? "canvas_cover_flakes" : "cover_flakes");
+    const svp_image *cs = get(c, canvas ? "canvas_cover_strips" : "cover_strips");
+    if (!cf || !cs || cf->width != w || cf->height != h)
+        return svp_fail(SVP_ERR_INTERNAL, "%s: the shapes' coverage maps are missing", p->where);
+    const size_t n = (size_t)w * h;
+    int *labels = malloc(n * sizeof(int));
+    if (!labels) return svp_fail(SVP_ERR_NOMEM, "out of memory for a label image");
+    svp_psf psfs[5];
+    psfs[0] = p->psf;
+    for (int k = 0; k < p->n_regions; k++) psfs[k + 1] = p->region_psf[k];
+    for (size_t i = 0; i < n; i++) {
+        labels[i] = 0;
+        for (int k = 0; k < p->n_regions; k++) {
+            const double cov = p->region_under[k] == UNDER_FLAKES   ? cf->data[i]
+                               : p->region_under[k] == UNDER_STRIPS ? cs->data[i]
+                                                                    : cf->data[i] + cs->data[i];
+            if (cov >= 0.5) labels[i] = k + 1;
+        }
+    }
+    svp_psf_field *field = NULL;
+    svp_status st =
+        svp_psf_field_new_regions(w, h, labels, p->n_regions + 1, psfs, p->transition_px, &field);
+    free(labels);
+    if (st == SVP_OK) {
+        svp_variant_options o;
+        svp_variant_defaults(&o);
+        o.grid_x = p->nodes_x;
+        o.grid_y = p->nodes_y;
+        st = svp_blur_new_field(field, w, h, p->boundary, &o, out);
+    }
+    svp_psf_field_free(field);
+    if (st != SVP_OK) return svp_fail_context(st, "%s", p->where);
+    return SVP_OK;
+}
+
+static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, svp_blur **out)
+{
+    const svp_scene *s = c->s;
+    if (p->n_regions > 0) return make_region_blur(c, p, w, h, out);
     if (!p->from_file) return svp_blur_new(&p->psf, w, h, p->boundary, out);
     svp_psf_field *field = NULL;
     svp_status st = svp_psf_field_read(p->path, &field, NULL);
@@ -528,7 +571,7 @@ static svp_status make_blur(const svp_scene *s, const scene_psf *p, int w, int h
 
 static svp_status stage_operator(run_ctx *c)
 {
-    SVP_CHECK(make_blur(c->s, &c->s->psf, c->s->canvas_w, c->s->canvas_h, &c->blur));
+    SVP_CHECK(make_blur(c, &c->s->psf, c->s->canvas_w, c->s->canvas_h, &c->blur));
     SVP_CHECK(value(c, (double)svp_blur_memory(c->blur), "operator/memory_bytes"));
     return value(c, svp_blur_is_variant(c->blur), "operator/variant");
 }
@@ -893,10 +936,10 @@ static svp_status stage_correct(run_ctx *c, int k)
     const int w = s->view_w, h = s->view_h;
     svp_blur *own = NULL, *blur = NULL;
     if (cr->has_psf) {
-        SVP_CHECK(make_blur(s, &cr->psf, w, h, &own));
+        SVP_CHECK(make_blur(c, &cr->psf, w, h, &own));
         blur = own;
     } else {
-        if (!c->blur_view) SVP_CHECK(make_blur(s, &s->psf, w, h, &c->blur_view));
+        if (!c->blur_view) SVP_CHECK(make_blur(c, &s->psf, w, h, &c->blur_view));
         blur = c->blur_view;
     }
     svp_correct_options o;

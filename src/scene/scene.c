@@ -698,14 +698,92 @@ static svp_status parse_factors(struct svp_scene *s, const svp_yaml_node *list, 
 static const char *const model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
 static const char *const boundary_names[] = {"zero", "mirror", "periodic", NULL};
 
+/* psf.regions (area C): PSFs under shapes, the rest of `psf` being the PSF elsewhere:
+ *   regions: [{under: strips|flakes|sources, fwhm_um: .., beta: .., halo: ..}, ...]  (<= 4)
+ *   transition_um: blend width across region boundaries (default 0: sharp)
+ *   nodes: N or [NX, NY]: tent node grid of the space-variant operator (default 8)
+ * Each region takes the model, support and subsample of `psf`; fwhm_um is required, beta for
+ * moffat, halo defaults to 0. */
+static svp_status parse_psf_regions(struct svp_scene *s, const svp_yaml_node *p, const char *what,
+                                    const svp_psf *base, scene_psf *out, int n)
+{
+    static const char *const rkeys[] = {"under", "fwhm_um", "beta", "halo", NULL};
+    static const char *const unders[] = {"sources", "flakes", "strips", NULL};
+    const svp_yaml_node *r = svp_yaml_get(p, "regions");
+    char qn[128], rw[96];
+    out->nodes_x = out->nodes_y = 8;
+    if (!r) {
+        if (svp_yaml_get(p, "transition_um") || svp_yaml_get(p, "nodes"))
+            return svp_yaml_fail(p, SVP_ERR_FORMAT,
+                                 "%s: 'transition_um' and 'nodes' apply only with 'regions'", what);
+        return SVP_OK;
+    }
+    const size_t nr = svp_yaml_size(r);
+    if (svp_yaml_type_of(r) != SVP_YAML_SEQUENCE || nr < 1 || nr > 4)
+        return svp_yaml_fail(r, SVP_ERR_FORMAT, "%s: a list of 1 to 4 regions",
+                             qname(qn, sizeof qn, what, "regions"));
+    for (size_t k = 0; k < nr; k++) {
+        const svp_yaml_node *e = svp_yaml_item(r, k);
+        snprintf(rw, sizeof rw, "%s.regions[%zu]", what, k);
+        SVP_CHECK(check_keys(e, rw, rkeys));
+        int under = 0;
+        SVP_CHECK(get_choice(e, rw, "under", unders, &under, 1));
+        out->region_under[k] = (scene_under)under;
+        svp_psf q = *base;
+        double fwhm_um = 0;
+        SVP_CHECK(get_num(e, rw, "fwhm_um", 0, INFINITY, SVP_YAML_OPEN_LO, &fwhm_um, 1));
+        q.fwhm = fwhm_um / s->pixel_um;
+        q.halo = 0;
+        SVP_CHECK(get_num(e, rw, "halo", 0, 1, SVP_YAML_OPEN_HI, &q.halo, 0));
+        if (base->model == SVP_PSF_MOFFAT)
+            SVP_CHECK(get_num(e, rw, "beta", 0, INFINITY, SVP_YAML_OPEN_LO, &q.beta, 1));
+        else if (svp_yaml_get(e, "beta"))
+            return svp_yaml_fail(svp_yaml_get(e, "beta"), SVP_ERR_INVALID,
+                                 "%s.beta: only a moffat PSF takes beta", rw);
+        svp_status st = svp_psf_validate(&q);
+        if (st != SVP_OK) return svp_yaml_fail(e, st, "%s: %s", rw, svp_last_error());
+        out->region_psf[k] = q;
+        if (n > 0 && (size_t)n < sizeof out->describe)
+            n += snprintf(out->describe + n, sizeof out->describe - (size_t)n,
+                          "; under %s FWHM %g um", unders[under], fwhm_um);
+        if (base->model == SVP_PSF_MOFFAT && n > 0 && (size_t)n < sizeof out->describe)
+            n += snprintf(out->describe + n, sizeof out->describe - (size_t)n, " beta %g", q.beta);
+    }
+    out->n_regions = (int)nr;
+    double t_um = 0;
+    SVP_CHECK(get_num(p, what, "transition_um", 0, INFINITY, 0, &t_um, 0));
+    out->transition_px = t_um / s->pixel_um;
+    const svp_yaml_node *nn = svp_yaml_get(p, "nodes");
+    if (nn) {
+        double g[2];
+        size_t got = 0;
+        if (svp_yaml_type_of(nn) == SVP_YAML_SEQUENCE)
+            SVP_CHECK(svp_yaml_number_list(nn, qname(qn, sizeof qn, what, "nodes"), 2, 2, g, &got));
+        else {
+            SVP_CHECK(svp_yaml_number(nn, qname(qn, sizeof qn, what, "nodes"), &g[0]));
+            g[1] = g[0];
+        }
+        for (int a = 0; a < 2; a++)
+            if (!(g[a] >= 1 && g[a] <= 64 && g[a] == floor(g[a])))
+                return svp_yaml_fail(nn, SVP_ERR_INVALID, "%s: node counts are integers in 1..64",
+                                     qn);
+        out->nodes_x = (int)g[0];
+        out->nodes_y = (int)g[1];
+    }
+    if (n > 0 && (size_t)n < sizeof out->describe)
+        snprintf(out->describe + n, sizeof out->describe - (size_t)n, "; %d x %d nodes",
+                 out->nodes_x, out->nodes_y);
+    return SVP_OK;
+}
+
 /* want_w x want_h: the size a PSF map must have (the canvas for the simulation, the view for
  * a correction). */
 static svp_status parse_psf(struct svp_scene *s, const svp_yaml_node *p, const char *what,
                             int want_w, int want_h, scene_psf *out)
 {
-    static const char *const keys[] = {"model",         "fwhm_um",   "beta",       "halo",
-                                       "fwhm_minor_um", "angle_deg", "support_um", "subsample",
-                                       "boundary",      "file",      NULL};
+    static const char *const keys[] = {
+        "model",     "fwhm_um",  "beta", "halo",    "fwhm_minor_um", "angle_deg", "support_um",
+        "subsample", "boundary", "file", "regions", "transition_um", "nodes",     NULL};
     SVP_CHECK(check_keys(p, what, keys));
     where_of(p, out->where);
     int boundary = 0;
@@ -801,9 +879,9 @@ static svp_status parse_psf(struct svp_scene *s, const svp_yaml_node *p, const c
     if (q.halo > 0 && n > 0 && (size_t)n < sizeof out->describe)
         n += snprintf(out->describe + n, sizeof out->describe - (size_t)n, " halo %g", q.halo);
     if (q.fwhm_minor > 0 && n > 0 && (size_t)n < sizeof out->describe)
-        snprintf(out->describe + n, sizeof out->describe - (size_t)n, " minor %g um %g deg",
-                 minor_um, angle_deg);
-    return SVP_OK;
+        n += snprintf(out->describe + n, sizeof out->describe - (size_t)n, " minor %g um %g deg",
+                      minor_um, angle_deg);
+    return parse_psf_regions(s, p, what, &q, out, n);
 }
 
 /* ---- effects -------------------------------------------------------------------------------- */
@@ -1465,6 +1543,12 @@ svp_status scene_compile_plan(struct svp_scene *s)
     SVP_CHECK(add_stage(s, "emission", "true PL = %s", s->n_emission ? buf : "uniform 1"));
     if (s->psf.from_file)
         SVP_CHECK(add_stage(s, "operator", "%s, %s boundary", s->psf.describe,
+                            boundary_names[s->psf.boundary]));
+    else if (s->psf.n_regions > 0)
+        SVP_CHECK(add_stage(s, "operator",
+                            "space-variant: region PSFs (%s) blended over %g px, tent "
+                            "overlap-add on %d x %d, %s boundary",
+                            s->psf.describe, s->psf.transition_px, s->canvas_w, s->canvas_h,
                             boundary_names[s->psf.boundary]));
     else
         SVP_CHECK(add_stage(s, "operator",

@@ -92,6 +92,14 @@ typedef struct scene_psf {
     svp_boundary boundary;
     char where[SCENE_WHERE];
     char describe[160]; /* "lorentzian FWHM 1 um" */
+    /* region-dependent PSF (psf.regions, area C): label k + 1 = pixels under region_under[k]
+     * (coverage >= 0.5, later regions win), label 0 = `psf`; built at run time as a regions
+     * field blended over transition_px and a tent operator on nodes_x x nodes_y nodes */
+    int n_regions;
+    svp_psf region_psf[4];
+    scene_under region_under[4];
+    double transition_px;
+    int nodes_x, nodes_y;
 } scene_psf;
 
 typedef struct scene_correct {
