@@ -1378,8 +1378,10 @@ typedef struct svp_odmr_fit_options {
 } svp_odmr_fit_options;
 
 SVP_API void svp_odmr_fit_defaults(svp_odmr_fit_options *options);
-/* The per-pixel Lorentzian fit: least squares (unit weights, LM of svp_lm_solve with an
- * analytic Jacobian) of I(ω) = b [1 − C (L(ω; D + γB, Γ) + L(ω; D − γB, Γ))] over θ = (b, C,
+/* The per-pixel Lorentzian fit: least squares (unit weights; a dedicated 4-parameter
+ * Levenberg–Marquardt with an analytic Jacobian and a 4 x 4 Cholesky, stopping on
+ * options->lm's xtol / ftol / gtol / max_iterations; where it does not converge, svp_lm_solve
+ * from the same start) of I(ω) = b [1 − C (L(ω; D + γB, Γ) + L(ω; D − γB, Γ))] over θ = (b, C,
  * B, Γ), D and γ fixed from odmr, C in [0, 1], Γ > 0; started at the end-frames baseline, the
  * deepest point of the spectrum smoothed over ~Γ, odmr->linewidth_hz and the contrast from the
  * dip area. field = |B| (T);

@@ -256,6 +256,174 @@ static int odmr_model(void *user, const double *th, int n_params, int n_points, 
     return 0;
 }
 
+/* A dedicated Levenberg–Marquardt for the 4-parameter model above (the generic svp_lm_solve
+ * pays per pixel for what a 4 x 4 problem does not need: QR factorisations through LAPACKE,
+ * a covariance, function pointers). Internal parameters are scaled to order one:
+ * q = (b / b0, C, γB / Γ0, Γ / Γ0) with b0 the starting baseline and Γ0 the nominal linewidth.
+ * Each trial point is evaluated once, with its Jacobian, JᵀJ and Jᵀr accumulated in the same
+ * pass, so an accepted step needs no second evaluation. The damped normal equations
+ * (A + λ diag A) δ = Jᵀr are solved in Jacobi-scaled form by a 4 x 4 Cholesky. Steps keep
+ * C in [0, 1]; a step to Γ <= 0 is rejected (λ grows). Stops on an accepted step when
+ * max_j |δ_j| / (|q_j| + 1e-3) <= xtol, or when the actual and predicted relative decreases of
+ * χ² are both <= ftol, or χ² reaches round-off; returns 0 then, 1 when it ran out of iterations
+ * or damping (the caller falls back to svp_lm_solve). */
+typedef struct odmr_fast {
+    const double *freq, *y;
+    int n;
+    double D, gamma, b0, g0;
+} odmr_fast;
+
+/* χ², A = JᵀJ (upper triangle, 10 values), v = Jᵀr at q; 1 when q is outside the model */
+static int odmr_fast_eval(const odmr_fast *o, const double q[4], double *chi2, double A[10],
+                          double v[4])
+{
+    const double b = q[0] * o->b0, C = q[1], split = q[2] * o->g0, g = 0.5 * q[3] * o->g0;
+    if (!(g > 0)) return 1;
+    const double g2 = g * g, off = o->D;
+    /* derivatives with respect to the scaled parameters: ∂/∂q0 = b0 ∂/∂b, ∂/∂q2 = Γ0 ∂/∂split,
+     * ∂/∂q3 = (Γ0 / 2) ∂/∂g */
+    const double s0 = o->b0, s2 = o->g0, s3 = 0.5 * o->g0;
+    double c2 = 0, a00 = 0, a01 = 0, a02 = 0, a03 = 0, a11 = 0, a12 = 0, a13 = 0, a22 = 0,
+           a23 = 0, a33 = 0, v0 = 0, v1 = 0, v2 = 0, v3 = 0;
+    for (int i = 0; i < o->n; i++) {
+        const double up = o->freq[i] - off - split, um = o->freq[i] - off + split;
+        const double ip = 1 / (up * up + g2), im = 1 / (um * um + g2);
+        const double lp = g2 * ip, lm = g2 * im, S = lp + lm;
+        const double r = o->y[i] - b * (1 - C * S);
+        /* ∂L/∂u = −2 u g² / (u² + g²)², ∂L/∂g = 2 g u² / (u² + g²)² */
+        const double dlp = -2 * up * lp * ip, dlm = -2 * um * lm * im;
+        const double glp = 2 * g * up * up * ip * ip, glm = 2 * g * um * um * im * im;
+        const double j0 = s0 * (1 - C * S);
+        const double j1 = -b * S;
+        const double j2 = s2 * b * C * (dlp - dlm);
+        const double j3 = -s3 * b * C * (glp + glm);
+        c2 += r * r;
+        a00 += j0 * j0;
+        a01 += j0 * j1;
+        a02 += j0 * j2;
+        a03 += j0 * j3;
+        a11 += j1 * j1;
+        a12 += j1 * j2;
+        a13 += j1 * j3;
+        a22 += j2 * j2;
+        a23 += j2 * j3;
+        a33 += j3 * j3;
+        v0 += j0 * r;
+        v1 += j1 * r;
+        v2 += j2 * r;
+        v3 += j3 * r;
+    }
+    *chi2 = c2;
+    A[0] = a00, A[1] = a01, A[2] = a02, A[3] = a03, A[4] = a11, A[5] = a12, A[6] = a13,
+    A[7] = a22, A[8] = a23, A[9] = a33;
+    v[0] = v0, v[1] = v1, v[2] = v2, v[3] = v3;
+    return !isfinite(c2);
+}
+
+/* Solves (A + λ diag A) δ = v in Jacobi-scaled form; 1 when not positive definite */
+static int odmr_fast_solve(const double A[10], const double v[4], double lambda, double d[4])
+{
+    static const int idx[4][4] = {{0, 1, 2, 3}, {1, 4, 5, 6}, {2, 5, 7, 8}, {3, 6, 8, 9}};
+    double sc[4], M[4][4], z[4];
+    for (int i = 0; i < 4; i++) {
+        double a = A[idx[i][i]];
+        sc[i] = a > 0 ? 1 / sqrt(a) : 0;
+    }
+    for (int i = 0; i < 4; i++)
+        for (int j = 0; j < 4; j++) M[i][j] = A[idx[i][j]] * sc[i] * sc[j];
+    for (int i = 0; i < 4; i++) M[i][i] = (sc[i] > 0 ? 1 : 0) * (1 + lambda) + (sc[i] > 0 ? 0 : 1);
+    /* Cholesky M = L Lᵀ in place (lower) */
+    for (int j = 0; j < 4; j++) {
+        double dsum = M[j][j];
+        for (int k = 0; k < j; k++) dsum -= M[j][k] * M[j][k];
+        if (!(dsum > 1e-300)) return 1;
+        M[j][j] = sqrt(dsum);
+        for (int i = j + 1; i < 4; i++) {
+            double t = M[i][j];
+            for (int k = 0; k < j; k++) t -= M[i][k] * M[j][k];
+            M[i][j] = t / M[j][j];
+        }
+    }
+    for (int i = 0; i < 4; i++) {
+        double t = v[i] * sc[i];
+        for (int k = 0; k < i; k++) t -= M[i][k] * z[k];
+        z[i] = t / M[i][i];
+    }
+    for (int i = 3; i >= 0; i--) {
+        double t = z[i];
+        for (int k = i + 1; k < 4; k++) t -= M[k][i] * z[k];
+        z[i] = t / M[i][i];
+    }
+    for (int i = 0; i < 4; i++) d[i] = z[i] * sc[i];
+    return 0;
+}
+
+/* th (b, C, B, Γ) in/out; 0 on convergence */
+static int odmr_fast_fit(const odmr_fast *o, const svp_lm_options *opt, double th[4])
+{
+    double q[4] = {th[0] / o->b0, th[1], o->gamma * th[2] / o->g0, th[3] / o->g0};
+    double chi2, A[10], v[4];
+    if (odmr_fast_eval(o, q, &chi2, A, v)) return 1;
+    double sy = 0;
+    for (int i = 0; i < o->n; i++) sy += o->y[i] * o->y[i];
+    double lambda = opt->lambda_init > 0 ? opt->lambda_init : 1e-3;
+    int accepted = 0, converged = 0;
+    while (accepted < opt->max_iterations && !converged) {
+        if (chi2 <= 1e-28 * sy) {
+            converged = 1;
+            break;
+        }
+        double d[4], qt[4], chi2t, At[10], vt[4];
+        if (odmr_fast_solve(A, v, lambda, d)) {
+            lambda *= 10;
+            if (lambda > 1e16) break;
+            continue;
+        }
+        for (int j = 0; j < 4; j++) qt[j] = q[j] + d[j];
+        qt[1] = fmin(fmax(qt[1], 0), 1);
+        if (odmr_fast_eval(o, qt, &chi2t, At, vt) || !(chi2t < chi2)) {
+            lambda *= 10;
+            if (lambda > 1e16) {
+                /* no decrease at any damping: the minimum to round-off when the gradient
+                 * vanishes there (as svp_lm_solve's gtol) */
+                double gmax = 0;
+                static const int dg[4] = {0, 4, 7, 9};
+                for (int j = 0; j < 4; j++)
+                    if (A[dg[j]] > 0 && chi2 > 0)
+                        gmax = fmax(gmax, fabs(v[j]) / sqrt(A[dg[j]] * chi2));
+                converged = gmax <= opt->gtol;
+                break;
+            }
+            continue;
+        }
+        /* predicted decrease of the linear model: 2 δᵀv − δᵀAδ (actual δ after clamping) */
+        double dd[4], Ad[4];
+        for (int j = 0; j < 4; j++) dd[j] = qt[j] - q[j];
+        static const int idx[4][4] = {{0, 1, 2, 3}, {1, 4, 5, 6}, {2, 5, 7, 8}, {3, 6, 8, 9}};
+        double pred = 0, step = 0;
+        for (int i = 0; i < 4; i++) {
+            Ad[i] = 0;
+            for (int j = 0; j < 4; j++) Ad[i] += A[idx[i][j]] * dd[j];
+            pred += 2 * dd[i] * v[i] - dd[i] * Ad[i];
+            step = fmax(step, fabs(dd[i]) / (fabs(qt[i]) + 1e-3));
+        }
+        double actual = (chi2 - chi2t) / chi2;
+        pred /= chi2;
+        memcpy(q, qt, sizeof q);
+        memcpy(A, At, sizeof A);
+        memcpy(v, vt, sizeof v);
+        chi2 = chi2t;
+        accepted++;
+        lambda = fmax(lambda * 0.1, 1e-12);
+        if (step <= opt->xtol || (actual <= opt->ftol && fabs(pred) <= opt->ftol)) converged = 1;
+    }
+    th[0] = q[0] * o->b0;
+    th[1] = q[1];
+    th[2] = q[2] * o->g0 / o->gamma;
+    th[3] = q[3] * o->g0;
+    return !converged;
+}
+
 svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
                         const svp_odmr_fit_options *options, svp_image *field,
                         svp_image *contrast, svp_image *baseline, svp_image *linewidth,
@@ -336,8 +504,16 @@ svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
             th[2] = fmax(th[2], 0.25 * odmr->linewidth_hz / gamma);
             th[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * th[3])) : 0.01;
             if (!(th[1] > 1e-6)) th[1] = 1e-6;
-            svp_lm_result res;
-            svp_status st = svp_lm_solve(ws, &prob, &options->lm, th, &res, NULL);
+            svp_status st = SVP_OK;
+            double th0[4] = {th[0], th[1], th[2], th[3]};
+            const odmr_fast fo = {.freq = cube->freq, .y = y, .n = nf, .D = D, .gamma = gamma,
+                                  .b0 = b0 > 0 ? b0 : 1, .g0 = odmr->linewidth_hz};
+            if (!(b0 > 0) || odmr_fast_fit(&fo, &options->lm, th)) {
+                /* the generic solver from the same start (LAPACKE; its failure is counted) */
+                svp_lm_result res;
+                memcpy(th, th0, sizeof th0);
+                st = svp_lm_solve(ws, &prob, &options->lm, th, &res, NULL);
+            }
             if (st != SVP_OK) {
                 failed++;
                 if (st != SVP_ERR_NUMERIC) {
