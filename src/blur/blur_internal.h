@@ -66,6 +66,9 @@ struct svp_blur {
     svp_frame frame;
     double *work_r;       /* ny * nx */
     fftw_complex *work_c; /* ny * ncx */
+    /* Invariant zero-boundary operators whose frame has more rows than the image: transforms
+     * pruned to the image's rows (NULL otherwise: full transforms of frame.plan). */
+    const svp_fft_pruned *pruned;
     /* Space-variant kinds only (NULL otherwise). For them kernel / psf / halo / has_model
      * describe the PSF at the image centre (for solvers that need one invariant stand-in,
      * e.g. the CG preconditioner), and frame holds the shared geometry without an OTF. */
@@ -77,7 +80,17 @@ struct svp_blur {
      * wiener_balance, ny x ncx, NULL until first used; freed with the operator. */
     double *wiener_filter;
     double wiener_balance;
+    int wiener_steps; /* CG steps and FFT pairs (at frame size) of the last zero-boundary */
+    int wiener_pairs; /* Wiener solve, for benchmarks and tests */
 };
+
+/* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
+ * (adjoint_side 0) or Cᵀ (1) — the same plain copy with zero padding in zero mode — with the
+ * pruned transform when b->pruned is set; and back: image = C (0) or Eᵀ (1) of the inverse
+ * transform of b->work_c (destroyed), unscaled. H x = C K E x is spectrum_in(x, 0), multiply by
+ * the OTF / (nx ny), spectrum_out(.., 0) (plus the halo). */
+void svp_blur_spectrum_in(svp_blur *b, const double *restrict image, int adjoint_side);
+void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
 
 /* Dispatch targets of svp_blur_apply / _adjoint / _free / _memory for kind != INVARIANT
  * (variant.c; it forwards SVP_BLUR_EXACT to the svp_exact_* functions of exact.c). Image

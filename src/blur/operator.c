@@ -202,6 +202,9 @@ static svp_status blur_finish(svp_blur *b, svp_blur **out)
     int ry = b->kernel->height - 1 - b->kcy > b->kcy ? b->kernel->height - 1 - b->kcy : b->kcy;
     svp_status st = svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary);
     if (st == SVP_OK) st = svp_frame_set_kernel(&b->frame, b->kernel, b->kcx, b->kcy, b->boundary);
+    /* zero mode: the image fills only the first height rows of the frame */
+    if (st == SVP_OK && b->boundary == SVP_BOUNDARY_ZERO && b->frame.ny > b->height)
+        st = svp_fft_pruned_get(b->frame.ny, b->frame.nx, b->height, &b->pruned);
     if (st == SVP_OK) {
         b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
         b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
@@ -350,16 +353,61 @@ static void add_halo(const svp_blur *b, const double *in, double *out)
     for (size_t i = 0; i < n; i++) out[i] = keep * out[i] + add;
 }
 
+/* Zero mode: rows 0 .. height − 1 of the frame = the image rows, zero-padded to nx. With the
+ * pruned transform the other rows are never read; without it they are zeroed here. */
+static void zero_load(const svp_blur *b, const double *restrict image, double *restrict frame)
+{
+    const svp_frame *f = &b->frame;
+    const int w = f->width, nx = f->nx, rows = b->pruned ? f->height : f->ny;
+#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
+    for (int j = 0; j < rows; j++) {
+        double *out = frame + (size_t)j * nx;
+        if (j < f->height) {
+            memcpy(out, image + (size_t)j * w, (size_t)w * sizeof(double));
+            memset(out + w, 0, (size_t)(nx - w) * sizeof(double));
+        } else {
+            memset(out, 0, (size_t)nx * sizeof(double));
+        }
+    }
+}
+
+void svp_blur_spectrum_in(svp_blur *b, const double *restrict image, int adjoint_side)
+{
+    const svp_frame *f = &b->frame;
+    if (b->boundary == SVP_BOUNDARY_ZERO)
+        zero_load(b, image, b->work_r); /* E and Cᵀ coincide: src = identity, off = 0 */
+    else if (adjoint_side)
+        svp_frame_embed(f, image, b->work_r);
+    else
+        svp_frame_extend(f, image, b->work_r);
+    if (b->pruned)
+        svp_fft_forward_pruned(b->pruned, b->work_r, b->work_c);
+    else
+        svp_fft_forward(f->plan, b->work_r, b->work_c);
+}
+
+void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side)
+{
+    const svp_frame *f = &b->frame;
+    if (b->pruned)
+        svp_fft_inverse_pruned_unscaled(b->pruned, b->work_c, b->work_r);
+    else
+        svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
+    /* zero mode: Eᵀ is the crop (every image pixel has exactly one copy, at its own place) */
+    if (adjoint_side && b->boundary != SVP_BOUNDARY_ZERO)
+        svp_frame_fold(f, b->work_r, image);
+    else
+        svp_frame_crop(f, b->work_r, image);
+}
+
 svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
 {
     SVP_CHECK(check_io(b, x, y, "svp_blur_apply"));
     if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_apply(b, x->data, y->data);
     svp_frame *f = &b->frame;
-    svp_frame_extend(f, x->data, b->work_r);
-    svp_fft_forward(f->plan, b->work_r, b->work_c);
+    svp_blur_spectrum_in(b, x->data, 0);
     svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
-    svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
-    svp_frame_crop(f, b->work_r, y->data);
+    svp_blur_spectrum_out(b, y->data, 0);
     add_halo(b, x->data, y->data);
     return SVP_OK;
 }
@@ -369,11 +417,9 @@ svp_status svp_blur_adjoint(svp_blur *b, const svp_image *y, svp_image *x)
     SVP_CHECK(check_io(b, y, x, "svp_blur_adjoint"));
     if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_adjoint(b, y->data, x->data);
     svp_frame *f = &b->frame;
-    svp_frame_embed(f, y->data, b->work_r);
-    svp_fft_forward(f->plan, b->work_r, b->work_c);
+    svp_blur_spectrum_in(b, y->data, 1);
     svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
-    svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
-    svp_frame_fold(f, b->work_r, x->data);
+    svp_blur_spectrum_out(b, x->data, 1);
     add_halo(b, y->data, x->data);
     return SVP_OK;
 }

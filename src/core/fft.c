@@ -152,9 +152,106 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
     fftw_execute_dft_c2r(plan->c2r, in, out);
 }
 
+typedef struct pruned_entry {
+    svp_fft_pruned plan;
+    int threads;
+    struct pruned_entry *next;
+} pruned_entry;
+static pruned_entry *pruned_cache;
+
+static void pruned_destroy(svp_fft_pruned *p)
+{
+    if (p->rows_r2c) fftw_destroy_plan(p->rows_r2c);
+    if (p->cols_fwd) fftw_destroy_plan(p->cols_fwd);
+    if (p->cols_bwd) fftw_destroy_plan(p->cols_bwd);
+    if (p->rows_c2r) fftw_destroy_plan(p->rows_c2r);
+}
+
+svp_status svp_fft_pruned_get(int ny, int nx, int rows, const svp_fft_pruned **out)
+{
+    if (ny < 1 || nx < 1 || rows < 1 || rows > ny)
+        return svp_fail(SVP_ERR_INVALID, "pruned FFT size %d x %d with %d rows", ny, nx, rows);
+    pthread_once(&fft_once, fft_init);
+    int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();
+    pthread_mutex_lock(&fft_lock);
+    for (pruned_entry *e = pruned_cache; e; e = e->next) {
+        if (e->plan.ny == ny && e->plan.nx == nx && e->plan.rows == rows && e->threads == threads) {
+            *out = &e->plan;
+            pthread_mutex_unlock(&fft_lock);
+            return SVP_OK;
+        }
+    }
+    svp_status status = SVP_OK;
+    int ncx = nx / 2 + 1;
+    double *r = svp_alloc((size_t)ny * nx * sizeof(double));
+    fftw_complex *c = svp_alloc((size_t)ny * ncx * sizeof(fftw_complex));
+    pruned_entry *e = calloc(1, sizeof *e);
+    if (!r || !c || !e) {
+        status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d FFT", ny, nx);
+        goto cleanup;
+    }
+    if (fft_threads_ok) fftw_plan_with_nthreads(threads);
+    unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);
+    svp_fft_pruned *p = &e->plan;
+    p->ny = ny;
+    p->nx = nx;
+    p->ncx = ncx;
+    p->rows = rows;
+    e->threads = threads;
+    p->rows_r2c = fftw_plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx, flags);
+    p->cols_fwd = fftw_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1, FFTW_FORWARD,
+                                     flags);
+    p->cols_bwd = fftw_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,
+                                     FFTW_BACKWARD, flags);
+    p->rows_c2r = fftw_plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx, flags);
+    if (!p->rows_r2c || !p->cols_fwd || !p->cols_bwd || !p->rows_c2r) {
+        pruned_destroy(p);
+        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a pruned %d x %d transform", ny,
+                          nx);
+        goto cleanup;
+    }
+    e->next = pruned_cache;
+    pruned_cache = e;
+    *out = p;
+    e = NULL;
+cleanup:
+    pthread_mutex_unlock(&fft_lock);
+    free(e);
+    svp_free(r);
+    svp_free(c);
+    return status;
+}
+
+void svp_fft_forward_pruned(const svp_fft_pruned *p, double *in, fftw_complex *out)
+{
+    fftw_execute_dft_r2c(p->rows_r2c, in, out);
+    const size_t start = (size_t)p->rows * p->ncx, n = (size_t)p->ny * p->ncx - start;
+    if (n > SVP_PARALLEL_MIN) {
+        const int ny = p->ny, ncx = p->ncx;
+#pragma omp parallel for schedule(static)
+        for (int j = p->rows; j < ny; j++)
+            memset(out + (size_t)j * ncx, 0, (size_t)ncx * sizeof(fftw_complex));
+    } else {
+        memset(out + start, 0, n * sizeof(fftw_complex));
+    }
+    fftw_execute_dft(p->cols_fwd, out, out);
+}
+
+void svp_fft_inverse_pruned_unscaled(const svp_fft_pruned *p, fftw_complex *in, double *out)
+{
+    fftw_execute_dft(p->cols_bwd, in, in);
+    fftw_execute_dft_c2r(p->rows_c2r, in, out);
+}
+
 void svp_fft_cleanup(void)
 {
     pthread_mutex_lock(&fft_lock);
+    while (pruned_cache) {
+        pruned_entry *next = pruned_cache->next;
+        pruned_destroy(&pruned_cache->plan);
+        free(pruned_cache);
+        pruned_cache = next;
+    }
     while (plan_cache) {
         plan_entry *next = plan_cache->next;
         fftw_destroy_plan(plan_cache->plan.r2c);

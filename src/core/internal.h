@@ -59,6 +59,25 @@ void svp_fft_forward(const svp_fft_plan *plan, double *in, fftw_complex *out);
 void svp_fft_inverse(const svp_fft_plan *plan, fftw_complex *in, double *out);
 /* The same without the 1/(ny nx) scaling (fold it into a spectral product instead). */
 void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double *out);
+/* Pruned real 2-D transforms for zero-padded frames whose input is non-zero only in its first
+ * `rows` rows and whose output is needed only there: the r2c transforms those rows then every
+ * column, the c2r every column then those rows (the other rows are skipped, not computed:
+ * (ny − rows) / (2 ny) of the work, a quarter when rows = ny / 2). Cached like svp_fft_plan. */
+typedef struct svp_fft_pruned {
+    int ny, nx, ncx, rows;
+    fftw_plan rows_r2c; /* rows x nx real → rows x ncx complex (row-major, dist nx / ncx) */
+    fftw_plan cols_fwd; /* in place on ny x ncx complex, along y */
+    fftw_plan cols_bwd;
+    fftw_plan rows_c2r; /* rows x ncx complex → rows x nx real (destroys its input) */
+} svp_fft_pruned;
+
+svp_status svp_fft_pruned_get(int ny, int nx, int rows, const svp_fft_pruned **out);
+/* out (ny x ncx) = r2c of in (ny x nx, only rows 0 .. rows − 1 are read: the rest is taken
+ * as zero). */
+void svp_fft_forward_pruned(const svp_fft_pruned *p, double *in, fftw_complex *out);
+/* Rows 0 .. rows − 1 of the unnormalised c2r of in (destroyed) into out; out's other rows are
+ * left as they were. */
+void svp_fft_inverse_pruned_unscaled(const svp_fft_pruned *p, fftw_complex *in, double *out);
 /* Frees every cached plan (tests and tools at exit). */
 void svp_fft_cleanup(void);
 

@@ -372,13 +372,11 @@ static void zero_precondition(svp_blur *blur, const double *filter, const double
 {
     const svp_frame *f = &blur->frame;
     const size_t nc = (size_t)f->ny * f->ncx;
-    svp_frame_embed(f, in, blur->work_r);
-    svp_fft_forward(f->plan, blur->work_r, blur->work_c);
+    svp_blur_spectrum_in(blur, in, 1);
     fftw_complex *restrict c = blur->work_c;
 #pragma omp parallel for schedule(static) if (nc > SVP_PARALLEL_MIN / 2)
     for (size_t k = 0; k < nc; k++) c[k] *= filter[k];
-    svp_fft_inverse_unscaled(f->plan, blur->work_c, blur->work_r);
-    svp_frame_crop(f, blur->work_r, out);
+    svp_blur_spectrum_out(blur, out, 0);
 }
 
 /* Σ a b, in a fixed order whatever the thread count (prod: n scratch values). */
@@ -390,7 +388,7 @@ static double dot_det(const double *a, const double *b, double *prod, size_t n)
 }
 
 static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_missing,
-                              double balance, double *restrict x_data, int *iterations)
+                              double balance, double *restrict x_data)
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
@@ -409,9 +407,10 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
     if ((st = svp_blur_adjoint(blur, &img_t1, &img_r)) != SVP_OK) goto cleanup;
     memset(x_data, 0, n * sizeof(double));
     const double rhs_norm = sqrt(dot_det(r, r, prod, n));
-    int it = 0;
+    int it = 0, pairs = 1;
     if (rhs_norm > 0 && isfinite(rhs_norm)) {
         zero_precondition(blur, filter, r, z);
+        pairs++;
         memcpy(p, z, n * sizeof(double));
         double rz = dot_det(r, z, prod, n);
         for (it = 0; it < ZERO_CG_MAX; it++) {
@@ -423,6 +422,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
                     if (!isfinite(y_data[i])) t1[i] = 0.0;
             }
             if ((st = svp_blur_adjoint(blur, &img_t1, &img_ap)) != SVP_OK) goto cleanup;
+            pairs += 2;
             if (balance > 0) {
                 laplacian_neumann(w, h, p, t1);
                 laplacian_neumann(w, h, t1, t2);
@@ -442,6 +442,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
                 break;
             }
             zero_precondition(blur, filter, r, z);
+            pairs++;
             const double rz_new = dot_det(r, z, prod, n);
             const double beta = rz_new / rz;
             rz = rz_new;
@@ -452,7 +453,8 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
     for (size_t i = 0; i < n; i++)
         if (!isfinite(x_data[i])) x_data[i] = 0.0;
-    if (iterations) *iterations = it;
+    blur->wiener_steps = it;
+    blur->wiener_pairs = pairs;
 cleanup:
     svp_free(buf);
     return st;
@@ -483,7 +485,7 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
     svp_status st = SVP_OK;
     double *filled = NULL;
     if (blur->boundary == SVP_BOUNDARY_ZERO) {
-        st = wiener_zero(blur, y->data, n_missing, options->balance, x->data, NULL);
+        st = wiener_zero(blur, y->data, n_missing, options->balance, x->data);
     } else {
         if (n_missing > 0) {
             filled = svp_alloc(n * sizeof(double));

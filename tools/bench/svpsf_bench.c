@@ -7,8 +7,9 @@
  *   svpsf_bench skimage  --size N ...  the same for the scikit-image compatibility mode
  *       (svp_skimage_richardson_lucy with the (2N−1)² kernel)
  *   svpsf_bench inverse  --size N ...  T⁻¹ (R&W, 75 RL iterations) on an N² map vs the FFT
- *       bound of the transforms it needs: 75 × 2 pairs for RL on Ĩ plus the Wiener's FFTs
- *       (OTF r2c + data r2c + c2r on its mirror frame)
+ *       bound of the transforms it needs, all at the operator's padded frame: 1 + 75 × 2 pairs
+ *       for RL on Ĩ (Hᵀ1, then H and Hᵀ per iteration) plus the pairs the zero-boundary Wiener
+ *       on B̃Ĩ used (1 + 3 per CG step: H, Hᵀ and the preconditioner, counted by the library)
  *   svpsf_bench export   --size N --out DIR   writes DIR/image.npy and DIR/psf.npy (float64),
  *       the very input and kernel of `rl`, for tools/bench/skimage_rl.py
  *
@@ -320,7 +321,8 @@ static int bench_inverse(const bench_args *a)
     svp_psf psf = bench_psf();
     svp_blur *blur = NULL;
     svp_image *pl = bench_pl(n), *field = bench_field(n);
-    svp_image *pl_app = NULL, *field_app = NULL, *pl_rec = NULL, *field_rec = NULL, *valid = NULL;
+    svp_image *pl_app = NULL, *field_app = NULL, *pl_rec = NULL, *field_rec = NULL, *valid = NULL,
+              *product = NULL;
     double *total = malloc((size_t)a->reps * sizeof(double));
     double *t_rl = malloc((size_t)a->reps * sizeof(double));
     double *t_wiener = malloc((size_t)a->reps * sizeof(double));
@@ -338,7 +340,8 @@ static int bench_inverse(const bench_args *a)
         (st = svp_image_new(n, n, &field_app)) != SVP_OK ||
         (st = svp_image_new(n, n, &pl_rec)) != SVP_OK ||
         (st = svp_image_new(n, n, &field_rec)) != SVP_OK ||
-        (st = svp_image_new(n, n, &valid)) != SVP_OK) {
+        (st = svp_image_new(n, n, &valid)) != SVP_OK ||
+        (st = svp_image_new(n, n, &product)) != SVP_OK) {
         rc = fail("allocation", st);
         goto cleanup;
     }
@@ -355,7 +358,7 @@ static int bench_inverse(const bench_args *a)
     const svp_image *apparent[1] = {field_app};
     svp_image *recovered[1] = {field_rec};
     size_t n_missing = 0;
-    /* untimed warm-up: the Wiener's mirror-frame plan */
+    /* untimed warm-up (pruned plans, page faults) */
     if ((st = svp_inverse_transform(blur, pl_app, apparent, 1, &o, pl_rec, recovered, valid,
                                     &n_missing)) != SVP_OK) {
         rc = fail("svp_inverse_transform", st);
@@ -369,7 +372,24 @@ static int bench_inverse(const bench_args *a)
         if (pl->data[i] > 0.1 * pl_max && fabs(field_rec->data[i] - field->data[i]) > err)
             err = fabs(field_rec->data[i] - field->data[i]);
     }
-    fft_times last_ft = {0, 0}, last_fw = {0, 0};
+    /* the same with W on both deconvolutions, for its accuracy (untimed) */
+    double err_w = 0;
+    {
+        svp_correct_options ow = o;
+        ow.method = SVP_METHOD_W;
+        if ((st = svp_inverse_transform(blur, pl_app, apparent, 1, &ow, pl_rec, recovered, valid,
+                                        &n_missing)) != SVP_OK) {
+            rc = fail("svp_inverse_transform (W)", st);
+            goto cleanup;
+        }
+        for (size_t i = 0; i < (size_t)n * n; i++)
+            if (pl->data[i] > 0.1 * pl_max && fabs(field_rec->data[i] - field->data[i]) > err_w)
+                err_w = fabs(field_rec->data[i] - field->data[i]);
+    }
+    for (size_t i = 0; i < (size_t)n * n; i++)
+        product->data[i] = field_app->data[i] * pl_app->data[i];
+    fft_times last_ft = {0, 0};
+    int wiener_pairs = 0, wiener_steps = 0;
     for (int r = 0; r < a->reps; r++) {
         double t0 = now();
         st = svp_inverse_transform(blur, pl_app, apparent, 1, &o, pl_rec, recovered, valid,
@@ -380,44 +400,46 @@ static int bench_inverse(const bench_args *a)
             goto cleanup;
         }
         total[r] = t1 - t0;
-        /* the two deconvolutions alone, for the breakdown */
+        wiener_pairs = blur->wiener_pairs; /* of the Wiener inside T⁻¹ */
+        wiener_steps = blur->wiener_steps;
+        /* the two deconvolutions alone, for the breakdown (the Wiener on B̃Ĩ, as in T⁻¹) */
         if ((st = svp_deconv_rl(blur, pl_app, &o.deconv, pl_rec)) != SVP_OK) {
             rc = fail("svp_deconv_rl", st);
             goto cleanup;
         }
         double t2 = now();
-        if ((st = svp_deconv_wiener(blur, field_app, &o.deconv, field_rec)) != SVP_OK) {
+        if ((st = svp_deconv_wiener(blur, product, &o.deconv, field_rec)) != SVP_OK) {
             rc = fail("svp_deconv_wiener", st);
             goto cleanup;
         }
         double t3 = now();
         t_rl[r] = t2 - t1;
         t_wiener[r] = t3 - t2;
-        /* the bound right after, on the same cached plans: RL on Ĩ needs 2 pairs per
-         * iteration; the Wiener on B̃Ĩ an OTF r2c, a data r2c and a c2r on its 2n x 2n frame */
-        fft_times ft, fw;
-        if ((st = time_fft(blur->frame.ny, blur->frame.nx, 5, &ft)) != SVP_OK ||
-            (st = time_fft(2 * n, 2 * n, 5, &fw)) != SVP_OK) {
+        /* the bound right after, on the same cached plans: full (unpruned) r2c + c2r pairs at
+         * the operator's frame, 1 + 2 per RL iteration plus the Wiener's count */
+        fft_times ft;
+        if ((st = time_fft(blur->frame.ny, blur->frame.nx, 5, &ft)) != SVP_OK) {
             rc = fail("FFT timing", st);
             goto cleanup;
         }
-        t_bound[r] = iterations * 2.0 * (ft.r2c + ft.c2r) + 2.0 * fw.r2c + fw.c2r;
+        t_bound[r] = (1.0 + iterations * 2.0 + wiener_pairs) * (ft.r2c + ft.c2r);
         ratio[r] = total[r] / t_bound[r];
         last_ft = ft;
-        last_fw = fw;
     }
-    fft_times ft = last_ft, fw = last_fw;
-    double bound_rl = iterations * 2.0 * (ft.r2c + ft.c2r);
-    double bound_w = 2.0 * fw.r2c + fw.c2r;
+    fft_times ft = last_ft;
+    double bound_rl = (1.0 + iterations * 2.0) * (ft.r2c + ft.c2r);
+    double bound_w = wiener_pairs * (ft.r2c + ft.c2r);
     double total_s = median(total, a->reps);
     printf("{\"case\": \"inverse_rw\", \"size\": %d, \"threads\": %d, \"reps\": %d, "
            "\"iterations\": %d, \"frame\": [%d, %d], \"total_s\": %.6g, \"rl_s\": %.6g, "
            "\"wiener_s\": %.6g, \"bound_s\": %.6g, \"bound_rl_s\": %.6g, \"bound_wiener_s\": "
            "%.6g, \"ratio\": %.4g, \"r2c_s\": %.6g, \"c2r_s\": %.6g, \"field_err_rel\": %.3g, "
+           "\"field_err_rel_w\": %.3g, \"wiener_steps\": %d, \"wiener_pairs\": %d, "
            "\"maxrss_mb\": %.1f}\n",
            n, svp_get_threads(), a->reps, iterations, blur->frame.nx, blur->frame.ny, total_s,
            median(t_rl, a->reps), median(t_wiener, a->reps), median(t_bound, a->reps), bound_rl,
-           bound_w, median(ratio, a->reps), ft.r2c, ft.c2r, peak > 0 ? err / peak : 0, maxrss_mb());
+           bound_w, median(ratio, a->reps), ft.r2c, ft.c2r, peak > 0 ? err / peak : 0, peak > 0 ? err_w / peak : 0, wiener_steps,
+           wiener_pairs, maxrss_mb());
 cleanup:
     svp_blur_free(blur);
     svp_image_free(pl);
@@ -427,6 +449,7 @@ cleanup:
     svp_image_free(pl_rec);
     svp_image_free(field_rec);
     svp_image_free(valid);
+    svp_image_free(product);
     free(total);
     free(t_rl);
     free(t_wiener);
