@@ -5,7 +5,8 @@
 #   docs/scenes/run-study.sh --tables-only [OUT]     (the tables from an earlier run)
 # SVPSF: the svpsf program (default build/tools/svpsf/svpsf), OUT: the output folder (default
 # out/study). Each scene goes to OUT/<scene name>/ (report.md, figures/, tables/, summary.json);
-# the tables go to OUT/tables.md. About 6 minutes on 2 cores. Python 3 (standard library only)
+# the tables go to OUT/tables.md. About 10 minutes on 2 idle cores (the corrections-* scenes
+# run seven corrections each). Python 3 (standard library only)
 # formats the tables.
 set -eu
 HERE=$(cd "$(dirname "$0")" && pwd)
@@ -94,6 +95,35 @@ for n, qs, ms in [
         continue
     print("\n## %s: corrections compared (%.1f s)\n" % (n, total(n)))
     corrections(n, qs, ms)
+
+print("\n## What the corrections do: settings compared\n")
+print("The same apparent maps corrected with the study's settings (R&W and W with Wiener balance "
+      "1, RL 15 iterations) and others; margin 10 µm (light from outside the view enters it, as "
+      "in a measurement) or 0. m_z inside the flake (mask `flake`); low validity: the share of pixels whose recovered PL fell below the "
+      "floor.\n")
+print("| scene | margin (µm) | correction | method | RL iterations | balance | m_z median abs "
+      "err. % | m_z p95 abs err. % | m_z mean red. % | low validity % |")
+print("|---|---|---|---|---|---|---|---|---|---|")
+for n in ["corrections-uniform-gaussian-1um", "corrections-uniform-gaussian-1um-no-margin",
+          "corrections-chessboard-lorentzian-1um",
+          "corrections-chessboard-lorentzian-1um-no-margin"]:
+    if n not in S:
+        continue
+    margin = S[n]["geometry"]["margin_px"] * S[n]["geometry"]["pixel_um"]
+    print("| %s | %s | apparent | – | – | – | %s | %s | %s | – |" % (
+        n, f(margin), f(v(n, "m_z/flake/apparent/median_abs_rel_err_pct")),
+        f(v(n, "m_z/flake/apparent/p95_abs_rel_err_pct")),
+        f(v(n, "m_z/flake/apparent/mean_reduction_pct"))))
+    for c in S[n]["settings"]["corrections"]:
+        k = "corrected_" + c["name"]
+        m = c["method"]
+        print("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %s |" % (
+            n, f(margin), c["name"], m.upper().replace("RW", "R&W"),
+            c["iterations"] if m != "w" else "–", f(c["balance"]) if m != "r" else "–",
+            f(v(n, "m_z/flake/%s/median_abs_rel_err_pct" % k)),
+            f(v(n, "m_z/flake/%s/p95_abs_rel_err_pct" % k)),
+            f(v(n, "m_z/flake/%s/mean_reduction_pct" % k)),
+            f(100 * v(n, "correct/%s/low_validity_fraction" % c["name"]))))
 
 import array, ast, struct
 
