@@ -273,6 +273,17 @@ head -c 1000 fwd_p/field.npy >trunc.npy
 expect_bad truncated_npy "trunc.npy|truncated" correct --field trunc.npy --pl fwd_p/pl.npy --psf moffat.yaml -o bad $FAST
 head -c 2000 demo/pl_true.tif >trunc.tif
 expect_bad truncated_tiff "trunc.tif|TIFF" correct --field fwd_z/field.tif --pl trunc.tif --psf moffat.yaml -o bad $FAST
+printf 'not a numpy file at all, just text\n' >garbage.npy
+expect_bad garbage_npy "garbage.npy" correct --field garbage.npy --pl fwd_p/pl.npy --psf moffat.yaml -o bad $FAST
+printf 'II*\0garbage after a TIFF magic' >garbage.tif
+expect_bad garbage_tiff "garbage.tif" forward --field Bz.txt --pl garbage.tif --psf moffat.yaml -o bad $FAST
+expect_bad missing_pl "nope_pl.tif|no such file" correct --field Bz.txt --pl nope_pl.tif --psf moffat.yaml -o bad $FAST
+expect_bad missing_psf "nope.yaml" forward --field Bz.txt --pl pl.txt --psf nope.yaml -o bad $FAST
+if [ "$(id -u)" != 0 ]; then # root reads anything: the permission case means nothing there
+    cp fwd_p/field.npy unreadable.npy && chmod 000 unreadable.npy
+    expect_bad unreadable_npy "unreadable.npy" correct --field unreadable.npy --pl fwd_p/pl.npy --psf moffat.yaml -o bad $FAST
+    chmod 600 unreadable.npy
+fi
 expect_bad size_mismatch "size mismatch|Bz.txt|pl33.txt|32 x 33" forward --field Bz.txt --pl pl33.txt --psf moffat.yaml -o bad $FAST
 expect_bad negative_fwhm "neg_fwhm.yaml|fwhm|-2" forward --field Bz.txt --pl pl.txt --psf neg_fwhm.yaml -o bad $FAST
 expect_bad zero_fwhm "zero_fwhm.yaml|fwhm" forward --field Bz.txt --pl pl.txt --psf zero_fwhm.yaml -o bad $FAST
