@@ -183,8 +183,9 @@ static int make(const char *dir)
         svp_image_new(W, W, &field);
         svp_image_new(CUT, CUT, &cut);
         char *yaml = malloc(8192);
-        int n = snprintf(yaml, 8192, "# 25 spot cut-outs of field.npy\npixel_um: 0.05\n"
-                                     "field: {width: 400, height: 400}\nspots:\n");
+        int n = snprintf(yaml, 8192,
+                         "# 25 spot cut-outs of field.npy\npixel_um: 0.05\n"
+                         "field: {width: 400, height: 400}\nspots:\n");
         for (int k = 0; k < 25; k++) {
             double cx = 40 + 80 * (k % 5) + 10 * (rnd() - 0.5);
             double cy = 40 + 80 * (k / 5) + 10 * (rnd() - 0.5);
@@ -252,8 +253,9 @@ static int check_map(const char *path)
             wf = fmax(wf, fabs(p[SVP_FIELD_FWHM] / F - 1));
             wb = fmax(wb, fabs(p[SVP_FIELD_BETA] / B - 1));
         }
-    printf("check-map %s: kind %d, pixel %.3g um, worst relative error FWHM %.2f %%, beta %.2f %%\n",
-           path, (int)svp_psf_field_get_kind(f), um, 100 * wf, 100 * wb);
+    printf(
+        "check-map %s: kind %d, pixel %.3g um, worst relative error FWHM %.2f %%, beta %.2f %%\n",
+        path, (int)svp_psf_field_get_kind(f), um, 100 * wf, 100 * wb);
     svp_psf_field_free(f);
     return wf < 0.02 && wb < 0.05 && fabs(um - 0.05) < 1e-12 ? 0 : 1;
 }

@@ -103,6 +103,19 @@ grep -q "rejected: spot fit flagged (near border)" "$T/m3.txt" && ok "rejections
     || bad "no stated rejection: $(cat "$T/m3.txt")"
 "$S" map-psf field.yaml --degree 2 -o map/d2.yaml >/dev/null 2>&1 && grep -q "degree: 2" map/d2.yaml \
     && ok "map-psf --degree 2" || bad "map-psf --degree 2"
+# a small map (72 x 72 field, 9 spots at given centres) that `svpsf correct --psf` uses
+printf 'pixel_um: 0.05\nfield: {width: 72, height: 72}\nspots:\n' >small.yaml
+k=0
+for y in 12 36 60; do for x in 12 36 60; do
+    printf '  - {file: cut_0%d.npy, x: %d, y: %d}\n' $k $x $y >>small.yaml; k=$((k + 1))
+done; done
+"$S" map-psf small.yaml --degree 1 -o map/tiny.yaml >/dev/null 2>&1 && ok "map-psf with given centres" || bad "map-psf small"
+if "$S" correct --field exc.npy --pl pl.npy --psf map/tiny.yaml --nodes 2x2 -o map/corr --quiet >"$T/cm.txt" 2>&1 \
+    && grep -q '"psf_map_kind": "poly"' map/corr/summary.json; then
+    ok "svpsf correct --psf accepts the map"
+else
+    bad "svpsf correct --psf map/tiny.yaml: $(cat "$T/cm.txt")"
+fi
 # regions: metal vs oxide differ -> 2 groups; alike -> merged
 "$S" map-psf regions_diff.yaml --labels labels.npy -o map/rdiff.yaml >/dev/null 2>&1 \
     && "$MAKE" check-regions map/rdiff.yaml 2 && [ -s map/rdiff.labels.npy ] && ok "regions separate" || bad "regions separate"

@@ -52,7 +52,8 @@ static double poisson(uint64_t *s, double mean)
 {
     if (mean > 50) {
         double u1 = rnd(s), u2 = rnd(s);
-        double v = floor(mean + sqrt(mean) * sqrt(-2 * log(u1 + 1e-300)) * cos(2 * M_PI * u2) + 0.5);
+        double v =
+            floor(mean + sqrt(mean) * sqrt(-2 * log(u1 + 1e-300)) * cos(2 * M_PI * u2) + 0.5);
         return v < 0 ? 0 : v;
     }
     double l = exp(-mean), p = 1;
@@ -112,7 +113,8 @@ static int bench_spots(int argc, char **argv)
         failed = 0;
         double t0 = now();
 #pragma omp parallel for schedule(dynamic) reduction(+ : failed)
-        for (int k = 0; k < K; k++) failed += svp_spot_fit(img[k], &o, &res[k], NULL, NULL) != SVP_OK;
+        for (int k = 0; k < K; k++)
+            failed += svp_spot_fit(img[k], &o, &res[k], NULL, NULL) != SVP_OK;
         best = fmin(best, now() - t0);
     }
     double ef = 0, eb = 0, it = 0, checksum = 0;
@@ -189,7 +191,8 @@ static int bench_map(int argc, char **argv)
         svp_psf_field *field = NULL, *back = NULL;
         svp_map_report *rep = NULL;
         if (failed || svp_psf_map_poly(smp, K, W, W, NULL, &field, &rep) != SVP_OK) {
-            printf("{\"mode\": \"map\", \"error\": \"%s\"}\n", failed ? "fit failed" : svp_last_error());
+            printf("{\"mode\": \"map\", \"error\": \"%s\"}\n",
+                   failed ? "fit failed" : svp_last_error());
             return 1;
         }
         double t2 = now();

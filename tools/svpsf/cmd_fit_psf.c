@@ -87,7 +87,7 @@ static void sibling(const char *path, const char *ext, char *buf, size_t size)
     snprintf(buf, size, "%.*s%s", (int)n, path, ext);
 }
 
-static void print_fit(const char *what, const svp_spot_result *r, double um)
+static void print_fit(const char *what, const svp_spot_result *r, double um, int unit_weights)
 {
     char flags[256];
     svp_spot_flags_describe(r->flags, flags, sizeof flags);
@@ -99,17 +99,19 @@ static void print_fit(const char *what, const svp_spot_result *r, double um)
     if (r->model == SVP_PSF_MOFFAT)
         printf("  beta        %.4f +- %.4f\n", r->beta, r->beta_err);
     else
-        printf("  beta        %s\n", r->model == SVP_PSF_LORENTZIAN ? "1 (Lorentzian)" : "- (Gaussian)");
+        printf("  beta        %s\n",
+               r->model == SVP_PSF_LORENTZIAN ? "1 (Lorentzian)" : "- (Gaussian)");
     printf("  angle       %.2f +- %.2f deg   e1 %.4f  e2 %.4f\n", r->angle * 180 / M_PI,
            r->angle_err * 180 / M_PI, r->e1, r->e2);
     printf("  centre      x %.3f +- %.3f, y %.3f +- %.3f px\n", r->x0, r->x0_err, r->y0, r->y0_err);
-    printf("  amplitude   %.6g +- %.3g   background %.6g +- %.3g\n", r->amplitude,
-           r->amplitude_err, r->background, r->background_err);
+    printf("  amplitude   %.6g +- %.3g   background %.6g +- %.3g\n", r->amplitude, r->amplitude_err,
+           r->background, r->background_err);
     printf("  EE radii    50 %% %.4f um, 80 %% %.4f um, 95 %% %.4f um (of a disc of %.3f um)\n",
            r->ee50 * um, r->ee80 * um, r->ee95 * um, r->ee_radius * um);
-    printf("  chi2_red    %.4f (dof %d, %d pixels used; %d hot, %d clipped, %d saturated "
+    printf("  chi2_red    %.4f%s (dof %d, %d pixels used; %d hot, %d clipped, %d saturated "
            "excluded), %d iterations\n",
-           r->chi2_red, r->dof, r->n_used, r->n_hot, r->n_clipped, r->n_saturated, r->iterations);
+           r->chi2_red, unit_weights ? " in squared data units (unit weights)" : "", r->dof,
+           r->n_used, r->n_hot, r->n_clipped, r->n_saturated, r->iterations);
     printf("  flags       %s\n", flags);
 }
 
@@ -182,13 +184,14 @@ static char *psf_file_text(const svp_spot_result *r, double um, const char *sour
                      "psf:\n"
                      "  model: %s\n"
                      "  fwhm_um: %.17g\n",
-                     source, r->fwhm * um, r->fwhm_err * um, r->fwhm_major * um,
-                     r->fwhm_minor * um, r->beta, r->beta_err, r->ee50 * um, r->ee80 * um,
-                     r->ee95 * um, r->chi2_red, flags, um, model_names[p.model], p.fwhm * um);
+                     source, r->fwhm * um, r->fwhm_err * um, r->fwhm_major * um, r->fwhm_minor * um,
+                     r->beta, r->beta_err, r->ee50 * um, r->ee80 * um, r->ee95 * um, r->chi2_red,
+                     flags, um, model_names[p.model], p.fwhm * um);
     if (p.fwhm_minor > 0 && p.fwhm_minor != p.fwhm)
         n += snprintf(t + n, size - (size_t)n, "  fwhm_minor_um: %.17g\n  angle_deg: %.17g\n",
                       p.fwhm_minor * um, p.angle * 180 / M_PI);
-    if (p.model == SVP_PSF_MOFFAT) n += snprintf(t + n, size - (size_t)n, "  beta: %.17g\n", p.beta);
+    if (p.model == SVP_PSF_MOFFAT)
+        n += snprintf(t + n, size - (size_t)n, "  beta: %.17g\n", p.beta);
     n += snprintf(t + n, size - (size_t)n, "  halo: 0\n");
     if (p.subsample > 0) snprintf(t + n, size - (size_t)n, "  subsample: %d\n", p.subsample);
     return t;
@@ -391,7 +394,8 @@ int cmd_fit_psf(int argc, char **argv)
             if (cli_parse_double(&run, "--saturation", optarg, &so->saturation))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             if (!(so->saturation > 0))
-                return cli_run_finish(&run, cli_error(&run, "--saturation %s: must be > 0", optarg));
+                return cli_run_finish(&run,
+                                      cli_error(&run, "--saturation %s: must be > 0", optarg));
             break;
         case OPT_REFUSE_BORDER: so->refuse_near_border = 1; break;
         case OPT_MAX_ITER:
@@ -410,7 +414,8 @@ int cmd_fit_psf(int argc, char **argv)
         }
     }
     if (optind >= argc)
-        return cli_run_finish(&run, cli_error(&run, "the spot image SPOT is required (see --help)"));
+        return cli_run_finish(&run,
+                              cli_error(&run, "the spot image SPOT is required (see --help)"));
     if (optind + 1 < argc)
         return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s'", argv[optind + 1]));
     const char *spot_path = argv[optind];
@@ -420,8 +425,10 @@ int cmd_fit_psf(int argc, char **argv)
         size_t n = strlen(run.output);
         if (!((n > 5 && strcmp(run.output + n - 5, ".yaml") == 0) ||
               (n > 4 && strcmp(run.output + n - 4, ".yml") == 0)))
-            return cli_run_finish(&run, cli_error(&run, "-o %s: the PSF file must end in .yaml "
-                                                        "or .yml", run.output));
+            return cli_run_finish(&run, cli_error(&run,
+                                                  "-o %s: the PSF file must end in .yaml "
+                                                  "or .yml",
+                                                  run.output));
     }
     if (figures && no_figures)
         return cli_run_finish(&run, cli_error(&run, "--figures and --no-figures contradict"));
@@ -479,7 +486,8 @@ int cmd_fit_psf(int argc, char **argv)
         if (st == SVP_OK) st = svp_image_new(spot->width, spot->height, &r1);
         if (st == SVP_OK) st = svp_spot_fit(spot, so, &single, m1, r1);
         if (st == SVP_ERR_NUMERIC && (single.flags & SVP_SPOT_NOT_CONVERGED)) {
-            print_fit("last parameters (NOT CONVERGED)", &single, um);
+            print_fit("last parameters (NOT CONVERGED)", &single, um,
+                      so->noise.gain == 0 && so->noise.sigma_bg == 0);
             code = cli_fail(&run, st, spot_path);
             goto cleanup;
         }
@@ -488,7 +496,7 @@ int cmd_fit_psf(int argc, char **argv)
             goto cleanup;
         }
         record_fit(&run, "", &single, um);
-        print_fit(spot_path, &single, um);
+        print_fit(spot_path, &single, um, so->noise.gain == 0 && so->noise.sigma_bg == 0);
         chosen = &single;
         snprintf(source, sizeof source, "%s fit of %s", model_names[model], spot_path);
     } else {
@@ -501,15 +509,18 @@ int cmd_fit_psf(int argc, char **argv)
         st = svp_image_new(spot->width, spot->height, &dec);
         if (st == SVP_OK) st = svp_psf_from_pair(exc, spot, &po, &pr, dec);
         if (st != SVP_OK && !(pr.excitation.fwhm > 0 && pr.direct.fwhm > 0)) {
-            code = cli_fail(&run, st, st == SVP_ERR_NUMERIC || strstr(svp_last_error(), "emission")
-                                          ? spot_path
-                                          : exc_path);
+            code =
+                cli_fail(&run, st,
+                         st == SVP_ERR_NUMERIC || strstr(svp_last_error(), "emission") ? spot_path
+                                                                                       : exc_path);
             goto cleanup;
         }
         record_fit(&run, "excitation_", &pr.excitation, um);
         record_fit(&run, "direct_", &pr.direct, um);
-        print_fit("excitation spot I_G (direct fit)", &pr.excitation, um);
-        print_fit("emission spot I_PL (direct fit: upper bound on the PSF width)", &pr.direct, um);
+        print_fit("excitation spot I_G (direct fit)", &pr.excitation, um,
+                  so->noise.gain == 0 && so->noise.sigma_bg == 0);
+        print_fit("emission spot I_PL (direct fit: upper bound on the PSF width)", &pr.direct, um,
+                  so->noise.gain == 0 && so->noise.sigma_bg == 0);
         printf("offset emission - excitation: fitted centres (%.3f, %.3f) px", pr.offset_x,
                pr.offset_y);
         cli_result_num(&run, "offset_x_px", pr.offset_x);
@@ -526,16 +537,20 @@ int cmd_fit_psf(int argc, char **argv)
         if (!pr.deconvolved_ok) {
             cli_note(&run, "%s: the deconvolution failed (%s)", spot_path, svp_last_error());
             if (!use_direct) {
-                code = cli_error(&run, "%s: no deconvolved PSF; use --use direct to write the "
-                                       "direct fit (upper bound) instead", spot_path);
+                code = cli_error(&run,
+                                 "%s: no deconvolved PSF; use --use direct to write the "
+                                 "direct fit (upper bound) instead",
+                                 spot_path);
                 goto cleanup;
             }
         } else {
             record_fit(&run, "deconvolved_", &pr.deconvolved, um);
             char what[160];
-            snprintf(what, sizeof what, "PSF p = I_PL deconvolved by I_G (%d RL iterations: "
-                     "lower bound on the width)", po.iterations);
-            print_fit(what, &pr.deconvolved, um);
+            snprintf(what, sizeof what,
+                     "PSF p = I_PL deconvolved by I_G (%d RL iterations: "
+                     "lower bound on the width)",
+                     po.iterations);
+            print_fit(what, &pr.deconvolved, um, 1);
         }
         chosen = use_direct ? &pr.direct : &pr.deconvolved;
         snprintf(source, sizeof source, "%s fit of %s (%s), excitation %s, %d RL iterations",
@@ -555,12 +570,12 @@ int cmd_fit_psf(int argc, char **argv)
         } else {
             svp_spot_result tmp;
             if ((code = fit_with_images(&run, exc, so, &tmp, &m1, &r1, exc_path))) goto cleanup;
-            if ((code = write_figures(&run, fig_dir, "excitation_", "excitation", exc, m1, r1,
-                                      &tmp, so, um)))
+            if ((code = write_figures(&run, fig_dir, "excitation_", "excitation", exc, m1, r1, &tmp,
+                                      so, um)))
                 goto cleanup;
             if ((code = fit_with_images(&run, spot, so, &tmp, &m2, &r2, spot_path))) goto cleanup;
-            if ((code = write_figures(&run, fig_dir, "direct_", "emission", spot, m2, r2, &tmp,
-                                      so, um)))
+            if ((code = write_figures(&run, fig_dir, "direct_", "emission", spot, m2, r2, &tmp, so,
+                                      um)))
                 goto cleanup;
             if (pr.deconvolved_ok) {
                 svp_spot_options ds = *so; /* as svp_psf_from_pair fits the deconvolved spot */
@@ -569,8 +584,8 @@ int cmd_fit_psf(int argc, char **argv)
                 ds.hot_pixels = 0;
                 if ((code = fit_with_images(&run, dec, &ds, &dfit, &m3, &r3, spot_path)))
                     goto cleanup;
-                if ((code = write_figures(&run, fig_dir, "deconvolved_", "deconvolved", dec, m3,
-                                          r3, &dfit, &ds, um)))
+                if ((code = write_figures(&run, fig_dir, "deconvolved_", "deconvolved", dec, m3, r3,
+                                          &dfit, &ds, um)))
                     goto cleanup;
             }
         }
@@ -587,7 +602,9 @@ int cmd_fit_psf(int argc, char **argv)
     cli_stage_end(&run);
     if ((code = cli_summary_write(&run, summary_path))) goto cleanup;
     printf("svpsf fit-psf: wrote %s (FWHM %.4f um%s), %s%s%s\n", run.output, chosen->fwhm * um,
-           chosen->model == SVP_PSF_MOFFAT ? (snprintf(buf, sizeof buf, ", beta %.3f", chosen->beta), buf) : "",
+           chosen->model == SVP_PSF_MOFFAT
+               ? (snprintf(buf, sizeof buf, ", beta %.3f", chosen->beta), buf)
+               : "",
            summary_path, no_figures ? "" : ", figures in ", no_figures ? "" : fig_dir);
 
 cleanup:

@@ -101,8 +101,8 @@ static void relative_to(const char *yaml_path, const char *name, char *buf, size
 typedef struct spot_entry {
     char path[4096]; /* the image it was fitted in */
     svp_image *image;
-    double ox, oy;   /* origin of the cut-out in the field */
-    double x, y;     /* given centre (NaN: origin + fitted) */
+    double ox, oy; /* origin of the cut-out in the field */
+    double x, y;   /* given centre (NaN: origin + fitted) */
     svp_status status;
     char error[512];
     svp_spot_result fit;
@@ -209,8 +209,8 @@ static int detect(cli_run *run, const svp_image *img, const char *path, int wind
     }
     *out = e;
     *n_out = nc;
-    cli_note(run, "%s: %d spots detected above %.4g (median %.4g + %g robust sigma / 3)", path,
-             nc, level, med, threshold);
+    cli_note(run, "%s: %d spots detected above %.4g (median %.4g + %g robust sigma / 3)", path, nc,
+             level, med, threshold);
     goto done;
 nomem:
     cli_error(run, "out of memory");
@@ -292,7 +292,8 @@ int cmd_map_psf(int argc, char **argv)
             if (cli_parse_double(&run, "--halo", optarg, &mo.halo))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             if (!(mo.halo >= 0 && mo.halo < 1))
-                return cli_run_finish(&run, cli_error(&run, "--halo %s: must be in [0, 1)", optarg));
+                return cli_run_finish(&run,
+                                      cli_error(&run, "--halo %s: must be in [0, 1)", optarg));
             break;
         case OPT_TRANSITION:
             if (cli_parse_double(&run, "--transition-um", optarg, &transition_um))
@@ -305,13 +306,15 @@ int cmd_map_psf(int argc, char **argv)
             if (cli_parse_double(&run, "--alpha", optarg, &mo.alpha))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             if (!(mo.alpha > 0 && mo.alpha < 1))
-                return cli_run_finish(&run, cli_error(&run, "--alpha %s: must be in (0, 1)", optarg));
+                return cli_run_finish(&run,
+                                      cli_error(&run, "--alpha %s: must be in (0, 1)", optarg));
             break;
         case OPT_CLIP:
             if (cli_parse_double(&run, "--clip-kappa", optarg, &mo.clip_kappa))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             if (!(mo.clip_kappa >= 0))
-                return cli_run_finish(&run, cli_error(&run, "--clip-kappa %s: must be >= 0", optarg));
+                return cli_run_finish(&run,
+                                      cli_error(&run, "--clip-kappa %s: must be >= 0", optarg));
             break;
         case OPT_WINDOW:
             if (cli_parse_int(&run, "--window", optarg, 7, 1001, &window))
@@ -340,8 +343,10 @@ int cmd_map_psf(int argc, char **argv)
         size_t n = strlen(run.output);
         if (!((n > 5 && strcmp(run.output + n - 5, ".yaml") == 0) ||
               (n > 4 && strcmp(run.output + n - 4, ".yml") == 0)))
-            return cli_run_finish(&run, cli_error(&run, "-o %s: the PSF map must end in .yaml "
-                                                        "or .yml", run.output));
+            return cli_run_finish(&run, cli_error(&run,
+                                                  "-o %s: the PSF map must end in .yaml "
+                                                  "or .yml",
+                                                  run.output));
     }
     so.model = (svp_psf_model)model;
 
@@ -356,25 +361,28 @@ int cmd_map_psf(int argc, char **argv)
     cli_record_input(&run, "spots", spots_path, 0, 0);
     {
         const svp_yaml_node *root = svp_yaml_root(doc), *node;
-        static const char *const keys[] = {"pixel_um", "field", "spots", "image", "window",
-                                           "threshold", "comment", NULL};
+        static const char *const keys[] = {"pixel_um", "field",     "spots",   "image",
+                                           "window",   "threshold", "comment", NULL};
         if ((st = svp_yaml_expect_mapping(root, NULL)) != SVP_OK ||
             (st = svp_yaml_check_keys(root, NULL, keys)) != SVP_OK ||
             (st = svp_yaml_require(root, "pixel_um", NULL, &node)) != SVP_OK ||
             (st = svp_yaml_number_in(node, "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &pixel_um)) !=
                 SVP_OK)
             goto yaml_fail;
-        const svp_yaml_node *list = svp_yaml_get(root, "spots"), *image = svp_yaml_get(root, "image");
+        const svp_yaml_node *list = svp_yaml_get(root, "spots"),
+                            *image = svp_yaml_get(root, "image");
         if (!list == !image) {
-            st = svp_yaml_fail(root, SVP_ERR_FORMAT, "give either 'spots' (a list of spot images) "
-                                                     "or 'image' (one image with many spots)");
+            st = svp_yaml_fail(root, SVP_ERR_FORMAT,
+                               "give either 'spots' (a list of spot images) "
+                               "or 'image' (one image with many spots)");
             goto yaml_fail;
         }
         if (image) {
             const char *name;
             long long wv = 31;
             if ((st = svp_yaml_string(image, "image", &name)) != SVP_OK) goto yaml_fail;
-            if ((st = svp_yaml_get_int(root, "window", 7, 1001, &wv, NULL)) != SVP_OK) goto yaml_fail;
+            if ((st = svp_yaml_get_int(root, "window", 7, 1001, &wv, NULL)) != SVP_OK)
+                goto yaml_fail;
             if (wv % 2 == 0) {
                 st = svp_yaml_fail(svp_yaml_get(root, "window"), SVP_ERR_FORMAT,
                                    "window: %lld must be odd", wv);
@@ -474,15 +482,19 @@ yaml_ok:
             width = labels_img->width;
             height = labels_img->height;
         } else if (labels_img->width != width || labels_img->height != height) {
-            code = cli_error(&run, "size mismatch: --labels %s is %d x %d but the field of %s is "
-                                   "%d x %d", labels_path, labels_img->width, labels_img->height,
-                             spots_path, width, height);
+            code = cli_error(&run,
+                             "size mismatch: --labels %s is %d x %d but the field of %s is "
+                             "%d x %d",
+                             labels_path, labels_img->width, labels_img->height, spots_path, width,
+                             height);
             goto cleanup;
         }
     }
     if (width == 0) {
-        code = cli_error(&run, "%s: the field size is unknown: add field: {width: W, height: H} "
-                               "(or give --labels)", spots_path);
+        code = cli_error(&run,
+                         "%s: the field size is unknown: add field: {width: W, height: H} "
+                         "(or give --labels)",
+                         spots_path);
         goto cleanup;
     }
     int n_labels = 0;
@@ -497,9 +509,10 @@ yaml_ok:
         for (size_t i = 0; i < N; i++) {
             double v = labels_img->data[i];
             if (!(v >= 0 && v <= 1000000 && v == floor(v))) {
-                code = cli_error(&run, "%s: pixel (%zu, %zu) is %g: labels must be integers "
-                                       "0..L-1", labels_path, i % (size_t)width,
-                                 i / (size_t)width, v);
+                code = cli_error(&run,
+                                 "%s: pixel (%zu, %zu) is %g: labels must be integers "
+                                 "0..L-1",
+                                 labels_path, i % (size_t)width, i / (size_t)width, v);
                 goto cleanup;
             }
             labels[i] = (int)v;
@@ -562,8 +575,8 @@ yaml_ok:
         sample_of[k] = -1;
         /* a fit that did not converge is still a sample (flagged NOT_CONVERGED: the map
          * rejects it with that reason); one that could not be made at all is not */
-        if (e->status != SVP_OK && !(e->status == SVP_ERR_NUMERIC &&
-                                     (e->fit.flags & SVP_SPOT_NOT_CONVERGED))) {
+        if (e->status != SVP_OK &&
+            !(e->status == SVP_ERR_NUMERIC && (e->fit.flags & SVP_SPOT_NOT_CONVERGED))) {
             n_failed++;
             continue;
         }
@@ -586,8 +599,8 @@ yaml_ok:
     if (st != SVP_OK) {
         for (int k = 0; k < n_spots; k++)
             if (sample_of[k] < 0)
-                fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k,
-                        spots[k].path, spots[k].error);
+                fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, spots[k].path,
+                        spots[k].error);
         code = cli_fail(&run, st, spots_path);
         goto cleanup;
     }
@@ -627,8 +640,9 @@ yaml_ok:
             int kept = strcmp(status, "kept") == 0;
             n_kept += kept;
             n_rejected += !kept;
-            if (!kept) printf("spot %d (%s, x %.1f, y %.1f): %s\n", k, e->path, samples[si].x,
-                              samples[si].y, status);
+            if (!kept)
+                printf("spot %d (%s, x %.1f, y %.1f): %s\n", k, e->path, samples[si].x,
+                       samples[si].y, status);
             char st_csv[1024];
             snprintf(st_csv, sizeof st_csv, "%s", status);
             for (char *p = st_csv; *p; p++)
@@ -684,15 +698,17 @@ yaml_ok:
             for (int b = a + 1; b < rep->n_regions; b++) {
                 double p = rep->p_value[a * rep->n_regions + b];
                 printf("  regions %d and %d: Welch p = %.3g (%s)\n", a, b, p,
-                       p < 0 ? "too few spots" : p > mo.alpha ? "alike" : "different");
+                       p < 0          ? "too few spots"
+                       : p > mo.alpha ? "alike"
+                                      : "different");
                 if (a * rep->n_regions + b < 64) {
                     snprintf(key, sizeof key, "p_value_%d_%d", a, b);
                     cli_result_num(&run, key, p);
                 }
             }
         cli_result_int(&run, "n_groups", rep->n_groups);
-        printf("  %d region(s) merged into %d group(s) (alpha %g)\n", rep->n_regions,
-               rep->n_groups, mo.alpha);
+        printf("  %d region(s) merged into %d group(s) (alpha %g)\n", rep->n_regions, rep->n_groups,
+               mo.alpha);
     }
 
     cli_stage_begin(&run, "write");

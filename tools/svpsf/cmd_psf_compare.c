@@ -70,8 +70,8 @@ int cmd_psf_compare(int argc, char **argv)
     };
     int w = 0, h = 0, scene_n = 128, code = 0;
     svp_psf_field *fa = NULL, *fb = NULL, *wa = NULL, *wb = NULL;
-    svp_image *dfw = NULL, *dbe = NULL, *btrue = NULL, *pltrue = NULL, *plapp = NULL,
-              *bapp = NULL, *plc = NULL, *bc_a = NULL, *bc_b = NULL;
+    svp_image *dfw = NULL, *dbe = NULL, *btrue = NULL, *pltrue = NULL, *plapp = NULL, *bapp = NULL,
+              *plc = NULL, *bc_a = NULL, *bc_b = NULL;
     svp_blur *ha = NULL, *hb = NULL;
     svp_status st;
     int c;
@@ -81,8 +81,10 @@ int cmd_psf_compare(int argc, char **argv)
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
         case OPT_SIZE:
             if (sscanf(optarg, "%dx%d", &w, &h) != 2 || w < 8 || h < 8 || w > 16384 || h > 16384)
-                return cli_run_finish(&run, cli_error(&run, "--size %s: expected WxH, 8..16384 "
-                                                            "each (e.g. 256x256)", optarg));
+                return cli_run_finish(&run, cli_error(&run,
+                                                      "--size %s: expected WxH, 8..16384 "
+                                                      "each (e.g. 256x256)",
+                                                      optarg));
             break;
         case OPT_SCENE_SIZE:
             if (cli_parse_int(&run, "--scene-size", optarg, 16, 1024, &scene_n))
@@ -99,8 +101,10 @@ int cmd_psf_compare(int argc, char **argv)
     cli_stage_begin(&run, "read");
     if ((code = load(&run, pa, &fa, &ua)) || (code = load(&run, pb, &fb, &ub))) goto cleanup;
     if (fabs(ua - ub) > 1e-9 * ua) {
-        code = cli_error(&run, "%s: pixel_um %g differs from %s's %g: the maps must share the "
-                               "pixel size", pb, ub, pa, ua);
+        code = cli_error(&run,
+                         "%s: pixel_um %g differs from %s's %g: the maps must share the "
+                         "pixel size",
+                         pb, ub, pa, ua);
         goto cleanup;
     }
     int aw = svp_psf_field_width(fa), ah = svp_psf_field_height(fa);
@@ -110,9 +114,12 @@ int cmd_psf_compare(int argc, char **argv)
                          aw, ah, pb, bw, bh);
         goto cleanup;
     }
-    if (aw) w = aw, h = ah;
-    else if (bw) w = bw, h = bh;
-    else if (!w) w = h = 256;
+    if (aw)
+        w = aw, h = ah;
+    else if (bw)
+        w = bw, h = bh;
+    else if (!w)
+        w = h = 256;
     if (scene_n > w) scene_n = w;
     if (scene_n > h) scene_n = h;
     const double um = ua;
@@ -228,8 +235,8 @@ int cmd_psf_compare(int argc, char **argv)
         m_t = fmax(m_t, fabs(t));
     }
     const double rel = sqrt(s_ab / s_a), rel_a = sqrt(s_at / s_t), rel_b = sqrt(s_bt / s_t);
-    printf("reference scene (%d x %d px at (%d, %d), micromagnet-like flake, blurred with A):\n",
-           n, n, ox, oy);
+    printf("reference scene (%d x %d px at (%d, %d), micromagnet-like flake, blurred with A):\n", n,
+           n, ox, oy);
     printf("  corrected with B vs with A: relative rms difference %.4f, max |difference| %.4f of "
            "the field's peak\n",
            rel, m_ab / m_t);
