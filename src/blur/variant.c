@@ -9,7 +9,10 @@
  *   by the expansion's flux for a renormalised low-rank operator.
  * The node spectra are accumulated in the Fourier domain: one application is K forward FFTs
  * and one inverse; the adjoint Hᵀ y = Σ_k s c_k ⊙ (P̃_k ⋆ y) + α <y> is one forward and K
- * inverse FFTs. */
+ * inverse FFTs. For tent grids whose node windows cover at most 70 % of the frame's rows
+ * (about 5 x 5 nodes and finer) the K transforms are row-pruned (only the window's rows are
+ * transformed along x, see svp_variant_data.pruned), and the weights and the boundary
+ * extension are applied in one pass. */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
@@ -31,6 +34,15 @@ struct svp_variant_data {
     int *ix0, *iy0;
     double *fx, *fy;
     double *coef; /* low rank: coef[(r gy + j) gx + i], the coefficient of e_r at sample (i, j) */
+    /* Row-pruned tent path: node k's weighted input is non-zero only in the frame rows
+     * start[k] .. start[k] + rows − 1 (cyclically); its spectrum is that of the same rows moved
+     * to the top times e^{−2πi ky start / ny}, a phase folded into otf[k] at build time, so
+     * the forward transform needs only `rows` row transforms (svp_fft_forward_pruned) and the
+     * adjoint's inverse only those rows back. NULL pruned = the full transforms. */
+    const svp_fft_pruned *pruned;
+    int rows;
+    int *start;
+    int *frame_rows; /* per image row y: up to 3 frame rows copying it (−1 = none) */
 };
 
 void svp_variant_defaults(svp_variant_options *o)
@@ -151,6 +163,67 @@ static void add_halo_gather(const svp_blur *b, const double *in, double *out)
     for (size_t i = 0; i < n; i++) out[i] += v->alpha[i] * mean;
 }
 
+/* Frame rows 0 .. rows − 1 of node k's extended weighted input: row t is frame row
+ * (start + t) mod ny. */
+static void fill_frame(const svp_blur *b, int k, int start, int rows, const double *restrict in,
+                       double *restrict fr)
+{
+    const svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int w = b->width, nx = f->nx, ny = f->ny, i = k % v->gx, j = k / v->gx;
+    const int *sx = f->src_x, *sy = f->src_y;
+    const double *restrict scale = v->scale;
+#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
+    for (int t = 0; t < rows; t++) {
+        double *out = fr + (size_t)t * nx;
+        const int y = sy[(start + t) % ny];
+        const double hy = y >= 0 ? hat(v->iy0, v->fy, j, y) : 0.0;
+        if (hy == 0) {
+            memset(out, 0, (size_t)nx * sizeof(double));
+            continue;
+        }
+        const double *row = in + (size_t)y * w;
+        const double *srow = scale ? scale + (size_t)y * w : NULL;
+        for (int q = 0; q < nx; q++) {
+            const int x = sx[q];
+            const double c = x >= 0 ? hy * hat(v->ix0, v->fx, i, x) : 0.0;
+            out[q] = c == 0 ? 0.0 : c * (srow ? srow[x] : 1.0) * row[x];
+        }
+    }
+}
+
+/* x += c_k s ⊙ fold(z) where z holds frame rows start .. start + rows − 1 of P̃_k ⋆ y. Each
+ * image row gathers its (up to 3) frame copies in frame-row order: deterministic. */
+static void fold_add(const svp_blur *b, int k, int start, int rows, const double *restrict z,
+                     double *restrict x)
+{
+    const svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int w = b->width, h = b->height, nx = f->nx, ny = f->ny, i = k % v->gx, j = k / v->gx;
+    const int *sx = f->src_x;
+    const double *restrict scale = v->scale;
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+    for (int y = 0; y < h; y++) {
+        const double hy = hat(v->iy0, v->fy, j, y);
+        if (hy == 0) continue;
+        double *out = x + (size_t)y * w;
+        const double *srow = scale ? scale + (size_t)y * w : NULL;
+        for (int c = 0; c < 3; c++) {
+            const int fy = v->frame_rows[3 * y + c];
+            if (fy < 0) continue;
+            const int t = ((fy - start) % ny + ny) % ny;
+            if (t >= rows) continue;
+            const double *in = z + (size_t)t * nx;
+            for (int q = 0; q < nx; q++) {
+                const int xs = sx[q];
+                if (xs < 0) continue;
+                const double cw = hat(v->ix0, v->fx, i, xs);
+                if (cw != 0) out[xs] += hy * cw * (srow ? srow[xs] : 1.0) * in[q];
+            }
+        }
+    }
+}
+
 svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
     if (b->kind == SVP_BLUR_EXACT) return svp_exact_apply(b, x, y);
@@ -161,12 +234,27 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     const fftw_complex *restrict spec = b->work_c;
     memset(acc, 0, ns * sizeof(fftw_complex));
     for (int k = 0; k < v->n_terms; k++) {
-        fill_term(b, k, x, v->tmp);
-        svp_frame_extend(f, v->tmp, b->work_r);
-        svp_fft_forward(f->plan, b->work_r, b->work_c);
+        if (v->pruned) {
+            fill_frame(b, k, v->start[k], v->rows, x, b->work_r);
+            svp_fft_forward_pruned(v->pruned, b->work_r, b->work_c);
+        } else if (v->frame_rows) { /* tent: weights and extension in one pass */
+            fill_frame(b, k, 0, f->ny, x, b->work_r);
+            svp_fft_forward(f->plan, b->work_r, b->work_c);
+        } else {
+            fill_term(b, k, x, v->tmp);
+            svp_frame_extend(f, v->tmp, b->work_r);
+            svp_fft_forward(f->plan, b->work_r, b->work_c);
+        }
         const fftw_complex *restrict otf = v->otf[k];
+        /* written out in real arithmetic: no C99 complex NaN fix-ups, so it vectorises */
+        double *restrict a = (double *)acc;
+        const double *restrict o = (const double *)otf, *restrict sp = (const double *)spec;
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-        for (size_t i = 0; i < ns; i++) acc[i] += otf[i] * spec[i];
+        for (size_t i = 0; i < ns; i++) {
+            const double pr = o[2 * i], pi = o[2 * i + 1], sr = sp[2 * i], si = sp[2 * i + 1];
+            a[2 * i] += pr * sr - pi * si;
+            a[2 * i + 1] += pr * si + pi * sr;
+        }
     }
     svp_fft_inverse_unscaled(f->plan, acc, b->work_r);
     svp_frame_crop(f, b->work_r, y);
@@ -187,8 +275,24 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     memset(x, 0, n * sizeof(double));
     for (int k = 0; k < v->n_terms; k++) {
         const fftw_complex *restrict otf = v->otf[k];
+        double *restrict sp = (double *)spec;
+        const double *restrict o = (const double *)otf, *restrict yy = (const double *)spec_y;
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-        for (size_t i = 0; i < ns; i++) spec[i] = conj(otf[i]) * spec_y[i];
+        for (size_t i = 0; i < ns; i++) {
+            const double pr = o[2 * i], pi = o[2 * i + 1], yr = yy[2 * i], yi = yy[2 * i + 1];
+            sp[2 * i] = pr * yr + pi * yi;
+            sp[2 * i + 1] = pr * yi - pi * yr;
+        }
+        if (v->pruned) {
+            svp_fft_inverse_pruned_unscaled(v->pruned, spec, b->work_r);
+            fold_add(b, k, v->start[k], v->rows, b->work_r, x);
+            continue;
+        }
+        if (v->frame_rows) {
+            svp_fft_inverse_unscaled(f->plan, spec, b->work_r);
+            fold_add(b, k, 0, f->ny, b->work_r, x);
+            continue;
+        }
         svp_fft_inverse_unscaled(f->plan, spec, b->work_r);
         svp_frame_fold(f, b->work_r, b->work_r_image);
         /* x += c_k s ⊙ (P̃_k ⋆ y): fill_term applies the same weights */
@@ -218,6 +322,8 @@ void svp_variant_release(svp_blur *b)
         free(v->fx);
         free(v->fy);
         free(v->coef);
+        free(v->start);
+        free(v->frame_rows);
         free(v);
         b->variant = NULL;
     }
@@ -244,6 +350,8 @@ size_t svp_variant_memory(const svp_blur *b)
         bytes += n * sizeof(double) * (1 + (v->scale != NULL) + (v->alpha != NULL));
         bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
         if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
+        if (v->frame_rows) bytes += (size_t)3 * b->height * sizeof(int);
+        if (v->start) bytes += (size_t)v->n_terms * sizeof(int);
     }
     return bytes;
 }
@@ -407,6 +515,77 @@ static svp_status term_otf(svp_blur *b, const svp_image *kernel, int rx, int ry,
     return SVP_OK;
 }
 
+/* Row windows of the tent nodes (see svp_variant_data.pruned): node row j's weighted input is
+ * non-zero in the frame rows whose source image row has hat_j > 0, a cyclic interval; all
+ * nodes use the longest one's length. Pruning is kept when it skips at least 30 % of the row
+ * transforms. */
+static svp_status setup_pruning(svp_blur *b)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int ny = f->ny, h = b->height, K = v->gx * v->gy;
+    int *first = malloc((size_t)v->gy * sizeof(int)), *len = malloc((size_t)v->gy * sizeof(int));
+    char *on = malloc((size_t)ny);
+    if (!first || !len || !on) {
+        free(first);
+        free(len);
+        free(on);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for node windows");
+    }
+    int rows = 0;
+    for (int j = 0; j < v->gy; j++) {
+        int any = 0;
+        for (int fy = 0; fy < ny; fy++) {
+            const int y = f->src_y[fy];
+            on[fy] = y >= 0 && hat(v->iy0, v->fy, j, y) != 0;
+            any |= on[fy];
+        }
+        /* the longest cyclic run of rows that are off; the window starts right after it */
+        int best = 0, best_end = 0, run = 0;
+        for (int t = 0; t < 2 * ny; t++) {
+            if (!on[t % ny]) {
+                run++;
+                if (run > best && run <= ny) {
+                    best = run;
+                    best_end = t % ny;
+                }
+            } else {
+                run = 0;
+            }
+        }
+        first[j] = any ? (best_end + 1) % ny : 0;
+        len[j] = any ? ny - best : 1;
+        if (len[j] > rows) rows = len[j];
+    }
+    free(on);
+    svp_status st = SVP_OK;
+    v->frame_rows = malloc((size_t)3 * h * sizeof(int));
+    if (!v->frame_rows) st = svp_fail(SVP_ERR_NOMEM, "out of memory for node windows");
+    for (int i = 0; st == SVP_OK && i < 3 * h; i++) v->frame_rows[i] = -1;
+    for (int fy = 0; st == SVP_OK && fy < ny; fy++) {
+        const int y = f->src_y[fy];
+        if (y < 0) continue;
+        int c = 0;
+        while (c < 3 && v->frame_rows[3 * y + c] >= 0) c++;
+        if (c == 3) { /* a row copied more than 3 times: the generic path */
+            free(v->frame_rows);
+            v->frame_rows = NULL;
+            break;
+        }
+        v->frame_rows[3 * y + c] = fy;
+    }
+    if (st == SVP_OK && v->frame_rows && rows <= 0.7 * ny) {
+        v->rows = rows;
+        v->start = malloc((size_t)K * sizeof(int));
+        if (!v->start) st = svp_fail(SVP_ERR_NOMEM, "out of memory for node windows");
+        if (st == SVP_OK) st = svp_fft_pruned_get(ny, f->nx, rows, &v->pruned);
+        for (int k = 0; st == SVP_OK && k < K; k++) v->start[k] = first[k / v->gx];
+    }
+    free(first);
+    free(len);
+    return st;
+}
+
 static svp_status build_tent(svp_blur *b, const svp_variant_options *o, double support, int rx,
                              int ry)
 {
@@ -415,6 +594,7 @@ static svp_status build_tent(svp_blur *b, const svp_variant_options *o, double s
     v->otf = calloc((size_t)K, sizeof *v->otf);
     if (!v->otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d node spectra", K);
     v->n_terms = K;
+    SVP_CHECK(setup_pruning(b));
     for (int k = 0; k < K; k++) {
         const int i = k % v->gx, j = k / v->gx;
         svp_image *kernel = NULL;
@@ -423,6 +603,16 @@ static svp_status build_tent(svp_blur *b, const svp_variant_options *o, double s
         svp_status st = term_otf(b, kernel, rx, ry, &v->otf[k]);
         svp_image_free(kernel);
         SVP_CHECK(st);
+        if (v->pruned && v->start[k] != 0) {
+            /* the rows start[k] .. moved to the top: multiply by e^{−2πi ky start / ny} */
+            const svp_frame *f = &b->frame;
+            for (int ky = 0; ky < f->ny; ky++) {
+                const double a = -2.0 * M_PI * (double)((long)ky * v->start[k] % f->ny) / f->ny;
+                const double complex ph = cos(a) + I * sin(a);
+                fftw_complex *row = v->otf[k] + (size_t)ky * f->ncx;
+                for (int kx = 0; kx < f->ncx; kx++) row[kx] *= ph;
+            }
+        }
         SVP_CHECK(svp_report_progress(o->progress, o->progress_user, (k + 1.0) / K));
     }
     return SVP_OK;

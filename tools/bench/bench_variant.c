@@ -1,0 +1,392 @@
+/* Benchmark of the space-variant operator (issue 4): what accuracy costs in time. One JSON
+ * object per line on stdout.
+ *
+ *   bench_variant apply --size N --variation mild|strong [--exact 0|1] [--reps R]
+ *                       [--support S] [--budget-mb M]
+ *       For tent grids 1², 2², 4², 8², 16² and low ranks 1..12 (16 x 16 PSF samples): build
+ *       time, best-of-R time of one application, the same run's best-of-R time of (K + 1)
+ *       real FFTs of the operator's padded frame (K forward, 1 inverse, the cached plans the
+ *       operator uses), their ratio, memory of the K spectra and of the whole operator, and
+ *       with --exact 1 the relative L2 error against the exact per-source operator
+ *       (svp_blur_new_exact) on a random image (uniform in [0, 1)). Configurations whose
+ *       spectra exceed --budget-mb (default 6000) are reported as skipped.
+ *   bench_variant inverse --size N --variation mild|strong [--iterations a,b,c]
+ *       T⁻¹ end to end: a true PL (fringes and a dark quenched stripe) and field, T computed
+ *       with the exact operator, then T⁻¹ (method R: RL on PL and on the shifted numerator)
+ *       with each representation (and a single central PSF) for each iteration count. Reports
+ *       time and the max / rms error of the corrected field over lit pixels relative to the
+ *       field's peak.
+ * Fields (support S px, default 16; kernels normalised over it): FWHM and beta linear in the
+ * normalised position u, v in [-1, 1]:
+ *   strong: FWHM 3 → 6 px along x (2×), beta 3 → 1.1 along y;
+ *   mild:   FWHM 4.3 → 4.7 px along x (1.1×), beta 2.6 → 2.4 along y.
+ */
+#include "svpsf.h"
+
+#include "blur/blur_internal.h"
+
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/resource.h>
+#include <time.h>
+
+static double now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return ts.tv_sec + 1e-9 * ts.tv_nsec;
+}
+
+static double peak_mb(void)
+{
+    struct rusage ru;
+    getrusage(RUSAGE_SELF, &ru);
+    return ru.ru_maxrss / 1024.0;
+}
+
+static const char *arg_str(int argc, char **argv, const char *name, const char *def)
+{
+    for (int i = 2; i + 1 < argc; i++)
+        if (!strcmp(argv[i], name)) return argv[i + 1];
+    return def;
+}
+
+static double arg_num(int argc, char **argv, const char *name, double def)
+{
+    const char *s = arg_str(argc, argv, name, NULL);
+    return s ? atof(s) : def;
+}
+
+/* A JSON number, null for NaN / Inf (one of two rotating buffers). */
+static const char *jnum(double v)
+{
+    static char buf[2][32];
+    static int k;
+    k ^= 1;
+    if (isfinite(v))
+        snprintf(buf[k], sizeof buf[k], "%.6g", v);
+    else
+        snprintf(buf[k], sizeof buf[k], "null");
+    return buf[k];
+}
+
+static int fail(const char *what)
+{
+    printf("{\"error\": \"failed\", \"message\": \"%s: %s\"}\n", what, svp_last_error());
+    return 2;
+}
+
+static svp_psf_field *make_field(int n, int strong, double support)
+{
+    svp_psf base;
+    svp_psf_defaults(&base);
+    base.model = SVP_PSF_MOFFAT;
+    base.support = support;
+    const int nt = svp_psf_field_poly_terms(1); /* 1, u, v */
+    double c[SVP_FIELD_NPARAM * 3] = {0};
+    c[SVP_FIELD_FWHM * nt + 0] = strong ? 4.5 : 4.5;
+    c[SVP_FIELD_FWHM * nt + 1] = strong ? 1.5 : 0.2;
+    c[SVP_FIELD_BETA * nt + 0] = strong ? 2.05 : 2.5;
+    c[SVP_FIELD_BETA * nt + 2] = strong ? -0.95 : -0.1;
+    svp_psf_field *f = NULL;
+    if (svp_psf_field_new_poly(&base, n, n, 1, c, &f) != SVP_OK) return NULL;
+    return f;
+}
+
+static double rel_l2(const svp_image *a, const svp_image *ref)
+{
+    double num = 0, den = 0;
+    for (size_t i = 0; i < (size_t)a->width * a->height; i++) {
+        double d = a->data[i] - ref->data[i];
+        num += d * d;
+        den += ref->data[i] * ref->data[i];
+    }
+    return sqrt(num / den);
+}
+
+static svp_image *random_image(int n, uint64_t seed)
+{
+    svp_image *x = NULL;
+    if (svp_image_new(n, n, &x) != SVP_OK) return NULL;
+    uint64_t s = seed * 0x9E3779B97F4A7C15ULL + 1;
+    for (size_t i = 0; i < (size_t)n * n; i++) {
+        s ^= s >> 12;
+        s ^= s << 25;
+        s ^= s >> 27;
+        x->data[i] = (double)((s * 0x2545F4914F6CDD1DULL) >> 11) * (1.0 / 9007199254740992.0);
+    }
+    return x;
+}
+
+/* Best-of-reps time of K forward + 1 inverse real FFTs of the operator's frame. */
+static double time_ffts(const svp_blur *b, int K, int reps)
+{
+    const svp_frame *f = &b->frame;
+    const size_t nr = (size_t)f->ny * f->nx, nc = (size_t)f->ny * f->ncx;
+    double *r = svp_alloc(nr * sizeof(double));
+    fftw_complex *c = svp_alloc(nc * sizeof(fftw_complex));
+    if (!r || !c) {
+        svp_free(r);
+        svp_free(c);
+        return NAN;
+    }
+    for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7);
+    double best = INFINITY;
+    for (int rep = 0; rep < reps; rep++) {
+        double t0 = now();
+        for (int k = 0; k < K; k++) svp_fft_forward(f->plan, r, c);
+        svp_fft_inverse_unscaled(f->plan, c, r);
+        double t = now() - t0;
+        if (t < best) best = t;
+        for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7); /* keep the data finite */
+    }
+    svp_free(r);
+    svp_free(c);
+    return best;
+}
+
+static int cmd_apply(int argc, char **argv)
+{
+    const int n = (int)arg_num(argc, argv, "--size", 256);
+    const int strong = strcmp(arg_str(argc, argv, "--variation", "strong"), "mild") != 0;
+    const int exact = (int)arg_num(argc, argv, "--exact", n <= 256);
+    const int reps = (int)arg_num(argc, argv, "--reps", 3);
+    const double support = arg_num(argc, argv, "--support", 16);
+    const double budget = arg_num(argc, argv, "--budget-mb", 6000);
+    svp_psf_field *f = make_field(n, strong, support);
+    if (!f) return fail("field");
+    svp_image *x = random_image(n, 1), *y = NULL, *ye = NULL;
+    if (!x || svp_image_new(n, n, &y) != SVP_OK || svp_image_new(n, n, &ye) != SVP_OK)
+        return fail("images");
+    double t_exact = NAN;
+    if (exact) {
+        svp_blur *ex = NULL;
+        if (svp_blur_new_exact(f, n, n, SVP_BOUNDARY_MIRROR, 0, &ex) != SVP_OK)
+            return fail("exact operator");
+        double t0 = now();
+        if (svp_blur_apply(ex, x, ye) != SVP_OK) return fail("exact apply");
+        t_exact = now() - t0;
+        svp_blur_free(ex);
+    }
+    const char *var = strong ? "strong" : "mild";
+    printf("{\"kind\": \"exact\", \"size\": %d, \"variation\": \"%s\", \"support_px\": %g, "
+           "\"time_s\": %s}\n",
+           n, var, support, jnum(t_exact));
+    fflush(stdout);
+    enum { NG = 5, NR = 12 };
+    const int grids[NG] = {1, 2, 4, 8, 16};
+    for (int c = 0; c < NG + NR; c++) {
+        const int tent = c < NG;
+        svp_variant_options o;
+        svp_variant_defaults(&o);
+        int K;
+        if (tent) {
+            o.grid_x = o.grid_y = grids[c];
+            K = grids[c] * grids[c];
+        } else {
+            o.representation = SVP_VARIANT_LOWRANK;
+            o.samples_x = o.samples_y = 16;
+            o.rank = c - NG + 1;
+            K = o.rank;
+        }
+        /* spectra of the padded frame: (n + 2 r) x (n + 2 r) for mirror with support r */
+        const int side = n + 2 * (int)ceil(support);
+        const double spec_mb = (double)K * side * (side / 2 + 1) * 16.0 / 1048576.0;
+        char label[32];
+        snprintf(label, sizeof label, tent ? "tent %dx%d" : "low rank %d", tent ? grids[c] : o.rank,
+                 tent ? grids[c] : 0);
+        if (spec_mb > budget) {
+            printf("{\"kind\": \"%s\", \"label\": \"%s\", \"K\": %d, \"size\": %d, "
+                   "\"variation\": \"%s\", \"skipped\": \"the %d spectra need %.0f MB > budget "
+                   "%.0f MB\", \"spectra_mb\": %.1f}\n",
+                   tent ? "tent" : "lowrank", label, K, n, var, K, spec_mb, budget, spec_mb);
+            fflush(stdout);
+            continue;
+        }
+        svp_blur *b = NULL;
+        double t0 = now();
+        if (svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &b) != SVP_OK) return fail(label);
+        const double t_build = now() - t0;
+        double best = INFINITY;
+        for (int r = 0; r < reps; r++) {
+            t0 = now();
+            if (svp_blur_apply(b, x, y) != SVP_OK) return fail("apply");
+            double t = now() - t0;
+            if (t < best) best = t;
+        }
+        const double t_fft = time_ffts(b, K, reps);
+        const double err = exact ? rel_l2(y, ye) : NAN;
+        const svp_frame *fr = &b->frame;
+        const double spectra = (double)K * fr->ny * fr->ncx * sizeof(fftw_complex) / 1048576.0;
+        printf("{\"kind\": \"%s\", \"label\": \"%s\", \"K\": %d, \"size\": %d, \"variation\": "
+               "\"%s\", \"frame\": [%d, %d], \"build_s\": %.6g, \"apply_s\": %.6g, "
+               "\"ffts_s\": %.6g, \"ratio\": %.4g, \"rel_err\": %s, \"spectra_mb\": %.2f, "
+               "\"operator_mb\": %.2f, \"peak_rss_mb\": %.1f, \"threads\": %d}\n",
+               tent ? "tent" : "lowrank", label, K, n, var, fr->nx, fr->ny, t_build, best, t_fft,
+               best / t_fft, jnum(err), spectra, svp_blur_memory(b) / 1048576.0, peak_mb(),
+               svp_get_threads());
+        fflush(stdout);
+        svp_blur_free(b);
+    }
+    svp_image_free(x);
+    svp_image_free(y);
+    svp_image_free(ye);
+    svp_psf_field_free(f);
+    return 0;
+}
+
+/* True PL: fringes along x and a quenched stripe (15 %) down the middle; true field: a smooth
+ * signed pattern. */
+static void scene(int n, svp_image *pl, svp_image *b)
+{
+    for (int y = 0; y < n; y++)
+        for (int x = 0; x < n; x++) {
+            double u = (double)x / n, v = (double)y / n;
+            double metal = 0.5 * (tanh((x - 0.42 * n) / 1.5) - tanh((x - 0.58 * n) / 1.5));
+            pl->data[(size_t)y * n + x] =
+                (0.6 + 0.4 * cos(2 * M_PI * 3 * u)) * (1 - 0.85 * metal) * (0.8 + 0.2 * v);
+            b->data[(size_t)y * n + x] = 0.3 + sin(2 * M_PI * u) * cos(2 * M_PI * 0.7 * v) +
+                                         0.5 * exp(-((u - 0.5) * (u - 0.5)) / 0.005);
+        }
+}
+
+static int cmd_inverse(int argc, char **argv)
+{
+    const int n = (int)arg_num(argc, argv, "--size", 256);
+    const int strong = strcmp(arg_str(argc, argv, "--variation", "strong"), "mild") != 0;
+    const double support = arg_num(argc, argv, "--support", 16);
+    const char *its_s = arg_str(argc, argv, "--iterations", "10,30,100");
+    const char *reps_s = arg_str(argc, argv, "--reprs", "single,t1,t2,t4,t8,t16,r2,r4,r8,r12");
+    const int max_k_its = (int)arg_num(argc, argv, "--max-k-iterations", 3000);
+    svp_psf_field *f = make_field(n, strong, support);
+    if (!f) return fail("field");
+    svp_image *pl = NULL, *b = NULL, *pla = NULL, *ba = NULL, *plr = NULL, *br = NULL;
+    svp_image *val = NULL;
+    if (svp_image_new(n, n, &pl) || svp_image_new(n, n, &b) || svp_image_new(n, n, &pla) ||
+        svp_image_new(n, n, &ba) || svp_image_new(n, n, &plr) || svp_image_new(n, n, &br) ||
+        svp_image_new(n, n, &val))
+        return fail("images");
+    scene(n, pl, b);
+    svp_blur *ex = NULL;
+    if (svp_blur_new_exact(f, n, n, SVP_BOUNDARY_MIRROR, 0, &ex) != SVP_OK) return fail("exact");
+    const svp_image *fin[1] = {b};
+    svp_image *fout[1] = {ba};
+    if (svp_forward_transform(ex, pl, fin, 1, pla, fout, NULL) != SVP_OK) return fail("T");
+    svp_blur_free(ex);
+    double bmax = 0, plmax = 0;
+    for (size_t i = 0; i < (size_t)n * n; i++) {
+        bmax = fmax(bmax, fabs(b->data[i]));
+        plmax = fmax(plmax, pl->data[i]);
+    }
+    /* the apparent error, for reference */
+    double emax = 0, esq = 0;
+    size_t nlit = 0;
+    for (size_t i = 0; i < (size_t)n * n; i++)
+        if (pl->data[i] >= 0.5 * plmax) {
+            double d = fabs(ba->data[i] - b->data[i]);
+            emax = fmax(emax, d);
+            esq += d * d;
+            nlit++;
+        }
+    const char *var = strong ? "strong" : "mild";
+    printf("{\"kind\": \"apparent\", \"size\": %d, \"variation\": \"%s\", \"max_err\": %.6g, "
+           "\"rms_err\": %.6g, \"lit_pixels\": %zu}\n",
+           n, var, emax / bmax, sqrt(esq / nlit) / bmax, nlit);
+    fflush(stdout);
+    char reps[256];
+    snprintf(reps, sizeof reps, "%s", reps_s);
+    for (char *tok = strtok(reps, ","); tok; tok = strtok(NULL, ",")) {
+        svp_blur *op = NULL;
+        int K = 1;
+        double t0 = now();
+        svp_status st;
+        if (!strcmp(tok, "single")) {
+            svp_psf c;
+            if (svp_psf_field_at(f, 0.5 * (n - 1), 0.5 * (n - 1), &c) != SVP_OK) return fail(tok);
+            st = svp_blur_new(&c, n, n, SVP_BOUNDARY_MIRROR, &op);
+        } else {
+            svp_variant_options o;
+            svp_variant_defaults(&o);
+            if (tok[0] == 't') {
+                o.grid_x = o.grid_y = atoi(tok + 1);
+                K = o.grid_x * o.grid_y;
+            } else {
+                o.representation = SVP_VARIANT_LOWRANK;
+                o.samples_x = o.samples_y = 16;
+                o.rank = K = atoi(tok + 1);
+            }
+            st = svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &op);
+        }
+        if (st != SVP_OK) return fail(tok);
+        const double t_build = now() - t0;
+        char its[128];
+        snprintf(its, sizeof its, "%s", its_s);
+        char *save = NULL;
+        for (char *it = strtok_r(its, ",", &save); it; it = strtok_r(NULL, ",", &save)) {
+            const int iterations = atoi(it);
+            if ((long)K * iterations > max_k_its) {
+                printf("{\"kind\": \"inverse\", \"repr\": \"%s\", \"K\": %d, \"iterations\": %d, "
+                       "\"skipped\": \"K x iterations > %d\"}\n",
+                       tok, K, iterations, max_k_its);
+                continue;
+            }
+            svp_correct_options co;
+            svp_correct_defaults(&co);
+            co.method = SVP_METHOD_R;
+            co.deconv.iterations = iterations;
+            const svp_image *ain[1] = {ba};
+            svp_image *aout[1] = {br};
+            t0 = now();
+            if (svp_inverse_transform(op, pla, ain, 1, &co, plr, aout, val, NULL) != SVP_OK)
+                return fail("T^-1");
+            const double t = now() - t0;
+            emax = 0;
+            esq = 0;
+            for (size_t i = 0; i < (size_t)n * n; i++)
+                if (pl->data[i] >= 0.5 * plmax) {
+                    double d = fabs(br->data[i] - b->data[i]);
+                    emax = fmax(emax, d);
+                    esq += d * d;
+                }
+            printf("{\"kind\": \"inverse\", \"repr\": \"%s\", \"K\": %d, \"size\": %d, "
+                   "\"variation\": \"%s\", \"iterations\": %d, \"build_s\": %.6g, \"time_s\": "
+                   "%.6g, \"max_err\": %.6g, \"rms_err\": %.6g, \"peak_rss_mb\": %.1f}\n",
+                   tok, K, n, var, iterations, t_build, t, emax / bmax, sqrt(esq / nlit) / bmax,
+                   peak_mb());
+            fflush(stdout);
+        }
+        svp_blur_free(op);
+    }
+    svp_image_free(pl);
+    svp_image_free(b);
+    svp_image_free(pla);
+    svp_image_free(ba);
+    svp_image_free(plr);
+    svp_image_free(br);
+    svp_image_free(val);
+    svp_psf_field_free(f);
+    return 0;
+}
+
+int main(int argc, char **argv)
+{
+    if (argc < 2) {
+        fprintf(stderr, "usage: bench_variant apply|inverse [options] (see the source)\n");
+        return 1;
+    }
+    svp_set_fft_effort(SVP_FFT_MEASURE);
+    int rc;
+    if (!strcmp(argv[1], "apply"))
+        rc = cmd_apply(argc, argv);
+    else if (!strcmp(argv[1], "inverse"))
+        rc = cmd_inverse(argc, argv);
+    else {
+        fprintf(stderr, "bench_variant: unknown command '%s'\n", argv[1]);
+        rc = 1;
+    }
+    svp_fft_cleanup();
+    return rc;
+}
