@@ -147,7 +147,18 @@ int cmd_psf_compare(int argc, char **argv)
         goto cleanup;
     }
     double max_df = 0, sum_df = 0, max_rel = 0, max_db = 0, sum_db = 0, max_de = 0;
-    int moffat = 0;
+    /* beta compares between Moffat and Lorentzian (beta = 1) maps, not with a Gaussian one */
+    svp_psf ma, mb;
+    if ((st = svp_psf_field_at(fa, 0, 0, &ma)) != SVP_OK ||
+        (st = svp_psf_field_at(fb, 0, 0, &mb)) != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+    const int beta_comparable = ma.model != SVP_PSF_GAUSSIAN && mb.model != SVP_PSF_GAUSSIAN;
+    static const char *const mnames[] = {"gaussian", "lorentzian", "moffat"};
+    if (ma.model != mb.model)
+        cli_note(&run, "the maps use different models (A %s, B %s)%s", mnames[ma.model & 3],
+                 mnames[mb.model & 3], beta_comparable ? "" : ": beta is not compared");
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
             double p[SVP_FIELD_NPARAM], q[SVP_FIELD_NPARAM];
@@ -162,25 +173,34 @@ int cmd_psf_compare(int argc, char **argv)
             max_df = fmax(max_df, fabs(df));
             sum_df += fabs(df);
             max_rel = fmax(max_rel, fabs(df) / (p[SVP_FIELD_FWHM] * um));
-            double db = q[SVP_FIELD_BETA] - p[SVP_FIELD_BETA];
+            double db = NAN;
+            if (beta_comparable) {
+                double ba = ma.model == SVP_PSF_LORENTZIAN ? 1.0 : p[SVP_FIELD_BETA];
+                double bb = mb.model == SVP_PSF_LORENTZIAN ? 1.0 : q[SVP_FIELD_BETA];
+                db = bb - ba;
+                max_db = fmax(max_db, fabs(db));
+                sum_db += fabs(db);
+            }
             dbe->data[i] = db;
-            max_db = fmax(max_db, fabs(db));
-            sum_db += fabs(db);
             max_de = fmax(max_de, hypot(q[SVP_FIELD_E1] - p[SVP_FIELD_E1],
                                         q[SVP_FIELD_E2] - p[SVP_FIELD_E2]));
-            moffat |= p[SVP_FIELD_BETA] > 0 || q[SVP_FIELD_BETA] > 0;
         }
     const double n_px = (double)w * h;
     printf("PSF maps %s (A) and %s (B), %d x %d field, pixel %g um:\n", pa, pb, w, h, um);
     printf("  |dFWHM|  max %.5f um (%.2f %% of A), mean %.5f um\n", max_df, 100 * max_rel,
            sum_df / n_px);
-    if (moffat) printf("  |dbeta|  max %.4f, mean %.4f\n", max_db, sum_db / n_px);
+    if (beta_comparable)
+        printf("  |dbeta|  max %.4f, mean %.4f\n", max_db, sum_db / n_px);
+    else
+        printf("  |dbeta|  not compared (a Gaussian map has no beta; dbeta is NaN)\n");
     printf("  |de|     max %.4f\n", max_de);
     cli_result_num(&run, "max_abs_dfwhm_um", max_df);
     cli_result_num(&run, "mean_abs_dfwhm_um", sum_df / n_px);
     cli_result_num(&run, "max_rel_dfwhm", max_rel);
-    cli_result_num(&run, "max_abs_dbeta", max_db);
-    cli_result_num(&run, "mean_abs_dbeta", sum_db / n_px);
+    if (beta_comparable) {
+        cli_result_num(&run, "max_abs_dbeta", max_db);
+        cli_result_num(&run, "mean_abs_dbeta", sum_db / n_px);
+    }
     cli_result_num(&run, "max_abs_de", max_de);
 
     /* ---- 2. the reference scene ---- */
