@@ -224,6 +224,17 @@ SVP_API void svp_deconv_defaults(svp_deconv_options *options);
  * options NULL = defaults. */
 SVP_API svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
                                      const svp_deconv_options *options, svp_image *x);
+/* The noise's standard deviation in y, estimated from the data (Immerkær 1996: the mean
+ * absolute response to a mask that cancels locally quadratic signals; NaN/Inf neighbourhoods
+ * skipped). Images of at least 3 x 3. */
+SVP_API svp_status svp_noise_sigma_estimate(const svp_image *y, double *sigma);
+/* A Wiener–Hunt balance for noisy data by the discrepancy principle: the λ in [1e-12, 1e2]
+ * whose solution leaves the residual ‖M(H x_λ − y)‖² = n_finite σ² (bisection on log λ,
+ * 16 Wiener solves). sigma <= 0: estimated by svp_noise_sigma_estimate; the σ used is returned
+ * in *sigma_used (may be NULL). */
+SVP_API svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y,
+                                                  double sigma, double *balance,
+                                                  double *sigma_used);
 /* Richardson–Lucy: x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, started flat at the data mean; m is
  * 0 on NaN/Inf pixels of y (missing data), 1 elsewhere; pixels no finite datum sees keep the
  * start value. boundary_weights = 0 divides by the scalar mean of Hᵀm instead (plain RL).

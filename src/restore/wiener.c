@@ -500,3 +500,126 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
     svp_free(filled);
     return st;
 }
+
+/* ---- choosing the balance: the discrepancy principle --------------------------------------- */
+
+/* Immerkær's estimate (Fast noise variance estimation, CVIU 64 (1996) 300–302): the mask
+ * N = [1 −2 1; −2 4 −2; 1 −2 1] cancels every locally quadratic signal, and for white noise
+ * of deviation σ, E|N ∗ n| = 6 σ √(2/π); so σ ≈ √(π/2) mean|N ∗ y| / 6 over the interior
+ * pixels whose 3 x 3 neighbourhood is finite. */
+svp_status svp_noise_sigma_estimate(const svp_image *y, double *sigma)
+{
+    if (!y || !y->data || !sigma)
+        return svp_fail(SVP_ERR_INVALID, "noise estimate: NULL argument");
+    const int w = y->width, h = y->height;
+    if (w < 3 || h < 3)
+        return svp_fail(SVP_ERR_INVALID,
+                        "noise estimate: the image is %d x %d, at least 3 x 3 is needed", w, h);
+    double *row_sum = calloc((size_t)h, sizeof(double));
+    long long *row_count = calloc((size_t)h, sizeof(long long));
+    if (!row_sum || !row_count) {
+        free(row_sum);
+        free(row_count);
+        return svp_fail(SVP_ERR_NOMEM, "noise estimate: out of memory");
+    }
+    const double *d = y->data;
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+    for (int j = 1; j < h - 1; j++) {
+        const double *u = d + (size_t)(j - 1) * w, *c = d + (size_t)j * w,
+                     *l = d + (size_t)(j + 1) * w;
+        double s = 0;
+        long long k = 0;
+        for (int i = 1; i < w - 1; i++) {
+            double v = (u[i - 1] + u[i + 1] + l[i - 1] + l[i + 1]) -
+                       2 * (u[i] + l[i] + c[i - 1] + c[i + 1]) + 4 * c[i];
+            if (!isfinite(v)) continue;
+            s += fabs(v);
+            k++;
+        }
+        row_sum[j] = s;
+        row_count[j] = k;
+    }
+    double s = 0;
+    long long k = 0;
+    for (int j = 1; j < h - 1; j++) { /* fixed order: the same sum for any thread count */
+        s += row_sum[j];
+        k += row_count[j];
+    }
+    free(row_sum);
+    free(row_count);
+    if (k == 0)
+        return svp_fail(SVP_ERR_INVALID,
+                        "noise estimate: no 3 x 3 neighbourhood of the image is free of NaN/Inf");
+    *sigma = sqrt(PI / 2.0) * s / (6.0 * (double)k);
+    return SVP_OK;
+}
+
+#define DISCREPANCY_LOG_MIN (-12.0)
+#define DISCREPANCY_LOG_MAX 2.0
+#define DISCREPANCY_STEPS 14
+
+/* Morozov's discrepancy principle: the λ whose Wiener–Hunt solution x_λ leaves a residual
+ * ‖M (H x_λ − y)‖² equal to what the noise alone explains, n_finite σ². The residual grows
+ * with λ, so bisection on log10 λ over [1e-12, 1e2] finds it (14 halvings: λ to within a
+ * factor 1.002); when even an end fits (or misses), that end is returned. */
+svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, double sigma,
+                                          double *balance, double *sigma_used)
+{
+    const char *what = "discrepancy principle";
+    if (!blur || !y || !y->data || !balance)
+        return svp_fail(SVP_ERR_INVALID, "%s: NULL argument", what);
+    if (y->width != blur->width || y->height != blur->height)
+        return svp_fail(SVP_ERR_SIZE, "%s: the operator is %d x %d but the data y are %d x %d",
+                        what, blur->width, blur->height, y->width, y->height);
+    if (!isfinite(sigma))
+        return svp_fail(SVP_ERR_INVALID, "%s: noise deviation %g is not finite", what, sigma);
+    if (sigma <= 0) SVP_CHECK(svp_noise_sigma_estimate(y, &sigma));
+    if (sigma_used) *sigma_used = sigma;
+    const int w = y->width, h = y->height;
+    const size_t n = (size_t)w * h;
+    const size_t n_finite = n - svp_image_count_nonfinite(y);
+    if (n_finite == 0)
+        return svp_fail(SVP_ERR_INVALID, "%s: all %zu pixels of the data y are NaN or Inf",
+                        what, n);
+    svp_image *x = NULL, *hx = NULL;
+    svp_status st = svp_image_new(w, h, &x);
+    if (st == SVP_OK) st = svp_image_new(w, h, &hx);
+    double *prod = svp_alloc(n * sizeof(double));
+    if (st == SVP_OK && !prod) st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", what);
+    const double target = (double)n_finite * sigma * sigma;
+    double lo = DISCREPANCY_LOG_MIN, hi = DISCREPANCY_LOG_MAX;
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    /* residual at log10 λ = t, compared with the target: > 0 when λ is too large */
+    for (int step = 0; st == SVP_OK && step < DISCREPANCY_STEPS + 2; step++) {
+        double t = step == 0 ? hi : step == 1 ? lo : 0.5 * (lo + hi);
+        o.balance = pow(10.0, t);
+        if ((st = svp_deconv_wiener(blur, y, &o, x)) != SVP_OK) break;
+        if ((st = svp_blur_apply(blur, x, hx)) != SVP_OK) break;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+        for (size_t i = 0; i < n; i++) {
+            double r = isfinite(y->data[i]) ? hx->data[i] - y->data[i] : 0.0;
+            prod[i] = r * r;
+        }
+        const double too_large = svp_sum(prod, n) - target;
+        if (step == 0 && !(too_large > 0)) { /* even the largest λ fits: take it */
+            lo = hi;
+            break;
+        }
+        if (step == 1 && too_large >= 0) { /* even the smallest λ misses: take it */
+            hi = lo;
+            break;
+        }
+        if (step >= 2) {
+            if (too_large > 0)
+                hi = t;
+            else
+                lo = t;
+        }
+    }
+    if (st == SVP_OK) *balance = pow(10.0, 0.5 * (lo + hi));
+    svp_image_free(x);
+    svp_image_free(hx);
+    svp_free(prod);
+    return st;
+}

@@ -242,6 +242,14 @@ else
 fi
 expect_bad dec_sk_large "k63.txt|larger" deconvolve fwd_zp/field.txt --psf k63.txt -o dec/sk2.txt --method rl --compat skimage
 expect_bad dec_no_method "--method" deconvolve fwd_p/pl.npy --psf moffat.yaml -o dec/x.txt
+# --balance auto: the discrepancy principle picks lambda (its accuracy: test_restore's
+# test_balance_discrepancy); here the plumbing: it runs, reports lambda and sigma, refuses misuse
+expect_ok dec_auto deconvolve fwd_z/pl.tif --psf moffat.yaml -o dec/pl_auto.txt --method wiener --balance auto --noise 0.001 $FAST
+grep -q "discrepancy" out.dec_auto && grep -q '"noise_sigma"' dec/pl_auto.summary.json &&
+    pass "deconvolve --balance auto reports the chosen balance and sigma" ||
+    fail "balance auto" "$(cat out.dec_auto)"
+expect_bad dec_auto_rl "--balance auto|wiener" deconvolve fwd_p/pl.npy --psf moffat.yaml -o dec/y.txt --method rl --balance auto
+expect_bad dec_noise_alone "--noise|auto" deconvolve fwd_p/pl.npy --psf moffat.yaml -o dec/y.txt --method wiener --noise 0.1
 
 # ---- missing data ------------------------------------------------------------------------------
 awk 'NR == 10 { $7 = "nan"; $8 = "nan" } { print }' fwd_z/../fwd_zp/field.txt >field_nan.txt

@@ -12,6 +12,7 @@ enum {
     OPT_METHOD,
     OPT_ITERATIONS,
     OPT_BALANCE,
+    OPT_NOISE,
     OPT_BOUNDARY,
     OPT_COMPAT,
 };
@@ -36,7 +37,11 @@ static void print_help(const cli_run *run, FILE *out)
           "                        (required)\n",
           out);
     fprintf(out,
-            "  --balance L           Wiener-Hunt regularisation lambda (default %g)\n"
+            "  --balance L|auto      Wiener-Hunt regularisation lambda (default %g); auto:\n"
+            "                        chosen by the discrepancy principle (the lambda whose\n"
+            "                        residual |H x - IN|^2 is what the noise explains, n sigma^2)\n"
+            "  --noise SIGMA         with --balance auto: the noise's standard deviation in\n"
+            "                        IN's units (default: estimated from IN)\n"
             "  --iterations N        Richardson-Lucy iterations (default %d)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero; not with --compat)\n"
@@ -70,6 +75,7 @@ int cmd_deconvolve(int argc, char **argv)
         {"method", required_argument, NULL, OPT_METHOD},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
         {"balance", required_argument, NULL, OPT_BALANCE},
+        {"noise", required_argument, NULL, OPT_NOISE},
         {"boundary", required_argument, NULL, OPT_BOUNDARY},
         {"compat", required_argument, NULL, OPT_COMPAT},
         {NULL, 0, NULL, 0},
@@ -79,7 +85,8 @@ int cmd_deconvolve(int argc, char **argv)
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
     const char *psf_path = NULL;
-    int method = -1, compat = -1, boundary_given = 0;
+    int method = -1, compat = -1, boundary_given = 0, balance_auto = 0;
+    double noise = 0; /* 0: estimated */
     svp_boundary boundary = SVP_BOUNDARY_ZERO;
     svp_deconv_options opt;
     svp_deconv_defaults(&opt);
@@ -101,9 +108,19 @@ int cmd_deconvolve(int argc, char **argv)
             bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.iterations);
             break;
         case OPT_BALANCE:
+            if (strcmp(optarg, "auto") == 0) {
+                balance_auto = 1;
+                break;
+            }
+            balance_auto = 0;
             bad = cli_parse_double(&run, "--balance", optarg, &opt.balance);
             if (!bad && !(opt.balance >= 0))
-                bad = cli_error(&run, "--balance must be >= 0, got %s", optarg);
+                bad = cli_error(&run, "--balance must be >= 0 or auto, got %s", optarg);
+            break;
+        case OPT_NOISE:
+            bad = cli_parse_double(&run, "--noise", optarg, &noise);
+            if (!bad && !(noise > 0))
+                bad = cli_error(&run, "--noise must be > 0, got %s", optarg);
             break;
         case OPT_BOUNDARY:
             bad = cli_parse_boundary(&run, "--boundary", optarg, &boundary);
@@ -125,6 +142,12 @@ int cmd_deconvolve(int argc, char **argv)
     if (!psf_path) return cli_run_finish(&run, cli_error(&run, "--psf is required"));
     if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o OUT is required"));
     if (method < 0) return cli_run_finish(&run, cli_error(&run, "--method wiener|rl is required"));
+    if (balance_auto && (method != 0 || compat >= 0))
+        return cli_run_finish(&run, cli_error(&run, "--balance auto needs --method wiener "
+                                                    "without --compat"));
+    if (noise > 0 && !balance_auto)
+        return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance "
+                                                    "auto"));
     if (compat >= 0 && boundary_given)
         return cli_run_finish(&run, cli_error(&run, "--boundary cannot be used with --compat "
                                                     "skimage (it fixes the boundary handling)"));
@@ -158,7 +181,9 @@ int cmd_deconvolve(int argc, char **argv)
     const int w = in->width, h = in->height;
     cli_psf_describe(&run, &psf);
     cli_setting_str(&run, "method", methods[method]);
-    if (method == 0)
+    if (method == 0 && balance_auto)
+        cli_setting_str(&run, "balance", "auto (discrepancy principle)");
+    else if (method == 0)
         cli_setting_num(&run, "balance", opt.balance);
     else
         cli_setting_int(&run, "iterations", opt.iterations);
@@ -212,6 +237,18 @@ int cmd_deconvolve(int argc, char **argv)
     } else {
         cli_stage_begin(&run, "plan");
         if ((code = cli_psf_blur(&run, &psf, w, h, boundary, &blur))) goto cleanup;
+        if (balance_auto) {
+            cli_stage_begin(&run, "balance");
+            double sigma_used = 0;
+            st = svp_wiener_balance_discrepancy(blur, in, noise, &opt.balance, &sigma_used);
+            if (st != SVP_OK) {
+                code = cli_fail(&run, st, in_path);
+                goto cleanup;
+            }
+            cli_result_num(&run, "noise_sigma", sigma_used);
+            cli_result_str(&run, "noise_sigma_from", noise > 0 ? "--noise" : "estimated");
+            cli_result_num(&run, "balance", opt.balance);
+        }
         cli_stage_begin(&run, "deconvolve");
         opt.progress = cli_progress;
         opt.progress_user = &run;
@@ -231,10 +268,11 @@ int cmd_deconvolve(int argc, char **argv)
     cli_stage_end(&run);
     if ((code = cli_summary_write(&run, sum_path))) goto cleanup;
     if (method == 0)
-        printf("svpsf deconvolve: %s (%d x %d) deconvolved with Wiener-Hunt, balance %g%s "
+        printf("svpsf deconvolve: %s (%d x %d) deconvolved with Wiener-Hunt, balance %g%s%s "
                "-> %s in %.2f s",
-               in_path, w, h, opt.balance, compat >= 0 ? " (scikit-image compatible)" : "",
-               out_path, cli_now() - run.t_start);
+               in_path, w, h, opt.balance, balance_auto ? " (discrepancy principle)" : "",
+               compat >= 0 ? " (scikit-image compatible)" : "", out_path,
+               cli_now() - run.t_start);
     else
         printf("svpsf deconvolve: %s (%d x %d) deconvolved with %d Richardson-Lucy "
                "iterations%s -> %s in %.2f s",
