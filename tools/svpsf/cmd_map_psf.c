@@ -6,6 +6,7 @@
 #include "io/yaml.h"
 
 #include <math.h>
+#include <omp.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -554,14 +555,20 @@ yaml_ok:
 
     /* ---- fits (independent: in parallel, each result the same at any thread count) ---- */
     cli_stage_begin(&run, "fit");
-    if (n_spots > 20) cli_progress_start(&run, "fitting spots");
+    cli_progress_start(&run, "fitting spots");
+    int n_done = 0;
 #pragma omp parallel for schedule(dynamic)
     for (int k = 0; k < n_spots; k++) {
         spot_entry *e = &spots[k];
         e->status = svp_spot_fit(e->image, &so, &e->fit, NULL, NULL);
         if (e->status != SVP_OK) snprintf(e->error, sizeof e->error, "%s", svp_last_error());
+        int done;
+#pragma omp atomic capture
+        done = ++n_done;
+        /* progress is drawn by one thread only (cli_progress is not thread-safe) */
+        if (omp_get_thread_num() == 0) cli_progress(&run, (double)done / n_spots);
     }
-    if (n_spots > 20) cli_progress_done(&run);
+    cli_progress_done(&run);
     samples = calloc((size_t)n_spots, sizeof *samples);
     sample_of = malloc((size_t)n_spots * sizeof *sample_of);
     if (!samples || !sample_of) {
