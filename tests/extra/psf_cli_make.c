@@ -6,7 +6,7 @@
  *     saturated.npy   spot.npy clipped at 3000;  wide.npy 43 x 41
  *     exc.npy, pl.npy an excitation/emission pair, 50 nm pixels, 72 x 72: I_G Moffat beta 3.3,
  *                     FWHM 480 nm; p Moffat beta 1.1, FWHM 610 nm; I_PL = I_G (*) p, shifted by
- *                     (+2.4, -1.3) px
+ *                     (+2.4, -1.3) px; empty72.npy background only, 72 x 72
  *     field.npy       400 x 400 with 25 spots on a 5 x 5 grid: FWHM linear, beta quadratic in
  *                     the normalised position (truth below), round
  *     cut_KK.npy      the same 25 spots as 29 x 29 cut-outs, and spots.yaml listing them
@@ -171,6 +171,8 @@ static int make(const char *dir)
             pl->data[i] = poisson(100 + 5000 * pl->data[i] / plmax);
         }
         rc |= save(dir, "exc.npy", g);
+        for (size_t i = 0; i < W * W; i++) g->data[i] = poisson(100);
+        rc |= save(dir, "empty72.npy", g);
         rc |= save(dir, "pl.npy", pl);
         svp_image_free(g);
         svp_image_free(pl);

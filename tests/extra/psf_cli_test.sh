@@ -83,6 +83,8 @@ fi
 for f in excitation_profile.png direct_spot.png deconvolved_residual.png; do
     [ -s "pair/p.figures/$f" ] && ok "wrote pair/p.figures/$f" || bad "missing pair/p.figures/$f"
 done
+expect_fail "pair: empty excitation" 1 "empty72.npy: PSF from pair: excitation spot" "$S" fit-psf pl.npy --excitation empty72.npy --pixel-um 0.05 -o pair/x.yaml
+expect_fail "pair: empty emission" 1 "empty72.npy: PSF from pair: emission spot" "$S" fit-psf empty72.npy --excitation exc.npy --pixel-um 0.05 -o pair/x.yaml
 # summary: excitation within 2 % / 5 %; direct wider than deconvolved; deconvolved 0.61 +- 8 %
 tr ',' '\n' <pair/p.summary.json | tr -d ' "{}' | awk -F: '
     $1=="excitation_fwhm_um" {ef=$2} $1=="excitation_beta" {eb=$2}
