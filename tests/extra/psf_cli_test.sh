@@ -103,6 +103,11 @@ tr ',' '\n' <pair/p.summary.json | tr -d ' "{}' | awk -F: '
 "$S" map-psf field.yaml --window 19 -o map/small.yaml >"$T/m3.txt" 2>&1
 grep -q "rejected: spot fit flagged (near border)" "$T/m3.txt" && ok "rejections state their reason" \
     || bad "no stated rejection: $(cat "$T/m3.txt")"
+# the same map with 1 and 2 threads
+"$S" map-psf field.yaml --threads 1 -o map/t1.yaml >/dev/null 2>&1
+"$S" map-psf field.yaml --threads 2 -o map/t2.yaml >/dev/null 2>&1
+cmp -s map/t1.yaml map/t2.yaml && cmp -s map/t1.spots.csv map/t2.spots.csv \
+    && ok "map-psf identical with 1 and 2 threads" || bad "map-psf differs between 1 and 2 threads"
 "$S" map-psf field.yaml --degree 2 -o map/d2.yaml >/dev/null 2>&1 && grep -q "degree: 2" map/d2.yaml \
     && ok "map-psf --degree 2" || bad "map-psf --degree 2"
 # a small map (72 x 72 field, 9 spots at given centres) that `svpsf correct --psf` uses

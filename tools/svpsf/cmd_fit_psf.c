@@ -225,8 +225,12 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
     if (st == SVP_OK) st = log_image(model, r->background, floor_, &b);
     if (st == SVP_OK) st = svp_image_new(data->width, data->height, &z);
     if (st != SVP_OK) goto fail;
+    /* unknown noise (unit weights, e.g. a deconvolved spot): sigma from the scatter,
+     * sqrt(chi2_red) */
+    const int unit = so->noise.gain == 0 && so->noise.sigma_bg == 0 && so->noise.excess == 0;
     for (size_t i = 0; i < (size_t)data->width * data->height; i++) {
-        double sigma = sqrt(svp_noise_variance(&so->noise, model->data[i]));
+        double sigma =
+            unit ? sqrt(r->chi2_red) : sqrt(svp_noise_variance(&so->noise, model->data[i]));
         z->data[i] = resid->data[i] / (sigma > 0 ? sigma : 1);
     }
     snprintf(path, sizeof path, "%s/%sspot.png", dir, prefix);
@@ -240,7 +244,8 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
                                run->force)) != SVP_OK)
         goto fail;
     snprintf(path, sizeof path, "%s/%sresidual.png", dir, prefix);
-    snprintf(t, sizeof t, "%s: residual (data - model) / sigma", title);
+    snprintf(t, sizeof t, "%s: residual (data - model) / sigma%s", title,
+             unit ? " (sigma from the scatter)" : "");
     if ((st = scene_map_figure(path, z, 1, -5, 5, 1, t, "residual / sigma", um, run->force)) !=
         SVP_OK)
         goto fail;
