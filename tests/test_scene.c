@@ -7,6 +7,9 @@
 #include "core/internal.h"
 #include "scene/scene_internal.h"
 
+#include <cairo.h>
+#include <stdint.h>
+
 #include <stdio.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -558,6 +561,60 @@ static void test_cube_fit_contrast(void **state)
     svp_scene_free(s);
 }
 
+/* ---- figures ------------------------------------------------------------------------------ */
+
+/* RGB of figure pixel (x, y) */
+static void png_rgb(cairo_surface_t *png, int x, int y, int rgb[3])
+{
+    const unsigned char *d = cairo_image_surface_get_data(png);
+    uint32_t v = *(const uint32_t *)(const void *)(d + (size_t)y * cairo_image_surface_get_stride(png) +
+                                                   4 * (size_t)x);
+    rgb[0] = (int)(v >> 16 & 255), rgb[1] = (int)(v >> 8 & 255), rgb[2] = (int)(v & 255);
+}
+
+/* A signed map drawn by the scene figures: the diverging colour map is white at zero, red for
+ * positive and blue for negative values, and the colour bar beside the map runs from red (top,
+ * the maximum) through white to blue (bottom). Layout of scene_map_figure: the map scaled to
+ * 560 px on its long side at (20, 48), the colour bar 16 px to its right, 18 px wide. */
+static void test_figure_diverging(void **state)
+{
+    (void)state;
+    const int w = 64, h = 32;
+    svp_image *img = test_image(w, h);
+    for (int j = 0; j < h; j++)
+        for (int i = 0; i < w; i++) img->data[(size_t)j * w + i] = (i - 31.5) / 31.5;
+    char dir[] = "/tmp/svpsf_fig_XXXXXX", path[64];
+    assert_non_null(mkdtemp(dir));
+    snprintf(path, sizeof path, "%s/map.png", dir);
+    ASSERT_OK(scene_map_figure(path, img, 1, -1, 1, 1, "a signed map", "B_z (uT)", 0.1, 0));
+    cairo_surface_t *png = cairo_image_surface_create_from_png(path);
+    assert_int_equal(cairo_surface_status(png), CAIRO_STATUS_SUCCESS);
+    cairo_surface_flush(png);
+    const int fw = cairo_image_surface_get_width(png), fh = cairo_image_surface_get_height(png);
+    /* the map (560 x 280) plus the colour bar and its labels */
+    assert_true(fw > 20 + 560 + 16 + 18 && fh > 48 + 280);
+    int c[3], l[3], r[3], top[3], mid[3], bot[3];
+    png_rgb(png, 20 + 280, 48 + 140, c);
+    png_rgb(png, 20 + 4, 48 + 140, l);
+    png_rgb(png, 20 + 556, 48 + 140, r);
+    const int bx = 20 + 560 + 16 + 9;
+    png_rgb(png, bx, 48 + 3, top);
+    png_rgb(png, bx, 48 + 140, mid);
+    png_rgb(png, bx, 48 + 277, bot);
+    print_message("map: zero (%d %d %d), -1 (%d %d %d), +1 (%d %d %d); bar: top (%d %d %d), "
+                  "middle (%d %d %d), bottom (%d %d %d)\n",
+                  c[0], c[1], c[2], l[0], l[1], l[2], r[0], r[1], r[2], top[0], top[1], top[2],
+                  mid[0], mid[1], mid[2], bot[0], bot[1], bot[2]);
+    assert_true(c[0] > 220 && c[1] > 220 && c[2] > 220);       /* zero: white */
+    assert_true(l[2] > l[0] + 50 && r[0] > r[2] + 50);         /* blue < 0 < red */
+    assert_true(mid[0] > 220 && mid[1] > 220 && mid[2] > 220); /* the bar centred on zero */
+    assert_true(top[0] > top[2] + 50 && bot[2] > bot[0] + 50);
+    cairo_surface_destroy(png);
+    unlink(path);
+    rmdir(dir);
+    svp_image_free(img);
+}
+
 /* ---- outputs ------------------------------------------------------------------------------- */
 
 static void test_outputs_written(void **state)
@@ -615,6 +672,7 @@ int main(void)
         cmocka_unit_test(test_determinism),
         cmocka_unit_test(test_cube_centroid_is_closed_form),
         cmocka_unit_test(test_cube_fit_contrast),
+        cmocka_unit_test(test_figure_diverging),
         cmocka_unit_test(test_outputs_written),
     };
     int rc = cmocka_run_group_tests_name("scene", tests, NULL, NULL);
