@@ -200,6 +200,40 @@ static void test_wiener_missing_data(void **state)
     svp_image_free(x);
 }
 
+/* The operator caches the Wiener's frame, OTF, gain or preconditioner filter for the last
+ * balance: a second call with another balance must give exactly what a fresh operator gives,
+ * and a repeated call exactly the same again (every boundary, with missing data too). */
+static void test_wiener_cache(void **state)
+{
+    (void)state;
+    const int w = 30, h = 26;
+    svp_image *x_true = smooth_object(w, h, 0.1, 4.0), *y = test_image(w, h);
+    svp_image *a = test_image(w, h), *b = test_image(w, h);
+    for (int m = 0; m < 3; m++)
+        for (int missing = 0; missing < 2; missing++) {
+            svp_blur *op1 = gaussian_blur(2.5, 0, 0.1, w, h, modes[m]);
+            svp_blur *op2 = gaussian_blur(2.5, 0, 0.1, w, h, modes[m]);
+            ASSERT_OK(svp_blur_apply(op1, x_true, y));
+            if (missing) y->data[7 * w + 9] = NAN;
+            svp_deconv_options o;
+            svp_deconv_defaults(&o);
+            o.balance = 1e-2;
+            ASSERT_OK(svp_deconv_wiener(op1, y, &o, a));
+            o.balance = 1e-5;
+            ASSERT_OK(svp_deconv_wiener(op1, y, &o, a));
+            ASSERT_OK(svp_deconv_wiener(op2, y, &o, b));
+            assert_true(test_max_abs_diff(a, b) == 0);
+            ASSERT_OK(svp_deconv_wiener(op1, y, &o, b));
+            assert_true(test_max_abs_diff(a, b) == 0);
+            svp_blur_free(op1);
+            svp_blur_free(op2);
+        }
+    svp_image_free(x_true);
+    svp_image_free(y);
+    svp_image_free(a);
+    svp_image_free(b);
+}
+
 /* ---- choosing the balance: noise estimate and discrepancy principle ---------------------- */
 
 static double normal_draw(uint64_t *s)
@@ -819,6 +853,7 @@ int main(void)
         cmocka_unit_test(test_wiener_mirror_edges),
         cmocka_unit_test(test_wiener_halo_exact),
         cmocka_unit_test(test_wiener_missing_data),
+        cmocka_unit_test(test_wiener_cache),
         cmocka_unit_test(test_noise_estimate),
         cmocka_unit_test(test_balance_discrepancy),
         cmocka_unit_test(test_rl_converges),

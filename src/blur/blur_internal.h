@@ -82,6 +82,14 @@ struct svp_blur {
     double wiener_balance;
     int wiener_steps; /* CG steps and FFT pairs (at frame size) of the last zero-boundary */
     int wiener_pairs; /* Wiener solve, for benchmarks and tests */
+    /* Periodic and mirror Wiener: the gain conj(P) / (|P|² + λ|L|²) for wiener_balance
+     * (valid when wiener_gain_ok); mirror also its full-period frame with OTF and buffers. All
+     * made on first use, freed with the operator. */
+    fftw_complex *wiener_gain;
+    int wiener_gain_ok;
+    svp_frame *wiener_frame;
+    double *wiener_work_r;
+    fftw_complex *wiener_work_c;
 };
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E

@@ -312,6 +312,13 @@ void svp_blur_free(svp_blur *b)
     svp_free(b->work_r);
     svp_free(b->work_c);
     svp_free(b->wiener_filter);
+    svp_free(b->wiener_gain);
+    if (b->wiener_frame) {
+        svp_frame_release(b->wiener_frame);
+        free(b->wiener_frame);
+    }
+    svp_free(b->wiener_work_r);
+    svp_free(b->wiener_work_c);
     free(b);
 }
 
@@ -323,9 +330,16 @@ double svp_blur_halo(const svp_blur *b) { return b->halo; }
 size_t svp_blur_memory(const svp_blur *b)
 {
     if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_memory(b);
+    size_t wiener = 0; /* the Wiener caches, once used */
+    const svp_frame *wf = b->wiener_frame ? b->wiener_frame : &b->frame;
+    if (b->wiener_filter) wiener += (size_t)b->frame.ny * b->frame.ncx * sizeof(double);
+    if (b->wiener_gain) wiener += (size_t)wf->ny * wf->ncx * sizeof(fftw_complex);
+    if (b->wiener_frame)
+        wiener += svp_frame_memory(wf) + (size_t)wf->ny * wf->nx * sizeof(double) +
+                  (size_t)wf->ny * wf->ncx * sizeof(fftw_complex);
     return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
            (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
-           (size_t)b->kernel->width * b->kernel->height * sizeof(double);
+           (size_t)b->kernel->width * b->kernel->height * sizeof(double) + wiener;
 }
 
 static svp_status check_io(const svp_blur *b, const svp_image *in, const svp_image *out,

@@ -205,66 +205,109 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
-    const svp_boundary frame_mode = blur->boundary;
-    svp_frame f;
-    double *frame = NULL, *lap_x = NULL, *lap_y = NULL, *residual = NULL, *scratch = NULL;
-    fftw_complex *spectrum = NULL, *gain = NULL;
-    /* radii = the image size force the full symmetric period in mirror mode */
-    svp_status st = svp_frame_init(&f, w, h, w, h, frame_mode);
-    if (st != SVP_OK) return st;
-    if ((st = svp_frame_set_kernel(&f, blur->kernel, blur->kcx, blur->kcy, frame_mode)) !=
-        SVP_OK)
-        goto cleanup;
-    const int nx = f.nx, ny = f.ny, ncx = f.ncx;
+    double *lap_x = NULL, *lap_y = NULL, *residual = NULL, *scratch = NULL;
+    svp_status st = SVP_OK;
+    /* The frame, its OTF, its buffers and the gain are cached in the operator: periodic uses
+     * the operator's own frame and work buffers (the same placement of the same kernel);
+     * mirror a full-period frame (radii = the image size force it) made on first use. */
+    svp_frame *fp = &blur->frame;
+    double *frame = blur->work_r;
+    fftw_complex *spectrum = blur->work_c;
+    if (blur->boundary == SVP_BOUNDARY_MIRROR) {
+        if (!blur->wiener_frame) {
+            svp_frame *nf = calloc(1, sizeof *nf);
+            if (!nf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a Wiener frame");
+            if ((st = svp_frame_init(nf, w, h, w, h, SVP_BOUNDARY_MIRROR)) == SVP_OK)
+                st = svp_frame_set_kernel(nf, blur->kernel, blur->kcx, blur->kcy,
+                                          SVP_BOUNDARY_MIRROR);
+            if (st == SVP_OK) {
+                blur->wiener_work_r = svp_alloc((size_t)nf->ny * nf->nx * sizeof(double));
+                blur->wiener_work_c = svp_alloc((size_t)nf->ny * nf->ncx * sizeof(fftw_complex));
+                if (!blur->wiener_work_r || !blur->wiener_work_c)
+                    st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener frame",
+                                  nf->nx, nf->ny);
+            }
+            if (st != SVP_OK) {
+                svp_frame_release(nf);
+                free(nf);
+                svp_free(blur->wiener_work_r);
+                svp_free(blur->wiener_work_c);
+                blur->wiener_work_r = NULL;
+                blur->wiener_work_c = NULL;
+                return st;
+            }
+            blur->wiener_frame = nf;
+            blur->wiener_gain_ok = 0;
+        }
+        fp = blur->wiener_frame;
+        frame = blur->wiener_work_r;
+        spectrum = blur->wiener_work_c;
+    }
+    const svp_frame *f = fp;
+    const int nx = f->nx, ny = f->ny, ncx = f->ncx;
     const size_t nc = (size_t)ny * ncx;
-    frame = svp_alloc((size_t)ny * nx * sizeof(double));
-    spectrum = svp_alloc(nc * sizeof(fftw_complex));
-    gain = svp_alloc(nc * sizeof(fftw_complex));
-    lap_x = malloc((size_t)ncx * sizeof(double));
-    lap_y = malloc((size_t)ny * sizeof(double));
+    if (!blur->wiener_gain) {
+        blur->wiener_gain = svp_alloc(nc * sizeof(fftw_complex));
+        blur->wiener_gain_ok = 0;
+    }
+    fftw_complex *gain = blur->wiener_gain;
+    const int need_gain = !(blur->wiener_gain_ok && blur->wiener_balance == balance);
+    if (need_gain || filled) {
+        lap_x = malloc((size_t)ncx * sizeof(double));
+        lap_y = malloc((size_t)ny * sizeof(double));
+    }
     if (filled) {
         residual = svp_alloc(nc * sizeof(double));
         scratch = svp_alloc(n * sizeof(double));
     }
-    if (!frame || !spectrum || !gain || !lap_x || !lap_y || (filled && (!residual || !scratch))) {
+    if (!gain || ((need_gain || filled) && (!lap_x || !lap_y)) ||
+        (filled && (!residual || !scratch))) {
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener frame", nx, ny);
         goto cleanup;
     }
-    for (int u = 0; u < ncx; u++) lap_x[u] = laplacian_axis(u, nx);
-    for (int v = 0; v < ny; v++) lap_y[v] = laplacian_axis(v, ny);
+    if (lap_x) {
+        for (int u = 0; u < ncx; u++) lap_x[u] = laplacian_axis(u, nx);
+        for (int v = 0; v < ny; v++) lap_y[v] = laplacian_axis(v, ny);
+    }
 
     /* gain G = conj(P) / (|P|² + λ|L|²) / (nx ny); residual filter R = λ|L|² / (...) too */
     const double scale = 1.0 / ((double)nx * ny);
-    const fftw_complex *restrict otf = f.otf;
+    const fftw_complex *restrict otf = f->otf;
+    if (need_gain || filled) {
+        blur->wiener_gain_ok = 0;
 #pragma omp parallel for schedule(static) if (nc > 32768)
-    for (int v = 0; v < ny; v++) {
-        for (int u = 0; u < ncx; u++) {
-            size_t k = (size_t)v * ncx + u;
-            double lap = lap_x[u] + lap_y[v];
-            double prior = balance * lap * lap;
-            double denom = creal(otf[k]) * creal(otf[k]) + cimag(otf[k]) * cimag(otf[k]) + prior;
-            /* a frequency neither the PSF nor the prior sees: the pseudo-inverse gives 0 */
-            fftw_complex g = denom > 0 ? conj(otf[k]) * (scale / denom) : 0;
-            if (!isfinite(creal(g)) || !isfinite(cimag(g))) g = 0;
-            gain[k] = g;
-            if (residual) residual[k] = denom > 0 ? prior / denom * scale : 0.0;
+        for (int v = 0; v < ny; v++) {
+            for (int u = 0; u < ncx; u++) {
+                size_t k = (size_t)v * ncx + u;
+                double lap = lap_x[u] + lap_y[v];
+                double prior = balance * lap * lap;
+                double denom =
+                    creal(otf[k]) * creal(otf[k]) + cimag(otf[k]) * cimag(otf[k]) + prior;
+                /* a frequency neither the PSF nor the prior sees: the pseudo-inverse gives 0 */
+                fftw_complex g = denom > 0 ? conj(otf[k]) * (scale / denom) : 0;
+                if (!isfinite(creal(g)) || !isfinite(cimag(g))) g = 0;
+                gain[k] = g;
+                if (residual) residual[k] = denom > 0 ? prior / denom * scale : 0.0;
+            }
         }
+        blur->wiener_balance = balance;
+        blur->wiener_gain_ok = 1;
     }
     if (filled) {
-        residual_op op = {&f, residual, frame, spectrum, scratch};
+        residual_op op = {f, residual, frame, spectrum, scratch};
         if ((st = refine_fill(&op, y_data, filled)) != SVP_OK) goto cleanup;
         y_data = filled;
     }
 
-    svp_frame_extend(&f, y_data, frame);
-    svp_fft_forward(f.plan, frame, spectrum);
+    svp_frame_extend(f, y_data, frame);
+    svp_fft_forward(f->plan, frame, spectrum);
 #pragma omp parallel for schedule(static) if (nc > 32768)
     for (size_t k = 0; k < nc; k++) spectrum[k] *= gain[k];
     /* D1 = the gain at zero frequency (L(0) = 0), unscaled */
     const double p0 = creal(otf[0]);
     const double d_one = p0 != 0 && isfinite(1.0 / p0) ? 1.0 / p0 : 0.0;
-    svp_fft_inverse_unscaled(f.plan, spectrum, frame);
-    svp_frame_crop(&f, frame, x_data);
+    svp_fft_inverse_unscaled(f->plan, spectrum, frame);
+    svp_frame_crop(f, frame, x_data);
 
     const double alpha = blur->halo;
     double shift = 0, stretch = 1;
@@ -281,10 +324,6 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
         x_data[i] = isfinite(v) ? v : 0.0;
     }
 cleanup:
-    svp_frame_release(&f);
-    svp_free(frame);
-    svp_free(spectrum);
-    svp_free(gain);
     svp_free(residual);
     svp_free(scratch);
     free(lap_x);
