@@ -192,6 +192,45 @@ static void fill_frame(const svp_blur *b, int k, int start, int rows, const doub
     }
 }
 
+/* The extended frame of c_r ⊙ s ⊙ in for low-rank term r in one pass (as svp_frame_extend of
+ * fill_term's output). */
+static void fill_frame_lowrank(const svp_blur *b, int r, const double *restrict in,
+                               double *restrict fr)
+{
+    const svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int w = b->width, nx = f->nx, gx = v->gx, gy = v->gy;
+    const int *sx = f->src_x, *sy = f->src_y;
+    const double *restrict scale = v->scale;
+    const double *cr = v->coef + (size_t)r * gx * gy;
+#pragma omp parallel for schedule(static) if ((size_t)f->ny * nx > SVP_PARALLEL_MIN)
+    for (int t = 0; t < f->ny; t++) {
+        double *out = fr + (size_t)t * nx;
+        const int y = sy[t];
+        if (y < 0) {
+            memset(out, 0, (size_t)nx * sizeof(double));
+            continue;
+        }
+        const int j0 = v->iy0[y], j1 = j0 + 1 < gy ? j0 + 1 : j0;
+        const double ty = v->fy[y];
+        const double *c0 = cr + (size_t)j0 * gx, *c1 = cr + (size_t)j1 * gx;
+        const double *row = in + (size_t)y * w;
+        const double *srow = scale ? scale + (size_t)y * w : NULL;
+        for (int q = 0; q < nx; q++) {
+            const int x = sx[q];
+            if (x < 0) {
+                out[q] = 0;
+                continue;
+            }
+            const int i0 = v->ix0[x], i1 = i0 + 1 < gx ? i0 + 1 : i0;
+            const double tx = v->fx[x];
+            const double c = (1 - ty) * ((1 - tx) * c0[i0] + tx * c0[i1]) +
+                             ty * ((1 - tx) * c1[i0] + tx * c1[i1]);
+            out[q] = c * (srow ? srow[x] : 1.0) * row[x];
+        }
+    }
+}
+
 /* x += c_k s ⊙ fold(z) where z holds frame rows start .. start + rows − 1 of P̃_k ⋆ y. Each
  * image row gathers its (up to 3) frame copies in frame-row order: deterministic. */
 static void fold_add(const svp_blur *b, int k, int start, int rows, const double *restrict z,
@@ -239,6 +278,9 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
             svp_fft_forward_pruned(v->pruned, b->work_r, b->work_c);
         } else if (v->frame_rows) { /* tent: weights and extension in one pass */
             fill_frame(b, k, 0, f->ny, x, b->work_r);
+            svp_fft_forward(f->plan, b->work_r, b->work_c);
+        } else if (b->kind == SVP_BLUR_LOWRANK) {
+            fill_frame_lowrank(b, k, x, b->work_r);
             svp_fft_forward(f->plan, b->work_r, b->work_c);
         } else {
             fill_term(b, k, x, v->tmp);

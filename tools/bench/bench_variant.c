@@ -16,6 +16,9 @@
  *       with each representation (and a single central PSF) for each iteration count. Reports
  *       time and the max / rms error of the corrected field over lit pixels relative to the
  *       field's peak.
+ *   bench_variant plot OUT.png @LABEL t e t e ... [@LABEL t e ...]
+ *       Error versus time per application, log-log (log10 of both on linear axes), one curve
+ *       per @LABEL (up to 10), drawn with the library's own cairo line plot.
  * Fields (support S px, default 16; kernels normalised over it): FWHM and beta linear in the
  * normalised position u, v in [-1, 1]:
  *   strong: FWHM 3 → 6 px along x (2×), beta 3 → 1.1 along y;
@@ -24,6 +27,7 @@
 #include "svpsf.h"
 
 #include "blur/blur_internal.h"
+#include "scene/scene_internal.h"
 
 #include <math.h>
 #include <stdint.h>
@@ -371,10 +375,46 @@ static int cmd_inverse(int argc, char **argv)
     return 0;
 }
 
+static int cmd_plot(int argc, char **argv)
+{
+    if (argc < 4) return fprintf(stderr, "bench_variant plot OUT.png @LABEL t e ...\n"), 1;
+    double *x[10], *y[10];
+    int n[10] = {0}, ns = -1;
+    const char *labels[10];
+    for (int a = 3; a < argc; a++) {
+        if (argv[a][0] == '@') {
+            if (++ns >= 10) return fprintf(stderr, "bench_variant plot: at most 10 curves\n"), 1;
+            labels[ns] = argv[a] + 1;
+            x[ns] = calloc((size_t)argc, sizeof(double));
+            y[ns] = calloc((size_t)argc, sizeof(double));
+            if (!x[ns] || !y[ns]) return 2;
+        } else if (ns >= 0 && a + 1 < argc) {
+            const double t = atof(argv[a]), e = atof(argv[a + 1]);
+            a++;
+            if (!(t > 0 && e > 0)) continue;
+            x[ns][n[ns]] = log10(t);
+            y[ns][n[ns]] = log10(e);
+            n[ns]++;
+        }
+    }
+    if (ns < 0) return fprintf(stderr, "bench_variant plot: no curve\n"), 1;
+    svp_status st =
+        scene_line_plot(argv[2], "space-variant operator: accuracy vs time (256 x 256)",
+                        "log10 time per application (s)", "log10 relative L2 error vs exact",
+                        ns + 1, (const double *const *)x, (const double *const *)y, n, labels, 1);
+    for (int k = 0; k <= ns; k++) {
+        free(x[k]);
+        free(y[k]);
+    }
+    if (st != SVP_OK) return fail("plot");
+    printf("{\"kind\": \"plot\", \"path\": \"%s\", \"curves\": %d}\n", argv[2], ns + 1);
+    return 0;
+}
+
 int main(int argc, char **argv)
 {
     if (argc < 2) {
-        fprintf(stderr, "usage: bench_variant apply|inverse [options] (see the source)\n");
+        fprintf(stderr, "usage: bench_variant apply|inverse|plot [options] (see the source)\n");
         return 1;
     }
     svp_set_fft_effort(SVP_FFT_MEASURE);
@@ -383,6 +423,8 @@ int main(int argc, char **argv)
         rc = cmd_apply(argc, argv);
     else if (!strcmp(argv[1], "inverse"))
         rc = cmd_inverse(argc, argv);
+    else if (!strcmp(argv[1], "plot"))
+        rc = cmd_plot(argc, argv);
     else {
         fprintf(stderr, "bench_variant: unknown command '%s'\n", argv[1]);
         rc = 1;
