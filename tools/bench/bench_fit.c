@@ -11,6 +11,10 @@
  *       beta quadratically; end to end: fit every spot, svp_psf_map_poly (degree by
  *       cross-validation), svp_psf_field_write + svp_psf_field_read. Times per stage, peak
  *       memory, worst map error over the field.
+ *   bench_fit write-field DIR [--count K]
+ *       writes DIR/field.npy (the same 1000 x 1000 field with K spots in one image) and
+ *       DIR/field.yaml (for `svpsf map-psf`: spots detected, 31 x 31 windows), so the section
+ *       script can time the command line end to end (reading, detection, fits, map, writing).
  */
 #include "svpsf.h"
 
@@ -241,8 +245,55 @@ static int bench_map(int argc, char **argv)
     return 0;
 }
 
+static int write_field(int argc, char **argv)
+{
+    enum { W = 1000 };
+    const char *dir = argv[2];
+    const int K = parse(argc, argv, "--count", 100), g = (int)ceil(sqrt(K));
+    svp_image *img = NULL, *cut = NULL;
+    if (svp_image_new(W, W, &img) != SVP_OK || svp_image_new(41, 41, &cut) != SVP_OK) return 2;
+    uint64_t s = 7;
+    for (int k = 0; k < K; k++) {
+        double cx = (k % g + 0.5) * W / g + 4 * (rnd(&s) - 0.5);
+        double cy = (k / g + 0.5) * W / g + 4 * (rnd(&s) - 0.5);
+        double F, B;
+        truth(cx, cy, W, &F, &B);
+        svp_psf p;
+        svp_psf_defaults(&p);
+        p.model = SVP_PSF_MOFFAT;
+        p.fwhm = F;
+        p.beta = B;
+        int ox = (int)floor(cx) - 20, oy = (int)floor(cy) - 20;
+        uint64_t s2 = s + (uint64_t)k;
+        make_spot(cut, &p, cx - ox, cy - oy, &s2); /* Poisson over 100 inside the 41² box */
+        for (int y = 0; y < 41; y++)
+            for (int x = 0; x < 41; x++)
+                if (ox + x >= 0 && oy + y >= 0 && ox + x < W && oy + y < W)
+                    img->data[(size_t)(oy + y) * W + ox + x] = cut->data[y * 41 + x];
+    }
+    uint64_t s3 = 11;
+    for (size_t i = 0; i < (size_t)W * W; i++)
+        if (img->data[i] == 0) img->data[i] = poisson(&s3, 100);
+    char path[4096];
+    snprintf(path, sizeof path, "%s/field.npy", dir);
+    if (svp_image_write(path, img, SVP_FORMAT_NPY, 1) != SVP_OK) {
+        fprintf(stderr, "bench_fit: %s\n", svp_last_error());
+        return 1;
+    }
+    snprintf(path, sizeof path, "%s/field.yaml", dir);
+    FILE *f = fopen(path, "w");
+    if (!f) return 1;
+    fprintf(f, "pixel_um: 0.05\nimage: field.npy\nwindow: 31\n");
+    fclose(f);
+    printf("{\"mode\": \"write-field\", \"count\": %d, \"width\": %d}\n", K, W);
+    svp_image_free(img);
+    svp_image_free(cut);
+    return 0;
+}
+
 int main(int argc, char **argv)
 {
+    if (argc >= 3 && strcmp(argv[1], "write-field") == 0) return write_field(argc, argv);
     if (argc >= 2 && strcmp(argv[1], "spots") == 0) return bench_spots(argc, argv);
     if (argc >= 2 && strcmp(argv[1], "map") == 0) return bench_map(argc, argv);
     fprintf(stderr, "usage: bench_fit spots --size N [--count K] [--threads T] [--reps R]\n"

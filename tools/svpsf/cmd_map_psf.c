@@ -116,10 +116,50 @@ static int cmp_peak(const void *a, const void *b)
     return pa[1] < pb[1] ? -1 : pa[1] > pb[1];
 }
 
-static int cmp_double(const void *a, const void *b)
+/* The k-th smallest of v[0..n-1] (Hoare's selection; reorders v). */
+static double select_kth(double *v, size_t n, size_t k)
 {
-    double x = *(const double *)a, y = *(const double *)b;
-    return x < y ? -1 : x > y;
+    size_t lo = 0, hi = n - 1;
+    while (lo < hi) {
+        double pivot = v[lo + (hi - lo) / 2];
+        size_t i = lo, j = hi;
+        while (i <= j) {
+            while (v[i] < pivot) i++;
+            while (v[j] > pivot) j--;
+            if (i <= j) {
+                double t = v[i];
+                v[i] = v[j];
+                v[j] = t;
+                i++;
+                if (j == 0) break;
+                j--;
+            }
+        }
+        if (k <= j)
+            hi = j;
+        else if (k >= i)
+            lo = i;
+        else
+            break;
+    }
+    return v[k];
+}
+
+/* 1 when no pixel of the (2 r + 1)² window beats sm[y, x] (ties: the first in raster order
+ * wins); the 3 x 3 neighbours first, which rejects most pixels at once. */
+static int is_local_max(const double *sm, int w, int h, int x, int y, int r)
+{
+    const double v = sm[(size_t)y * w + x];
+    for (int pass = 0; pass < 2; pass++) {
+        const int rr = pass == 0 ? 1 : r;
+        for (int j = y - rr; j <= y + rr; j++)
+            for (int i = x - rr; i <= x + rr; i++) {
+                if (i < 0 || j < 0 || i >= w || j >= h || (i == x && j == y)) continue;
+                double u = sm[(size_t)j * w + i];
+                if (u > v || (u == v && (j < y || (j == y && i < x)))) return 0;
+            }
+    }
+    return 1;
 }
 
 /* Local maxima of the 3 x 3 mean above median + threshold sigma / 3, separated by more than
@@ -140,11 +180,9 @@ static int detect(cli_run *run, const svp_image *img, const char *path, int wind
         code = cli_error(run, "%s: fewer than 9 finite pixels: no spots to detect", path);
         goto done;
     }
-    qsort(tmp, nf, sizeof *tmp, cmp_double);
-    const double med = tmp[nf / 2];
+    const double med = select_kth(tmp, nf, nf / 2);
     for (size_t i = 0; i < nf; i++) tmp[i] = fabs(tmp[i] - med);
-    qsort(tmp, nf, sizeof *tmp, cmp_double);
-    double sigma = 1.4826 * tmp[nf / 2];
+    double sigma = 1.4826 * select_kth(tmp, nf, nf / 2);
     if (!(sigma > 0)) sigma = sqrt(fmax(med, 1.0)); /* flat background: shot noise */
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
@@ -163,19 +201,7 @@ static int detect(cli_run *run, const svp_image *img, const char *path, int wind
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
             double v = sm[(size_t)y * w + x];
-            if (!(v > level)) continue;
-            int is_max = 1;
-            for (int j = y - r; j <= y + r && is_max; j++)
-                for (int i = x - r; i <= x + r; i++) {
-                    if (i < 0 || j < 0 || i >= w || j >= h || (i == x && j == y)) continue;
-                    double u = sm[(size_t)j * w + i];
-                    /* ties: the first in raster order wins */
-                    if (u > v || (u == v && (j < y || (j == y && i < x)))) {
-                        is_max = 0;
-                        break;
-                    }
-                }
-            if (!is_max) continue;
+            if (!(v > level) || !is_local_max(sm, w, h, x, y, r)) continue;
             if (nc == cap) {
                 double *c2 = realloc(cand, 3 * sizeof(double) * (size_t)cap * 2);
                 if (!c2) goto nomem;
@@ -405,8 +431,10 @@ int cmd_map_psf(int argc, char **argv)
             if ((code = cli_read_image(&run, "image", path, &field_img))) goto cleanup;
             width = field_img->width;
             height = field_img->height;
+            cli_stage_begin(&run, "detect");
             if ((code = detect(&run, field_img, path, window, threshold, &spots, &n_spots)))
                 goto cleanup;
+            cli_stage_begin(&run, "read");
             cli_setting_int(&run, "window", window);
             cli_setting_num(&run, "threshold", threshold);
         } else {
