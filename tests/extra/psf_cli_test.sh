@@ -137,7 +137,7 @@ expect_fail "map: no overwrite" 1 "map/cut.yaml exists" "$S" map-psf spots.yaml 
 expect_fail "map: empty image" 1 "bad6.yaml" sh -c "printf 'pixel_um: 0.05\nimage: empty.npy\n' > bad6.yaml; \"$S\" map-psf bad6.yaml -o map/b6.yaml"
 
 # ---- psf-compare ----
-if "$S" psf-compare map/cut.yaml map/field.yaml --scene-size 40 -o cmp >"$T/c.txt" 2>&1; then
+if "$S" psf-compare map/cut.yaml map/field.yaml --scene-size 32 -o cmp >"$T/c.txt" 2>&1; then
     ok "psf-compare"
 else
     bad "psf-compare: $(cat "$T/c.txt")"
@@ -146,11 +146,11 @@ for f in cmp/dfwhm.tif cmp/dbeta.tif cmp/dfwhm.png cmp/corrected_a.tif cmp/corre
     [ -s "$f" ] && ok "wrote $f" || bad "missing $f"
 done
 # a map against itself: zero differences
-"$S" psf-compare map/cut.yaml map/cut.yaml --scene-size 32 >"$T/c0.txt" 2>&1
+"$S" psf-compare map/cut.yaml map/cut.yaml --scene-size 24 >"$T/c0.txt" 2>&1
 grep -q "max 0.00000 um" "$T/c0.txt" && grep -q "relative rms difference 0.0000" "$T/c0.txt" \
     && ok "psf-compare A A: no difference" || bad "psf-compare A A: $(cat "$T/c0.txt")"
 # a map against a narrower spot PSF: the scene changes
-"$S" psf-compare map/cut.yaml fit/spot.yaml --scene-size 32 >"$T/c1.txt" 2>&1
+"$S" psf-compare map/cut.yaml fit/spot.yaml --scene-size 24 >"$T/c1.txt" 2>&1
 awk '/relative rms difference/ {v=$9; sub(",", "", v); exit !(v > 0.01)}' "$T/c1.txt" \
     && ok "psf-compare: different PSFs change the corrected field" || bad "psf-compare different: $(cat "$T/c1.txt")"
 expect_fail "compare: one map" 1 "two PSF maps" "$S" psf-compare map/cut.yaml
