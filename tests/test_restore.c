@@ -304,7 +304,8 @@ static void test_balance_discrepancy(void **state)
             ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
             ASSERT_OK(svp_blur_apply(op, x, hx));
             double res = 0;
-            for (size_t i = 0; i < n; i++) res += (hx->data[i] - y->data[i]) * (hx->data[i] - y->data[i]);
+            for (size_t i = 0; i < n; i++)
+                res += (hx->data[i] - y->data[i]) * (hx->data[i] - y->data[i]);
             const double target = (double)n * sigma_used * sigma_used;
             const double err = test_max_abs_diff(x, x_true) / test_max_abs(x_true);
             double best = INFINITY, best_l = 0, e_default = 0;

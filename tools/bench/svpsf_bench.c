@@ -438,8 +438,8 @@ static int bench_inverse(const bench_args *a)
            "\"maxrss_mb\": %.1f}\n",
            n, svp_get_threads(), a->reps, iterations, blur->frame.nx, blur->frame.ny, total_s,
            median(t_rl, a->reps), median(t_wiener, a->reps), median(t_bound, a->reps), bound_rl,
-           bound_w, median(ratio, a->reps), ft.r2c, ft.c2r, peak > 0 ? err / peak : 0, peak > 0 ? err_w / peak : 0, wiener_steps,
-           wiener_pairs, maxrss_mb());
+           bound_w, median(ratio, a->reps), ft.r2c, ft.c2r, peak > 0 ? err / peak : 0,
+           peak > 0 ? err_w / peak : 0, wiener_steps, wiener_pairs, maxrss_mb());
 cleanup:
     svp_blur_free(blur);
     svp_image_free(pl);
