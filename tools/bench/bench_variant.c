@@ -16,7 +16,7 @@
  *       with each representation (and a single central PSF) for each iteration count. Reports
  *       time and the max / rms error of the corrected field over lit pixels relative to the
  *       field's peak.
- *   bench_variant plot OUT.png @LABEL t e t e ... [@LABEL t e ...]
+ *   bench_variant plot OUT.png [=TITLE] @LABEL t e t e ... [@LABEL t e ...]
  *       Error versus time per application, log-log (log10 of both on linear axes), one curve
  *       per @LABEL (up to 10), drawn with the library's own cairo line plot.
  * Fields (support S px, default 16; kernels normalised over it): FWHM and beta linear in the
@@ -381,7 +381,12 @@ static int cmd_plot(int argc, char **argv)
     double *x[10], *y[10];
     int n[10] = {0}, ns = -1;
     const char *labels[10];
+    const char *title = "space-variant operator: accuracy vs time";
     for (int a = 3; a < argc; a++) {
+        if (argv[a][0] == '=') {
+            title = argv[a] + 1;
+            continue;
+        }
         if (argv[a][0] == '@') {
             if (++ns >= 10) return fprintf(stderr, "bench_variant plot: at most 10 curves\n"), 1;
             labels[ns] = argv[a] + 1;
@@ -398,10 +403,9 @@ static int cmd_plot(int argc, char **argv)
         }
     }
     if (ns < 0) return fprintf(stderr, "bench_variant plot: no curve\n"), 1;
-    svp_status st =
-        scene_line_plot(argv[2], "space-variant operator: accuracy vs time (256 x 256)",
-                        "log10 time per application (s)", "log10 relative L2 error vs exact",
-                        ns + 1, (const double *const *)x, (const double *const *)y, n, labels, 1);
+    svp_status st = scene_line_plot(
+        argv[2], title, "log10 time per application (s)", "log10 relative L2 error vs exact",
+        ns + 1, (const double *const *)x, (const double *const *)y, n, labels, 1);
     for (int k = 0; k <= ns; k++) {
         free(x[k]);
         free(y[k]);

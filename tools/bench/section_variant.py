@@ -86,7 +86,8 @@ def main():
     failed += [r for r in inv if "error" in r]
 
     # the plot: error vs time per application, one curve per representation and variation
-    plot_args = [exe, "plot", os.path.join(ROOT, PLOT)]
+    plot_args = [exe, "plot", os.path.join(ROOT, PLOT),
+                 f"=space-variant operator: accuracy vs time ({n_acc} x {n_acc}, {args.threads} thread(s))"]
     for var in ("strong", "mild"):
         for kind, name in (("tent", "tent"), ("lowrank", "low rank")):
             pts = [r for r in acc[var] if r["kind"] == kind and r.get("rel_err")]
