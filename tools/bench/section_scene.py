@@ -5,8 +5,8 @@ usage: section_scene.py [--build DIR] [--quick]
 
 Runs tools/bench/bench_scene (build it first) and prints its markdown section of
 docs/performance.md on stdout; progress on stderr. The full run takes ~5-8 min on 2 idle cores
-(the brute-force correction deconvolves up to 200 frames of 512²); --quick (128², 50 and 100
-points) well under a minute.
+(the brute-force correction deconvolves up to 200 frames of 512²); --quick (128², 50 points)
+under a minute.
 """
 import argparse
 import json
@@ -31,14 +31,14 @@ def f(v, nd=3):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--build", default=os.path.join(ROOT, "build"))
-    ap.add_argument("--quick", action="store_true", help="128², 50 and 100 points, 1 repetition")
+    ap.add_argument("--quick", action="store_true", help="128², 50 points, 1 repetition")
     args = ap.parse_args()
     exe = os.path.join(args.build, "tools", "bench", "bench_scene")
     if not os.access(exe, os.X_OK):
         sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
 
     size = 128 if args.quick else 512
-    points = [50, 100] if args.quick else [50, 100, 200]
+    points = [50] if args.quick else [50, 100, 200]
     w_points = points[:1]  # Wiener per frame is slow (its mirrored 2N frame): 50 points only
     fit_size = 128 if args.quick else 256
     fit_points = 100
