@@ -43,6 +43,19 @@ struct svp_variant_data {
     int rows;
     int *start;
     int *frame_rows; /* per image row y: up to 3 frame rows copying it (−1 = none) */
+    /* Apply: ext = E(s ⊙ x) on the frame, made once per application; term k's weighted frame
+     * is then a row weight times a column weight times ext, one contiguous pass per term.
+     *   tent:     wy[j ny + fy] (hat of node row j at frame row fy) · wx[i nx + q];
+     *   low rank: the coefficient rows of term r interpolated along x on the frame columns,
+     *             wx[(r gy + j) nx + q], blended between sample rows ly0[fy] and ly0[fy] + 1
+     *             with weight lty[fy] (ly0 −1: a zero row).
+     * unit[k]: term k's weight is 1 on every frame pixel (tent 1 x 1, the low-rank mean): its
+     * frame is ext itself. */
+    double *ext;
+    double *wx, *wy;
+    int *ly0;
+    double *lty;
+    char *unit;
 };
 
 void svp_variant_defaults(svp_variant_options *o)
@@ -163,70 +176,39 @@ static void add_halo_gather(const svp_blur *b, const double *in, double *out)
     for (size_t i = 0; i < n; i++) out[i] += v->alpha[i] * mean;
 }
 
-/* Frame rows 0 .. rows − 1 of node k's extended weighted input: row t is frame row
- * (start + t) mod ny. */
-static void fill_frame(const svp_blur *b, int k, int start, int rows, const double *restrict in,
-                       double *restrict fr)
+/* Frame rows 0 .. rows − 1 of term k's extended weighted input c_k ⊙ E(s ⊙ x) (= E(c_k ⊙ s
+ * ⊙ x): the weights are functions of the source pixel): row t is frame row (start + t) mod ny. */
+static void fill_weighted(const svp_blur *b, int k, int start, int rows, double *restrict fr)
 {
     const svp_variant_data *v = b->variant;
-    const svp_frame *f = &b->frame;
-    const int w = b->width, nx = f->nx, ny = f->ny, i = k % v->gx, j = k / v->gx;
-    const int *sx = f->src_x, *sy = f->src_y;
-    const double *restrict scale = v->scale;
+    const int nx = b->frame.nx, ny = b->frame.ny, gy = v->gy;
+    const int tent = b->kind == SVP_BLUR_TENT;
+    const double *restrict ext = v->ext;
+    const double *restrict cw = tent ? v->wx + (size_t)(k % v->gx) * nx : NULL;
+    const double *restrict rw = tent ? v->wy + (size_t)(k / v->gx) * ny : NULL;
+    const double *restrict lr = tent ? NULL : v->wx + (size_t)k * gy * nx;
 #pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
     for (int t = 0; t < rows; t++) {
-        double *out = fr + (size_t)t * nx;
-        const int y = sy[(start + t) % ny];
-        const double hy = y >= 0 ? hat(v->iy0, v->fy, j, y) : 0.0;
-        if (hy == 0) {
-            memset(out, 0, (size_t)nx * sizeof(double));
-            continue;
-        }
-        const double *row = in + (size_t)y * w;
-        const double *srow = scale ? scale + (size_t)y * w : NULL;
-        for (int q = 0; q < nx; q++) {
-            const int x = sx[q];
-            const double c = x >= 0 ? hy * hat(v->ix0, v->fx, i, x) : 0.0;
-            out[q] = c == 0 ? 0.0 : c * (srow ? srow[x] : 1.0) * row[x];
-        }
-    }
-}
-
-/* The extended frame of c_r ⊙ s ⊙ in for low-rank term r in one pass (as svp_frame_extend of
- * fill_term's output). */
-static void fill_frame_lowrank(const svp_blur *b, int r, const double *restrict in,
-                               double *restrict fr)
-{
-    const svp_variant_data *v = b->variant;
-    const svp_frame *f = &b->frame;
-    const int w = b->width, nx = f->nx, gx = v->gx, gy = v->gy;
-    const int *sx = f->src_x, *sy = f->src_y;
-    const double *restrict scale = v->scale;
-    const double *cr = v->coef + (size_t)r * gx * gy;
-#pragma omp parallel for schedule(static) if ((size_t)f->ny * nx > SVP_PARALLEL_MIN)
-    for (int t = 0; t < f->ny; t++) {
-        double *out = fr + (size_t)t * nx;
-        const int y = sy[t];
-        if (y < 0) {
-            memset(out, 0, (size_t)nx * sizeof(double));
-            continue;
-        }
-        const int j0 = v->iy0[y], j1 = j0 + 1 < gy ? j0 + 1 : j0;
-        const double ty = v->fy[y];
-        const double *c0 = cr + (size_t)j0 * gx, *c1 = cr + (size_t)j1 * gx;
-        const double *row = in + (size_t)y * w;
-        const double *srow = scale ? scale + (size_t)y * w : NULL;
-        for (int q = 0; q < nx; q++) {
-            const int x = sx[q];
-            if (x < 0) {
-                out[q] = 0;
+        const int fy = start + t < ny ? start + t : (start + t) % ny;
+        double *restrict out = fr + (size_t)t * nx;
+        const double *restrict e = ext + (size_t)fy * nx;
+        if (tent) {
+            const double hy = rw[fy];
+            if (hy == 0) {
+                memset(out, 0, (size_t)nx * sizeof(double));
                 continue;
             }
-            const int i0 = v->ix0[x], i1 = i0 + 1 < gx ? i0 + 1 : i0;
-            const double tx = v->fx[x];
-            const double c = (1 - ty) * ((1 - tx) * c0[i0] + tx * c0[i1]) +
-                             ty * ((1 - tx) * c1[i0] + tx * c1[i1]);
-            out[q] = c * (srow ? srow[x] : 1.0) * row[x];
+            for (int q = 0; q < nx; q++) out[q] = hy * cw[q] * e[q];
+        } else {
+            const int j0 = v->ly0[fy];
+            if (j0 < 0) {
+                memset(out, 0, (size_t)nx * sizeof(double));
+                continue;
+            }
+            const int j1 = j0 + 1 < gy ? j0 + 1 : j0;
+            const double ty = v->lty[fy], sy = 1 - ty;
+            const double *restrict a0 = lr + (size_t)j0 * nx, *restrict a1 = lr + (size_t)j1 * nx;
+            for (int q = 0; q < nx; q++) out[q] = (sy * a0[q] + ty * a1[q]) * e[q];
         }
     }
 }
@@ -268,34 +250,59 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     if (b->kind == SVP_BLUR_EXACT) return svp_exact_apply(b, x, y);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
-    const size_t ns = (size_t)f->ny * f->ncx;
-    fftw_complex *restrict acc = v->acc;
-    const fftw_complex *restrict spec = b->work_c;
-    memset(acc, 0, ns * sizeof(fftw_complex));
-    for (int k = 0; k < v->n_terms; k++) {
+    const size_t ns = (size_t)f->ny * f->ncx, n = (size_t)b->width * b->height;
+    const int K = v->n_terms;
+    /* ext = E(s ⊙ x), shared by every term */
+    const double *src = x;
+    if (v->scale) {
+        double *restrict t = v->tmp;
+        const double *restrict s = v->scale;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+        for (size_t i = 0; i < n; i++) t[i] = s[i] * x[i];
+        src = t;
+    }
+    svp_frame_extend(f, src, v->ext);
+    /* one term: multiply in place and invert work_c (no accumulator) */
+    fftw_complex *acc = K == 1 ? b->work_c : v->acc;
+    for (int k = 0; k < K; k++) {
         if (v->pruned) {
-            fill_frame(b, k, v->start[k], v->rows, x, b->work_r);
+            fill_weighted(b, k, v->start[k], v->rows, b->work_r);
             svp_fft_forward_pruned(v->pruned, b->work_r, b->work_c);
-        } else if (v->frame_rows) { /* tent: weights and extension in one pass */
-            fill_frame(b, k, 0, f->ny, x, b->work_r);
-            svp_fft_forward(f->plan, b->work_r, b->work_c);
-        } else if (b->kind == SVP_BLUR_LOWRANK) {
-            fill_frame_lowrank(b, k, x, b->work_r);
-            svp_fft_forward(f->plan, b->work_r, b->work_c);
+        } else if (v->unit[k]) {
+            svp_fft_forward(f->plan, v->ext, b->work_c); /* r2c keeps its input */
         } else {
-            fill_term(b, k, x, v->tmp);
-            svp_frame_extend(f, v->tmp, b->work_r);
+            fill_weighted(b, k, 0, f->ny, b->work_r);
             svp_fft_forward(f->plan, b->work_r, b->work_c);
         }
-        const fftw_complex *restrict otf = v->otf[k];
-        /* written out in real arithmetic: no C99 complex NaN fix-ups, so it vectorises */
-        double *restrict a = (double *)acc;
-        const double *restrict o = (const double *)otf, *restrict sp = (const double *)spec;
+        /* acc (+)= otf · spec in one pass, written out in real arithmetic: no C99 complex NaN
+         * fix-ups, so it vectorises */
+        const double *restrict o = (const double *)v->otf[k];
+        if (K == 1) {
+            double *restrict c = (double *)b->work_c;
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-        for (size_t i = 0; i < ns; i++) {
-            const double pr = o[2 * i], pi = o[2 * i + 1], sr = sp[2 * i], si = sp[2 * i + 1];
-            a[2 * i] += pr * sr - pi * si;
-            a[2 * i + 1] += pr * si + pi * sr;
+            for (size_t i = 0; i < ns; i++) {
+                const double pr = o[2 * i], pi = o[2 * i + 1], sr = c[2 * i], si = c[2 * i + 1];
+                c[2 * i] = pr * sr - pi * si;
+                c[2 * i + 1] = pr * si + pi * sr;
+            }
+            continue;
+        }
+        double *restrict a = (double *)v->acc;
+        const double *restrict sp = (const double *)b->work_c;
+        if (k == 0) {
+#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
+            for (size_t i = 0; i < ns; i++) {
+                const double pr = o[2 * i], pi = o[2 * i + 1], sr = sp[2 * i], si = sp[2 * i + 1];
+                a[2 * i] = pr * sr - pi * si;
+                a[2 * i + 1] = pr * si + pi * sr;
+            }
+        } else {
+#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
+            for (size_t i = 0; i < ns; i++) {
+                const double pr = o[2 * i], pi = o[2 * i + 1], sr = sp[2 * i], si = sp[2 * i + 1];
+                a[2 * i] += pr * sr - pi * si;
+                a[2 * i + 1] += pr * si + pi * sr;
+            }
         }
     }
     svp_fft_inverse_unscaled(f->plan, acc, b->work_r);
@@ -366,6 +373,12 @@ void svp_variant_release(svp_blur *b)
         free(v->coef);
         free(v->start);
         free(v->frame_rows);
+        svp_free(v->ext);
+        free(v->wx);
+        free(v->wy);
+        free(v->ly0);
+        free(v->lty);
+        free(v->unit);
         free(v);
         b->variant = NULL;
     }
@@ -394,6 +407,13 @@ size_t svp_variant_memory(const svp_blur *b)
         if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
         if (v->frame_rows) bytes += (size_t)3 * b->height * sizeof(int);
         if (v->start) bytes += (size_t)v->n_terms * sizeof(int);
+        if (v->ext) bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double);
+        if (v->wx)
+            bytes += (size_t)(b->kind == SVP_BLUR_TENT ? v->gx : v->n_terms * v->gy) *
+                     b->frame.nx * sizeof(double);
+        if (v->wy) bytes += (size_t)v->gy * b->frame.ny * sizeof(double);
+        if (v->ly0) bytes += (size_t)b->frame.ny * (sizeof(int) + sizeof(double));
+        bytes += (size_t)v->n_terms;
     }
     return bytes;
 }
@@ -628,6 +648,65 @@ static svp_status setup_pruning(svp_blur *b)
     return st;
 }
 
+/* The apply's fill tables (see svp_variant_data.ext), after the terms are built. */
+static svp_status setup_fill(svp_blur *b)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int nx = f->nx, ny = f->ny, gx = v->gx, gy = v->gy, K = v->n_terms;
+    const int tent = b->kind == SVP_BLUR_TENT;
+    const size_t nwx = tent ? (size_t)gx * nx : (size_t)K * gy * nx;
+    v->ext = svp_alloc((size_t)ny * nx * sizeof(double));
+    v->wx = malloc(nwx * sizeof(double));
+    v->unit = calloc((size_t)K, 1);
+    if (tent)
+        v->wy = malloc((size_t)gy * ny * sizeof(double));
+    else {
+        v->ly0 = malloc((size_t)ny * sizeof(int));
+        v->lty = malloc((size_t)ny * sizeof(double));
+    }
+    if (!v->ext || !v->wx || !v->unit || (tent ? !v->wy : !v->ly0 || !v->lty))
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's weight tables");
+    if (tent) {
+        for (int i = 0; i < gx; i++)
+            for (int q = 0; q < nx; q++) {
+                const int x = f->src_x[q];
+                v->wx[(size_t)i * nx + q] = x >= 0 ? hat(v->ix0, v->fx, i, x) : 0.0;
+            }
+        for (int j = 0; j < gy; j++)
+            for (int fy = 0; fy < ny; fy++) {
+                const int y = f->src_y[fy];
+                v->wy[(size_t)j * ny + fy] = y >= 0 ? hat(v->iy0, v->fy, j, y) : 0.0;
+            }
+        v->unit[0] = K == 1;
+        return SVP_OK;
+    }
+    for (int fy = 0; fy < ny; fy++) {
+        const int y = f->src_y[fy];
+        v->ly0[fy] = y >= 0 ? v->iy0[y] : -1;
+        v->lty[fy] = y >= 0 ? v->fy[y] : 0.0;
+    }
+    const size_t S = (size_t)gx * gy;
+    for (int r = 0; r < K; r++) {
+        const double *cr = v->coef + (size_t)r * S;
+        int unit = 1;
+        for (size_t j = 0; j < S; j++) unit &= cr[j] == 1.0;
+        v->unit[r] = (char)unit;
+        for (int j = 0; j < gy; j++)
+            for (int q = 0; q < nx; q++) {
+                const int x = f->src_x[q];
+                double c = 0;
+                if (x >= 0) {
+                    const int i0 = v->ix0[x], i1 = i0 + 1 < gx ? i0 + 1 : i0;
+                    const double tx = v->fx[x];
+                    c = (1 - tx) * cr[(size_t)j * gx + i0] + tx * cr[(size_t)j * gx + i1];
+                }
+                v->wx[((size_t)r * gy + j) * nx + q] = c;
+            }
+    }
+    return SVP_OK;
+}
+
 static svp_status build_tent(svp_blur *b, const svp_variant_options *o, double support, int rx,
                              int ry)
 {
@@ -850,6 +929,7 @@ svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
     }
     if (st == SVP_OK)
         st = lowrank ? build_lowrank(b, &o, support, rx, ry) : build_tent(b, &o, support, rx, ry);
+    if (st == SVP_OK) st = setup_fill(b);
     if (st != SVP_OK) {
         svp_blur_free(b);
         return st;
