@@ -225,6 +225,25 @@ int cli_parse_double(const cli_run *run, const char *option, const char *text, d
     return 0;
 }
 
+int cli_parse_double_in(const cli_run *run, const char *option, const char *text, double lo,
+                        int lo_closed, double hi, int hi_closed, double *out)
+{
+    double v = 0;
+    if (cli_parse_double(run, option, text, &v)) return CLI_EXIT_USAGE;
+    const int lo_ok = isinf(lo) || (lo_closed ? v >= lo : v > lo);
+    const int hi_ok = isinf(hi) || (hi_closed ? v <= hi : v < hi);
+    if (lo_ok && hi_ok) {
+        *out = v;
+        return 0;
+    }
+    if (isinf(hi))
+        return cli_error(run, "%s %s: must be %s %g", option, text, lo_closed ? ">=" : ">", lo);
+    if (isinf(lo))
+        return cli_error(run, "%s %s: must be %s %g", option, text, hi_closed ? "<=" : "<", hi);
+    return cli_error(run, "%s %s: must be in %c%g, %g%c", option, text, lo_closed ? '[' : '(', lo,
+                     hi, hi_closed ? ']' : ')');
+}
+
 int cli_parse_int(const cli_run *run, const char *option, const char *text, int min, int max,
                   int *out)
 {
@@ -384,6 +403,18 @@ void cli_path_stem(const char *path, char *stem, size_t size)
     memcpy(stem, base, n);
     stem[n] = '\0';
 }
+
+void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size)
+{
+    size_t n = strlen(path);
+    if (n > 5 && strcmp(path + n - 5, ".yaml") == 0)
+        n -= 5;
+    else if (n > 4 && strcmp(path + n - 4, ".yml") == 0)
+        n -= 4;
+    snprintf(buf, size, "%.*s%s", (int)n, path, ext);
+}
+
+const char *const cli_psf_model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
 
 /* ---- inputs --------------------------------------------------------------------------------- */
 
@@ -1143,4 +1174,74 @@ void cli_maps_release(cli_maps *maps)
         svp_image_free(maps->fields[i]);
         maps->fields[i] = NULL;
     }
+}
+
+void cli_maps_init(cli_maps *maps)
+{
+    memset(maps, 0, sizeof *maps);
+    cli_variant_defaults(&maps->variant);
+    maps->boundary = SVP_BOUNDARY_ZERO;
+}
+
+int cli_maps_option(cli_run *run, cli_maps *maps, int option, const char *arg)
+{
+    switch (option) {
+    case CLI_OPT_FIELD: return cli_maps_add_field(run, maps, arg);
+    case CLI_OPT_PL: maps->pl_path = arg; return 0;
+    case CLI_OPT_PSF: maps->psf_path = arg; return 0;
+    case CLI_OPT_BOUNDARY:
+        maps->boundary_given = 1;
+        return cli_parse_boundary(run, "--boundary", arg, &maps->boundary);
+    case CLI_OPT_NODES:
+    case CLI_OPT_RANK:
+        maps->variant_given = 1;
+        return cli_variant_option(run, &maps->variant, option, arg);
+    default: return -1;
+    }
+}
+
+int cli_maps_open(cli_run *run, cli_maps *maps, cli_psf *psf)
+{
+    const char *psf_path = maps->psf_path;
+    if (optind < run->argc)
+        return cli_error(run,
+                         "unexpected argument '%s' (inputs are given with --field, --pl and "
+                         "--psf)",
+                         run->argv[optind]);
+    if (maps->n_fields == 0) return cli_error(run, "--field is required (see --help)");
+    if (!maps->pl_path) return cli_error(run, "--pl is required");
+    if (!psf_path) return cli_error(run, "--psf is required");
+    if (!run->output) return cli_error(run, "-o DIR is required");
+
+    /* Everything that can be wrong with the inputs or outputs is found before any work. */
+    int code;
+    cli_stage_begin(run, "read");
+    if ((code = cli_psf_load_map(run, psf_path, &maps->variant, psf))) return code;
+    if (maps->variant_given && !psf->field)
+        cli_note(run, "--nodes / --rank ignored: %s is a single PSF, not a space-variant map",
+                 psf_path);
+    if ((code = cli_maps_read(run, maps))) return code;
+    if (!maps->boundary_given && psf->has_boundary) maps->boundary = psf->boundary;
+    if ((code = cli_maps_plan(run, maps))) return code;
+    if ((code = cli_psf_check(run, psf, maps->pl->width, maps->pl->height))) return code;
+    if ((code = cli_outputs_check(run))) return code;
+
+    cli_psf_describe(run, psf);
+    cli_setting_str(run, "boundary", cli_boundary_name(maps->boundary));
+    cli_setting_int(run, "n_fields", maps->n_fields);
+    cli_setting_str(run, "format", cli_format_extension(run->format));
+    return 0;
+}
+
+int cli_maps_write(cli_run *run, const cli_maps *maps, const svp_image *pl,
+                   svp_image *const *fields, const svp_image *validity)
+{
+    int code;
+    cli_stage_begin(run, "write");
+    if ((code = cli_write_image(run, maps->pl_out, pl))) return code;
+    for (int i = 0; i < maps->n_fields; i++)
+        if ((code = cli_write_image(run, maps->field_out[i], fields[i]))) return code;
+    if ((code = cli_write_image(run, maps->validity_out, validity))) return code;
+    cli_stage_end(run);
+    return cli_summary_write(run, maps->summary_out);
 }

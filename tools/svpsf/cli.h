@@ -188,11 +188,21 @@ int cli_parse_int(const cli_run *run, const char *option, const char *text, int 
 /* One of `choices` (NULL-terminated); *out = its index. */
 int cli_parse_choice(const cli_run *run, const char *option, const char *text,
                      const char *const *choices, int *out);
+/* A finite number in an interval: lo < x (lo <= x when lo_closed) and x < hi (x <= hi when
+ * hi_closed); a bound of -INFINITY / INFINITY is no bound. The message names the option and
+ * the interval: "--gain -1: must be >= 0", "--halo 2: must be in [0, 1)". */
+int cli_parse_double_in(const cli_run *run, const char *option, const char *text, double lo,
+                        int lo_closed, double hi, int hi_closed, double *out);
 /* zero | mirror | periodic. */
 int cli_parse_boundary(const cli_run *run, const char *option, const char *text, svp_boundary *out);
 const char *cli_boundary_name(svp_boundary b);
 /* The file name without folders and without its last extension ("a/b/Bz.npy" → "Bz"). */
 void cli_path_stem(const char *path, char *stem, size_t size);
+/* path without its .yaml/.yml extension, followed by ext ("a/psf.yaml", ".summary.json" →
+ * "a/psf.summary.json"; a path without that extension keeps it whole). */
+void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size);
+/* The PSF model names indexed by svp_psf_model, NULL-terminated (for cli_parse_choice). */
+extern const char *const cli_psf_model_names[];
 
 /* ---- inputs ------------------------------------------------------------------------------ */
 
@@ -318,6 +328,11 @@ typedef struct cli_maps {
     int n_fields;
     const char *field_paths[CLI_MAX_FIELDS]; /* --field, in order */
     const char *pl_path;                     /* --pl */
+    const char *psf_path;                    /* --psf */
+    svp_variant_options variant;             /* --nodes / --rank */
+    int variant_given;
+    svp_boundary boundary; /* --boundary, else the PSF file's (cli_maps_open), else zero */
+    int boundary_given;
     svp_image *fields[CLI_MAX_FIELDS];
     svp_image *pl;
     /* planned outputs (cli_maps_plan) */
@@ -325,6 +340,26 @@ typedef struct cli_maps {
     const char *pl_out, *validity_out, *summary_out;
 } cli_maps;
 
+/* The options forward and correct share: add CLI_MAPS_LONGOPTS to the option table and pass
+ * every option the command does not handle itself to cli_maps_option. */
+enum { CLI_OPT_FIELD = 1910, CLI_OPT_PL, CLI_OPT_PSF, CLI_OPT_BOUNDARY };
+/* clang-format off */
+#define CLI_MAPS_LONGOPTS \
+    {"field", required_argument, NULL, CLI_OPT_FIELD}, {"pl", required_argument, NULL, CLI_OPT_PL}, \
+    {"psf", required_argument, NULL, CLI_OPT_PSF}, \
+    {"boundary", required_argument, NULL, CLI_OPT_BOUNDARY}, CLI_VARIANT_LONGOPTS
+/* clang-format on */
+void cli_maps_init(cli_maps *maps);
+/* 0 when handled, CLI_EXIT_USAGE after a message, -1 when `option` is not one of them. */
+int cli_maps_option(cli_run *run, cli_maps *maps, int option, const char *arg);
+/* The front of forward and correct after their options: --field, --pl, --psf and -o given and
+ * no stray argument; reads the PSF (or PSF map) and the maps, plans and checks every output,
+ * and records the PSF, boundary, n_fields and format in the settings. 0, or the exit code
+ * after a message. */
+int cli_maps_open(cli_run *run, cli_maps *maps, cli_psf *psf);
+/* Writes pl, every field and validity to the planned outputs, then summary.json. */
+int cli_maps_write(cli_run *run, const cli_maps *maps, const svp_image *pl,
+                   svp_image *const *fields, const svp_image *validity);
 /* Adds a --field path (at most CLI_MAX_FIELDS). */
 int cli_maps_add_field(cli_run *run, cli_maps *maps, const char *path);
 /* Reads --pl and every --field and checks that all have the PL's size. */

@@ -6,11 +6,7 @@
 #include <string.h>
 
 enum {
-    OPT_FIELD = CLI_OPTION_FIRST,
-    OPT_PL,
-    OPT_PSF,
-    OPT_BOUNDARY,
-    OPT_METHOD,
+    OPT_METHOD = CLI_OPTION_FIRST,
     OPT_ITERATIONS,
     OPT_BALANCE,
     OPT_PL_FLOOR,
@@ -88,11 +84,7 @@ int cmd_correct(int argc, char **argv)
     cli_run run;
     cli_run_init(&run, "correct", argc, argv, CLI_COMMON_OUTPUT_DIR);
     static const struct option own[] = {
-        {"field", required_argument, NULL, OPT_FIELD},
-        {"pl", required_argument, NULL, OPT_PL},
-        {"psf", required_argument, NULL, OPT_PSF},
-        CLI_VARIANT_LONGOPTS,
-        {"boundary", required_argument, NULL, OPT_BOUNDARY},
+        CLI_MAPS_LONGOPTS,
         {"method", required_argument, NULL, OPT_METHOD},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
         {"balance", required_argument, NULL, OPT_BALANCE},
@@ -101,15 +93,10 @@ int cmd_correct(int argc, char **argv)
         {NULL, 0, NULL, 0},
     };
     cli_maps maps;
-    memset(&maps, 0, sizeof maps);
+    cli_maps_init(&maps);
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
-    const char *psf_path = NULL;
-    svp_boundary boundary = SVP_BOUNDARY_ZERO;
-    svp_variant_options variant;
-    cli_variant_defaults(&variant);
-    int variant_given = 0;
-    int boundary_given = 0, method = 0;
+    int method = 0;
     svp_correct_options opt;
     svp_correct_defaults(&opt);
     svp_blur *blur = NULL;
@@ -123,18 +110,6 @@ int cmd_correct(int argc, char **argv)
         switch (c) {
         case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_FIELD: bad = cli_maps_add_field(&run, &maps, optarg); break;
-        case OPT_PL: maps.pl_path = optarg; break;
-        case OPT_PSF: psf_path = optarg; break;
-        case CLI_OPT_NODES:
-        case CLI_OPT_RANK:
-            bad = cli_variant_option(&run, &variant, c, optarg);
-            variant_given = 1;
-            break;
-        case OPT_BOUNDARY:
-            bad = cli_parse_boundary(&run, "--boundary", optarg, &boundary);
-            boundary_given = 1;
-            break;
         case OPT_METHOD:
             bad = cli_parse_choice(&run, "--method", optarg, method_names, &method);
             opt.method = method_values[method];
@@ -148,51 +123,27 @@ int cmd_correct(int argc, char **argv)
                 bad = cli_error(&run, "--balance must be >= 0, got %s", optarg);
             break;
         case OPT_PL_FLOOR:
-            bad = cli_parse_double(&run, "--pl-floor", optarg, &opt.pl_floor);
-            if (!bad && !(opt.pl_floor > 0 && opt.pl_floor < 1))
-                bad = cli_error(&run, "--pl-floor must be in (0, 1), got %s", optarg);
+            bad = cli_parse_double_in(&run, "--pl-floor", optarg, 0, 0, 1, 0, &opt.pl_floor);
             break;
         case OPT_SHIFT: bad = cli_parse_double(&run, "--shift", optarg, &opt.shift); break;
-        default: bad = cli_error(&run, "internal: option %d", c);
+        default:
+            bad = cli_maps_option(&run, &maps, c, optarg);
+            if (bad < 0) bad = cli_error(&run, "internal: option %d", c);
         }
         if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
-    if (optind < argc)
-        return cli_run_finish(&run, cli_error(&run,
-                                              "unexpected argument '%s' (inputs are "
-                                              "given with --field, --pl and --psf)",
-                                              argv[optind]));
-    if (maps.n_fields == 0)
-        return cli_run_finish(&run, cli_error(&run, "--field is required (see --help)"));
-    if (!maps.pl_path) return cli_run_finish(&run, cli_error(&run, "--pl is required"));
-    if (!psf_path) return cli_run_finish(&run, cli_error(&run, "--psf is required"));
-    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
-
-    cli_stage_begin(&run, "read");
-    if ((code = cli_psf_load_map(&run, psf_path, &variant, &psf))) goto cleanup;
-    if (variant_given && !psf.field)
-        cli_note(&run, "--nodes / --rank ignored: %s is a single PSF, not a space-variant map",
-                 psf_path);
-    if ((code = cli_maps_read(&run, &maps))) goto cleanup;
-    if (!boundary_given && psf.has_boundary) boundary = psf.boundary;
-    if ((code = cli_maps_plan(&run, &maps))) goto cleanup;
-    if ((code = cli_psf_check(&run, &psf, maps.pl->width, maps.pl->height))) goto cleanup;
-    if ((code = cli_outputs_check(&run))) goto cleanup;
+    if ((code = cli_maps_open(&run, &maps, &psf))) goto cleanup;
 
     const int w = maps.pl->width, h = maps.pl->height;
     const size_t n = (size_t)w * h;
-    cli_psf_describe(&run, &psf);
-    cli_setting_str(&run, "boundary", cli_boundary_name(boundary));
-    cli_setting_int(&run, "n_fields", maps.n_fields);
     cli_setting_str(&run, "method", method_names[method]);
     cli_setting_int(&run, "iterations", opt.deconv.iterations);
     cli_setting_num(&run, "balance", opt.deconv.balance);
     cli_setting_num(&run, "pl_floor", opt.pl_floor);
     cli_setting_num(&run, "shift", opt.shift);
-    cli_setting_str(&run, "format", cli_format_extension(run.format));
 
     cli_stage_begin(&run, "plan");
-    if ((code = cli_psf_blur(&run, &psf, w, h, boundary, &blur))) goto cleanup;
+    if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
 
     cli_stage_begin(&run, "transform");
     svp_status st = svp_image_new(w, h, &pl_true);
@@ -222,13 +173,7 @@ int cmd_correct(int argc, char **argv)
     cli_result_num(&run, "flagged_fraction", (double)n_flagged / (double)n);
     cli_result_int(&run, "n_invalid", (long long)n_invalid);
 
-    cli_stage_begin(&run, "write");
-    if ((code = cli_write_image(&run, maps.pl_out, pl_true))) goto cleanup;
-    for (int i = 0; i < maps.n_fields; i++)
-        if ((code = cli_write_image(&run, maps.field_out[i], field_true[i]))) goto cleanup;
-    if ((code = cli_write_image(&run, maps.validity_out, validity))) goto cleanup;
-    cli_stage_end(&run);
-    if ((code = cli_summary_write(&run, maps.summary_out))) goto cleanup;
+    if ((code = cli_maps_write(&run, &maps, pl_true, field_true, validity))) goto cleanup;
 
     {
         char iters[96] = "";

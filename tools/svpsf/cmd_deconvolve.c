@@ -118,9 +118,7 @@ int cmd_deconvolve(int argc, char **argv)
                 bad = cli_error(&run, "--balance must be >= 0 or auto, got %s", optarg);
             break;
         case OPT_NOISE:
-            bad = cli_parse_double(&run, "--noise", optarg, &noise);
-            if (!bad && !(noise > 0))
-                bad = cli_error(&run, "--noise must be > 0, got %s", optarg);
+            bad = cli_parse_double_in(&run, "--noise", optarg, 0, 0, INFINITY, 0, &noise);
             break;
         case OPT_BOUNDARY:
             bad = cli_parse_boundary(&run, "--boundary", optarg, &boundary);

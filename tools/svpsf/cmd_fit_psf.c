@@ -74,19 +74,6 @@ static void print_help(const cli_run *run, FILE *out)
           out);
 }
 
-static const char *const model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
-
-/* "prefix.ext" for a path "prefix.yaml" (or path + ext when it has no .yaml/.yml). */
-static void sibling(const char *path, const char *ext, char *buf, size_t size)
-{
-    size_t n = strlen(path);
-    if (n > 5 && strcmp(path + n - 5, ".yaml") == 0)
-        n -= 5;
-    else if (n > 4 && strcmp(path + n - 4, ".yml") == 0)
-        n -= 4;
-    snprintf(buf, size, "%.*s%s", (int)n, path, ext);
-}
-
 static void print_fit(const char *what, const svp_spot_result *r, double um, int unit_weights)
 {
     char flags[256];
@@ -186,7 +173,7 @@ static char *psf_file_text(const svp_spot_result *r, double um, const char *sour
                      "  fwhm_um: %.17g\n",
                      source, r->fwhm * um, r->fwhm_err * um, r->fwhm_major * um, r->fwhm_minor * um,
                      r->beta, r->beta_err, r->ee50 * um, r->ee80 * um, r->ee95 * um, r->chi2_red,
-                     flags, um, model_names[p.model], p.fwhm * um);
+                     flags, um, cli_psf_model_names[p.model], p.fwhm * um);
     if (p.fwhm_minor > 0 && p.fwhm_minor != p.fwhm)
         n += snprintf(t + n, size - (size_t)n, "  fwhm_minor_um: %.17g\n  angle_deg: %.17g\n",
                       p.fwhm_minor * um, p.angle * 180 / M_PI);
@@ -239,7 +226,7 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
                                run->force)) != SVP_OK)
         goto fail;
     snprintf(path, sizeof path, "%s/%smodel.png", dir, prefix);
-    snprintf(t, sizeof t, "%s: fitted %s", title, model_names[r->model]);
+    snprintf(t, sizeof t, "%s: fitted %s", title, cli_psf_model_names[r->model]);
     if ((st = scene_map_figure(path, b, 1, lo, hi, 0, t, "log10 (counts above background)", um,
                                run->force)) != SVP_OK)
         goto fail;
@@ -287,7 +274,7 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
             snprintf(fitlab, sizeof fitlab, "Moffat fit: FWHM %.3f um, beta %.2f", r->fwhm * um,
                      r->beta);
         else
-            snprintf(fitlab, sizeof fitlab, "%s fit: FWHM %.3f um", model_names[r->model],
+            snprintf(fitlab, sizeof fitlab, "%s fit: FWHM %.3f um", cli_psf_model_names[r->model],
                      r->fwhm * um);
         const char *labels[2] = {"data (azimuthal mean)", fitlab};
         snprintf(path, sizeof path, "%s/%sprofile.png", dir, prefix);
@@ -362,13 +349,11 @@ int cmd_fit_psf(int argc, char **argv)
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
         case OPT_EXCITATION: exc_path = optarg; break;
         case OPT_PIXEL_UM:
-            if (cli_parse_double(&run, "--pixel-um", optarg, &pixel_um))
+            if (cli_parse_double_in(&run, "--pixel-um", optarg, 0, 0, INFINITY, 0, &pixel_um))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(pixel_um > 0) || !isfinite(pixel_um))
-                return cli_run_finish(&run, cli_error(&run, "--pixel-um %s: must be > 0", optarg));
             break;
         case OPT_MODEL:
-            if (cli_parse_choice(&run, "--model", optarg, model_names, &model))
+            if (cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_ITERATIONS:
@@ -377,30 +362,23 @@ int cmd_fit_psf(int argc, char **argv)
             break;
         case OPT_CIRCULAR: so->elliptical = 0; break;
         case OPT_FIX_BETA:
-            if (cli_parse_double(&run, "--fix-beta", optarg, &so->beta))
+            if (cli_parse_double_in(&run, "--fix-beta", optarg, 0, 0, INFINITY, 0, &so->beta))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(so->beta > 0) || !isfinite(so->beta))
-                return cli_run_finish(&run, cli_error(&run, "--fix-beta %s: must be > 0", optarg));
             so->fix_beta = 1;
             break;
         case OPT_GAIN:
-            if (cli_parse_double(&run, "--gain", optarg, &so->noise.gain))
+            if (cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so->noise.gain))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(so->noise.gain >= 0) || !isfinite(so->noise.gain))
-                return cli_run_finish(&run, cli_error(&run, "--gain %s: must be >= 0", optarg));
             break;
         case OPT_SIGMA_BG:
-            if (cli_parse_double(&run, "--sigma-bg", optarg, &so->noise.sigma_bg))
+            if (cli_parse_double_in(&run, "--sigma-bg", optarg, 0, 1, INFINITY, 0,
+                                    &so->noise.sigma_bg))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(so->noise.sigma_bg >= 0) || !isfinite(so->noise.sigma_bg))
-                return cli_run_finish(&run, cli_error(&run, "--sigma-bg %s: must be >= 0", optarg));
             break;
         case OPT_SATURATION:
-            if (cli_parse_double(&run, "--saturation", optarg, &so->saturation))
+            if (cli_parse_double_in(&run, "--saturation", optarg, 0, 0, INFINITY, 0,
+                                    &so->saturation))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(so->saturation > 0))
-                return cli_run_finish(&run,
-                                      cli_error(&run, "--saturation %s: must be > 0", optarg));
             break;
         case OPT_REFUSE_BORDER: so->refuse_near_border = 1; break;
         case OPT_MAX_ITER:
@@ -454,11 +432,11 @@ int cmd_fit_psf(int argc, char **argv)
             goto cleanup;
     }
     char summary_path[4096], fig_dir[4096], buf[8448];
-    sibling(run.output, ".summary.json", summary_path, sizeof summary_path);
+    cli_path_sibling(run.output, ".summary.json", summary_path, sizeof summary_path);
     if (figures)
         snprintf(fig_dir, sizeof fig_dir, "%s", figures);
     else
-        sibling(run.output, ".figures", fig_dir, sizeof fig_dir);
+        cli_path_sibling(run.output, ".figures", fig_dir, sizeof fig_dir);
     cli_output_file(&run, "psf", run.output);
     cli_output_file(&run, "summary", summary_path);
     if (!no_figures) {
@@ -472,7 +450,7 @@ int cmd_fit_psf(int argc, char **argv)
     }
     if ((code = cli_outputs_check(&run))) goto cleanup;
     cli_setting_num(&run, "pixel_um", pixel_um);
-    cli_setting_str(&run, "model", model_names[model]);
+    cli_setting_str(&run, "model", cli_psf_model_names[model]);
     cli_setting_int(&run, "elliptical", so->elliptical);
     if (so->fix_beta) cli_setting_num(&run, "fixed_beta", so->beta);
     cli_setting_num(&run, "gain", so->noise.gain);
@@ -503,7 +481,7 @@ int cmd_fit_psf(int argc, char **argv)
         record_fit(&run, "", &single, um);
         print_fit(spot_path, &single, um, so->noise.gain == 0 && so->noise.sigma_bg == 0);
         chosen = &single;
-        snprintf(source, sizeof source, "%s fit of %s", model_names[model], spot_path);
+        snprintf(source, sizeof source, "%s fit of %s", cli_psf_model_names[model], spot_path);
     } else {
         /* offset by phase correlation (a cross-check of the fitted centres, which the pair
          * method uses to centre the kernel) */
@@ -559,8 +537,8 @@ int cmd_fit_psf(int argc, char **argv)
         }
         chosen = use_direct ? &pr.direct : &pr.deconvolved;
         snprintf(source, sizeof source, "%s fit of %s (%s), excitation %s, %d RL iterations",
-                 model_names[model], spot_path, use_direct ? "direct" : "deconvolved", exc_path,
-                 po.iterations);
+                 cli_psf_model_names[model], spot_path, use_direct ? "direct" : "deconvolved",
+                 exc_path, po.iterations);
     }
     cli_result_str(&run, "written_fit", !exc_path ? "spot" : use_direct ? "direct" : "deconvolved");
     if (chosen->flags)

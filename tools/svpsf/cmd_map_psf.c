@@ -77,18 +77,6 @@ static void print_help(const cli_run *run, FILE *out)
           out);
 }
 
-static const char *const model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
-
-static void sibling(const char *path, const char *ext, char *buf, size_t size)
-{
-    size_t n = strlen(path);
-    if (n > 5 && strcmp(path + n - 5, ".yaml") == 0)
-        n -= 5;
-    else if (n > 4 && strcmp(path + n - 4, ".yml") == 0)
-        n -= 4;
-    snprintf(buf, size, "%.*s%s", (int)n, path, ext);
-}
-
 /* `name` relative to the folder of `yaml_path` (absolute names unchanged). */
 static void relative_to(const char *yaml_path, const char *name, char *buf, size_t size)
 {
@@ -305,43 +293,31 @@ int cmd_map_psf(int argc, char **argv)
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_MODEL:
-            if (cli_parse_choice(&run, "--model", optarg, model_names, &model))
+            if (cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_CIRCULAR: so.elliptical = 0; break;
         case OPT_GAIN:
-            if (cli_parse_double(&run, "--gain", optarg, &so.noise.gain))
+            if (cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so.noise.gain))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(so.noise.gain >= 0))
-                return cli_run_finish(&run, cli_error(&run, "--gain %s: must be >= 0", optarg));
             break;
         case OPT_HALO:
-            if (cli_parse_double(&run, "--halo", optarg, &mo.halo))
+            if (cli_parse_double_in(&run, "--halo", optarg, 0, 1, 1, 0, &mo.halo))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(mo.halo >= 0 && mo.halo < 1))
-                return cli_run_finish(&run,
-                                      cli_error(&run, "--halo %s: must be in [0, 1)", optarg));
             break;
         case OPT_TRANSITION:
-            if (cli_parse_double(&run, "--transition-um", optarg, &transition_um))
+            if (cli_parse_double_in(&run, "--transition-um", optarg, 0, 1, INFINITY, 0,
+                                    &transition_um))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(transition_um >= 0))
-                return cli_run_finish(&run,
-                                      cli_error(&run, "--transition-um %s: must be >= 0", optarg));
             break;
         case OPT_ALPHA:
-            if (cli_parse_double(&run, "--alpha", optarg, &mo.alpha))
+            if (cli_parse_double_in(&run, "--alpha", optarg, 0, 0, 1, 0, &mo.alpha))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(mo.alpha > 0 && mo.alpha < 1))
-                return cli_run_finish(&run,
-                                      cli_error(&run, "--alpha %s: must be in (0, 1)", optarg));
             break;
         case OPT_CLIP:
-            if (cli_parse_double(&run, "--clip-kappa", optarg, &mo.clip_kappa))
+            if (cli_parse_double_in(&run, "--clip-kappa", optarg, 0, 1, INFINITY, 0,
+                                    &mo.clip_kappa))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(mo.clip_kappa >= 0))
-                return cli_run_finish(&run,
-                                      cli_error(&run, "--clip-kappa %s: must be >= 0", optarg));
             break;
         case OPT_WINDOW:
             if (cli_parse_int(&run, "--window", optarg, 7, 1001, &window))
@@ -351,10 +327,8 @@ int cmd_map_psf(int argc, char **argv)
             window_given = 1;
             break;
         case OPT_THRESHOLD:
-            if (cli_parse_double(&run, "--threshold", optarg, &threshold))
+            if (cli_parse_double_in(&run, "--threshold", optarg, 0, 0, INFINITY, 0, &threshold))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(threshold > 0))
-                return cli_run_finish(&run, cli_error(&run, "--threshold %s: must be > 0", optarg));
             threshold_given = 1;
             break;
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
@@ -559,18 +533,18 @@ yaml_ok:
 
     /* ---- outputs ---- */
     char csv_path[4096], summary_path[4096], labels_out[4096];
-    sibling(run.output, ".spots.csv", csv_path, sizeof csv_path);
-    sibling(run.output, ".summary.json", summary_path, sizeof summary_path);
+    cli_path_sibling(run.output, ".spots.csv", csv_path, sizeof csv_path);
+    cli_path_sibling(run.output, ".summary.json", summary_path, sizeof summary_path);
     cli_output_file(&run, "map", run.output);
     if (labels) {
-        sibling(run.output, ".labels.npy", labels_out, sizeof labels_out);
+        cli_path_sibling(run.output, ".labels.npy", labels_out, sizeof labels_out);
         cli_output_file(&run, "labels", labels_out);
     }
     cli_output_file(&run, "spots", csv_path);
     cli_output_file(&run, "summary", summary_path);
     if ((code = cli_outputs_check(&run))) goto cleanup;
     cli_setting_num(&run, "pixel_um", pixel_um);
-    cli_setting_str(&run, "model", model_names[model]);
+    cli_setting_str(&run, "model", cli_psf_model_names[model]);
     cli_setting_str(&run, "map", labels ? "regions" : "poly");
     if (!labels) {
         if (mo.degree < 0)

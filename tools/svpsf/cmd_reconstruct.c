@@ -156,11 +156,10 @@ int cmd_reconstruct(int argc, char **argv)
                     : c == OPT_NV       ? 2
                     : c == OPT_CUTOFF   ? 3
                                         : 4;
-            if (cli_parse_double(&run, names[k], optarg, targets[k]))
+            /* pixel, standoff and cutoff > 0; the thicknesses >= 0 */
+            if (cli_parse_double_in(&run, names[k], optarg, 0, k == 2 || k == 4, INFINITY, 0,
+                                    targets[k]))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(*targets[k] >= 0) || ((k < 2 || k == 3) && !(*targets[k] > 0)))
-                return cli_run_finish(&run, cli_error(&run, "%s must be %s, got %s", names[k],
-                                                      k < 2 || k == 3 ? "> 0" : ">= 0", optarg));
             break;
         }
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));

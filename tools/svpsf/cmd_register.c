@@ -296,12 +296,8 @@ int cmd_register(int argc, char **argv)
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_SMOOTH:
-            if (cli_parse_double(&run, "--smooth", optarg, &opt.smooth_sigma))
+            if (cli_parse_double_in(&run, "--smooth", optarg, 0, 1, INFINITY, 0, &opt.smooth_sigma))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (opt.smooth_sigma < 0)
-                return cli_run_finish(&run, cli_error(&run, "--smooth %s: must be >= 0 "
-                                                      "pixels",
-                                                      optarg));
             break;
         case OPT_NO_WINDOW: opt.window = 0; break;
         case OPT_ITERATIONS:
@@ -309,11 +305,8 @@ int cmd_register(int argc, char **argv)
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_EPSILON:
-            if (cli_parse_double(&run, "--epsilon", optarg, &opt.epsilon))
+            if (cli_parse_double_in(&run, "--epsilon", optarg, 0, 0, INFINITY, 0, &opt.epsilon))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (!(opt.epsilon > 0))
-                return cli_run_finish(&run, cli_error(&run, "--epsilon %s: must be > 0",
-                                                      optarg));
             break;
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
