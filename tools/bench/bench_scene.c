@@ -270,13 +270,21 @@ static int run_cube(const args *a)
         for (size_t p = 0; p < np; p++) b_fit->data[p] -= s.bias;
     }
 
-    /* inverse: closed form (eq. 4) with W and R */
+    /* inverse: closed form (eq. 4) with W and R; one untimed call of each first (plans,
+     * operator caches), as the per-frame paths reuse them too */
     svp_correct_options co;
     svp_correct_defaults(&co);
     co.method = SVP_METHOD_W;
     co.deconv.balance = a->balance;
     const svp_image *fa2[1] = {b_cf};
     svp_image *fc[1] = {b_cw};
+    TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "warm-up W");
+    if (a->rl) {
+        co.method = SVP_METHOD_R;
+        co.deconv.iterations = 1;
+        TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "warm-up R");
+        co.method = SVP_METHOD_W;
+    }
     t0 = now();
     TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "T^-1 W");
     const double t_inv_w = now() - t0;

@@ -111,6 +111,19 @@ def render(cube, fits, size, points, w_points, fit_size, fit_points, reps, quick
           f"{f(r.get('cf_vs_fit_rms_uT'))} / {f(r.get('cf_vs_fit_max_uT'))} | "
           f"{f(r['cf_vs_true_rms_uT'])} | {r['maxrss_mb']:.0f} |")
     w("")
+    for p in points:
+        r = cube[p]
+        if not ok(r):
+            continue
+        tc = r["t_cube_simulate"] + r["t_cube_blur"] + r["t_centroid"]
+        w(f"- {p} points: the cube path (simulate, blur, centroid) takes "
+          f"{tc / max(r['t_closed_forward'], 1e-9):.0f}× the closed form's time (with the fit: "
+          f"{(tc + r['t_fit']) / max(r['t_closed_forward'], 1e-9):.0f}×); the closed form differs "
+          f"from the cube's centroid by {f(r['cf_vs_centroid_rms_uT'])} µT rms, "
+          f"{100 * r['cf_vs_centroid_rms_uT'] / r['cf_vs_true_rms_uT']:.1f} % of the aberration "
+          f"it models (apparent vs true, {f(r['cf_vs_true_rms_uT'])} µT rms), and from the "
+          f"fit by {f(r.get('cf_vs_fit_rms_uT'))} µT rms.")
+    w("")
     w("### Correction: T⁻¹ in closed form vs deconvolving every frame\n")
     w("| points | method | closed form (s) | every frame (s) | ratio | closed form vs frames, "
       "rms / max (µT) | closed form vs true, rms (µT) | frames vs true, rms (µT) |")
