@@ -56,6 +56,7 @@ struct svp_variant_data {
     int *ly0;
     double *lty;
     char *unit;
+    fftw_complex *spec2; /* ny x ncx: the second spectrum of a pair (K > 1) */
 };
 
 void svp_variant_defaults(svp_variant_options *o)
@@ -245,63 +246,95 @@ static void fold_add(const svp_blur *b, int k, int start, int rows, const double
     }
 }
 
+/* out = the spectrum of term k's weighted frame c_k ⊙ E(s ⊙ x) (v->ext made), row-pruned
+ * for pruned tents (its rows moved to the top: the phase is in otf[k]). */
+static void term_spectrum(svp_blur *b, int k, fftw_complex *out)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    if (v->pruned) {
+        fill_weighted(b, k, v->start[k], v->rows, b->work_r);
+        svp_fft_forward_pruned(v->pruned, b->work_r, out);
+    } else if (v->unit[k]) {
+        svp_fft_forward(f->plan, v->ext, out); /* r2c keeps its input */
+    } else {
+        fill_weighted(b, k, 0, f->ny, b->work_r);
+        svp_fft_forward(f->plan, b->work_r, out);
+    }
+}
+
 svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
     if (b->kind == SVP_BLUR_EXACT) return svp_exact_apply(b, x, y);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
-    const size_t ns = (size_t)f->ny * f->ncx, n = (size_t)b->width * b->height;
+    const size_t ns = (size_t)f->ny * f->ncx;
     const int K = v->n_terms;
-    /* ext = E(s ⊙ x), shared by every term */
-    const double *src = x;
+    /* ext = E(s ⊙ x), shared by every term, in one pass */
     if (v->scale) {
-        double *restrict t = v->tmp;
+        const int w = b->width, nx = f->nx;
+        const int *sx = f->src_x, *sy = f->src_y;
         const double *restrict s = v->scale;
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-        for (size_t i = 0; i < n; i++) t[i] = s[i] * x[i];
-        src = t;
-    }
-    svp_frame_extend(f, src, v->ext);
-    /* one term: multiply in place and invert work_c (no accumulator) */
-    fftw_complex *acc = K == 1 ? b->work_c : v->acc;
-    for (int k = 0; k < K; k++) {
-        if (v->pruned) {
-            fill_weighted(b, k, v->start[k], v->rows, b->work_r);
-            svp_fft_forward_pruned(v->pruned, b->work_r, b->work_c);
-        } else if (v->unit[k]) {
-            svp_fft_forward(f->plan, v->ext, b->work_c); /* r2c keeps its input */
-        } else {
-            fill_weighted(b, k, 0, f->ny, b->work_r);
-            svp_fft_forward(f->plan, b->work_r, b->work_c);
+        double *restrict ext = v->ext;
+#pragma omp parallel for schedule(static) if ((size_t)nx * f->ny > SVP_PARALLEL_MIN)
+        for (int t = 0; t < f->ny; t++) {
+            double *restrict out = ext + (size_t)t * nx;
+            if (sy[t] < 0) {
+                memset(out, 0, (size_t)nx * sizeof(double));
+                continue;
+            }
+            const double *restrict in = x + (size_t)sy[t] * w, *restrict sr = s + (size_t)sy[t] * w;
+            for (int q = 0; q < nx; q++) out[q] = sx[q] >= 0 ? sr[sx[q]] * in[sx[q]] : 0.0;
         }
-        /* acc (+)= otf · spec in one pass, written out in real arithmetic: no C99 complex NaN
-         * fix-ups, so it vectorises */
-        const double *restrict o = (const double *)v->otf[k];
+    } else {
+        svp_frame_extend(f, x, v->ext);
+    }
+    /* One term: multiply in place and invert work_c (no accumulator). Otherwise the terms go
+     * in pairs (spectra in work_c and spec2), so each pass over the accumulator adds two
+     * products: acc (+)= otf_k · spec_k + otf_k+1 · spec_k+1. */
+    fftw_complex *acc = K == 1 ? b->work_c : v->acc;
+    for (int k = 0; k < K; k += 2) {
+        const int pair = k + 1 < K;
+        term_spectrum(b, k, b->work_c);
+        if (pair) term_spectrum(b, k + 1, v->spec2);
+        const double *restrict o0 = (const double *)v->otf[k];
         if (K == 1) {
             double *restrict c = (double *)b->work_c;
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
             for (size_t i = 0; i < ns; i++) {
-                const double pr = o[2 * i], pi = o[2 * i + 1], sr = c[2 * i], si = c[2 * i + 1];
+                const double pr = o0[2 * i], pi = o0[2 * i + 1], sr = c[2 * i], si = c[2 * i + 1];
                 c[2 * i] = pr * sr - pi * si;
                 c[2 * i + 1] = pr * si + pi * sr;
             }
-            continue;
+            break;
         }
+        /* written out in real arithmetic: no C99 complex NaN fix-ups, so it vectorises */
         double *restrict a = (double *)v->acc;
-        const double *restrict sp = (const double *)b->work_c;
-        if (k == 0) {
+        const double *restrict s0 = (const double *)b->work_c;
+        const double *restrict o1 = pair ? (const double *)v->otf[k + 1] : o0;
+        const double *restrict s1 = pair ? (const double *)v->spec2 : s0;
+        if (pair && k > 0) {
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
             for (size_t i = 0; i < ns; i++) {
-                const double pr = o[2 * i], pi = o[2 * i + 1], sr = sp[2 * i], si = sp[2 * i + 1];
-                a[2 * i] = pr * sr - pi * si;
-                a[2 * i + 1] = pr * si + pi * sr;
+                const double p0 = o0[2 * i], q0 = o0[2 * i + 1], r0 = s0[2 * i], i0 = s0[2 * i + 1];
+                const double p1 = o1[2 * i], q1 = o1[2 * i + 1], r1 = s1[2 * i], i1 = s1[2 * i + 1];
+                a[2 * i] += (p0 * r0 - q0 * i0) + (p1 * r1 - q1 * i1);
+                a[2 * i + 1] += (p0 * i0 + q0 * r0) + (p1 * i1 + q1 * r1);
             }
-        } else {
+        } else if (k == 0) { /* the first pair assigns (w1 = 0: K = 1 is handled above) */
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
             for (size_t i = 0; i < ns; i++) {
-                const double pr = o[2 * i], pi = o[2 * i + 1], sr = sp[2 * i], si = sp[2 * i + 1];
-                a[2 * i] += pr * sr - pi * si;
-                a[2 * i + 1] += pr * si + pi * sr;
+                const double p0 = o0[2 * i], q0 = o0[2 * i + 1], r0 = s0[2 * i], i0 = s0[2 * i + 1];
+                const double p1 = o1[2 * i], q1 = o1[2 * i + 1], r1 = s1[2 * i], i1 = s1[2 * i + 1];
+                a[2 * i] = (p0 * r0 - q0 * i0) + (p1 * r1 - q1 * i1);
+                a[2 * i + 1] = (p0 * i0 + q0 * r0) + (p1 * i1 + q1 * r1);
+            }
+        } else { /* a last single term (odd K) */
+#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
+            for (size_t i = 0; i < ns; i++) {
+                const double p0 = o0[2 * i], q0 = o0[2 * i + 1], r0 = s0[2 * i], i0 = s0[2 * i + 1];
+                a[2 * i] += p0 * r0 - q0 * i0;
+                a[2 * i + 1] += p0 * i0 + q0 * r0;
             }
         }
     }
@@ -374,6 +407,7 @@ void svp_variant_release(svp_blur *b)
         free(v->start);
         free(v->frame_rows);
         svp_free(v->ext);
+        svp_free(v->spec2);
         free(v->wx);
         free(v->wy);
         free(v->ly0);
@@ -414,6 +448,7 @@ size_t svp_variant_memory(const svp_blur *b)
         if (v->wy) bytes += (size_t)v->gy * b->frame.ny * sizeof(double);
         if (v->ly0) bytes += (size_t)b->frame.ny * (sizeof(int) + sizeof(double));
         bytes += (size_t)v->n_terms;
+        if (v->spec2) bytes += spectrum;
     }
     return bytes;
 }
@@ -657,6 +692,10 @@ static svp_status setup_fill(svp_blur *b)
     const int tent = b->kind == SVP_BLUR_TENT;
     const size_t nwx = tent ? (size_t)gx * nx : (size_t)K * gy * nx;
     v->ext = svp_alloc((size_t)ny * nx * sizeof(double));
+    if (K > 1) {
+        v->spec2 = svp_alloc((size_t)ny * f->ncx * sizeof(fftw_complex));
+        if (!v->spec2) return svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's buffers");
+    }
     v->wx = malloc(nwx * sizeof(double));
     v->unit = calloc((size_t)K, 1);
     if (tent)

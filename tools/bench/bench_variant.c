@@ -125,8 +125,35 @@ static svp_image *random_image(int n, uint64_t seed)
     return x;
 }
 
-/* Best-of-reps time of K forward + 1 inverse real FFTs of the operator's frame. */
-static double time_ffts(const svp_blur *b, int K, int reps)
+static int cmp_double(const void *a, const void *b)
+{
+    const double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+/* Best and median of reps applications of b to x, after one untimed warm-up application (first
+ * touches of the work buffers and the accumulator). Returns 0 on failure. */
+static int time_apply(svp_blur *b, const svp_image *x, svp_image *y, int reps, double *best,
+                      double *median)
+{
+    double t[64];
+    if (reps > 64) reps = 64;
+    if (svp_blur_apply(b, x, y) != SVP_OK) return 0;
+    for (int r = 0; r < reps; r++) {
+        const double t0 = now();
+        if (svp_blur_apply(b, x, y) != SVP_OK) return 0;
+        t[r] = now() - t0;
+    }
+    qsort(t, (size_t)reps, sizeof t[0], cmp_double);
+    *best = t[0];
+    *median = reps % 2 ? t[reps / 2] : 0.5 * (t[reps / 2 - 1] + t[reps / 2]);
+    return 1;
+}
+
+/* Best and median of reps timings of K forward + 1 inverse real FFTs of the operator's frame
+ * (the cached plans the operator uses, its work buffers' sizes), after one untimed warm-up
+ * round. */
+static double time_ffts(const svp_blur *b, int K, int reps, double *median)
 {
     const svp_frame *f = &b->frame;
     const size_t nr = (size_t)f->ny * f->nx, nc = (size_t)f->ny * f->ncx;
@@ -137,19 +164,20 @@ static double time_ffts(const svp_blur *b, int K, int reps)
         svp_free(c);
         return NAN;
     }
-    for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7);
-    double best = INFINITY;
-    for (int rep = 0; rep < reps; rep++) {
+    double t[65];
+    if (reps > 64) reps = 64;
+    for (int rep = -1; rep < reps; rep++) { /* rep −1: warm-up */
+        for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7); /* keep the data finite */
         double t0 = now();
         for (int k = 0; k < K; k++) svp_fft_forward(f->plan, r, c);
         svp_fft_inverse_unscaled(f->plan, c, r);
-        double t = now() - t0;
-        if (t < best) best = t;
-        for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7); /* keep the data finite */
+        if (rep >= 0) t[rep] = now() - t0;
     }
     svp_free(r);
     svp_free(c);
-    return best;
+    qsort(t, (size_t)reps, sizeof t[0], cmp_double);
+    *median = reps % 2 ? t[reps / 2] : 0.5 * (t[reps / 2 - 1] + t[reps / 2]);
+    return t[0];
 }
 
 static int cmd_apply(int argc, char **argv)
@@ -160,6 +188,7 @@ static int cmd_apply(int argc, char **argv)
     const int reps = (int)arg_num(argc, argv, "--reps", 3);
     const double support = arg_num(argc, argv, "--support", 16);
     const double budget = arg_num(argc, argv, "--budget-mb", 6000);
+    const char *only = arg_str(argc, argv, "--only", NULL);
     svp_psf_field *f = make_field(n, strong, support);
     if (!f) return fail("field");
     svp_image *x = random_image(n, 1), *y = NULL, *ye = NULL;
@@ -180,6 +209,26 @@ static int cmd_apply(int argc, char **argv)
            "\"time_s\": %s}\n",
            n, var, support, jnum(t_exact));
     fflush(stdout);
+    if (!only || strstr("invariant", only)) {
+        /* the floor: the space-invariant operator of the central PSF (extend, 1 forward FFT,
+         * product, 1 inverse, crop) against its 2 FFTs */
+        svp_psf pc;
+        svp_blur *b = NULL;
+        if (svp_psf_field_at(f, 0.5 * (n - 1), 0.5 * (n - 1), &pc) != SVP_OK ||
+            svp_blur_new(&pc, n, n, SVP_BOUNDARY_MIRROR, &b) != SVP_OK)
+            return fail("invariant operator");
+        double best, med, fft_med;
+        if (!time_apply(b, x, y, reps, &best, &med)) return fail("invariant apply");
+        const double t_fft = time_ffts(b, 1, reps, &fft_med);
+        printf("{\"kind\": \"invariant\", \"label\": \"invariant (central PSF)\", \"K\": 1, "
+               "\"size\": %d, \"variation\": \"%s\", \"frame\": [%d, %d], \"apply_s\": %.6g, "
+               "\"ffts_s\": %.6g, \"ratio\": %.4g, \"apply_median_s\": %.6g, "
+               "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"threads\": %d}\n",
+               n, var, b->frame.nx, b->frame.ny, best, t_fft, best / t_fft, med, fft_med,
+               med / fft_med, svp_get_threads());
+        fflush(stdout);
+        svp_blur_free(b);
+    }
     enum { NG = 5, NR = 12 };
     const int grids[NG] = {1, 2, 4, 8, 16};
     for (int c = 0; c < NG + NR; c++) {
@@ -202,6 +251,7 @@ static int cmd_apply(int argc, char **argv)
         char label[32];
         snprintf(label, sizeof label, tent ? "tent %dx%d" : "low rank %d", tent ? grids[c] : o.rank,
                  tent ? grids[c] : 0);
+        if (only && !strstr(label, only)) continue;
         if (spec_mb > budget) {
             printf("{\"kind\": \"%s\", \"label\": \"%s\", \"K\": %d, \"size\": %d, "
                    "\"variation\": \"%s\", \"skipped\": \"the %d spectra need %.0f MB > budget "
@@ -214,24 +264,21 @@ static int cmd_apply(int argc, char **argv)
         double t0 = now();
         if (svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &b) != SVP_OK) return fail(label);
         const double t_build = now() - t0;
-        double best = INFINITY;
-        for (int r = 0; r < reps; r++) {
-            t0 = now();
-            if (svp_blur_apply(b, x, y) != SVP_OK) return fail("apply");
-            double t = now() - t0;
-            if (t < best) best = t;
-        }
-        const double t_fft = time_ffts(b, K, reps);
+        double best, med, fft_med;
+        if (!time_apply(b, x, y, reps, &best, &med)) return fail("apply");
+        const double t_fft = time_ffts(b, K, reps, &fft_med);
         const double err = exact ? rel_l2(y, ye) : NAN;
         const svp_frame *fr = &b->frame;
         const double spectra = (double)K * fr->ny * fr->ncx * sizeof(fftw_complex) / 1048576.0;
         printf("{\"kind\": \"%s\", \"label\": \"%s\", \"K\": %d, \"size\": %d, \"variation\": "
                "\"%s\", \"frame\": [%d, %d], \"build_s\": %.6g, \"apply_s\": %.6g, "
-               "\"ffts_s\": %.6g, \"ratio\": %.4g, \"rel_err\": %s, \"spectra_mb\": %.2f, "
-               "\"operator_mb\": %.2f, \"peak_rss_mb\": %.1f, \"threads\": %d}\n",
+               "\"ffts_s\": %.6g, \"ratio\": %.4g, \"apply_median_s\": %.6g, "
+               "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"rel_err\": %s, "
+               "\"spectra_mb\": %.2f, \"operator_mb\": %.2f, \"peak_rss_mb\": %.1f, "
+               "\"threads\": %d}\n",
                tent ? "tent" : "lowrank", label, K, n, var, fr->nx, fr->ny, t_build, best, t_fft,
-               best / t_fft, jnum(err), spectra, svp_blur_memory(b) / 1048576.0, peak_mb(),
-               svp_get_threads());
+               best / t_fft, med, fft_med, med / fft_med, jnum(err), spectra,
+               svp_blur_memory(b) / 1048576.0, peak_mb(), svp_get_threads());
         fflush(stdout);
         svp_blur_free(b);
     }
