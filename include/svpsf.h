@@ -200,6 +200,17 @@ SVP_API size_t svp_blur_memory(const svp_blur *blur);
 /* ---------------------------------------------------------------------------------------- */
 /* Deconvolution (the ⊘ of eq. 4)                                                            */
 
+/* What one deconvolution did (the library never prints: callers read this and warn). */
+typedef struct svp_deconv_report {
+    int wiener;         /* 1: a Wiener–Hunt deconvolution (the fields below apply); 0: RL */
+    double balance;     /* the balance λ used (the chosen one with a discrepancy balance) */
+    double noise_sigma; /* discrepancy balance: the noise σ used (given or estimated); else 0 */
+    int cg_steps;       /* zero-boundary Wiener: conjugate-gradient steps taken; else 0 */
+    double cg_residual; /* its final relative residual ‖Hᵀ M y − A x‖ / ‖Hᵀ M y‖ */
+    int cg_capped;      /* 1: the CG stopped at the step cap with the residual above its
+                           tolerance (1e-8): x is usable but not converged */
+} svp_deconv_report;
+
 typedef struct svp_deconv_options {
     double balance;        /* Wiener–Hunt λ in conj(P) / (|P|² + λ |L|²), L the Laplacian;
                               default 1e-3 */
@@ -208,6 +219,8 @@ typedef struct svp_deconv_options {
     int boundary_weights;  /* RL: Bertero–Boccacci normalisation by Hᵀ1 (default 1) */
     svp_progress_fn progress; /* optional */
     void *progress_user;
+    int cg_max_steps;          /* zero-boundary Wiener: CG step cap; default 400 */
+    svp_deconv_report *report; /* optional out (svp_deconv_wiener fills it); default NULL */
 } svp_deconv_options;
 
 SVP_API void svp_deconv_defaults(svp_deconv_options *options);
@@ -292,6 +305,14 @@ typedef struct svp_correct_options {
                                     over the measured pixels (range := |B̃|, or 1, for a
                                     constant map). An explicit c must give B̃ + c > 0 at every
                                     measured pixel of every component. */
+    int balance_auto;            /* 1: every Wiener deconvolution of the method (Ĩ for W, each
+                                    B̃_c Ĩ for RW and W) chooses its own balance by the
+                                    discrepancy principle (svp_wiener_balance_discrepancy);
+                                    deconv.balance is then unused; default 0 */
+    double noise_sigma;          /* balance_auto: the noise σ of every Wiener-deconvolved image
+                                    (of Ĩ, of B̃_c Ĩ); <= 0 (default) = estimated per image */
+    svp_deconv_report *reports;  /* optional out, n_fields + 1 entries: [0] for Ĩ ⊘ p, [1 + c]
+                                    for component c's numerator; default NULL */
 } svp_correct_options;
 
 SVP_API void svp_correct_defaults(svp_correct_options *options);

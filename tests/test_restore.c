@@ -642,6 +642,73 @@ static int log_progress(void *user, double fraction)
     return p->cancel_at > 0 && p->calls >= p->cancel_at;
 }
 
+/* The zero-boundary Wiener solve reports its CG: with the default cap it converges (residual
+ * <= 1e-8, not capped); a cap of 2 steps stops short and says so (capped, residual above the
+ * tolerance, exactly 2 steps) and the result differs from the converged one. The library does
+ * not print; the report is the only channel. */
+static void test_wiener_cg_cap_reported(void **state)
+{
+    (void)state;
+    const int w = 40, h = 36;
+    svp_image *x_true = smooth_object(w, h, 0.1, 4.0);
+    svp_blur *op = gaussian_blur(3.0, 0, 0, w, h, SVP_BOUNDARY_ZERO);
+    svp_image *y = test_image(w, h), *x_full = test_image(w, h), *x_cap = test_image(w, h);
+    ASSERT_OK(svp_blur_apply(op, x_true, y));
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    o.balance = 1e-4;
+    svp_deconv_report r;
+    o.report = &r;
+    ASSERT_OK(svp_deconv_wiener(op, y, &o, x_full));
+    assert_int_equal(r.wiener, 1);
+    assert_true(r.balance == 1e-4);
+    assert_int_equal(r.cg_capped, 0);
+    assert_true(r.cg_steps > 2 && r.cg_steps < o.cg_max_steps);
+    assert_true(r.cg_residual <= 1e-8);
+    o.cg_max_steps = 2;
+    ASSERT_OK(svp_deconv_wiener(op, y, &o, x_cap));
+    assert_int_equal(r.cg_capped, 1);
+    assert_int_equal(r.cg_steps, 2);
+    assert_true(r.cg_residual > 1e-8 && r.cg_residual < 1);
+    assert_true(l2_diff(x_full, x_cap) > 1e-6 * l2_diff(x_full, y) + 1e-12);
+    o.cg_max_steps = 0;
+    assert_int_equal(svp_deconv_wiener(op, y, &o, x_cap), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "cg_max_steps"));
+
+    /* Through T^-1 (method W, balance_auto): one report per deconvolution; the PL's balance is
+     * the discrepancy principle's on the PL itself, the capped CG is reported per solve. */
+    svp_image *field = test_image(w, h), *pl_out = test_image(w, h), *f_out = test_image(w, h);
+    for (size_t i = 0; i < (size_t)w * h; i++) field->data[i] = 0.5 + 0.01 * (double)(i % 7);
+    svp_correct_options co;
+    svp_correct_defaults(&co);
+    co.method = SVP_METHOD_W;
+    co.balance_auto = 1;
+    co.noise_sigma = 1e-3;
+    co.deconv.cg_max_steps = 2;
+    svp_deconv_report reports[2];
+    co.reports = reports;
+    const svp_image *fields[1] = {field};
+    svp_image *outs[1] = {f_out};
+    ASSERT_OK(svp_inverse_transform(op, y, fields, 1, &co, pl_out, outs, NULL, NULL));
+    double lambda = 0, sigma = 0;
+    ASSERT_OK(svp_wiener_balance_discrepancy(op, y, 1e-3, &lambda, &sigma));
+    for (int k = 0; k < 2; k++) {
+        assert_int_equal(reports[k].wiener, 1);
+        assert_true(reports[k].noise_sigma == 1e-3);
+        assert_int_equal(reports[k].cg_capped, 1);
+        assert_true(reports[k].balance > 1e-12 && reports[k].balance < 1e2);
+    }
+    assert_true(reports[0].balance == lambda);
+    svp_image_free(field);
+    svp_image_free(pl_out);
+    svp_image_free(f_out);
+    svp_image_free(x_true);
+    svp_image_free(y);
+    svp_image_free(x_full);
+    svp_image_free(x_cap);
+    svp_blur_free(op);
+}
+
 static void test_progress_and_cancel(void **state)
 {
     (void)state;
@@ -865,6 +932,7 @@ int main(void)
         cmocka_unit_test(test_variant_operator),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_progress_and_cancel),
+        cmocka_unit_test(test_wiener_cg_cap_reported),
         cmocka_unit_test(test_threads),
         cmocka_unit_test(test_skimage_rl_direct),
         cmocka_unit_test(test_skimage_wiener_dft),

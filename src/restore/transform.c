@@ -36,6 +36,9 @@ void svp_correct_defaults(svp_correct_options *options)
     options->deconv.iterations = 75; /* the reference study's RL count for measured data */
     options->pl_floor = 1e-3;
     options->shift = 0.0;
+    options->balance_auto = 0;
+    options->noise_sigma = 0.0;
+    options->reports = NULL;
 }
 
 /* ---- argument checks --------------------------------------------------------------------- */
@@ -243,16 +246,27 @@ static int uses_rl_for_field(svp_method m)
     return m == SVP_METHOD_R || m == SVP_METHOD_RL_SIGNED;
 }
 
-/* y ⊘ p with the method's deconvolution, progress forwarded as the share `share`. */
+/* y ⊘ p with the method's deconvolution, progress forwarded as the share `share`. A Wiener
+ * deconvolution with balance_auto first chooses its balance by the discrepancy principle (noise
+ * σ noise_sigma, or estimated from y when <= 0). report (may be NULL) receives what it did. */
 static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
-                             const svp_deconv_options *base, progress_share *share, svp_image *x)
+                             const svp_deconv_options *base, int balance_auto, double noise_sigma,
+                             progress_share *share, svp_deconv_report *report, svp_image *x)
 {
     svp_deconv_options o = *base;
+    o.report = report;
     if (base->progress) {
         o.progress = share_progress;
         o.progress_user = share;
     }
+    double sigma_used = 0;
+    if (!use_rl && balance_auto)
+        SVP_CHECK(svp_wiener_balance_discrepancy(blur, y, noise_sigma, &o.balance, &sigma_used));
     svp_status st = use_rl ? svp_deconv_rl(blur, y, &o, x) : svp_deconv_wiener(blur, y, &o, x);
+    if (report) {
+        if (use_rl) memset(report, 0, sizeof *report);
+        report->noise_sigma = sigma_used;
+    }
     if (st != SVP_OK) return st;
     if (base->progress) {
         if (share->fn(share->user, share->base + share->span))
@@ -273,7 +287,9 @@ static svp_status check_correct_options(const svp_correct_options *o)
     if (o->method != SVP_METHOD_W && o->deconv.iterations < 1)
         return svp_fail(SVP_ERR_INVALID, "Richardson-Lucy iterations must be >= 1, got %d",
                         o->deconv.iterations);
-    if (o->method != SVP_METHOD_R && o->method != SVP_METHOD_RL_SIGNED &&
+    if (!isfinite(o->noise_sigma))
+        return svp_fail(SVP_ERR_INVALID, "noise_sigma must be finite, got %g", o->noise_sigma);
+    if (o->method != SVP_METHOD_R && o->method != SVP_METHOD_RL_SIGNED && !o->balance_auto &&
         !(o->deconv.balance >= 0 && isfinite(o->deconv.balance)))
         return svp_fail(SVP_ERR_INVALID, "Wiener balance must be >= 0 and finite, got %g",
                         o->deconv.balance);
@@ -331,6 +347,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
     SVP_CHECK(check_transform_args(blur, pl_apparent, field_apparent, n_fields, pl_true, field_true,
                                    validity, "pl_apparent", "field_apparent", "pl_true",
                                    "field_true"));
+    if (opt.reports) memset(opt.reports, 0, ((size_t)n_fields + 1) * sizeof *opt.reports);
     const int w = pl_apparent->width, h = pl_apparent->height;
     const size_t n = (size_t)w * h;
     const int rl_pl = uses_rl_for_pl(opt.method), rl_field = uses_rl_for_field(opt.method);
@@ -397,7 +414,9 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
      * Wiener: about one; with the zero boundary its CG takes typically 25–80 steps of 1.5 RL
      * iterations' work each: counted as 40 iterations). */
     {
-        const double cost_w = svp_blur_boundary(blur) == SVP_BOUNDARY_ZERO ? 40.0 : 1.0;
+        /* the discrepancy principle adds 16 Wiener solves */
+        const double cost_w = (svp_blur_boundary(blur) == SVP_BOUNDARY_ZERO ? 40.0 : 1.0) *
+                              (opt.balance_auto ? 17.0 : 1.0);
         double cost_pl = rl_pl ? opt.deconv.iterations : cost_w;
         double cost_field = rl_field ? opt.deconv.iterations : cost_w;
         double total = cost_pl + n_fields * cost_field, at = 0;
@@ -418,7 +437,8 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : pl[i];
     }
-    st = deconvolve(blur, work, rl_pl, &opt.deconv, &shares[0], pl_true);
+    st = deconvolve(blur, work, rl_pl, &opt.deconv, opt.balance_auto, opt.noise_sigma, &shares[0],
+                    opt.reports, pl_true);
     if (st != SVP_OK) {
         svp_fail_context(st, "deconvolving pl_apparent");
         goto cleanup;
@@ -471,7 +491,8 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
             for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : (b_app[i] + shift) * pl[i];
         }
-        st = deconvolve(blur, work, rl_field, &opt.deconv, &shares[c + 1], field_true[c]);
+        st = deconvolve(blur, work, rl_field, &opt.deconv, opt.balance_auto, opt.noise_sigma,
+                        &shares[c + 1], opt.reports ? &opt.reports[c + 1] : NULL, field_true[c]);
         if (st != SVP_OK) {
             svp_fail_context(st, "deconvolving field_apparent[%d] x pl_apparent", c);
             goto cleanup;

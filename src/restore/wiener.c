@@ -15,6 +15,8 @@
 
 #define PI 3.14159265358979323846
 
+#define ZERO_CG_MAX 400 /* default step cap of the zero-boundary CG */
+
 void svp_deconv_defaults(svp_deconv_options *o)
 {
     if (!o) return;
@@ -24,6 +26,8 @@ void svp_deconv_defaults(svp_deconv_options *o)
     o->boundary_weights = 1;
     o->progress = NULL;
     o->progress_user = NULL;
+    o->cg_max_steps = ZERO_CG_MAX;
+    o->report = NULL;
 }
 
 static svp_status check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
@@ -347,7 +351,6 @@ cleanup:
  * smooth spill term and CG converges in tens of steps (76 to a residual of 1e-10 for 128², β =
  * 1.1, λ = 1e-6, against 182 with a periodic image-size preconditioner). Each step costs three
  * FFT pairs at the operator's padded size (H, Hᵀ, the preconditioner). */
-#define ZERO_CG_MAX 400
 #define ZERO_CG_TOL 1e-8
 
 /* out = L in, Neumann ends: Σ over the in-image neighbours of (in(p) − in(q)). */
@@ -427,7 +430,8 @@ static double dot_det(const double *a, const double *b, double *prod, size_t n)
 }
 
 static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_missing,
-                              double balance, double *restrict x_data)
+                              double balance, int max_steps, svp_deconv_report *report,
+                              double *restrict x_data)
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
@@ -446,13 +450,15 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
     if ((st = svp_blur_adjoint(blur, &img_t1, &img_r)) != SVP_OK) goto cleanup;
     memset(x_data, 0, n * sizeof(double));
     const double rhs_norm = sqrt(dot_det(r, r, prod, n));
-    int it = 0, pairs = 1;
+    int it = 0, pairs = 1, converged = 1;
+    double res_norm = 0;
     if (rhs_norm > 0 && isfinite(rhs_norm)) {
+        converged = 0;
         zero_precondition(blur, filter, r, z);
         pairs++;
         memcpy(p, z, n * sizeof(double));
         double rz = dot_det(r, z, prod, n);
-        for (it = 0; it < ZERO_CG_MAX; it++) {
+        for (it = 0; it < max_steps; it++) {
             /* ap = (Hᵀ M H + λ L L) p */
             if ((st = svp_blur_apply(blur, &img_p, &img_t1)) != SVP_OK) goto cleanup;
             if (n_missing > 0) {
@@ -469,14 +475,19 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
                 for (size_t i = 0; i < n; i++) ap[i] += balance * t2[i];
             }
             const double pap = dot_det(p, ap, prod, n);
-            if (!(pap > 0) || !isfinite(pap)) break; /* exact convergence or a flat direction */
+            if (!(pap > 0) || !isfinite(pap)) { /* exact convergence or a flat direction */
+                converged = 1;
+                break;
+            }
             const double step = rz / pap;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
             for (size_t i = 0; i < n; i++) {
                 x_data[i] += step * p[i];
                 r[i] -= step * ap[i];
             }
-            if (sqrt(dot_det(r, r, prod, n)) <= ZERO_CG_TOL * rhs_norm) {
+            res_norm = sqrt(dot_det(r, r, prod, n));
+            if (res_norm <= ZERO_CG_TOL * rhs_norm) {
+                converged = 1;
                 it++;
                 break;
             }
@@ -494,6 +505,11 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
         if (!isfinite(x_data[i])) x_data[i] = 0.0;
     blur->wiener_steps = it;
     blur->wiener_pairs = pairs;
+    if (report) {
+        report->cg_steps = it;
+        report->cg_residual = rhs_norm > 0 && isfinite(rhs_norm) ? res_norm / rhs_norm : 0.0;
+        report->cg_capped = !converged;
+    }
 cleanup:
     svp_free(buf);
     return st;
@@ -514,6 +530,15 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
                         options->balance);
     /* space-variant operators: the same regularised problem by conjugate gradients, which
      * masks missing data itself */
+    if (options->cg_max_steps < 1)
+        return svp_fail(SVP_ERR_INVALID, "Wiener deconvolution: cg_max_steps %d must be >= 1",
+                        options->cg_max_steps);
+    svp_deconv_report *report = options->report;
+    if (report) {
+        memset(report, 0, sizeof *report);
+        report->wiener = 1;
+        report->balance = options->balance;
+    }
     if (blur->kind != SVP_BLUR_INVARIANT) return svp_deconv_tikhonov_cg(blur, y, options, x);
 
     const size_t n = (size_t)y->width * y->height;
@@ -524,7 +549,8 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
     svp_status st = SVP_OK;
     double *filled = NULL;
     if (blur->boundary == SVP_BOUNDARY_ZERO) {
-        st = wiener_zero(blur, y->data, n_missing, options->balance, x->data);
+        st = wiener_zero(blur, y->data, n_missing, options->balance, options->cg_max_steps, report,
+                         x->data);
     } else {
         if (n_missing > 0) {
             filled = svp_alloc(n * sizeof(double));

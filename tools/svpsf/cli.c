@@ -191,6 +191,17 @@ void cli_note(const cli_run *run, const char *fmt, ...)
     fputc('\n', stderr);
 }
 
+void cli_warn(const cli_run *run, const char *fmt, ...)
+{
+    va_list ap;
+    fflush(stdout);
+    fprintf(stderr, "svpsf %s: warning: ", run->command);
+    va_start(ap, fmt);
+    vfprintf(stderr, fmt, ap);
+    va_end(ap);
+    fputc('\n', stderr);
+}
+
 int cli_fail(const cli_run *run, svp_status status, const char *context)
 {
     const char *msg = svp_last_error();

@@ -174,6 +174,8 @@ void cli_print_common_help(const cli_run *run, FILE *out);
 
 /* "svpsf COMMAND: message\n" on stderr. Returns CLI_EXIT_USAGE for `return cli_error(...)`. */
 int cli_error(const cli_run *run, const char *fmt, ...) __attribute__((format(printf, 2, 3)));
+/* A warning on stderr ("svpsf COMMAND: warning: ..."), printed even with --quiet. */
+void cli_warn(const cli_run *run, const char *fmt, ...) __attribute__((format(printf, 2, 3)));
 /* A note on stderr ("svpsf COMMAND: ..."), silent with --quiet. */
 void cli_note(const cli_run *run, const char *fmt, ...) __attribute__((format(printf, 2, 3)));
 /* Prints svp_last_error() (prefixed with `context: ` when context is not NULL and the message

@@ -11,6 +11,8 @@ enum {
     OPT_BALANCE,
     OPT_PL_FLOOR,
     OPT_SHIFT,
+    OPT_NOISE,
+    OPT_CG_MAX_STEPS,
 };
 
 static const char *const method_names[] = {"rw", "r", "w", "rl-signed", NULL};
@@ -60,15 +62,23 @@ static void print_help(const cli_run *run, FILE *out)
             "                        w: Wiener-Hunt on both\n"
             "                        rl-signed: as r, named for what it does\n"
             "  --iterations N        Richardson-Lucy iterations (default %d)\n"
-            "  --balance L           Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
-            "                        (default %g)\n"
+            "  --balance L|auto      Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
+            "                        (default %g); auto: each Wiener deconvolution (of the PL\n"
+            "                        for w, of field x PL for rw and w) picks its own by the\n"
+            "                        discrepancy principle (residual = noise)\n"
+            "  --noise SIGMA         with --balance auto: the noise standard deviation of the\n"
+            "                        deconvolved images (PL, field x PL); default: estimated\n"
+            "                        from each image\n"
+            "  --cg-max-steps N      step cap of the zero-boundary Wiener solve (conjugate\n"
+            "                        gradients; default %d); a solve that stops there above\n"
+            "                        its tolerance is warned about and recorded\n"
             "  --pl-floor F          the recovered PL is floored at F x max(PL) before dividing;\n"
             "                        pixels below it get validity < 1 (default %g)\n"
             "  --shift C             the constant c of the signed shift for r/rl-signed\n"
             "                        (default: automatic, 0.1 range(Bt) - min(Bt) per map)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
-            d.deconv.iterations, d.deconv.balance, d.pl_floor);
+            d.deconv.iterations, d.deconv.balance, d.deconv.cg_max_steps, d.pl_floor);
     cli_print_variant_help(out);
     cli_print_common_help(run, out);
     fputs("\n"
@@ -90,6 +100,8 @@ int cmd_correct(int argc, char **argv)
         {"balance", required_argument, NULL, OPT_BALANCE},
         {"pl-floor", required_argument, NULL, OPT_PL_FLOOR},
         {"shift", required_argument, NULL, OPT_SHIFT},
+        {"noise", required_argument, NULL, OPT_NOISE},
+        {"cg-max-steps", required_argument, NULL, OPT_CG_MAX_STEPS},
         {NULL, 0, NULL, 0},
     };
     cli_maps maps;
@@ -118,9 +130,19 @@ int cmd_correct(int argc, char **argv)
             bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.deconv.iterations);
             break;
         case OPT_BALANCE:
-            bad = cli_parse_double(&run, "--balance", optarg, &opt.deconv.balance);
-            if (!bad && !(opt.deconv.balance >= 0))
-                bad = cli_error(&run, "--balance must be >= 0, got %s", optarg);
+            opt.balance_auto = strcmp(optarg, "auto") == 0;
+            if (!opt.balance_auto) {
+                bad = cli_parse_double(&run, "--balance", optarg, &opt.deconv.balance);
+                if (!bad && !(opt.deconv.balance >= 0))
+                    bad = cli_error(&run, "--balance %s: must be >= 0 or auto", optarg);
+            }
+            break;
+        case OPT_NOISE:
+            bad = cli_parse_double_in(&run, "--noise", optarg, 0, 0, INFINITY, 0, &opt.noise_sigma);
+            break;
+        case OPT_CG_MAX_STEPS:
+            bad =
+                cli_parse_int(&run, "--cg-max-steps", optarg, 1, 100000, &opt.deconv.cg_max_steps);
             break;
         case OPT_PL_FLOOR:
             bad = cli_parse_double_in(&run, "--pl-floor", optarg, 0, 0, 1, 0, &opt.pl_floor);
@@ -132,13 +154,24 @@ int cmd_correct(int argc, char **argv)
         }
         if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
+    const int has_wiener = opt.method == SVP_METHOD_RW || opt.method == SVP_METHOD_W;
+    if (opt.balance_auto && !has_wiener)
+        return cli_run_finish(&run, cli_error(&run, "--balance auto needs a method with a Wiener "
+                                                    "deconvolution (--method rw or w)"));
+    if (opt.noise_sigma > 0 && !opt.balance_auto)
+        return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance auto"));
     if ((code = cli_maps_open(&run, &maps, &psf))) goto cleanup;
 
     const int w = maps.pl->width, h = maps.pl->height;
     const size_t n = (size_t)w * h;
     cli_setting_str(&run, "method", method_names[method]);
     cli_setting_int(&run, "iterations", opt.deconv.iterations);
-    cli_setting_num(&run, "balance", opt.deconv.balance);
+    if (opt.balance_auto)
+        cli_setting_str(&run, "balance", "auto (discrepancy principle)");
+    else
+        cli_setting_num(&run, "balance", opt.deconv.balance);
+    if (opt.noise_sigma > 0) cli_setting_num(&run, "noise_sigma", opt.noise_sigma);
+    cli_setting_int(&run, "cg_max_steps", opt.deconv.cg_max_steps);
     cli_setting_num(&run, "pl_floor", opt.pl_floor);
     cli_setting_num(&run, "shift", opt.shift);
 
@@ -151,6 +184,8 @@ int cmd_correct(int argc, char **argv)
     for (int i = 0; i < maps.n_fields && st == SVP_OK; i++)
         st = svp_image_new(w, h, &field_true[i]);
     size_t n_missing = 0;
+    svp_deconv_report reports[CLI_MAX_FIELDS + 1];
+    opt.reports = reports;
     if (st == SVP_OK) {
         opt.deconv.progress = cli_progress;
         opt.deconv.progress_user = &run;
@@ -172,6 +207,54 @@ int cmd_correct(int argc, char **argv)
     cli_result_int(&run, "n_flagged", (long long)n_flagged);
     cli_result_num(&run, "flagged_fraction", (double)n_flagged / (double)n);
     cli_result_int(&run, "n_invalid", (long long)n_invalid);
+    /* What each Wiener deconvolution did: [0] the PL's (method W), [1 + c] field c's numerator:
+     * the chosen balance and noise, and whether its CG stopped at the step cap. */
+    char bal[1024] = "";
+    size_t at = 0;
+    int n_capped = 0;
+    for (int k = 0; k <= maps.n_fields; k++) {
+        const svp_deconv_report *r = &reports[k];
+        if (!r->wiener) continue;
+        char name[300], key[340];
+        if (k == 0)
+            snprintf(name, sizeof name, "pl");
+        else if (maps.n_fields == 1)
+            snprintf(name, sizeof name, "field");
+        else {
+            char stem[256];
+            cli_path_stem(maps.field_paths[k - 1], stem, sizeof stem);
+            snprintf(name, sizeof name, "field_%s", stem);
+        }
+        if (opt.balance_auto) {
+            snprintf(key, sizeof key, "balance_%s", name);
+            cli_result_num(&run, key, r->balance);
+            snprintf(key, sizeof key, "noise_sigma_%s", name);
+            cli_result_num(&run, key, r->noise_sigma);
+            if (at < sizeof bal)
+                at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (noise sigma %g)",
+                                       at ? "," : ", balance by the discrepancy principle:",
+                                       k == 0 ? "PL" : name, r->balance, r->noise_sigma);
+        }
+        if (r->cg_steps > 0) {
+            snprintf(key, sizeof key, "cg_steps_%s", name);
+            cli_result_int(&run, key, r->cg_steps);
+        }
+        if (r->cg_capped) {
+            n_capped++;
+            snprintf(key, sizeof key, "cg_capped_%s", name);
+            cli_result_int(&run, key, 1);
+            snprintf(key, sizeof key, "cg_residual_%s", name);
+            cli_result_num(&run, key, r->cg_residual);
+            cli_warn(&run,
+                     "the Wiener deconvolution of %s%s stopped at the step cap (%d conjugate-"
+                     "gradient steps) with relative residual %.3g above the tolerance 1e-8: "
+                     "not converged (raise --cg-max-steps or --balance)",
+                     k == 0 ? "the PL" : name, k == 0 ? "" : " x PL", r->cg_steps, r->cg_residual);
+        }
+    }
+    if (opt.balance_auto)
+        cli_result_str(&run, "noise_sigma_from", opt.noise_sigma > 0 ? "--noise" : "estimated");
+    cli_result_int(&run, "n_cg_capped", n_capped);
 
     if ((code = cli_maps_write(&run, &maps, pl_true, field_true, validity))) goto cleanup;
 
@@ -179,8 +262,7 @@ int cmd_correct(int argc, char **argv)
         char iters[96] = "";
         if (opt.method != SVP_METHOD_W)
             snprintf(iters, sizeof iters, ", %d RL iterations", opt.deconv.iterations);
-        char bal[64] = "";
-        if (opt.method == SVP_METHOD_RW || opt.method == SVP_METHOD_W)
+        if (has_wiener && !opt.balance_auto)
             snprintf(bal, sizeof bal, ", balance %g", opt.deconv.balance);
         printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
                "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "

@@ -15,6 +15,7 @@ enum {
     OPT_NOISE,
     OPT_BOUNDARY,
     OPT_COMPAT,
+    OPT_CG_MAX_STEPS,
 };
 
 static void print_help(const cli_run *run, FILE *out)
@@ -43,6 +44,9 @@ static void print_help(const cli_run *run, FILE *out)
             "  --noise SIGMA         with --balance auto: the noise's standard deviation in\n"
             "                        IN's units (default: estimated from IN)\n"
             "  --iterations N        Richardson-Lucy iterations (default %d)\n"
+            "  --cg-max-steps N      step cap of the zero-boundary Wiener solve (conjugate\n"
+            "                        gradients; default %d); a solve that stops there above\n"
+            "                        its tolerance is warned about and recorded\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero; not with --compat)\n"
             "  --compat skimage      reproduce scikit-image 0.19: restoration.wiener(IN, psf,\n"
@@ -53,7 +57,7 @@ static void print_help(const cli_run *run, FILE *out)
             "                        (default: off, the library's own methods: Richardson-Lucy\n"
             "                        started at the data mean with a floored denominator and\n"
             "                        boundary weights)\n",
-            d.balance, d.iterations);
+            d.balance, d.iterations, d.cg_max_steps);
     cli_print_common_help(run, out);
 }
 
@@ -76,6 +80,7 @@ int cmd_deconvolve(int argc, char **argv)
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
         {"balance", required_argument, NULL, OPT_BALANCE},
         {"noise", required_argument, NULL, OPT_NOISE},
+        {"cg-max-steps", required_argument, NULL, OPT_CG_MAX_STEPS},
         {"boundary", required_argument, NULL, OPT_BOUNDARY},
         {"compat", required_argument, NULL, OPT_COMPAT},
         {NULL, 0, NULL, 0},
@@ -116,6 +121,9 @@ int cmd_deconvolve(int argc, char **argv)
             bad = cli_parse_double(&run, "--balance", optarg, &opt.balance);
             if (!bad && !(opt.balance >= 0))
                 bad = cli_error(&run, "--balance must be >= 0 or auto, got %s", optarg);
+            break;
+        case OPT_CG_MAX_STEPS:
+            bad = cli_parse_int(&run, "--cg-max-steps", optarg, 1, 100000, &opt.cg_max_steps);
             break;
         case OPT_NOISE:
             bad = cli_parse_double_in(&run, "--noise", optarg, 0, 0, INFINITY, 0, &noise);
@@ -250,10 +258,24 @@ int cmd_deconvolve(int argc, char **argv)
         cli_stage_begin(&run, "deconvolve");
         opt.progress = cli_progress;
         opt.progress_user = &run;
+        svp_deconv_report report;
+        opt.report = &report;
         if (method == 0)
             st = svp_deconv_wiener(blur, in, &opt, out);
         else
             st = svp_deconv_rl(blur, in, &opt, out);
+        if (st == SVP_OK && method == 0) {
+            if (report.cg_steps > 0) cli_result_int(&run, "cg_steps", report.cg_steps);
+            cli_result_int(&run, "cg_capped", report.cg_capped);
+            if (report.cg_capped) {
+                cli_result_num(&run, "cg_residual", report.cg_residual);
+                cli_warn(&run,
+                         "the Wiener deconvolution of %s stopped at the step cap (%d conjugate-"
+                         "gradient steps) with relative residual %.3g above the tolerance 1e-8: "
+                         "not converged (raise --cg-max-steps or --balance)",
+                         in_path, report.cg_steps, report.cg_residual);
+            }
+        }
     }
     cli_progress_done(&run);
     if (st != SVP_OK) {
