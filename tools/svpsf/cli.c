@@ -255,6 +255,15 @@ int cli_parse_double_in(const cli_run *run, const char *option, const char *text
                      hi, hi_closed ? ']' : ')');
 }
 
+int cli_parse_balance(const cli_run *run, const char *text, double *balance, int *is_auto)
+{
+    *is_auto = strcmp(text, "auto") == 0;
+    if (*is_auto) return 0;
+    if (cli_parse_double(run, "--balance", text, balance)) return CLI_EXIT_USAGE;
+    if (!(*balance >= 0)) return cli_error(run, "--balance %s: must be >= 0 or auto", text);
+    return 0;
+}
+
 int cli_parse_int(const cli_run *run, const char *option, const char *text, int min, int max,
                   int *out)
 {
@@ -951,46 +960,55 @@ static cli_kv *kv_add(cli_kv **list, int *n, const char *key)
     return kv;
 }
 
-void cli_setting_str(cli_run *run, const char *key, const char *value)
+static void kv_str(cli_kv **list, int *n, const char *key, const char *value)
 {
-    cli_kv *kv = kv_add(&run->settings, &run->n_settings, key);
+    cli_kv *kv = kv_add(list, n, key);
     kv->kind = KV_STR;
     kv->str = xstrdup(value);
+}
+
+static void kv_num(cli_kv **list, int *n, const char *key, double value)
+{
+    cli_kv *kv = kv_add(list, n, key);
+    kv->kind = KV_NUM;
+    kv->num = value;
+}
+
+static void kv_int(cli_kv **list, int *n, const char *key, long long value)
+{
+    cli_kv *kv = kv_add(list, n, key);
+    kv->kind = KV_INT;
+    kv->integer = value;
+}
+
+void cli_setting_str(cli_run *run, const char *key, const char *value)
+{
+    kv_str(&run->settings, &run->n_settings, key, value);
 }
 
 void cli_setting_num(cli_run *run, const char *key, double value)
 {
-    cli_kv *kv = kv_add(&run->settings, &run->n_settings, key);
-    kv->kind = KV_NUM;
-    kv->num = value;
+    kv_num(&run->settings, &run->n_settings, key, value);
 }
 
 void cli_setting_int(cli_run *run, const char *key, long long value)
 {
-    cli_kv *kv = kv_add(&run->settings, &run->n_settings, key);
-    kv->kind = KV_INT;
-    kv->integer = value;
+    kv_int(&run->settings, &run->n_settings, key, value);
 }
 
 void cli_result_str(cli_run *run, const char *key, const char *value)
 {
-    cli_kv *kv = kv_add(&run->results, &run->n_results, key);
-    kv->kind = KV_STR;
-    kv->str = xstrdup(value);
+    kv_str(&run->results, &run->n_results, key, value);
 }
 
 void cli_result_num(cli_run *run, const char *key, double value)
 {
-    cli_kv *kv = kv_add(&run->results, &run->n_results, key);
-    kv->kind = KV_NUM;
-    kv->num = value;
+    kv_num(&run->results, &run->n_results, key, value);
 }
 
 void cli_result_int(cli_run *run, const char *key, long long value)
 {
-    cli_kv *kv = kv_add(&run->results, &run->n_results, key);
-    kv->kind = KV_INT;
-    kv->integer = value;
+    kv_int(&run->results, &run->n_results, key, value);
 }
 
 double cli_peak_memory_bytes(void)

@@ -195,6 +195,8 @@ int cli_parse_choice(const cli_run *run, const char *option, const char *text,
  * the interval: "--gain -1: must be >= 0", "--halo 2: must be in [0, 1)". */
 int cli_parse_double_in(const cli_run *run, const char *option, const char *text, double lo,
                         int lo_closed, double hi, int hi_closed, double *out);
+/* --balance L|auto (correct, deconvolve): *is_auto = 1 for "auto", else L >= 0 in *balance. */
+int cli_parse_balance(const cli_run *run, const char *text, double *balance, int *is_auto);
 /* zero | mirror | periodic. */
 int cli_parse_boundary(const cli_run *run, const char *option, const char *text, svp_boundary *out);
 const char *cli_boundary_name(svp_boundary b);

@@ -130,12 +130,7 @@ int cmd_correct(int argc, char **argv)
             bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.deconv.iterations);
             break;
         case OPT_BALANCE:
-            opt.balance_auto = strcmp(optarg, "auto") == 0;
-            if (!opt.balance_auto) {
-                bad = cli_parse_double(&run, "--balance", optarg, &opt.deconv.balance);
-                if (!bad && !(opt.deconv.balance >= 0))
-                    bad = cli_error(&run, "--balance %s: must be >= 0 or auto", optarg);
-            }
+            bad = cli_parse_balance(&run, optarg, &opt.deconv.balance, &opt.balance_auto);
             break;
         case OPT_NOISE:
             bad = cli_parse_double_in(&run, "--noise", optarg, 0, 0, INFINITY, 0, &opt.noise_sigma);

@@ -112,16 +112,7 @@ int cmd_deconvolve(int argc, char **argv)
         case OPT_ITERATIONS:
             bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.iterations);
             break;
-        case OPT_BALANCE:
-            if (strcmp(optarg, "auto") == 0) {
-                balance_auto = 1;
-                break;
-            }
-            balance_auto = 0;
-            bad = cli_parse_double(&run, "--balance", optarg, &opt.balance);
-            if (!bad && !(opt.balance >= 0))
-                bad = cli_error(&run, "--balance must be >= 0 or auto, got %s", optarg);
-            break;
+        case OPT_BALANCE: bad = cli_parse_balance(&run, optarg, &opt.balance, &balance_auto); break;
         case OPT_CG_MAX_STEPS:
             bad = cli_parse_int(&run, "--cg-max-steps", optarg, 1, 100000, &opt.cg_max_steps);
             break;
