@@ -344,21 +344,19 @@ int cmd_fit_psf(int argc, char **argv)
 
     int c;
     while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        int bad = 0;
         switch (c) {
         case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
         case OPT_EXCITATION: exc_path = optarg; break;
         case OPT_PIXEL_UM:
-            if (cli_parse_double_in(&run, "--pixel-um", optarg, 0, 0, INFINITY, 0, &pixel_um))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--pixel-um", optarg, 0, 0, INFINITY, 0, &pixel_um);
             break;
         case OPT_MODEL:
-            if (cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model);
             break;
         case OPT_ITERATIONS:
-            if (cli_parse_int(&run, "--iterations", optarg, 1, 100000, &po.iterations))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &po.iterations);
             break;
         case OPT_CIRCULAR: so->elliptical = 0; break;
         case OPT_FIX_BETA:
@@ -367,34 +365,31 @@ int cmd_fit_psf(int argc, char **argv)
             so->fix_beta = 1;
             break;
         case OPT_GAIN:
-            if (cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so->noise.gain))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so->noise.gain);
             break;
         case OPT_SIGMA_BG:
-            if (cli_parse_double_in(&run, "--sigma-bg", optarg, 0, 1, INFINITY, 0,
-                                    &so->noise.sigma_bg))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--sigma-bg", optarg, 0, 1, INFINITY, 0,
+                                      &so->noise.sigma_bg);
             break;
         case OPT_SATURATION:
-            if (cli_parse_double_in(&run, "--saturation", optarg, 0, 0, INFINITY, 0,
-                                    &so->saturation))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--saturation", optarg, 0, 0, INFINITY, 0,
+                                      &so->saturation);
             break;
         case OPT_REFUSE_BORDER: so->refuse_near_border = 1; break;
         case OPT_MAX_ITER:
-            if (cli_parse_int(&run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad =
+                cli_parse_int(&run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations);
             break;
         case OPT_FIGURES: figures = optarg; break;
         case OPT_NO_FIGURES: no_figures = 1; break;
         case OPT_USE: {
             static const char *const uses[] = {"deconvolved", "direct", NULL};
-            if (cli_parse_choice(&run, "--use", optarg, uses, &use_direct))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--use", optarg, uses, &use_direct);
             break;
         }
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
+        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
     if (optind >= argc)
         return cli_run_finish(&run,

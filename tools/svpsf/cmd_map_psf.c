@@ -278,6 +278,7 @@ int cmd_map_psf(int argc, char **argv)
 
     int c;
     while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        int bad = 0;
         switch (c) {
         case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
@@ -289,35 +290,28 @@ int cmd_map_psf(int argc, char **argv)
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_MAX_DEGREE:
-            if (cli_parse_int(&run, "--max-degree", optarg, 0, 8, &mo.max_degree))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_int(&run, "--max-degree", optarg, 0, 8, &mo.max_degree);
             break;
         case OPT_MODEL:
-            if (cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model);
             break;
         case OPT_CIRCULAR: so.elliptical = 0; break;
         case OPT_GAIN:
-            if (cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so.noise.gain))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so.noise.gain);
             break;
         case OPT_HALO:
-            if (cli_parse_double_in(&run, "--halo", optarg, 0, 1, 1, 0, &mo.halo))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--halo", optarg, 0, 1, 1, 0, &mo.halo);
             break;
         case OPT_TRANSITION:
-            if (cli_parse_double_in(&run, "--transition-um", optarg, 0, 1, INFINITY, 0,
-                                    &transition_um))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--transition-um", optarg, 0, 1, INFINITY, 0,
+                                      &transition_um);
             break;
         case OPT_ALPHA:
-            if (cli_parse_double_in(&run, "--alpha", optarg, 0, 0, 1, 0, &mo.alpha))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--alpha", optarg, 0, 0, 1, 0, &mo.alpha);
             break;
         case OPT_CLIP:
-            if (cli_parse_double_in(&run, "--clip-kappa", optarg, 0, 1, INFINITY, 0,
-                                    &mo.clip_kappa))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--clip-kappa", optarg, 0, 1, INFINITY, 0,
+                                      &mo.clip_kappa);
             break;
         case OPT_WINDOW:
             if (cli_parse_int(&run, "--window", optarg, 7, 1001, &window))
@@ -333,6 +327,7 @@ int cmd_map_psf(int argc, char **argv)
             break;
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
+        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
     if (optind >= argc)
         return cli_run_finish(&run, cli_error(&run, "SPOTS.yaml is required (see --help)"));

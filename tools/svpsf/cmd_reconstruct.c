@@ -118,6 +118,7 @@ int cmd_reconstruct(int argc, char **argv)
     int code = 0;
     int c;
     while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        int bad = 0;
         switch (c) {
         case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
@@ -125,23 +126,15 @@ int cmd_reconstruct(int argc, char **argv)
         case OPT_BY: paths[1] = optarg; break;
         case OPT_BZ: paths[2] = optarg; break;
         case OPT_QUANTITY:
-            if (cli_parse_choice(&run, "--quantity", optarg, quantity_names, &quantity))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--quantity", optarg, quantity_names, &quantity);
             break;
-        case OPT_UNIT:
-            if (cli_parse_choice(&run, "--unit", optarg, unit_names, &unit))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            break;
+        case OPT_UNIT: bad = cli_parse_choice(&run, "--unit", optarg, unit_names, &unit); break;
         case OPT_SIDE: {
             static const char *const sides[] = {"above", "below", NULL};
-            if (cli_parse_choice(&run, "--side", optarg, sides, &side))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--side", optarg, sides, &side);
             break;
         }
-        case OPT_PAD:
-            if (cli_parse_choice(&run, "--pad", optarg, pad_names, &pad))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            break;
+        case OPT_PAD: bad = cli_parse_choice(&run, "--pad", optarg, pad_names, &pad); break;
         case OPT_NO_WINDOW: window = 0; break;
         case OPT_PIXEL:
         case OPT_STANDOFF:
@@ -157,13 +150,13 @@ int cmd_reconstruct(int argc, char **argv)
                     : c == OPT_CUTOFF   ? 3
                                         : 4;
             /* pixel, standoff and cutoff > 0; the thicknesses >= 0 */
-            if (cli_parse_double_in(&run, names[k], optarg, 0, k == 2 || k == 4, INFINITY, 0,
-                                    targets[k]))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, names[k], optarg, 0, k == 2 || k == 4, INFINITY, 0,
+                                      targets[k]);
             break;
         }
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
+        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
     if (optind < argc)
         return cli_run_finish(&run, cli_error(&run,

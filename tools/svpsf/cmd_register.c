@@ -271,22 +271,20 @@ int cmd_register(int argc, char **argv)
 
     int c;
     while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        int bad = 0;
         switch (c) {
         case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
         case OPT_METHOD:
-            if (cli_parse_choice(&run, "--method", optarg, method_names, &method))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--method", optarg, method_names, &method);
             break;
         case OPT_MOTION:
-            if (cli_parse_choice(&run, "--motion", optarg, motion_names, &motion))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--motion", optarg, motion_names, &motion);
             break;
         case OPT_WARP: warp_path = optarg; break;
         case OPT_TRANSFORM_OUT: transform_path = optarg; break;
         case OPT_INTERP:
-            if (cli_parse_choice(&run, "--interp", optarg, interp_names, &interp))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_choice(&run, "--interp", optarg, interp_names, &interp);
             break;
         case OPT_BORDER:
             border_given = 1;
@@ -296,20 +294,19 @@ int cmd_register(int argc, char **argv)
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
             break;
         case OPT_SMOOTH:
-            if (cli_parse_double_in(&run, "--smooth", optarg, 0, 1, INFINITY, 0, &opt.smooth_sigma))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad =
+                cli_parse_double_in(&run, "--smooth", optarg, 0, 1, INFINITY, 0, &opt.smooth_sigma);
             break;
         case OPT_NO_WINDOW: opt.window = 0; break;
         case OPT_ITERATIONS:
-            if (cli_parse_int(&run, "--iterations", optarg, 2, 1000000, &opt.iterations))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_int(&run, "--iterations", optarg, 2, 1000000, &opt.iterations);
             break;
         case OPT_EPSILON:
-            if (cli_parse_double_in(&run, "--epsilon", optarg, 0, 0, INFINITY, 0, &opt.epsilon))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
+            bad = cli_parse_double_in(&run, "--epsilon", optarg, 0, 0, INFINITY, 0, &opt.epsilon);
             break;
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
+        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
     if (argc - optind < 2)
         return cli_run_finish(&run, cli_error(&run, "REFERENCE and MOVING images are required "
