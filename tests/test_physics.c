@@ -866,8 +866,8 @@ typedef struct ref_odmr {
     double D, gamma;
 } ref_odmr;
 
-static int ref_odmr_model(void *user, const double *th, int n_params, int n_points,
-                          double *model, double *jac)
+static int ref_odmr_model(void *user, const double *th, int n_params, int n_points, double *model,
+                          double *jac)
 {
     (void)n_params;
     (void)jac;
@@ -875,8 +875,10 @@ static int ref_odmr_model(void *user, const double *th, int n_params, int n_poin
     const double hw = 0.5 * th[3];
     if (!(hw > 0)) return 1;
     for (int i = 0; i < n_points; i++) {
-        double lo = r->freq[i] - (r->D - r->gamma * th[2]), hi = r->freq[i] - (r->D + r->gamma * th[2]);
-        model[i] = th[0] * (1 - th[1] * (hw * hw / (lo * lo + hw * hw) + hw * hw / (hi * hi + hw * hw)));
+        double lo = r->freq[i] - (r->D - r->gamma * th[2]),
+               hi = r->freq[i] - (r->D + r->gamma * th[2]);
+        model[i] =
+            th[0] * (1 - th[1] * (hw * hw / (lo * lo + hw * hw) + hw * hw / (hi * hi + hw * hw)));
     }
     return 0;
 }
@@ -925,8 +927,13 @@ static void test_fit_noisy(void **state)
         double *y = malloc(nf * sizeof(double));
         svp_lm_workspace *ws = NULL;
         ASSERT_OK(svp_lm_workspace_new(4, nf, &ws));
-        svp_lm_problem prob = {.n_params = 4, .n_points = nf, .model = ref_odmr_model,
-                               .user = &ref, .data = y, .lower = lower, .upper = upper};
+        svp_lm_problem prob = {.n_params = 4,
+                               .n_points = nf,
+                               .model = ref_odmr_model,
+                               .user = &ref,
+                               .data = y,
+                               .lower = lower,
+                               .upper = upper};
         svp_lm_options lo;
         svp_lm_defaults(&lo);
         lo.xtol = 1e-12;

@@ -567,8 +567,9 @@ static void test_cube_fit_contrast(void **state)
 static void png_rgb(cairo_surface_t *png, int x, int y, int rgb[3])
 {
     const unsigned char *d = cairo_image_surface_get_data(png);
-    uint32_t v = *(const uint32_t *)(const void *)(d + (size_t)y * cairo_image_surface_get_stride(png) +
-                                                   4 * (size_t)x);
+    uint32_t v =
+        *(const uint32_t *)(const void *)(d + (size_t)y * cairo_image_surface_get_stride(png) +
+                                          4 * (size_t)x);
     rgb[0] = (int)(v >> 16 & 255), rgb[1] = (int)(v >> 8 & 255), rgb[2] = (int)(v & 255);
 }
 

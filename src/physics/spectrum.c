@@ -283,8 +283,8 @@ static int odmr_fast_eval(const odmr_fast *o, const double q[4], double *chi2, d
     /* derivatives with respect to the scaled parameters: ∂/∂q0 = b0 ∂/∂b, ∂/∂q2 = Γ0 ∂/∂split,
      * ∂/∂q3 = (Γ0 / 2) ∂/∂g */
     const double s0 = o->b0, s2 = o->g0, s3 = 0.5 * o->g0;
-    double c2 = 0, a00 = 0, a01 = 0, a02 = 0, a03 = 0, a11 = 0, a12 = 0, a13 = 0, a22 = 0,
-           a23 = 0, a33 = 0, v0 = 0, v1 = 0, v2 = 0, v3 = 0;
+    double c2 = 0, a00 = 0, a01 = 0, a02 = 0, a03 = 0, a11 = 0, a12 = 0, a13 = 0, a22 = 0, a23 = 0,
+           a33 = 0, v0 = 0, v1 = 0, v2 = 0, v3 = 0;
     for (int i = 0; i < o->n; i++) {
         const double up = o->freq[i] - off - split, um = o->freq[i] - off + split;
         const double ip = 1 / (up * up + g2), im = 1 / (um * um + g2);
@@ -314,8 +314,8 @@ static int odmr_fast_eval(const odmr_fast *o, const double q[4], double *chi2, d
         v3 += j3 * r;
     }
     *chi2 = c2;
-    A[0] = a00, A[1] = a01, A[2] = a02, A[3] = a03, A[4] = a11, A[5] = a12, A[6] = a13,
-    A[7] = a22, A[8] = a23, A[9] = a33;
+    A[0] = a00, A[1] = a01, A[2] = a02, A[3] = a03, A[4] = a11, A[5] = a12, A[6] = a13, A[7] = a22,
+    A[8] = a23, A[9] = a33;
     v[0] = v0, v[1] = v1, v[2] = v2, v[3] = v3;
     return !isfinite(c2);
 }
@@ -506,8 +506,13 @@ svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
             if (!(th[1] > 1e-6)) th[1] = 1e-6;
             svp_status st = SVP_OK;
             double th0[4] = {th[0], th[1], th[2], th[3]};
-            const odmr_fast fo = {.freq = cube->freq, .y = y, .n = nf, .D = D, .gamma = gamma,
-                                  .b0 = b0 > 0 ? b0 : 1, .g0 = odmr->linewidth_hz};
+            const odmr_fast fo = {.freq = cube->freq,
+                                  .y = y,
+                                  .n = nf,
+                                  .D = D,
+                                  .gamma = gamma,
+                                  .b0 = b0 > 0 ? b0 : 1,
+                                  .g0 = odmr->linewidth_hz};
             if (!(b0 > 0) || odmr_fast_fit(&fo, &options->lm, th)) {
                 /* the generic solver from the same start (LAPACKE; its failure is counted) */
                 svp_lm_result res;

@@ -654,8 +654,7 @@ svp_status scene_report_text(const svp_scene *s, const svp_scene_result *r, cons
             if (s->n_contrast_pattern) {
                 for (int c = 0; c < 3; c++) {
                     double cm = NAN, frac = NAN;
-                    snprintf(key, sizeof key, "cube_vs_closed_form/B_%s/%s/mean_abs_T", cn,
-                             cls[c]);
+                    snprintf(key, sizeof key, "cube_vs_closed_form/B_%s/%s/mean_abs_T", cn, cls[c]);
                     svp_scene_result_value(r, key, &cm);
                     snprintf(key, sizeof key, "cube_vs_closed_form/%s_fraction", cls[c]);
                     svp_scene_result_value(r, key, &frac);

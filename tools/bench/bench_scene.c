@@ -89,7 +89,8 @@ typedef struct scene {
 static double level(int a, int b)
 {
     static const double levels[3] = {0.1, 0.8, 1.0};
-    uint64_t z = (uint64_t)(a + 1000) * 0x9E3779B97F4A7C15u ^ (uint64_t)(b + 1000) * 0xBF58476D1CE4E5B9u;
+    uint64_t z =
+        (uint64_t)(a + 1000) * 0x9E3779B97F4A7C15u ^ (uint64_t)(b + 1000) * 0xBF58476D1CE4E5B9u;
     z ^= z >> 31;
     z *= 0x94D049BB133111EBu;
     z ^= z >> 29;
@@ -356,7 +357,8 @@ static int run_cube(const args *a)
         print_pair("w_brute_vs_true", &s, b_bw, s.bz, 0);
     }
     g_mask = NULL;
-    printf("\"w_valid_fraction\": %.4g, ", (double)n_valid_w / ((double)(n - 2 * BORDER) * (n - 2 * BORDER)));
+    printf("\"w_valid_fraction\": %.4g, ",
+           (double)n_valid_w / ((double)(n - 2 * BORDER) * (n - 2 * BORDER)));
     if (a->rl) {
         print_pair("r_cf_vs_true", &s, b_cr, s.bz, 0);
         print_pair("r_cf_vs_brute", &s, b_cr, b_br, 0);
@@ -422,22 +424,40 @@ static int usage(void)
 int main(int argc, char **argv)
 {
     if (argc < 2) return usage();
-    args a = {.mode = argv[1], .size = 512, .points = 100, .threads = 2, .reps = 3, .fit = 1,
-              .rl = 1, .w = 1, .rl_iterations = 15, .balance = 1e-3};
+    args a = {.mode = argv[1],
+              .size = 512,
+              .points = 100,
+              .threads = 2,
+              .reps = 3,
+              .fit = 1,
+              .rl = 1,
+              .w = 1,
+              .rl_iterations = 15,
+              .balance = 1e-3};
     for (int i = 2; i < argc; i++) {
         const char *k = argv[i];
         if (i + 1 >= argc) return usage();
         const char *v = argv[++i];
-        if (!strcmp(k, "--size")) a.size = atoi(v);
-        else if (!strcmp(k, "--points")) a.points = atoi(v);
-        else if (!strcmp(k, "--threads")) a.threads = atoi(v);
-        else if (!strcmp(k, "--reps")) a.reps = atoi(v);
-        else if (!strcmp(k, "--fit")) a.fit = atoi(v);
-        else if (!strcmp(k, "--rl")) a.rl = atoi(v);
-        else if (!strcmp(k, "--w")) a.w = atoi(v);
-        else if (!strcmp(k, "--rl-iterations")) a.rl_iterations = atoi(v);
-        else if (!strcmp(k, "--balance")) a.balance = atof(v);
-        else return usage();
+        if (!strcmp(k, "--size"))
+            a.size = atoi(v);
+        else if (!strcmp(k, "--points"))
+            a.points = atoi(v);
+        else if (!strcmp(k, "--threads"))
+            a.threads = atoi(v);
+        else if (!strcmp(k, "--reps"))
+            a.reps = atoi(v);
+        else if (!strcmp(k, "--fit"))
+            a.fit = atoi(v);
+        else if (!strcmp(k, "--rl"))
+            a.rl = atoi(v);
+        else if (!strcmp(k, "--w"))
+            a.w = atoi(v);
+        else if (!strcmp(k, "--rl-iterations"))
+            a.rl_iterations = atoi(v);
+        else if (!strcmp(k, "--balance"))
+            a.balance = atof(v);
+        else
+            return usage();
     }
     if (a.size < 64 || a.points < 12 || a.threads < 1 || a.reps < 1 || a.rl_iterations < 1 ||
         !(a.balance >= 0))
@@ -445,9 +465,12 @@ int main(int argc, char **argv)
     svp_set_threads(a.threads);
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
     int rc;
-    if (!strcmp(a.mode, "cube")) rc = run_cube(&a);
-    else if (!strcmp(a.mode, "fit")) rc = run_fit(&a);
-    else rc = usage();
+    if (!strcmp(a.mode, "cube"))
+        rc = run_cube(&a);
+    else if (!strcmp(a.mode, "fit"))
+        rc = run_fit(&a);
+    else
+        rc = usage();
     svp_fft_cleanup();
     return rc;
 }
