@@ -270,6 +270,7 @@ typedef struct plot_series {
     double rgb[3];
     int step;
     double width;
+    int markers; /* draw the points as dots (measured data), not joined by a line */
 } plot_series;
 
 static const double palette[][3] = {{0, 0, 0},          {0.84, 0.15, 0.16}, {0.12, 0.47, 0.71},
@@ -353,6 +354,15 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
         const plot_series *s = &ser[k];
         cairo_set_source_rgb(cr, s->rgb[0], s->rgb[1], s->rgb[2]);
         cairo_set_line_width(cr, s->width > 0 ? s->width : 1.6);
+        if (s->markers) {
+            for (int i = 0; i < s->n; i++) {
+                if (!isfinite(s->y[i])) continue;
+                cairo_new_sub_path(cr);
+                cairo_arc(cr, PX(s->x[i]), PY(s->y[i]), 2.8, 0, 2 * M_PI);
+            }
+            cairo_fill(cr);
+            continue;
+        }
         int pen = 0;
         for (int i = 0; i < s->n; i++) {
             if (!isfinite(s->y[i])) {
@@ -405,10 +415,15 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
     for (int k = 0; k < ns; k++) {
         double yy = ly + 18.0 * k + 7;
         cairo_set_source_rgb(cr, ser[k].rgb[0], ser[k].rgb[1], ser[k].rgb[2]);
-        cairo_set_line_width(cr, 2);
-        cairo_move_to(cr, lx, yy);
-        cairo_line_to(cr, lx + 28, yy);
-        cairo_stroke(cr);
+        if (ser[k].markers) {
+            cairo_arc(cr, lx + 14, yy, 2.8, 0, 2 * M_PI);
+            cairo_fill(cr);
+        } else {
+            cairo_set_line_width(cr, 2);
+            cairo_move_to(cr, lx, yy);
+            cairo_line_to(cr, lx + 28, yy);
+            cairo_stroke(cr);
+        }
         cairo_set_source_rgb(cr, 0, 0, 0);
         text_at(cr, lx + 34, yy, ser[k].label, 0, 0.5);
     }
@@ -421,7 +436,7 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
 svp_status scene_line_plot(const char *path, const char *title, const char *xlabel,
                            const char *ylabel, int n_series, const double *const *x,
                            const double *const *y, const int *n, const char *const *labels,
-                           int overwrite)
+                           const int *markers, int overwrite)
 {
     plot_series ser[10];
     if (n_series < 1 || n_series > 10) return svp_fail(SVP_ERR_INVALID, "%s: 1 to 10 series", path);
@@ -431,6 +446,7 @@ svp_status scene_line_plot(const char *path, const char *title, const char *xlab
         ser[k].y = y[k];
         ser[k].n = n[k];
         ser[k].label = labels[k];
+        ser[k].markers = markers ? markers[k] : 0;
         memcpy(ser[k].rgb, palette[k], sizeof ser[k].rgb);
     }
     return plot_write(path, title, xlabel, ylabel, ser, n_series, overwrite);
@@ -502,7 +518,8 @@ svp_status scene_figures(const svp_scene *s, const svp_scene_result *r, const sc
                                            labels[v],
                                            {palette[v][0], palette[v][1], palette[v][2]},
                                            1,
-                                           1.6};
+                                           1.6,
+                                           0};
             }
             snprintf(path, sizeof path, "%s/figures/hist_%s_%s.png", out_dir, q->name,
                      s->masks[m].name);
@@ -532,7 +549,8 @@ svp_status scene_figures(const svp_scene *s, const svp_scene_result *r, const sc
                 ser[v] = (plot_series){
                     cd->s_um,          cd->values + ((size_t)qi * nv + v) * cd->n,    cd->n,
                     labels[v],         {palette[v][0], palette[v][1], palette[v][2]}, 0,
-                    v == 0 ? 2.2 : 1.5};
+                    v == 0 ? 2.2 : 1.5,
+                    0};
             }
             snprintf(path, sizeof path, "%s/figures/cut_%s_%s.png", out_dir, s->cuts[c].name,
                      q->name);

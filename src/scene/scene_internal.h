@@ -340,12 +340,13 @@ svp_status scene_map_figure(const char *path, const svp_image *img, double displ
                             double hi, int diverging, const char *title, const char *bar_label,
                             double pixel_um, int overwrite);
 /* A line plot (PNG, atomic): n_series (1..10) curves x[k][0..n[k]-1], y[k][...] (NaN breaks a
- * curve) in colours black, red, blue, ..., labelled axes, a title and a legend. Used by
+ * curve) in colours black, red, blue, ..., labelled axes, a title and a legend. Series k is
+ * drawn as dots when markers && markers[k] (measured data), else as a line (a model). Used by
  * svpsf fit-psf for radial profiles. */
 svp_status scene_line_plot(const char *path, const char *title, const char *xlabel,
                            const char *ylabel, int n_series, const double *const *x,
                            const double *const *y, const int *n, const char *const *labels,
-                           int overwrite);
+                           const int *markers, int overwrite);
 /* Defined in src/io/image_io.cpp (the only C++ file): the colour maps of
  * svp_io_write_colormap_png as RGB bytes, values[n] over [lo, hi], NaN/Inf grey. */
 svp_status svp_io_colormap_rgb(const double *values, size_t n, double lo, double hi, int diverging,

@@ -279,9 +279,10 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
         const char *labels[2] = {"data (azimuthal mean)", fitlab};
         snprintf(path, sizeof path, "%s/%sprofile.png", dir, prefix);
         snprintf(t, sizeof t, "%s: radial profile", title);
+        const int markers[2] = {1, 0}; /* data as points, the fit as a line */
         if ((st = scene_line_plot(path, t, "radius from the fitted centre (um)",
                                   "log10 (counts above background)", 2, xs, ys, ns, labels,
-                                  run->force)) != SVP_OK)
+                                  markers, run->force)) != SVP_OK)
             goto fail;
     }
     goto done;
