@@ -6,7 +6,8 @@
  *       For tent grids 1², 2², 4², 8², 16² and low ranks 1..12 (16 x 16 PSF samples): build
  *       time, best-of-R time of one application, the same run's best-of-R time of (K + 1)
  *       real FFTs of the operator's padded frame (K forward, 1 inverse, the cached plans the
- *       operator uses), their ratio, memory of the K spectra and of the whole operator, and
+ *       operator uses), their ratio, the best-of-R time of one adjoint application (Hᵀ of the
+ *       same image) and its ratio to the same bound (one forward + K inverse FFTs), memory of the K spectra and of the whole operator, and
  *       with --exact 1 the relative L2 error against the exact per-source operator
  *       (svp_blur_new_exact) on a random image (uniform in [0, 1)). Configurations whose
  *       spectra exceed --budget-mb (default 6000) are reported as skipped.
@@ -150,6 +151,24 @@ static int time_apply(svp_blur *b, const svp_image *x, svp_image *y, int reps, d
     return 1;
 }
 
+/* The same for the adjoint x = Hᵀ y. */
+static int time_adjoint(svp_blur *b, const svp_image *y, svp_image *x, int reps, double *best,
+                        double *median)
+{
+    double t[64];
+    if (reps > 64) reps = 64;
+    if (svp_blur_adjoint(b, y, x) != SVP_OK) return 0;
+    for (int r = 0; r < reps; r++) {
+        const double t0 = now();
+        if (svp_blur_adjoint(b, y, x) != SVP_OK) return 0;
+        t[r] = now() - t0;
+    }
+    qsort(t, (size_t)reps, sizeof t[0], cmp_double);
+    *best = t[0];
+    *median = reps % 2 ? t[reps / 2] : 0.5 * (t[reps / 2 - 1] + t[reps / 2]);
+    return 1;
+}
+
 /* Best and median of reps timings of K forward + 1 inverse real FFTs of the operator's frame
  * (the cached plans the operator uses, its work buffers' sizes), after one untimed warm-up
  * round. */
@@ -191,8 +210,9 @@ static int cmd_apply(int argc, char **argv)
     const char *only = arg_str(argc, argv, "--only", NULL);
     svp_psf_field *f = make_field(n, strong, support);
     if (!f) return fail("field");
-    svp_image *x = random_image(n, 1), *y = NULL, *ye = NULL;
-    if (!x || svp_image_new(n, n, &y) != SVP_OK || svp_image_new(n, n, &ye) != SVP_OK)
+    svp_image *x = random_image(n, 1), *y = NULL, *ye = NULL, *xa = NULL;
+    if (!x || svp_image_new(n, n, &y) != SVP_OK || svp_image_new(n, n, &ye) != SVP_OK ||
+        svp_image_new(n, n, &xa) != SVP_OK)
         return fail("images");
     double t_exact = NAN;
     if (exact) {
@@ -218,14 +238,17 @@ static int cmd_apply(int argc, char **argv)
             svp_blur_new(&pc, n, n, SVP_BOUNDARY_MIRROR, &b) != SVP_OK)
             return fail("invariant operator");
         double best, med, fft_med;
+        double adj, adj_med;
         if (!time_apply(b, x, y, reps, &best, &med)) return fail("invariant apply");
+        if (!time_adjoint(b, x, xa, reps, &adj, &adj_med)) return fail("invariant adjoint");
         const double t_fft = time_ffts(b, 1, reps, &fft_med);
         printf("{\"kind\": \"invariant\", \"label\": \"invariant (central PSF)\", \"K\": 1, "
                "\"size\": %d, \"variation\": \"%s\", \"frame\": [%d, %d], \"apply_s\": %.6g, "
                "\"ffts_s\": %.6g, \"ratio\": %.4g, \"apply_median_s\": %.6g, "
-               "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"threads\": %d}\n",
+               "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"adjoint_s\": %.6g, "
+               "\"adjoint_ratio\": %.4g, \"adjoint_median_s\": %.6g, \"threads\": %d}\n",
                n, var, b->frame.nx, b->frame.ny, best, t_fft, best / t_fft, med, fft_med,
-               med / fft_med, svp_get_threads());
+               med / fft_med, adj, adj / t_fft, adj_med, svp_get_threads());
         fflush(stdout);
         svp_blur_free(b);
     }
@@ -265,7 +288,9 @@ static int cmd_apply(int argc, char **argv)
         if (svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &b) != SVP_OK) return fail(label);
         const double t_build = now() - t0;
         double best, med, fft_med;
+        double adj, adj_med;
         if (!time_apply(b, x, y, reps, &best, &med)) return fail("apply");
+        if (!time_adjoint(b, x, xa, reps, &adj, &adj_med)) return fail("adjoint");
         const double t_fft = time_ffts(b, K, reps, &fft_med);
         const double err = exact ? rel_l2(y, ye) : NAN;
         const svp_frame *fr = &b->frame;
@@ -273,18 +298,20 @@ static int cmd_apply(int argc, char **argv)
         printf("{\"kind\": \"%s\", \"label\": \"%s\", \"K\": %d, \"size\": %d, \"variation\": "
                "\"%s\", \"frame\": [%d, %d], \"build_s\": %.6g, \"apply_s\": %.6g, "
                "\"ffts_s\": %.6g, \"ratio\": %.4g, \"apply_median_s\": %.6g, "
-               "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"rel_err\": %s, "
+               "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"adjoint_s\": %.6g, "
+               "\"adjoint_ratio\": %.4g, \"adjoint_median_s\": %.6g, \"rel_err\": %s, "
                "\"spectra_mb\": %.2f, \"operator_mb\": %.2f, \"peak_rss_mb\": %.1f, "
                "\"threads\": %d}\n",
                tent ? "tent" : "lowrank", label, K, n, var, fr->nx, fr->ny, t_build, best, t_fft,
-               best / t_fft, med, fft_med, med / fft_med, jnum(err), spectra,
-               svp_blur_memory(b) / 1048576.0, peak_mb(), svp_get_threads());
+               best / t_fft, med, fft_med, med / fft_med, adj, adj / t_fft, adj_med, jnum(err),
+               spectra, svp_blur_memory(b) / 1048576.0, peak_mb(), svp_get_threads());
         fflush(stdout);
         svp_blur_free(b);
     }
     svp_image_free(x);
     svp_image_free(y);
     svp_image_free(ye);
+    svp_image_free(xa);
     svp_psf_field_free(f);
     return 0;
 }
