@@ -12,7 +12,9 @@
  * inverse FFTs. For tent grids whose node windows cover at most 70 % of the frame's rows
  * (about 5 x 5 nodes and finer) the K transforms are row-pruned (only the window's rows are
  * transformed along x, see svp_variant_data.pruned), and the weights and the boundary
- * extension are applied in one pass. */
+ * extension are applied in one pass. The adjoint uses the same row x column weight tables on
+ * the frame: each term's inverse transform is weighted into one frame accumulator, folded
+ * back onto the image (Eᵀ) and scaled by s once. */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
@@ -56,6 +58,7 @@ struct svp_variant_data {
     int *ly0;
     double *lty;
     char *unit;
+    char *row_on; /* adjoint: per frame row, ext's row holds a term (see accumulate_weighted) */
     fftw_complex *spec2; /* ny x ncx: the second spectrum of a pair (K > 1) */
 };
 
@@ -107,50 +110,6 @@ static inline double hat(const int *i0, const double *frac, int node, int x)
     if (node == i0[x]) return 1.0 - frac[x];
     if (node == i0[x] + 1) return frac[x];
     return 0.0;
-}
-
-/* tmp = c_k ⊙ s ⊙ in for term k. */
-static void fill_term(const svp_blur *b, int k, const double *restrict in, double *restrict tmp)
-{
-    const svp_variant_data *v = b->variant;
-    const int w = b->width, h = b->height, gx = v->gx, gy = v->gy;
-    const double *restrict scale = v->scale;
-    if (b->kind == SVP_BLUR_TENT) {
-        const int i = k % gx, j = k / gx;
-#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
-        for (int y = 0; y < h; y++) {
-            double *out = tmp + (size_t)y * w;
-            const double hy = hat(v->iy0, v->fy, j, y);
-            if (hy == 0) {
-                memset(out, 0, (size_t)w * sizeof(double));
-                continue;
-            }
-            const double *row = in + (size_t)y * w;
-            const double *srow = scale ? scale + (size_t)y * w : NULL;
-            for (int x = 0; x < w; x++) {
-                double c = hy * hat(v->ix0, v->fx, i, x);
-                out[x] = c * (srow ? srow[x] : 1.0) * row[x];
-            }
-        }
-    } else {
-        const double *cr = v->coef + (size_t)k * gx * gy;
-#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
-        for (int y = 0; y < h; y++) {
-            double *out = tmp + (size_t)y * w;
-            const int j0 = v->iy0[y], j1 = j0 + 1 < gy ? j0 + 1 : j0;
-            const double ty = v->fy[y];
-            const double *c0 = cr + (size_t)j0 * gx, *c1 = cr + (size_t)j1 * gx;
-            const double *row = in + (size_t)y * w;
-            const double *srow = scale ? scale + (size_t)y * w : NULL;
-            for (int x = 0; x < w; x++) {
-                const int i0 = v->ix0[x], i1 = i0 + 1 < gx ? i0 + 1 : i0;
-                const double tx = v->fx[x];
-                double c = (1 - ty) * ((1 - tx) * c0[i0] + tx * c0[i1]) +
-                           ty * ((1 - tx) * c1[i0] + tx * c1[i1]);
-                out[x] = c * (srow ? srow[x] : 1.0) * row[x];
-            }
-        }
-    }
 }
 
 /* ---- apply / adjoint --------------------------------------------------------------------- */
@@ -214,34 +173,78 @@ static void fill_weighted(const svp_blur *b, int k, int start, int rows, double 
     }
 }
 
-/* x += c_k s ⊙ fold(z) where z holds frame rows start .. start + rows − 1 of P̃_k ⋆ y. Each
- * image row gathers its (up to 3) frame copies in frame-row order: deterministic. */
-static void fold_add(const svp_blur *b, int k, int start, int rows, const double *restrict z,
-                     double *restrict x)
+/* Adjoint: acc (+)= c_k ⊙ z on the frame rows start .. start + rows − 1 (z's row t is frame
+ * row (start + t) mod ny), acc = v->ext, with the apply's row x column weight tables (the
+ * weights are functions of the source pixel, so c_k ⊙ E(u) = E(c_k ⊙ u) and the transpose
+ * Eᵀ(c_k ⊙ z) = c_k ⊙ Eᵀ z). on[fy]: acc's row fy already holds a term this application, so
+ * the first term to reach a row assigns it (rows of zero weight are not touched). */
+static void accumulate_weighted(const svp_blur *b, int k, int start, int rows,
+                                const double *restrict z)
+{
+    const svp_variant_data *v = b->variant;
+    const int nx = b->frame.nx, ny = b->frame.ny, gy = v->gy;
+    const int tent = b->kind == SVP_BLUR_TENT, unit = v->unit[k];
+    double *restrict acc = v->ext;
+    char *restrict on = v->row_on;
+    const double *restrict cw = tent ? v->wx + (size_t)(k % v->gx) * nx : NULL;
+    const double *restrict rw = tent ? v->wy + (size_t)(k / v->gx) * ny : NULL;
+    const double *restrict lr = tent ? NULL : v->wx + (size_t)k * gy * nx;
+#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
+    for (int t = 0; t < rows; t++) {
+        const int fy = start + t < ny ? start + t : (start + t) % ny;
+        double *restrict out = acc + (size_t)fy * nx;
+        const double *restrict in = z + (size_t)t * nx;
+        const int first = !on[fy];
+        if (unit) {
+            if (first)
+                memcpy(out, in, (size_t)nx * sizeof(double));
+            else
+                for (int q = 0; q < nx; q++) out[q] += in[q];
+        } else if (tent) {
+            const double hy = rw[fy];
+            if (hy == 0) continue;
+            if (first)
+                for (int q = 0; q < nx; q++) out[q] = hy * cw[q] * in[q];
+            else
+                for (int q = 0; q < nx; q++) out[q] += hy * cw[q] * in[q];
+        } else {
+            const int j0 = v->ly0[fy];
+            if (j0 < 0) continue;
+            const int j1 = j0 + 1 < gy ? j0 + 1 : j0;
+            const double ty = v->lty[fy], sy = 1 - ty;
+            const double *restrict a0 = lr + (size_t)j0 * nx, *restrict a1 = lr + (size_t)j1 * nx;
+            if (first)
+                for (int q = 0; q < nx; q++) out[q] = (sy * a0[q] + ty * a1[q]) * in[q];
+            else
+                for (int q = 0; q < nx; q++) out[q] += (sy * a0[q] + ty * a1[q]) * in[q];
+        }
+        on[fy] = 1;
+    }
+}
+
+/* x = s ⊙ Eᵀ fr: each image row gathers the frame rows that copy it (those marked in on;
+ * NULL = all), in frame-row order (deterministic), then takes the per-pixel scale. */
+static void fold_scaled(const svp_blur *b, const double *restrict fr, const char *on,
+                        double *restrict x)
 {
     const svp_variant_data *v = b->variant;
     const svp_frame *f = &b->frame;
-    const int w = b->width, h = b->height, nx = f->nx, ny = f->ny, i = k % v->gx, j = k / v->gx;
-    const int *sx = f->src_x;
+    const int w = b->width, h = b->height, nx = f->nx, ny = f->ny;
+    const int *sx = f->src_x, *sy = f->src_y;
     const double *restrict scale = v->scale;
-#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+#pragma omp parallel for schedule(static) if ((size_t)nx * ny > SVP_PARALLEL_MIN)
     for (int y = 0; y < h; y++) {
-        const double hy = hat(v->iy0, v->fy, j, y);
-        if (hy == 0) continue;
-        double *out = x + (size_t)y * w;
-        const double *srow = scale ? scale + (size_t)y * w : NULL;
-        for (int c = 0; c < 3; c++) {
-            const int fy = v->frame_rows[3 * y + c];
-            if (fy < 0) continue;
-            const int t = ((fy - start) % ny + ny) % ny;
-            if (t >= rows) continue;
-            const double *in = z + (size_t)t * nx;
-            for (int q = 0; q < nx; q++) {
-                const int xs = sx[q];
-                if (xs < 0) continue;
-                const double cw = hat(v->ix0, v->fx, i, xs);
-                if (cw != 0) out[xs] += hy * cw * (srow ? srow[xs] : 1.0) * in[q];
-            }
+        double *restrict out = x + (size_t)y * w;
+        memset(out, 0, (size_t)w * sizeof(double));
+        for (int j = 0; j < ny; j++) {
+            if (sy[j] != y || (on && !on[j])) continue;
+            const double *restrict in = fr + (size_t)j * nx;
+            for (int q = 0; q < nx; q++)
+                if (sx[q] >= 0) out[sx[q]] += in[q];
+        }
+        if (scale) {
+            const double *restrict sr = scale + (size_t)y * w;
+            for (int q = 0; q < w; q++) out[q] *= sr[q];
         }
     }
 }
@@ -349,16 +352,21 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     if (b->kind == SVP_BLUR_EXACT) return svp_exact_adjoint(b, y, x);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
-    const size_t ns = (size_t)f->ny * f->ncx, n = (size_t)b->width * b->height;
+    const size_t ns = (size_t)f->ny * f->ncx;
+    const int K = v->n_terms;
+    /* Hᵀ y = s ⊙ Eᵀ(Σ_k c_k ⊙ (P̃_k ⋆ C y)), C y the image embedded in the frame: one forward
+     * transform of C y; per term a conjugate product, an inverse transform (row-pruned for
+     * pruned tents) and a weighted accumulation into the frame v->ext; one fold at the end. */
     fftw_complex *restrict spec_y = v->acc;
     fftw_complex *restrict spec = b->work_c;
     svp_frame_embed(f, y, b->work_r);
     svp_fft_forward(f->plan, b->work_r, spec_y);
-    memset(x, 0, n * sizeof(double));
-    for (int k = 0; k < v->n_terms; k++) {
-        const fftw_complex *restrict otf = v->otf[k];
+    memset(v->row_on, 0, (size_t)f->ny);
+    for (int k = 0; k < K; k++) {
+        const double *restrict o = (const double *)v->otf[k];
+        const double *restrict yy = (const double *)spec_y;
         double *restrict sp = (double *)spec;
-        const double *restrict o = (const double *)otf, *restrict yy = (const double *)spec_y;
+        /* sp = conj(otf_k) · spec_y, in real arithmetic */
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
         for (size_t i = 0; i < ns; i++) {
             const double pr = o[2 * i], pi = o[2 * i + 1], yr = yy[2 * i], yi = yy[2 * i + 1];
@@ -367,22 +375,18 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
         }
         if (v->pruned) {
             svp_fft_inverse_pruned_unscaled(v->pruned, spec, b->work_r);
-            fold_add(b, k, v->start[k], v->rows, b->work_r, x);
-            continue;
-        }
-        if (v->frame_rows) {
-            svp_fft_inverse_unscaled(f->plan, spec, b->work_r);
-            fold_add(b, k, 0, f->ny, b->work_r, x);
+            accumulate_weighted(b, k, v->start[k], v->rows, b->work_r);
             continue;
         }
         svp_fft_inverse_unscaled(f->plan, spec, b->work_r);
-        svp_frame_fold(f, b->work_r, b->work_r_image);
-        /* x += c_k s ⊙ (P̃_k ⋆ y): fill_term applies the same weights */
-        fill_term(b, k, b->work_r_image, v->tmp);
-        const double *restrict t = v->tmp;
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-        for (size_t i = 0; i < n; i++) x[i] += t[i];
+        if (K == 1 && v->unit[0]) { /* c_0 = 1: fold the term's frame itself */
+            fold_scaled(b, b->work_r, NULL, x);
+            if (v->alpha) add_halo_gather(b, y, x);
+            return SVP_OK;
+        }
+        accumulate_weighted(b, k, 0, f->ny, b->work_r);
     }
+    fold_scaled(b, v->ext, v->row_on, x);
     if (v->alpha) add_halo_gather(b, y, x);
     return SVP_OK;
 }
@@ -413,6 +417,7 @@ void svp_variant_release(svp_blur *b)
         free(v->ly0);
         free(v->lty);
         free(v->unit);
+        free(v->row_on);
         free(v);
         b->variant = NULL;
     }
@@ -448,6 +453,7 @@ size_t svp_variant_memory(const svp_blur *b)
         if (v->wy) bytes += (size_t)v->gy * b->frame.ny * sizeof(double);
         if (v->ly0) bytes += (size_t)b->frame.ny * (sizeof(int) + sizeof(double));
         bytes += (size_t)v->n_terms;
+        if (v->row_on) bytes += (size_t)b->frame.ny;
         if (v->spec2) bytes += spectrum;
     }
     return bytes;
@@ -698,13 +704,14 @@ static svp_status setup_fill(svp_blur *b)
     }
     v->wx = malloc(nwx * sizeof(double));
     v->unit = calloc((size_t)K, 1);
+    v->row_on = calloc((size_t)ny, 1);
     if (tent)
         v->wy = malloc((size_t)gy * ny * sizeof(double));
     else {
         v->ly0 = malloc((size_t)ny * sizeof(int));
         v->lty = malloc((size_t)ny * sizeof(double));
     }
-    if (!v->ext || !v->wx || !v->unit || (tent ? !v->wy : !v->ly0 || !v->lty))
+    if (!v->ext || !v->wx || !v->unit || !v->row_on || (tent ? !v->wy : !v->ly0 || !v->lty))
         return svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's weight tables");
     if (tent) {
         for (int i = 0; i < gx; i++)
