@@ -48,6 +48,13 @@ def verdict(ok):
     return "**met**" if ok else "**missed**"
 
 
+def adj_cells(r, digits=3):
+    """ms / adjoint and its ratio to the (K + 1)-FFT bound, or empty cells."""
+    if r.get("adjoint_s") is None:
+        return " | "
+    return f"{r['adjoint_s'] * 1e3:.{digits}g} | {r['adjoint_ratio']:.2f}"
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--build", default=os.path.join(ROOT, "build"))
@@ -119,44 +126,48 @@ def main():
         "space-invariant operator of the central PSF (`svp_blur_new`: extend, 1 forward FFT, "
         "product, 1 inverse, crop) against its own 2 FFTs: the floor any K = 1 representation "
         "can reach. Memory: the K complex spectra of the padded frame (the operator's total in "
-        "brackets). Timings are noisy when the machine is shared.\n")
+        "brackets). *ms / adjoint*: the best of as many adjoint applications Hᵀ y (1 forward + K "
+        "inverse FFTs, the same weight tables; Richardson–Lucy and CG call it once per "
+        "iteration), *adj. ratio* its ratio to the same (K + 1)-FFT bound. Timings are noisy "
+        "when the machine is shared.\n")
     for var in ("strong", "mild"):
         ex = acc[var + "_exact"]
         out.append(f"### {var.capitalize()} variation, {n_acc} × {n_acc} (exact operator: "
                    f"{fmt(ex.get('time_s'))} s per application)\n")
         out.append("| representation | K | rel. error vs exact | ms / application | "
-                   "ms (K + 1) FFTs | ratio (medians) | spectra MB (operator MB) | build s |")
-        out.append("|---|---|---|---|---|---|---|---|")
+                   "ms (K + 1) FFTs | ratio (medians) | ms / adjoint | adj. ratio | "
+                   "spectra MB (operator MB) | build s |")
+        out.append("|---|---|---|---|---|---|---|---|---|---|")
         inv_row = acc[var + "_inv"]
         if inv_row:
             out.append(f"| invariant (central PSF) | 1 | — | {inv_row['apply_s'] * 1e3:.3g} | "
                        f"{inv_row['ffts_s'] * 1e3:.3g} | {inv_row['ratio']:.2f} "
-                       f"({inv_row['ratio_median']:.2f}) | | |")
+                       f"({inv_row['ratio_median']:.2f}) | {adj_cells(inv_row)} | | |")
         for r in acc[var]:
             out.append(f"| {r['label']} | {r['K']} | {fmt(r.get('rel_err'))} | "
                        f"{r['apply_s'] * 1e3:.3g} | {r['ffts_s'] * 1e3:.3g} | {r['ratio']:.2f} "
-                       f"({r['ratio_median']:.2f}) | "
+                       f"({r['ratio_median']:.2f}) | {adj_cells(r)} | "
                        f"{r['spectra_mb']:.1f} ({r['operator_mb']:.1f}) | {r['build_s']:.2f} |")
         out.append("")
     out.append(f"![error vs time]({os.path.relpath(PLOT, 'docs')})\n")
     for n in big:
         out.append(f"### Time only, strong variation, {n} × {n}\n")
         out.append("| representation | K | ms / application | ms (K + 1) FFTs | ratio (medians) | "
-                   "spectra MB | build s | peak RSS MB |")
-        out.append("|---|---|---|---|---|---|---|---|")
+                   "ms / adjoint | adj. ratio | spectra MB | build s | peak RSS MB |")
+        out.append("|---|---|---|---|---|---|---|---|---|---|")
         inv_row = timing.get(str(n) + "_inv")
         if inv_row:
             out.append(f"| invariant (central PSF) | 1 | {inv_row['apply_s'] * 1e3:.4g} | "
                        f"{inv_row['ffts_s'] * 1e3:.4g} | {inv_row['ratio']:.2f} "
-                       f"({inv_row['ratio_median']:.2f}) | | | |")
+                       f"({inv_row['ratio_median']:.2f}) | {adj_cells(inv_row, 4)} | | | |")
         for r in timing[n]:
             if "skipped" in r:
-                out.append(f"| {r['label']} | {r['K']} | skipped: {r['skipped']} | | | "
+                out.append(f"| {r['label']} | {r['K']} | skipped: {r['skipped']} | | | | | "
                            f"{r['spectra_mb']:.0f} | | |")
                 continue
             out.append(f"| {r['label']} | {r['K']} | {r['apply_s'] * 1e3:.4g} | "
                        f"{r['ffts_s'] * 1e3:.4g} | {r['ratio']:.2f} ({r['ratio_median']:.2f}) | "
-                       f"{r['spectra_mb']:.0f} | "
+                       f"{adj_cells(r, 4)} | {r['spectra_mb']:.0f} | "
                        f"{r['build_s']:.1f} | {r['peak_rss_mb']:.0f} |")
         out.append("")
 
@@ -190,6 +201,16 @@ def main():
         out.append(f"- the same for tent 1² to 4² and low rank (full-frame transforms, every pass "
                    f"touches the whole frame): worst {worst[1]['ratio']:.2f} ({worst[1]['label']}, "
                    f"{worst[0]}²) — {verdict(worst[1]['ratio'] <= TARGET_RATIO)}")
+    adj = [(n, r) for n, r in ratios if r.get("adjoint_ratio") is not None]
+    if adj:
+        worst = max(adj, key=lambda x: x[1]["adjoint_ratio"])
+        slow = max(adj, key=lambda x: x[1]["adjoint_s"] / x[1]["apply_s"])
+        out.append(f"- the adjoint Hᵀ (1 forward + K inverse FFTs) within {TARGET_RATIO}× of the "
+                   f"same bound, every representation: worst {worst[1]['adjoint_ratio']:.2f} "
+                   f"({worst[1]['label']}, {worst[0]}²) — "
+                   f"{verdict(worst[1]['adjoint_ratio'] <= TARGET_RATIO)}; adjoint / application "
+                   f"at most {slow[1]['adjoint_s'] / slow[1]['apply_s']:.2f} "
+                   f"({slow[1]['label']}, {slow[0]}²)")
     floors = [(n, (acc["strong_inv"] if n == n_acc else timing.get(str(n) + "_inv")))
               for n in [n_acc] + big]
     floors = [f"{r['ratio']:.2f} at {n}²" for n, r in floors if r]
