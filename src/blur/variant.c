@@ -222,6 +222,53 @@ static void accumulate_weighted(const svp_blur *b, int k, int start, int rows,
     }
 }
 
+/* The same for two non-unit terms k and k + 1 whose rows start at the same frame row (z0,
+ * z1 their inverse transforms): one pass over acc adds both weighted products. */
+static void accumulate_pair(const svp_blur *b, int k, int start, int rows,
+                            const double *restrict z0, const double *restrict z1)
+{
+    const svp_variant_data *v = b->variant;
+    const int nx = b->frame.nx, ny = b->frame.ny, gy = v->gy;
+    const int tent = b->kind == SVP_BLUR_TENT;
+    double *restrict acc = v->ext;
+    char *restrict on = v->row_on;
+    const double *restrict cw0 = tent ? v->wx + (size_t)(k % v->gx) * nx : NULL;
+    const double *restrict cw1 = tent ? v->wx + (size_t)((k + 1) % v->gx) * nx : NULL;
+    const double *restrict rw0 = tent ? v->wy + (size_t)(k / v->gx) * ny : NULL;
+    const double *restrict rw1 = tent ? v->wy + (size_t)((k + 1) / v->gx) * ny : NULL;
+    const double *restrict lr0 = tent ? NULL : v->wx + (size_t)k * gy * nx;
+    const double *restrict lr1 = tent ? NULL : v->wx + (size_t)(k + 1) * gy * nx;
+#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
+    for (int t = 0; t < rows; t++) {
+        const int fy = start + t < ny ? start + t : (start + t) % ny;
+        double *restrict out = acc + (size_t)fy * nx;
+        const double *restrict i0 = z0 + (size_t)t * nx, *restrict i1 = z1 + (size_t)t * nx;
+        const int first = !on[fy];
+        if (tent) {
+            const double h0 = rw0[fy], h1 = rw1[fy];
+            if (h0 == 0 && h1 == 0) continue;
+            if (first)
+                for (int q = 0; q < nx; q++) out[q] = h0 * cw0[q] * i0[q] + h1 * cw1[q] * i1[q];
+            else
+                for (int q = 0; q < nx; q++) out[q] += h0 * cw0[q] * i0[q] + h1 * cw1[q] * i1[q];
+        } else {
+            const int j0 = v->ly0[fy];
+            if (j0 < 0) continue;
+            const int j1 = j0 + 1 < gy ? j0 + 1 : j0;
+            const double ty = v->lty[fy], sy = 1 - ty;
+            const double *restrict a0 = lr0 + (size_t)j0 * nx, *restrict a1 = lr0 + (size_t)j1 * nx;
+            const double *restrict b0 = lr1 + (size_t)j0 * nx, *restrict b1 = lr1 + (size_t)j1 * nx;
+            if (first)
+                for (int q = 0; q < nx; q++)
+                    out[q] = (sy * a0[q] + ty * a1[q]) * i0[q] + (sy * b0[q] + ty * b1[q]) * i1[q];
+            else
+                for (int q = 0; q < nx; q++)
+                    out[q] += (sy * a0[q] + ty * a1[q]) * i0[q] + (sy * b0[q] + ty * b1[q]) * i1[q];
+        }
+        on[fy] = 1;
+    }
+}
+
 /* x = s ⊙ Eᵀ fr: each image row gathers the frame rows that copy it (those marked in on;
  * NULL = all), in frame-row order (deterministic), then takes the per-pixel scale. */
 static void fold_scaled(const svp_blur *b, const double *restrict fr, const char *on,
@@ -362,29 +409,41 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     svp_frame_embed(f, y, b->work_r);
     svp_fft_forward(f->plan, b->work_r, spec_y);
     memset(v->row_on, 0, (size_t)f->ny);
-    for (int k = 0; k < K; k++) {
-        const double *restrict o = (const double *)v->otf[k];
-        const double *restrict yy = (const double *)spec_y;
-        double *restrict sp = (double *)spec;
-        /* sp = conj(otf_k) · spec_y, in real arithmetic */
+    for (int k = 0; k < K;) {
+        /* two non-unit terms over the same rows go in a pair: their inverse transforms land in
+         * work_r and spec2 (as a real frame), one accumulator pass adds both */
+        const int pair = k + 1 < K && !v->unit[k] && !v->unit[k + 1] &&
+                         (!v->pruned || v->start[k] == v->start[k + 1]);
+        double *zs[2] = {b->work_r, (double *)v->spec2};
+        for (int p = 0; p <= pair; p++) {
+            const double *restrict o = (const double *)v->otf[k + p];
+            const double *restrict yy = (const double *)spec_y;
+            double *restrict sp = (double *)spec;
+            /* sp = conj(otf_k) · spec_y, in real arithmetic */
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-        for (size_t i = 0; i < ns; i++) {
-            const double pr = o[2 * i], pi = o[2 * i + 1], yr = yy[2 * i], yi = yy[2 * i + 1];
-            sp[2 * i] = pr * yr + pi * yi;
-            sp[2 * i + 1] = pr * yi - pi * yr;
+            for (size_t i = 0; i < ns; i++) {
+                const double pr = o[2 * i], pi = o[2 * i + 1], yr = yy[2 * i], yi = yy[2 * i + 1];
+                sp[2 * i] = pr * yr + pi * yi;
+                sp[2 * i + 1] = pr * yi - pi * yr;
+            }
+            if (v->pruned)
+                svp_fft_inverse_pruned_unscaled(v->pruned, spec, zs[p]);
+            else
+                svp_fft_inverse_unscaled(f->plan, spec, zs[p]);
         }
-        if (v->pruned) {
-            svp_fft_inverse_pruned_unscaled(v->pruned, spec, b->work_r);
-            accumulate_weighted(b, k, v->start[k], v->rows, b->work_r);
+        const int start = v->pruned ? v->start[k] : 0, rows = v->pruned ? v->rows : f->ny;
+        if (pair) {
+            accumulate_pair(b, k, start, rows, zs[0], zs[1]);
+            k += 2;
             continue;
         }
-        svp_fft_inverse_unscaled(f->plan, spec, b->work_r);
         if (K == 1 && v->unit[0]) { /* c_0 = 1: fold the term's frame itself */
             fold_scaled(b, b->work_r, NULL, x);
             if (v->alpha) add_halo_gather(b, y, x);
             return SVP_OK;
         }
-        accumulate_weighted(b, k, 0, f->ny, b->work_r);
+        accumulate_weighted(b, k, start, rows, b->work_r);
+        k++;
     }
     fold_scaled(b, v->ext, v->row_on, x);
     if (v->alpha) add_halo_gather(b, y, x);
