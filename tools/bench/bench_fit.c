@@ -16,6 +16,7 @@
  *       DIR/field.yaml (for `svpsf map-psf`: spots detected, 31 x 31 windows), so the section
  *       script can time the command line end to end (reading, detection, fits, map, writing).
  */
+#include "bench_common.h"
 #include "svpsf.h"
 
 #include <math.h>
@@ -24,23 +25,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/resource.h>
-#include <time.h>
 #include <unistd.h>
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return ts.tv_sec + 1e-9 * ts.tv_nsec;
-}
-
-static double peak_mb(void)
-{
-    struct rusage ru;
-    getrusage(RUSAGE_SELF, &ru);
-    return ru.ru_maxrss / 1024.0;
-}
 
 static double rnd(uint64_t *s)
 {
@@ -115,11 +100,11 @@ static int bench_spots(int argc, char **argv)
     int failed = 0;
     for (int r = 0; r < R; r++) {
         failed = 0;
-        double t0 = now();
+        double t0 = bench_now();
 #pragma omp parallel for schedule(dynamic) reduction(+ : failed)
         for (int k = 0; k < K; k++)
             failed += svp_spot_fit(img[k], &o, &res[k], NULL, NULL) != SVP_OK;
-        best = fmin(best, now() - t0);
+        best = fmin(best, bench_now() - t0);
     }
     double ef = 0, eb = 0, it = 0, checksum = 0;
     for (int k = 0; k < K; k++) {
@@ -134,7 +119,7 @@ static int bench_spots(int argc, char **argv)
            "%.2f, \"failed\": %d, \"rms_rel_fwhm_error\": %.5f, \"rms_rel_beta_error\": %.5f, "
            "\"checksum\": %.12e, \"peak_mb\": %.1f}\n",
            N, K, T, R, best, K / best, 1e3 * best / K, it / K, failed, sqrt(ef / K), sqrt(eb / K),
-           checksum, peak_mb());
+           checksum, bench_maxrss_mb());
     for (int k = 0; k < K; k++) svp_image_free(img[k]);
     free(img);
     free(res);
@@ -183,7 +168,7 @@ static int bench_map(int argc, char **argv)
     double best_total = INFINITY, t_fit = 0, t_map = 0, t_io = 0, worst_f = 0, worst_b = 0;
     int used_f = 0, deg_f = -1, deg_b = -1;
     for (int r = 0; r < R; r++) {
-        double t0 = now();
+        double t0 = bench_now();
         int failed = 0;
 #pragma omp parallel for schedule(dynamic) reduction(+ : failed)
         for (int k = 0; k < K; k++) {
@@ -191,7 +176,7 @@ static int bench_map(int argc, char **argv)
             smp[k].x = ox[k] + smp[k].fit.x0;
             smp[k].y = oy[k] + smp[k].fit.y0;
         }
-        double t1 = now();
+        double t1 = bench_now();
         svp_psf_field *field = NULL, *back = NULL;
         svp_map_report *rep = NULL;
         if (failed || svp_psf_map_poly(smp, K, W, W, NULL, &field, &rep) != SVP_OK) {
@@ -199,13 +184,13 @@ static int bench_map(int argc, char **argv)
                    failed ? "fit failed" : svp_last_error());
             return 1;
         }
-        double t2 = now();
+        double t2 = bench_now();
         if (svp_psf_field_write(path, field, 0.05, "bench_fit", 1) != SVP_OK ||
             svp_psf_field_read(path, &back, NULL) != SVP_OK) {
             printf("{\"mode\": \"map\", \"error\": \"%s\"}\n", svp_last_error());
             return 1;
         }
-        double t3 = now();
+        double t3 = bench_now();
         if (t3 - t0 < best_total) {
             best_total = t3 - t0;
             t_fit = t1 - t0;
@@ -236,7 +221,7 @@ static int bench_map(int argc, char **argv)
            "%d, \"degree_fwhm\": %d, \"degree_beta\": %d, \"worst_rel_fwhm_error\": %.5f, "
            "\"worst_rel_beta_error\": %.5f, \"peak_mb\": %.1f}\n",
            K, T, R, best_total, t_fit, t_map, t_io, used_f, deg_f, deg_b, worst_f, worst_b,
-           peak_mb());
+           bench_maxrss_mb());
     for (int k = 0; k < K; k++) svp_image_free(img[k]);
     free(img);
     free(smp);

@@ -21,6 +21,7 @@
  * 12 Γ/γ, sweep over the upper dip ± 6 Γ). No noise. Times are wall-clock seconds of single
  * runs (cube mode) or medians (fit mode); maxrss_mb is the process's peak resident memory.
  * Errors are in µT over the view without a 16-pixel border (the zero boundary darkens it). */
+#include "bench_common.h"
 #include "core/internal.h" /* svp_fft_cleanup */
 
 #include <math.h>
@@ -28,8 +29,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/resource.h>
-#include <time.h>
 
 #define GAMMA 28.033e9
 #define D_HZ 2.870e9
@@ -42,26 +41,6 @@ typedef struct args {
     int size, points, threads, reps, fit, rl, w, rl_iterations;
     double balance;
 } args;
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
-static double maxrss_mb(void)
-{
-    struct rusage ru;
-    getrusage(RUSAGE_SELF, &ru);
-    return (double)ru.ru_maxrss / 1024.0;
-}
-
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
 
 static int fail(svp_status st, const char *what)
 {
@@ -164,13 +143,13 @@ static svp_status blurred_cube(scene *s, svp_cube **out, double *t_sim, double *
     for (size_t p = 0; p < (size_t)n * n; p++) bnv->data[p] = s->bz->data[p] + s->bias;
     *t_sim = *t_blur = 0;
     for (int f = 0; f < s->nf && st == SVP_OK; f++) {
-        double t0 = now();
+        double t0 = bench_now();
         one->freq[0] = s->freq[f];
         st = svp_odmr_simulate(&s->odmr, s->pl, bnv, NULL, NULL, one);
-        double t1 = now();
+        double t1 = bench_now();
         if (st == SVP_OK) st = svp_blur_apply(s->blur, one->frame[0], cube->frame[f]);
         *t_sim += t1 - t0;
-        *t_blur += now() - t1;
+        *t_blur += bench_now() - t1;
     }
     svp_cube_free(one);
     svp_image_free(bnv);
@@ -252,22 +231,22 @@ static int run_cube(const args *a)
     /* forward: closed form */
     const svp_image *ft[1] = {s.bz};
     svp_image *fa[1] = {b_cf};
-    double t0 = now();
+    double t0 = bench_now();
     TRY(svp_forward_transform(s.blur, s.pl, ft, 1, pl_app, fa, NULL), "closed form");
-    const double t_cf = now() - t0;
+    const double t_cf = bench_now() - t0;
     /* forward: the cube */
     svp_cube *cube = NULL;
     double t_sim, t_blur;
     TRY(blurred_cube(&s, &cube, &t_sim, &t_blur), "cube");
-    t0 = now();
+    t0 = bench_now();
     TRY(centroid(&s, cube, base, b_cent), "centroid");
-    const double t_cent = now() - t0;
+    const double t_cent = bench_now() - t0;
     double t_fit = 0;
     size_t failed = 0;
     if (a->fit) {
-        t0 = now();
+        t0 = bench_now();
         TRY(svp_odmr_fit(&s.odmr, cube, NULL, b_fit, NULL, NULL, NULL, &failed), "fit");
-        t_fit = now() - t0;
+        t_fit = bench_now() - t0;
         for (size_t p = 0; p < np; p++) b_fit->data[p] -= s.bias;
     }
 
@@ -286,9 +265,9 @@ static int run_cube(const args *a)
         TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "warm-up R");
         co.method = SVP_METHOD_W;
     }
-    t0 = now();
+    t0 = bench_now();
     TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "T^-1 W");
-    const double t_inv_w = now() - t0;
+    const double t_inv_w = bench_now() - t0;
     /* W's errors are taken where its recovered PL is above the floor (validity 1) */
     svp_image *val_w = NULL;
     TRY(svp_image_copy(val, &val_w), "alloc");
@@ -300,9 +279,9 @@ static int run_cube(const args *a)
         co.method = SVP_METHOD_R;
         co.deconv.iterations = a->rl_iterations;
         fc[0] = b_cr;
-        t0 = now();
+        t0 = bench_now();
         TRY(svp_inverse_transform(s.blur, pl_app, fa2, 1, &co, pl_c, fc, val, NULL), "T^-1 R");
-        t_inv_r = now() - t0;
+        t_inv_r = bench_now() - t0;
     }
     /* inverse: deconvolve every frame, then the centroid */
     svp_cube *dec = NULL;
@@ -313,20 +292,20 @@ static int run_cube(const args *a)
     dopt.iterations = a->rl_iterations;
     double t_brute_w = 0;
     if (a->w) {
-        t0 = now();
+        t0 = bench_now();
         for (int f = 0; f < s.nf; f++)
             TRY(svp_deconv_wiener(s.blur, cube->frame[f], &dopt, dec->frame[f]),
                 "Wiener per frame");
         TRY(centroid(&s, dec, base, b_bw), "centroid");
-        t_brute_w = now() - t0;
+        t_brute_w = bench_now() - t0;
     }
     double t_brute_r = 0;
     if (a->rl) {
-        t0 = now();
+        t0 = bench_now();
         for (int f = 0; f < s.nf; f++)
             TRY(svp_deconv_rl(s.blur, cube->frame[f], &dopt, dec->frame[f]), "RL per frame");
         TRY(centroid(&s, dec, base, b_br), "centroid");
-        t_brute_r = now() - t0;
+        t_brute_r = bench_now() - t0;
     }
     svp_cube_free(dec);
     svp_cube_free(cube);
@@ -364,7 +343,7 @@ static int run_cube(const args *a)
         print_pair("r_cf_vs_brute", &s, b_cr, b_br, 0);
         print_pair("r_brute_vs_true", &s, b_br, s.bz, 0);
     }
-    printf("\"maxrss_mb\": %.1f}\n", maxrss_mb());
+    printf("\"maxrss_mb\": %.1f}\n", bench_maxrss_mb());
     fflush(stdout);
     svp_image_free(val_w);
     svp_image *imgs[] = {pl_app, b_cf, b_cent, b_fit, base, pl_c, b_cw, b_cr, b_bw, b_br, val};
@@ -387,12 +366,11 @@ static int run_fit(const args *a)
     if (!t) return fail(SVP_ERR_NOMEM, "alloc");
     size_t failed = 0;
     for (int r = 0; r < a->reps; r++) {
-        double t0 = now();
+        double t0 = bench_now();
         TRY(svp_odmr_fit(&s.odmr, cube, NULL, field, NULL, NULL, NULL, &failed), "fit");
-        t[r] = now() - t0;
+        t[r] = bench_now() - t0;
     }
-    qsort(t, (size_t)a->reps, sizeof *t, cmp_double);
-    double med = a->reps % 2 ? t[a->reps / 2] : 0.5 * (t[a->reps / 2 - 1] + t[a->reps / 2]);
+    double med = bench_median(t, a->reps);
     double rms = 0;
     for (size_t p = 0; p < (size_t)n * n; p++) {
         double d = field->data[p] - s.bias - s.bz->data[p];
@@ -403,7 +381,7 @@ static int run_fit(const args *a)
            "\"fits\": %zu, \"seconds\": %.6g, \"fits_per_second\": %.6g, \"failed\": %zu, "
            "\"fit_vs_true_rms_uT\": %.4g, \"maxrss_mb\": %.1f}\n",
            n, s.nf, svp_get_threads(), a->reps, (size_t)n * n, med, (double)n * n / med, failed,
-           rms, maxrss_mb());
+           rms, bench_maxrss_mb());
     fflush(stdout);
     free(t);
     svp_image_free(field);

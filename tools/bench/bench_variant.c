@@ -25,6 +25,7 @@
  *   strong: FWHM 3 → 6 px along x (2×), beta 3 → 1.1 along y;
  *   mild:   FWHM 4.3 → 4.7 px along x (1.1×), beta 2.6 → 2.4 along y.
  */
+#include "bench_common.h"
 #include "svpsf.h"
 
 #include "blur/blur_internal.h"
@@ -35,22 +36,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/resource.h>
-#include <time.h>
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return ts.tv_sec + 1e-9 * ts.tv_nsec;
-}
-
-static double peak_mb(void)
-{
-    struct rusage ru;
-    getrusage(RUSAGE_SELF, &ru);
-    return ru.ru_maxrss / 1024.0;
-}
 
 static const char *arg_str(int argc, char **argv, const char *name, const char *def)
 {
@@ -126,46 +111,24 @@ static svp_image *random_image(int n, uint64_t seed)
     return x;
 }
 
-static int cmp_double(const void *a, const void *b)
+/* Best and median of reps applications of b (H x, or Hᵀ x when adjoint), after one untimed
+ * warm-up application (first touches of the work buffers and the accumulator). Returns 0 on
+ * failure. */
+static int time_operator(svp_blur *b, int adjoint, const svp_image *in, svp_image *out, int reps,
+                         double *best, double *median)
 {
-    const double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-/* Best and median of reps applications of b to x, after one untimed warm-up application (first
- * touches of the work buffers and the accumulator). Returns 0 on failure. */
-static int time_apply(svp_blur *b, const svp_image *x, svp_image *y, int reps, double *best,
-                      double *median)
-{
+    svp_status (*op)(svp_blur *, const svp_image *, svp_image *) =
+        adjoint ? svp_blur_adjoint : svp_blur_apply;
     double t[64];
     if (reps > 64) reps = 64;
-    if (svp_blur_apply(b, x, y) != SVP_OK) return 0;
+    if (op(b, in, out) != SVP_OK) return 0;
     for (int r = 0; r < reps; r++) {
-        const double t0 = now();
-        if (svp_blur_apply(b, x, y) != SVP_OK) return 0;
-        t[r] = now() - t0;
+        const double t0 = bench_now();
+        if (op(b, in, out) != SVP_OK) return 0;
+        t[r] = bench_now() - t0;
     }
-    qsort(t, (size_t)reps, sizeof t[0], cmp_double);
+    *median = bench_median(t, reps);
     *best = t[0];
-    *median = reps % 2 ? t[reps / 2] : 0.5 * (t[reps / 2 - 1] + t[reps / 2]);
-    return 1;
-}
-
-/* The same for the adjoint x = Hᵀ y. */
-static int time_adjoint(svp_blur *b, const svp_image *y, svp_image *x, int reps, double *best,
-                        double *median)
-{
-    double t[64];
-    if (reps > 64) reps = 64;
-    if (svp_blur_adjoint(b, y, x) != SVP_OK) return 0;
-    for (int r = 0; r < reps; r++) {
-        const double t0 = now();
-        if (svp_blur_adjoint(b, y, x) != SVP_OK) return 0;
-        t[r] = now() - t0;
-    }
-    qsort(t, (size_t)reps, sizeof t[0], cmp_double);
-    *best = t[0];
-    *median = reps % 2 ? t[reps / 2] : 0.5 * (t[reps / 2 - 1] + t[reps / 2]);
     return 1;
 }
 
@@ -185,17 +148,16 @@ static double time_ffts(const svp_blur *b, int K, int reps, double *median)
     }
     double t[65];
     if (reps > 64) reps = 64;
-    for (int rep = -1; rep < reps; rep++) { /* rep −1: warm-up */
+    for (int rep = -1; rep < reps; rep++) {                     /* rep −1: warm-up */
         for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7); /* keep the data finite */
-        double t0 = now();
+        double t0 = bench_now();
         for (int k = 0; k < K; k++) svp_fft_forward(f->plan, r, c);
         svp_fft_inverse_unscaled(f->plan, c, r);
-        if (rep >= 0) t[rep] = now() - t0;
+        if (rep >= 0) t[rep] = bench_now() - t0;
     }
     svp_free(r);
     svp_free(c);
-    qsort(t, (size_t)reps, sizeof t[0], cmp_double);
-    *median = reps % 2 ? t[reps / 2] : 0.5 * (t[reps / 2 - 1] + t[reps / 2]);
+    *median = bench_median(t, reps);
     return t[0];
 }
 
@@ -219,9 +181,9 @@ static int cmd_apply(int argc, char **argv)
         svp_blur *ex = NULL;
         if (svp_blur_new_exact(f, n, n, SVP_BOUNDARY_MIRROR, 0, &ex) != SVP_OK)
             return fail("exact operator");
-        double t0 = now();
+        double t0 = bench_now();
         if (svp_blur_apply(ex, x, ye) != SVP_OK) return fail("exact apply");
-        t_exact = now() - t0;
+        t_exact = bench_now() - t0;
         svp_blur_free(ex);
     }
     const char *var = strong ? "strong" : "mild";
@@ -239,8 +201,8 @@ static int cmd_apply(int argc, char **argv)
             return fail("invariant operator");
         double best, med, fft_med;
         double adj, adj_med;
-        if (!time_apply(b, x, y, reps, &best, &med)) return fail("invariant apply");
-        if (!time_adjoint(b, x, xa, reps, &adj, &adj_med)) return fail("invariant adjoint");
+        if (!time_operator(b, 0, x, y, reps, &best, &med)) return fail("invariant apply");
+        if (!time_operator(b, 1, x, xa, reps, &adj, &adj_med)) return fail("invariant adjoint");
         const double t_fft = time_ffts(b, 1, reps, &fft_med);
         printf("{\"kind\": \"invariant\", \"label\": \"invariant (central PSF)\", \"K\": 1, "
                "\"size\": %d, \"variation\": \"%s\", \"frame\": [%d, %d], \"apply_s\": %.6g, "
@@ -284,13 +246,13 @@ static int cmd_apply(int argc, char **argv)
             continue;
         }
         svp_blur *b = NULL;
-        double t0 = now();
+        double t0 = bench_now();
         if (svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &b) != SVP_OK) return fail(label);
-        const double t_build = now() - t0;
+        const double t_build = bench_now() - t0;
         double best, med, fft_med;
         double adj, adj_med;
-        if (!time_apply(b, x, y, reps, &best, &med)) return fail("apply");
-        if (!time_adjoint(b, x, xa, reps, &adj, &adj_med)) return fail("adjoint");
+        if (!time_operator(b, 0, x, y, reps, &best, &med)) return fail("apply");
+        if (!time_operator(b, 1, x, xa, reps, &adj, &adj_med)) return fail("adjoint");
         const double t_fft = time_ffts(b, K, reps, &fft_med);
         const double err = exact ? rel_l2(y, ye) : NAN;
         const svp_frame *fr = &b->frame;
@@ -304,7 +266,7 @@ static int cmd_apply(int argc, char **argv)
                "\"threads\": %d}\n",
                tent ? "tent" : "lowrank", label, K, n, var, fr->nx, fr->ny, t_build, best, t_fft,
                best / t_fft, med, fft_med, med / fft_med, adj, adj / t_fft, adj_med, jnum(err),
-               spectra, svp_blur_memory(b) / 1048576.0, peak_mb(), svp_get_threads());
+               spectra, svp_blur_memory(b) / 1048576.0, bench_maxrss_mb(), svp_get_threads());
         fflush(stdout);
         svp_blur_free(b);
     }
@@ -379,7 +341,7 @@ static int cmd_inverse(int argc, char **argv)
     for (char *tok = strtok(reps, ","); tok; tok = strtok(NULL, ",")) {
         svp_blur *op = NULL;
         int K = 1;
-        double t0 = now();
+        double t0 = bench_now();
         svp_status st;
         if (!strcmp(tok, "single")) {
             svp_psf c;
@@ -399,7 +361,7 @@ static int cmd_inverse(int argc, char **argv)
             st = svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &op);
         }
         if (st != SVP_OK) return fail(tok);
-        const double t_build = now() - t0;
+        const double t_build = bench_now() - t0;
         char its[128];
         snprintf(its, sizeof its, "%s", its_s);
         char *save = NULL;
@@ -417,10 +379,10 @@ static int cmd_inverse(int argc, char **argv)
             co.deconv.iterations = iterations;
             const svp_image *ain[1] = {ba};
             svp_image *aout[1] = {br};
-            t0 = now();
+            t0 = bench_now();
             if (svp_inverse_transform(op, pla, ain, 1, &co, plr, aout, val, NULL) != SVP_OK)
                 return fail("T^-1");
-            const double t = now() - t0;
+            const double t = bench_now() - t0;
             emax = 0;
             esq = 0;
             for (size_t i = 0; i < (size_t)n * n; i++)
@@ -433,7 +395,7 @@ static int cmd_inverse(int argc, char **argv)
                    "\"variation\": \"%s\", \"iterations\": %d, \"build_s\": %.6g, \"time_s\": "
                    "%.6g, \"max_err\": %.6g, \"rms_err\": %.6g, \"peak_rss_mb\": %.1f}\n",
                    tok, K, n, var, iterations, t_build, t, emax / bmax, sqrt(esq / nlit) / bmax,
-                   peak_mb());
+                   bench_maxrss_mb());
             fflush(stdout);
         }
         svp_blur_free(op);

@@ -16,6 +16,7 @@
  * Each case prints one JSON line on stdout; times are medians over the repetitions, in
  * seconds; maxrss_mb is the process's peak resident memory (getrusage). Exit 3 when the
  * library reports the feature as not available yet (SVP_ERR_UNSUPPORTED). */
+#include "bench_common.h"
 #include "blur/blur_internal.h"
 
 #include <math.h>
@@ -23,8 +24,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/resource.h>
-#include <time.h>
 
 typedef struct bench_args {
     const char *mode;
@@ -32,32 +31,6 @@ typedef struct bench_args {
     const char *wisdom, *out;
     int kernel_full; /* export: 1 = the operator's (2N−1)² kernel, 0 = the compat (N−1)² one */
 } bench_args;
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
-static double maxrss_mb(void)
-{
-    struct rusage ru;
-    getrusage(RUSAGE_SELF, &ru);
-    return (double)ru.ru_maxrss / 1024.0; /* KiB on Linux */
-}
-
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-static double median(double *v, int n)
-{
-    qsort(v, (size_t)n, sizeof *v, cmp_double);
-    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
 
 static int fail(const char *what, svp_status st)
 {
@@ -150,16 +123,16 @@ static svp_status time_fft(int ny, int nx, int reps, fft_times *out)
     for (size_t i = 0; i < nr; i++) src[i] = rng();
     for (int r = 0; r < reps; r++) {
         memcpy(re, src, nr * sizeof(double));
-        double t0 = now();
+        double t0 = bench_now();
         svp_fft_forward(plan, re, cx);
-        double t1 = now();
+        double t1 = bench_now();
         svp_fft_inverse_unscaled(plan, cx, re);
-        double t2 = now();
+        double t2 = bench_now();
         t_r2c[r] = t1 - t0;
         t_c2r[r] = t2 - t1;
     }
-    out->r2c = median(t_r2c, reps);
-    out->c2r = median(t_c2r, reps);
+    out->r2c = bench_median(t_r2c, reps);
+    out->c2r = bench_median(t_c2r, reps);
 cleanup:
     svp_free(src);
     svp_free(re);
@@ -237,12 +210,12 @@ static int bench_rl(const bench_args *a, int compat)
     double *t_r2c = malloc((size_t)a->reps * sizeof(double));
     double *t_c2r = malloc((size_t)a->reps * sizeof(double));
     if (!pl || !per_iter || !ratio || !t_r2c || !t_c2r) return fail("allocation", SVP_ERR_NOMEM);
-    double t0 = now();
+    double t0 = bench_now();
     if ((st = svp_blur_new(&psf, n, n, SVP_BOUNDARY_ZERO, &blur)) != SVP_OK) {
         rc = fail("svp_blur_new", st);
         goto cleanup;
     }
-    double setup_s = now() - t0;
+    double setup_s = bench_now() - t0;
     if ((st = svp_image_new(n, n, &data)) != SVP_OK || (st = svp_image_new(n, n, &out)) != SVP_OK ||
         (st = svp_blur_apply(blur, pl, data)) != SVP_OK) {
         rc = fail("blurring the input", st);
@@ -268,11 +241,11 @@ static int bench_rl(const bench_args *a, int compat)
     /* Each repetition times the solver and then, right after, the FFT bound on the same plans,
      * so a change of machine load between repetitions moves both. */
     for (int r = 0; r < a->reps; r++) {
-        double ta = now();
+        double ta = bench_now();
         st = run(&ctx, k1, out);
-        double tb = now();
+        double tb = bench_now();
         if (st == SVP_OK) st = run(&ctx, k2, out);
-        double tc = now();
+        double tc = bench_now();
         if (st != SVP_OK) {
             rc = fail("Richardson–Lucy", st);
             goto cleanup;
@@ -288,10 +261,10 @@ static int bench_rl(const bench_args *a, int compat)
         ratio[r] = per_iter[r] / (2.0 * (ft.r2c + ft.c2r));
     }
     size_t nonfinite = svp_image_count_nonfinite(out);
-    fft_times ft = {median(t_r2c, a->reps), median(t_c2r, a->reps)};
-    double iter_s = median(per_iter, a->reps);
+    fft_times ft = {bench_median(t_r2c, a->reps), bench_median(t_c2r, a->reps)};
+    double iter_s = bench_median(per_iter, a->reps);
     double bound_s = 2.0 * (ft.r2c + ft.c2r);
-    double ratio_s = median(ratio, a->reps);
+    double ratio_s = bench_median(ratio, a->reps);
     printf("{\"case\": \"%s\", \"size\": %d, \"threads\": %d, \"reps\": %d, \"frame\": [%d, %d], "
            "\"kernel\": %d, "
            "\"k1\": %d, \"k2\": %d, \"iter_s\": %.6g, \"r2c_s\": %.6g, \"c2r_s\": %.6g, "
@@ -299,7 +272,7 @@ static int bench_rl(const bench_args *a, int compat)
            "\"nonfinite\": %zu, \"maxrss_mb\": %.1f}\n",
            compat ? "skimage_compat" : "rl", n, svp_get_threads(), a->reps, nx, ny,
            kernel ? kernel->width : 2 * n - 1, k1, k2, iter_s, ft.r2c, ft.c2r, bound_s, ratio_s,
-           setup_s, svp_blur_memory(blur) / 1048576.0, nonfinite, maxrss_mb());
+           setup_s, svp_blur_memory(blur) / 1048576.0, nonfinite, bench_maxrss_mb());
 cleanup:
     svp_blur_free(blur);
     svp_image_free(pl);
@@ -391,10 +364,10 @@ static int bench_inverse(const bench_args *a)
     fft_times last_ft = {0, 0};
     int wiener_pairs = 0, wiener_steps = 0;
     for (int r = 0; r < a->reps; r++) {
-        double t0 = now();
+        double t0 = bench_now();
         st = svp_inverse_transform(blur, pl_app, apparent, 1, &o, pl_rec, recovered, valid,
                                    &n_missing);
-        double t1 = now();
+        double t1 = bench_now();
         if (st != SVP_OK) {
             rc = fail("svp_inverse_transform", st);
             goto cleanup;
@@ -407,12 +380,12 @@ static int bench_inverse(const bench_args *a)
             rc = fail("svp_deconv_rl", st);
             goto cleanup;
         }
-        double t2 = now();
+        double t2 = bench_now();
         if ((st = svp_deconv_wiener(blur, product, &o.deconv, field_rec)) != SVP_OK) {
             rc = fail("svp_deconv_wiener", st);
             goto cleanup;
         }
-        double t3 = now();
+        double t3 = bench_now();
         t_rl[r] = t2 - t1;
         t_wiener[r] = t3 - t2;
         /* the bound right after, on the same cached plans: full (unpruned) r2c + c2r pairs at
@@ -429,7 +402,7 @@ static int bench_inverse(const bench_args *a)
     fft_times ft = last_ft;
     double bound_rl = (1.0 + iterations * 2.0) * (ft.r2c + ft.c2r);
     double bound_w = wiener_pairs * (ft.r2c + ft.c2r);
-    double total_s = median(total, a->reps);
+    double total_s = bench_median(total, a->reps);
     printf("{\"case\": \"inverse_rw\", \"size\": %d, \"threads\": %d, \"reps\": %d, "
            "\"iterations\": %d, \"frame\": [%d, %d], \"total_s\": %.6g, \"rl_s\": %.6g, "
            "\"wiener_s\": %.6g, \"bound_s\": %.6g, \"bound_rl_s\": %.6g, \"bound_wiener_s\": "
@@ -437,9 +410,10 @@ static int bench_inverse(const bench_args *a)
            "\"field_err_rel_w\": %.3g, \"wiener_steps\": %d, \"wiener_pairs\": %d, "
            "\"maxrss_mb\": %.1f}\n",
            n, svp_get_threads(), a->reps, iterations, blur->frame.nx, blur->frame.ny, total_s,
-           median(t_rl, a->reps), median(t_wiener, a->reps), median(t_bound, a->reps), bound_rl,
-           bound_w, median(ratio, a->reps), ft.r2c, ft.c2r, peak > 0 ? err / peak : 0,
-           peak > 0 ? err_w / peak : 0, wiener_steps, wiener_pairs, maxrss_mb());
+           bench_median(t_rl, a->reps), bench_median(t_wiener, a->reps),
+           bench_median(t_bound, a->reps), bound_rl, bound_w, bench_median(ratio, a->reps), ft.r2c,
+           ft.c2r, peak > 0 ? err / peak : 0, peak > 0 ? err_w / peak : 0, wiener_steps,
+           wiener_pairs, bench_maxrss_mb());
 cleanup:
     svp_blur_free(blur);
     svp_image_free(pl);
