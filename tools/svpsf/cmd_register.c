@@ -5,6 +5,7 @@
 #include "cli.h"
 
 #include "io/json.h"
+#include "io/yaml.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -95,42 +96,6 @@ static int looks_like_labels(const svp_image *img)
     return 1;
 }
 
-/* YAML text of the transform (the JSON file carries the same keys). Numbers are written so
- * that YAML 1.1 readers (PyYAML) also see floats: "1e-06" becomes "1.0e-06", NaN ".nan". */
-static char *yaml_double(char buf[40], double v)
-{
-    if (isnan(v)) return strcpy(buf, ".nan");
-    if (isinf(v)) return strcpy(buf, v > 0 ? ".inf" : "-.inf");
-    char num[32];
-    svp_format_double(num, v);
-    char *e = strchr(num, 'e');
-    if (e && !strchr(num, '.'))
-        snprintf(buf, 40, "%.*s.0%s", (int)(e - num), num, e);
-    else
-        snprintf(buf, 40, "%s", num);
-    return buf;
-}
-
-static void yaml_number(svp_strbuf *b, const char *key, double v)
-{
-    char num[40];
-    svp_strbuf_printf(b, "%s: %s\n", key, yaml_double(num, v));
-}
-
-static void yaml_string(svp_strbuf *b, const char *key, const char *value)
-{
-    svp_strbuf_printf(b, "%s: \"", key);
-    for (const char *p = value; *p; p++) {
-        if (*p == '"' || *p == '\\')
-            svp_strbuf_printf(b, "\\%c", *p);
-        else if ((unsigned char)*p < 0x20)
-            svp_strbuf_printf(b, "\\x%02x", (unsigned char)*p);
-        else
-            svp_strbuf_append(b, p, 1);
-    }
-    svp_strbuf_puts(b, "\"\n");
-}
-
 typedef struct transform_doc {
     const char *reference, *moving;
     int width, height;
@@ -186,61 +151,71 @@ static svp_status transform_json(const transform_doc *d, svp_json *j)
     return svp_json_end_object(j);
 }
 
-static void transform_yaml(const transform_doc *d, svp_strbuf *b)
+/* The same keys as YAML (svp_yaml_writer: lossless numbers that YAML 1.1 readers see as floats,
+ * .nan/.inf, strings quoted when needed). */
+static void transform_yaml(const transform_doc *d, svp_yaml_writer *w)
 {
     const svp_register_result *r = d->result;
     const svp_register_options *o = d->options;
-    char n[6][40];
-    svp_strbuf_puts(b, "svpsf_register: 1\n");
-    yaml_string(b, "reference", d->reference);
-    yaml_string(b, "moving", d->moving);
-    svp_strbuf_printf(b, "width: %d\nheight: %d\n", d->width, d->height);
-    svp_strbuf_printf(b, "method: %s\nmotion: %s\n", method_names[o->method],
-                      motion_names[o->motion]);
-    yaml_string(b, "convention", convention);
-    for (int i = 0; i < 6; i++) yaml_double(n[i], r->affine[i]);
-    svp_strbuf_printf(b, "affine:\n  - [%s, %s, %s]\n  - [%s, %s, %s]\n", n[0], n[1], n[2], n[3],
-                      n[4], n[5]);
-    svp_strbuf_printf(b, "shift_px: [%s, %s]\n", yaml_double(n[0], r->shift_x),
-                      yaml_double(n[1], r->shift_y));
-    yaml_number(b, "rotation_deg", r->rotation * 180 / M_PI);
-    yaml_number(b, "scale", r->scale);
-    yaml_number(b, "correlation", r->correlation);
-    yaml_number(b, "residual_rms", r->residual_rms);
-    yaml_number(b, "overlap", r->overlap);
-    yaml_number(b, "response", r->response);
-    yaml_number(b, "significance", r->significance);
-    svp_strbuf_printf(b, "low_significance: %s\n", r->low_significance ? "true" : "false");
-    svp_strbuf_printf(b, "iterations: %d\n", r->iterations);
-    svp_strbuf_printf(b, "nonfinite_reference: %zu\nnonfinite_moving: %zu\n",
-                      r->nonfinite_reference, r->nonfinite_moving);
-    svp_strbuf_puts(b, "settings:\n");
-    yaml_number(b, "  smooth_sigma", o->smooth_sigma);
-    svp_strbuf_printf(b, "  window: %s\n", o->window ? "true" : "false");
-    yaml_number(b, "  whitening", o->whitening);
-    svp_strbuf_printf(b, "  iterations: %d\n", o->iterations);
-    yaml_number(b, "  epsilon", o->epsilon);
-    yaml_string(b, "svpsf_version", svp_version());
+    svp_yaml_begin_mapping(w);
+    svp_yaml_write_key_int(w, "svpsf_register", 1);
+    svp_yaml_write_key_string(w, "reference", d->reference);
+    svp_yaml_write_key_string(w, "moving", d->moving);
+    svp_yaml_write_key_int(w, "width", d->width);
+    svp_yaml_write_key_int(w, "height", d->height);
+    svp_yaml_write_key_string(w, "method", method_names[o->method]);
+    svp_yaml_write_key_string(w, "motion", motion_names[o->motion]);
+    svp_yaml_write_key_string(w, "convention", convention);
+    svp_yaml_write_key(w, "affine");
+    svp_yaml_begin_sequence(w);
+    svp_yaml_write_number_list(w, r->affine, 3);
+    svp_yaml_write_number_list(w, r->affine + 3, 3);
+    svp_yaml_end_sequence(w);
+    const double shift[2] = {r->shift_x, r->shift_y};
+    svp_yaml_write_key_number_list(w, "shift_px", shift, 2);
+    svp_yaml_write_key_number(w, "rotation_deg", r->rotation * 180 / M_PI);
+    svp_yaml_write_key_number(w, "scale", r->scale);
+    svp_yaml_write_key_number(w, "correlation", r->correlation);
+    svp_yaml_write_key_number(w, "residual_rms", r->residual_rms);
+    svp_yaml_write_key_number(w, "overlap", r->overlap);
+    svp_yaml_write_key_number(w, "response", r->response);
+    svp_yaml_write_key_number(w, "significance", r->significance);
+    svp_yaml_write_key_bool(w, "low_significance", r->low_significance);
+    svp_yaml_write_key_int(w, "iterations", r->iterations);
+    svp_yaml_write_key_int(w, "nonfinite_reference", (long long)r->nonfinite_reference);
+    svp_yaml_write_key_int(w, "nonfinite_moving", (long long)r->nonfinite_moving);
+    svp_yaml_write_key(w, "settings");
+    svp_yaml_begin_mapping(w);
+    svp_yaml_write_key_number(w, "smooth_sigma", o->smooth_sigma);
+    svp_yaml_write_key_bool(w, "window", o->window);
+    svp_yaml_write_key_number(w, "whitening", o->whitening);
+    svp_yaml_write_key_int(w, "iterations", o->iterations);
+    svp_yaml_write_key_number(w, "epsilon", o->epsilon);
+    svp_yaml_end_mapping(w);
+    svp_yaml_write_key_string(w, "svpsf_version", svp_version());
+    svp_yaml_end_mapping(w);
 }
 
 static int write_transform(cli_run *run, const char *path, const transform_doc *d)
 {
+    svp_json *j = NULL;
+    svp_yaml_writer *w = NULL;
+    const char *text = NULL;
+    svp_status st;
     if (is_transform_path(path) == 1) {
-        svp_json *j = NULL;
-        svp_status st = svp_json_new(&j);
-        const char *text = NULL;
+        st = svp_json_new(&j);
         if (st == SVP_OK) st = transform_json(d, j);
         if (st == SVP_OK) st = svp_json_finish(j, &text);
-        int code = st == SVP_OK ? cli_write_text(run, path, text) : cli_fail(run, st, path);
-        svp_json_free(j);
-        return code;
+    } else {
+        st = svp_yaml_writer_new(&w);
+        if (st == SVP_OK) {
+            transform_yaml(d, w);
+            st = svp_yaml_writer_finish(w, &text);
+        }
     }
-    svp_strbuf b;
-    svp_strbuf_init(&b);
-    transform_yaml(d, &b);
-    int code = b.failed ? cli_error(run, "%s: out of memory", path)
-                        : cli_write_text(run, path, b.data);
-    svp_strbuf_free(&b);
+    int code = st == SVP_OK ? cli_write_text(run, path, text) : cli_fail(run, st, path);
+    svp_json_free(j);
+    svp_yaml_writer_free(w);
     return code;
 }
 
