@@ -130,5 +130,13 @@ const double *svp_blur_halo_map(const svp_blur *b);
 /* Per-pixel halo fraction of a field (NULL when zero everywhere). */
 svp_status svp_variant_halo_map(const svp_psf_field *field, int width, int height,
                                 double **alpha);
+/* The halo term of H for a per-pixel halo α (n pixels): out += <α ⊙ in> everywhere (scatter,
+ * tmp: n scratch values), and its adjoint out += α <in> (gather). */
+void svp_halo_scatter(const double *restrict alpha, size_t n, const double *restrict in,
+                      double *restrict out, double *restrict tmp);
+void svp_halo_gather(const double *restrict alpha, size_t n, const double *restrict in,
+                     double *restrict out);
+/* Image size >= 1 x 1 and a known boundary mode (operator.c; every operator constructor). */
+svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary);
 
 #endif

@@ -246,13 +246,7 @@ svp_status svp_exact_apply(svp_blur *b, const double *restrict x, double *restri
             y[(size_t)oy * w + ox] = acc;
         }
     }
-    if (d->alpha) {
-        const size_t n = (size_t)w * h;
-        double *tmp = b->work_r_image;
-        for (size_t i = 0; i < n; i++) tmp[i] = d->alpha[i] * x[i];
-        const double add = svp_sum(tmp, n) / (double)n;
-        for (size_t i = 0; i < n; i++) y[i] += add;
-    }
+    if (d->alpha) svp_halo_scatter(d->alpha, (size_t)w * h, x, y, b->work_r_image);
     return SVP_OK;
 }
 
@@ -284,11 +278,7 @@ svp_status svp_exact_adjoint(svp_blur *b, const double *restrict y, double *rest
             x[s] = acc;
         }
     }
-    if (d->alpha) {
-        const size_t n = (size_t)w * h;
-        const double mean = svp_sum(y, n) / (double)n;
-        for (size_t i = 0; i < n; i++) x[i] += d->alpha[i] * mean;
-    }
+    if (d->alpha) svp_halo_gather(d->alpha, (size_t)w * h, y, x);
     return SVP_OK;
 }
 

@@ -218,7 +218,7 @@ static svp_status blur_finish(svp_blur *b, svp_blur **out)
     return SVP_OK;
 }
 
-static svp_status check_geometry(int width, int height, svp_boundary boundary)
+svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary)
 {
     if (width < 1 || height < 1)
         return svp_fail(SVP_ERR_INVALID, "image size %d x %d: both must be at least 1", width,
@@ -235,7 +235,7 @@ svp_status svp_blur_new(const svp_psf *psf, int width, int height, svp_boundary 
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new: out is NULL");
     *out = NULL;
     SVP_CHECK(svp_psf_validate(psf));
-    SVP_CHECK(check_geometry(width, height, boundary));
+    SVP_CHECK(svp_blur_check_geometry(width, height, boundary));
     /* Default support: every offset that joins two pixels of the field of view. */
     int rx = width - 1, ry = height - 1;
     if (psf->support > 0) {
@@ -271,7 +271,7 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new_kernel: out is NULL");
     *out = NULL;
     if (!kernel || !kernel->data) return svp_fail(SVP_ERR_INVALID, "kernel is missing");
-    SVP_CHECK(check_geometry(width, height, boundary));
+    SVP_CHECK(svp_blur_check_geometry(width, height, boundary));
     if (cx < 0 && cy < 0) {
         cx = kernel->width / 2;
         cy = kernel->height / 2;

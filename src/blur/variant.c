@@ -115,25 +115,22 @@ static inline double hat(const int *i0, const double *frac, int node, int x)
 /* ---- apply / adjoint --------------------------------------------------------------------- */
 
 /* <α x>_FOV added to every output pixel (scatter), or α(s) <y> (its adjoint, gather). */
-static void add_halo_scatter(const svp_blur *b, const double *in, double *out)
+void svp_halo_scatter(const double *restrict alpha, size_t n, const double *restrict in,
+                      double *restrict out, double *restrict tmp)
 {
-    const svp_variant_data *v = b->variant;
-    const size_t n = (size_t)b->width * b->height;
-    double *restrict tmp = v->tmp;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-    for (size_t i = 0; i < n; i++) tmp[i] = v->alpha[i] * in[i];
+    for (size_t i = 0; i < n; i++) tmp[i] = alpha[i] * in[i];
     const double add = svp_sum(tmp, n) / (double)n;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
     for (size_t i = 0; i < n; i++) out[i] += add;
 }
 
-static void add_halo_gather(const svp_blur *b, const double *in, double *out)
+void svp_halo_gather(const double *restrict alpha, size_t n, const double *restrict in,
+                     double *restrict out)
 {
-    const svp_variant_data *v = b->variant;
-    const size_t n = (size_t)b->width * b->height;
     const double mean = svp_sum(in, n) / (double)n;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-    for (size_t i = 0; i < n; i++) out[i] += v->alpha[i] * mean;
+    for (size_t i = 0; i < n; i++) out[i] += alpha[i] * mean;
 }
 
 /* Frame rows 0 .. rows − 1 of term k's extended weighted input c_k ⊙ E(s ⊙ x) (= E(c_k ⊙ s
@@ -390,7 +387,7 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     }
     svp_fft_inverse_unscaled(f->plan, acc, b->work_r);
     svp_frame_crop(f, b->work_r, y);
-    if (v->alpha) add_halo_scatter(b, x, y);
+    if (v->alpha) svp_halo_scatter(v->alpha, (size_t)b->width * b->height, x, y, v->tmp);
     return SVP_OK;
 }
 
@@ -439,14 +436,14 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
         }
         if (K == 1 && v->unit[0]) { /* c_0 = 1: fold the term's frame itself */
             fold_scaled(b, b->work_r, NULL, x);
-            if (v->alpha) add_halo_gather(b, y, x);
+            if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
             return SVP_OK;
         }
         accumulate_weighted(b, k, start, rows, b->work_r);
         k++;
     }
     fold_scaled(b, v->ext, v->row_on, x);
-    if (v->alpha) add_halo_gather(b, y, x);
+    if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
     return SVP_OK;
 }
 
@@ -574,12 +571,7 @@ svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
 {
     *out = NULL;
     if (!field) return svp_fail(SVP_ERR_INVALID, "PSF field is NULL");
-    if (width < 1 || height < 1)
-        return svp_fail(SVP_ERR_INVALID, "image size %d x %d: both must be at least 1", width,
-                        height);
-    if (boundary != SVP_BOUNDARY_ZERO && boundary != SVP_BOUNDARY_MIRROR &&
-        boundary != SVP_BOUNDARY_PERIODIC)
-        return svp_fail(SVP_ERR_INVALID, "unknown boundary mode %d", (int)boundary);
+    SVP_CHECK(svp_blur_check_geometry(width, height, boundary));
     if (field->width != 0 && (field->width != width || field->height != height))
         return svp_fail(SVP_ERR_SIZE,
                         "the PSF field is for a %d x %d image, the operator for "
