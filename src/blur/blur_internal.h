@@ -138,5 +138,9 @@ void svp_halo_gather(const double *restrict alpha, size_t n, const double *restr
                      double *restrict out);
 /* Image size >= 1 x 1 and a known boundary mode (operator.c; every operator constructor). */
 svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary);
+/* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
+ * both of the operator's size, x not y; `what` names the method in the message. */
+svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
+                                   const char *what);
 
 #endif

@@ -166,15 +166,7 @@ svp_status svp_deconv_tikhonov_cg(svp_blur *b, const svp_image *y,
                                   const svp_deconv_options *options, svp_image *x)
 {
     const char *what = "svp_deconv_tikhonov_cg";
-    if (!b) return svp_fail(SVP_ERR_INVALID, "%s: the blur operator is NULL", what);
-    if (!y || !y->data) return svp_fail(SVP_ERR_INVALID, "%s: the data image y is NULL", what);
-    if (!x || !x->data) return svp_fail(SVP_ERR_INVALID, "%s: the output image x is NULL", what);
-    if (y->width != b->width || y->height != b->height || x->width != b->width ||
-        x->height != b->height)
-        return svp_fail(SVP_ERR_SIZE, "%s: the operator is %d x %d but y is %d x %d and x %d x %d",
-                        what, b->width, b->height, y->width, y->height, x->width, x->height);
-    if (x->data == y->data)
-        return svp_fail(SVP_ERR_INVALID, "%s: the output x must not be the data y", what);
+    SVP_CHECK(svp_deconv_check_images(b, y, x, what));
     svp_deconv_options o;
     if (options)
         o = *options;

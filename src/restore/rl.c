@@ -20,17 +20,7 @@ static svp_status check_args(const svp_blur *blur, const svp_image *y,
                              const svp_deconv_options *o, const svp_image *x)
 {
     const char *what = "Richardson–Lucy";
-    if (!blur) return svp_fail(SVP_ERR_INVALID, "%s: the blur operator is NULL", what);
-    if (!y || !y->data) return svp_fail(SVP_ERR_INVALID, "%s: the data image y is NULL", what);
-    if (!x || !x->data) return svp_fail(SVP_ERR_INVALID, "%s: the output image x is NULL", what);
-    if (y->width != blur->width || y->height != blur->height)
-        return svp_fail(SVP_ERR_SIZE, "%s: the operator is %d x %d but the data y are %d x %d",
-                        what, blur->width, blur->height, y->width, y->height);
-    if (x->width != blur->width || x->height != blur->height)
-        return svp_fail(SVP_ERR_SIZE, "%s: the operator is %d x %d but the output x is %d x %d",
-                        what, blur->width, blur->height, x->width, x->height);
-    if (x->data == y->data)
-        return svp_fail(SVP_ERR_INVALID, "%s: the output x must not be the data y", what);
+    SVP_CHECK(svp_deconv_check_images(blur, y, x, what));
     if (o->iterations < 1)
         return svp_fail(SVP_ERR_INVALID, "%s: iterations = %d: at least 1 is needed", what,
                         o->iterations);

@@ -30,8 +30,8 @@ void svp_deconv_defaults(svp_deconv_options *o)
     o->report = NULL;
 }
 
-static svp_status check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
-                               const char *what)
+svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
+                                   const char *what)
 {
     if (!blur) return svp_fail(SVP_ERR_INVALID, "%s: the blur operator is NULL", what);
     if (!y || !y->data) return svp_fail(SVP_ERR_INVALID, "%s: the data image y is NULL", what);
@@ -523,7 +523,7 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
         svp_deconv_defaults(&defaults);
         options = &defaults;
     }
-    SVP_CHECK(check_images(blur, y, x, "Wiener deconvolution"));
+    SVP_CHECK(svp_deconv_check_images(blur, y, x, "Wiener deconvolution"));
     if (!(options->balance >= 0) || !isfinite(options->balance))
         return svp_fail(SVP_ERR_INVALID,
                         "Wiener deconvolution: balance %g is invalid: it must be finite and >= 0",
