@@ -229,7 +229,25 @@ typedef struct odmr_pixel {
     double D, gamma;
 } odmr_pixel;
 
-/* θ = (b, C, B, Γ): f = b [1 − C (L(u₊) + L(u₋))], u± = ω − D ∓ γB, L = g² / (u² + g²), g = Γ/2 */
+/* θ = (b, C, B, Γ): f = b [1 − C (L(u₊) + L(u₋))], u± = ω − D ∓ γB, L = g² / (u² + g²), g = Γ/2.
+ * One frequency: returns f at u0 = ω − D and stores in d its derivatives with respect to
+ * (b, C, split = γB, g), which odmr_model and odmr_fast_eval scale to their parameters. */
+static inline double odmr_point(double u0, double b, double C, double split, double g, double d[4])
+{
+    const double g2 = g * g;
+    const double up = u0 - split, um = u0 + split;
+    const double ip = 1 / (up * up + g2), im = 1 / (um * um + g2);
+    const double lp = g2 * ip, lm = g2 * im, S = lp + lm;
+    /* ∂L/∂u = −2 u g² / (u² + g²)², ∂L/∂g = 2 g u² / (u² + g²)² */
+    const double dlp = -2 * up * lp * ip, dlm = -2 * um * lm * im;
+    const double glp = 2 * g * up * up * ip * ip, glm = 2 * g * um * um * im * im;
+    d[0] = 1 - C * S;
+    d[1] = -b * S;
+    d[2] = b * C * (dlp - dlm);
+    d[3] = -b * C * (glp + glm);
+    return b * d[0];
+}
+
 static int odmr_model(void *user, const double *th, int n_params, int n_points, double *model,
                       double *jac)
 {
@@ -237,20 +255,15 @@ static int odmr_model(void *user, const double *th, int n_params, int n_points, 
     const odmr_pixel *px = user;
     const double b = th[0], C = th[1], split = px->gamma * th[2], g = 0.5 * th[3];
     if (!(g > 0)) return 1;
-    const double g2 = g * g;
     for (int i = 0; i < n_points; i++) {
-        double up = px->freq[i] - px->D - split, um = px->freq[i] - px->D + split;
-        double ep = up * up + g2, em = um * um + g2;
-        double lp = g2 / ep, lm = g2 / em, S = lp + lm;
-        model[i] = b * (1 - C * S);
+        double d[4];
+        model[i] = odmr_point(px->freq[i] - px->D, b, C, split, g, d);
         if (jac) {
             double *row = jac + (size_t)i * 4;
-            double dlp = -2 * up * g2 / (ep * ep), dlm = -2 * um * g2 / (em * em); /* ∂L/∂u */
-            double glp = 2 * g * up * up / (ep * ep), glm = 2 * g * um * um / (em * em); /* ∂L/∂g */
-            row[0] = 1 - C * S;
-            row[1] = -b * S;
-            row[2] = b * C * px->gamma * (dlp - dlm);
-            row[3] = -0.5 * b * C * (glp + glm);
+            row[0] = d[0];
+            row[1] = d[1];
+            row[2] = px->gamma * d[2];
+            row[3] = 0.5 * d[3];
         }
     }
     return 0;
@@ -273,30 +286,24 @@ typedef struct odmr_fast {
     double D, gamma, b0, g0;
 } odmr_fast;
 
+/* index of (i, j) in the 10-value upper triangle of a symmetric 4 x 4 */
+static const int sym4[4][4] = {{0, 1, 2, 3}, {1, 4, 5, 6}, {2, 5, 7, 8}, {3, 6, 8, 9}};
+
 /* χ², A = JᵀJ (upper triangle, 10 values), v = Jᵀr at q; 1 when q is outside the model */
 static int odmr_fast_eval(const odmr_fast *o, const double q[4], double *chi2, double A[10],
                           double v[4])
 {
     const double b = q[0] * o->b0, C = q[1], split = q[2] * o->g0, g = 0.5 * q[3] * o->g0;
     if (!(g > 0)) return 1;
-    const double g2 = g * g, off = o->D;
     /* derivatives with respect to the scaled parameters: ∂/∂q0 = b0 ∂/∂b, ∂/∂q2 = Γ0 ∂/∂split,
      * ∂/∂q3 = (Γ0 / 2) ∂/∂g */
     const double s0 = o->b0, s2 = o->g0, s3 = 0.5 * o->g0;
     double c2 = 0, a00 = 0, a01 = 0, a02 = 0, a03 = 0, a11 = 0, a12 = 0, a13 = 0, a22 = 0, a23 = 0,
            a33 = 0, v0 = 0, v1 = 0, v2 = 0, v3 = 0;
     for (int i = 0; i < o->n; i++) {
-        const double up = o->freq[i] - off - split, um = o->freq[i] - off + split;
-        const double ip = 1 / (up * up + g2), im = 1 / (um * um + g2);
-        const double lp = g2 * ip, lm = g2 * im, S = lp + lm;
-        const double r = o->y[i] - b * (1 - C * S);
-        /* ∂L/∂u = −2 u g² / (u² + g²)², ∂L/∂g = 2 g u² / (u² + g²)² */
-        const double dlp = -2 * up * lp * ip, dlm = -2 * um * lm * im;
-        const double glp = 2 * g * up * up * ip * ip, glm = 2 * g * um * um * im * im;
-        const double j0 = s0 * (1 - C * S);
-        const double j1 = -b * S;
-        const double j2 = s2 * b * C * (dlp - dlm);
-        const double j3 = -s3 * b * C * (glp + glm);
+        double d[4];
+        const double r = o->y[i] - odmr_point(o->freq[i] - o->D, b, C, split, g, d);
+        const double j0 = s0 * d[0], j1 = d[1], j2 = s2 * d[2], j3 = s3 * d[3];
         c2 += r * r;
         a00 += j0 * j0;
         a01 += j0 * j1;
@@ -323,14 +330,13 @@ static int odmr_fast_eval(const odmr_fast *o, const double q[4], double *chi2, d
 /* Solves (A + λ diag A) δ = v in Jacobi-scaled form; 1 when not positive definite */
 static int odmr_fast_solve(const double A[10], const double v[4], double lambda, double d[4])
 {
-    static const int idx[4][4] = {{0, 1, 2, 3}, {1, 4, 5, 6}, {2, 5, 7, 8}, {3, 6, 8, 9}};
     double sc[4], M[4][4], z[4];
     for (int i = 0; i < 4; i++) {
-        double a = A[idx[i][i]];
+        double a = A[sym4[i][i]];
         sc[i] = a > 0 ? 1 / sqrt(a) : 0;
     }
     for (int i = 0; i < 4; i++)
-        for (int j = 0; j < 4; j++) M[i][j] = A[idx[i][j]] * sc[i] * sc[j];
+        for (int j = 0; j < 4; j++) M[i][j] = A[sym4[i][j]] * sc[i] * sc[j];
     for (int i = 0; i < 4; i++) M[i][i] = (sc[i] > 0 ? 1 : 0) * (1 + lambda) + (sc[i] > 0 ? 0 : 1);
     /* Cholesky M = L Lᵀ in place (lower) */
     for (int j = 0; j < 4; j++) {
@@ -387,10 +393,9 @@ static int odmr_fast_fit(const odmr_fast *o, const svp_lm_options *opt, double t
                 /* no decrease at any damping: the minimum to round-off when the gradient
                  * vanishes there (as svp_lm_solve's gtol) */
                 double gmax = 0;
-                static const int dg[4] = {0, 4, 7, 9};
                 for (int j = 0; j < 4; j++)
-                    if (A[dg[j]] > 0 && chi2 > 0)
-                        gmax = fmax(gmax, fabs(v[j]) / sqrt(A[dg[j]] * chi2));
+                    if (A[sym4[j][j]] > 0 && chi2 > 0)
+                        gmax = fmax(gmax, fabs(v[j]) / sqrt(A[sym4[j][j]] * chi2));
                 converged = gmax <= opt->gtol;
                 break;
             }
@@ -399,11 +404,10 @@ static int odmr_fast_fit(const odmr_fast *o, const svp_lm_options *opt, double t
         /* predicted decrease of the linear model: 2 δᵀv − δᵀAδ (actual δ after clamping) */
         double dd[4], Ad[4];
         for (int j = 0; j < 4; j++) dd[j] = qt[j] - q[j];
-        static const int idx[4][4] = {{0, 1, 2, 3}, {1, 4, 5, 6}, {2, 5, 7, 8}, {3, 6, 8, 9}};
         double pred = 0, step = 0;
         for (int i = 0; i < 4; i++) {
             Ad[i] = 0;
-            for (int j = 0; j < 4; j++) Ad[i] += A[idx[i][j]] * dd[j];
+            for (int j = 0; j < 4; j++) Ad[i] += A[sym4[i][j]] * dd[j];
             pred += 2 * dd[i] * v[i] - dd[i] * Ad[i];
             step = fmax(step, fabs(dd[i]) / (fabs(qt[i]) + 1e-3));
         }
