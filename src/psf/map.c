@@ -118,6 +118,23 @@ size_t svp_map_describe_sample(const svp_map_report *r, const svp_psf_sample *sa
 }
 
 /* The field parameter vector of a fit and its 1σ errors. */
+/* The mapped field's common PSF: the report's model, the options' support and subsample; and
+ * the value given to β when it is not mapped (the model's own, as a field file reads it). */
+static svp_psf map_base(const svp_map_report *rep, const svp_map_options *o)
+{
+    svp_psf base;
+    svp_psf_defaults(&base);
+    base.model = rep->model;
+    base.support = o->support;
+    base.subsample = o->subsample;
+    return base;
+}
+
+static double unmapped_beta(const svp_map_report *rep)
+{
+    return rep->model == SVP_PSF_LORENTZIAN ? 1.0 : 2.5;
+}
+
 static void sample_values(const svp_spot_result *f, double v[NP], double e[NP])
 {
     v[SVP_FIELD_FWHM] = f->fwhm;
@@ -440,13 +457,8 @@ svp_status svp_psf_map_poly(const svp_psf_sample *samples, int n, int width, int
             }
         }
         c[(size_t)SVP_FIELD_HALO * nt] = o.halo;
-        if (!rep->mapped[SVP_FIELD_BETA])
-            c[(size_t)SVP_FIELD_BETA * nt] = rep->model == SVP_PSF_LORENTZIAN ? 1.0 : 2.5;
-        svp_psf base;
-        svp_psf_defaults(&base);
-        base.model = rep->model;
-        base.support = o.support;
-        base.subsample = o.subsample;
+        if (!rep->mapped[SVP_FIELD_BETA]) c[(size_t)SVP_FIELD_BETA * nt] = unmapped_beta(rep);
+        const svp_psf base = map_base(rep, &o);
         st = svp_psf_field_new_poly(&base, width, height, dmax, c, field);
         free(c);
         if (st != SVP_OK) {
@@ -720,18 +732,13 @@ svp_status svp_psf_map_regions(const svp_psf_sample *samples, int n, const int *
                           "flagged, invalid or outside the labelled field)", n);
             goto cleanup;
         }
-        svp_psf base;
-        svp_psf_defaults(&base);
-        base.model = rep->model;
-        base.support = o.support;
-        base.subsample = o.subsample;
+        const svp_psf base = map_base(rep, &o);
         for (int l = 0; l < n_labels; l++) {
             const svp_region_stats *gs = &g[rep->regions[l].group];
             const svp_region_stats *src = gs->count > 0 ? gs : &all;
             double p[NP];
             for (int q = 0; q < NP; q++) p[q] = rep->mapped[q] ? src->mean[q] : 0.0;
-            if (!rep->mapped[SVP_FIELD_BETA])
-                p[SVP_FIELD_BETA] = rep->model == SVP_PSF_LORENTZIAN ? 1.0 : 2.5;
+            if (!rep->mapped[SVP_FIELD_BETA]) p[SVP_FIELD_BETA] = unmapped_beta(rep);
             p[SVP_FIELD_HALO] = o.halo;
             svp_psf_from_params(&base, p, &psfs[l]);
         }
