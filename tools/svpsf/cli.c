@@ -870,18 +870,10 @@ double cli_stage_seconds(const cli_run *run, const char *name)
 void cli_progress_start(cli_run *run, const char *label)
 {
     run->progress_label = label;
-    run->progress_lo = 0;
-    run->progress_hi = 1;
     run->progress_t0 = cli_now();
     run->progress_last_draw = 0;
     run->progress_shown = 0;
     run->progress_last_decile = -1;
-}
-
-void cli_progress_part(cli_run *run, double lo, double hi)
-{
-    run->progress_lo = lo;
-    run->progress_hi = hi;
 }
 
 static void format_seconds(double s, char *buf, size_t size)
@@ -898,9 +890,7 @@ int cli_progress(void *user, double fraction)
 {
     cli_run *run = user;
     if (run->quiet || !run->progress_label) return 0;
-    if (fraction < 0) fraction = 0;
-    if (fraction > 1) fraction = 1;
-    double f = run->progress_lo + (run->progress_hi - run->progress_lo) * fraction;
+    const double f = fraction < 0 ? 0 : fraction > 1 ? 1 : fraction;
     double now = cli_now(), elapsed = now - run->progress_t0;
     /* Only work that lasts: nothing in the first second. */
     if (elapsed < 1.0 || f <= 0) return 0;

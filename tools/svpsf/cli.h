@@ -150,7 +150,6 @@ typedef struct cli_run {
 
     /* progress state */
     const char *progress_label;
-    double progress_lo, progress_hi;
     double progress_t0, progress_last_draw;
     int progress_shown, progress_last_decile;
 } cli_run;
@@ -299,11 +298,9 @@ void cli_stage_begin(cli_run *run, const char *name);
 void cli_stage_end(cli_run *run);
 double cli_stage_seconds(const cli_run *run, const char *name); /* 0 when absent */
 
-/* Progress: an svp_progress_fn whose user pointer is the run. Fractions of the current part
- * [lo, hi] of the whole job; start a part with cli_progress_part. Nothing is drawn during
- * the first second of the job, or with --quiet. */
+/* Progress: an svp_progress_fn whose user pointer is the run; fractions of the whole job.
+ * Nothing is drawn during the first second of the job, or with --quiet. */
 void cli_progress_start(cli_run *run, const char *label);
-void cli_progress_part(cli_run *run, double lo, double hi);
 int cli_progress(void *run, double fraction);
 void cli_progress_done(cli_run *run);
 
