@@ -628,16 +628,6 @@ int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *
     return 0;
 }
 
-static const char *model_name(svp_psf_model m)
-{
-    switch (m) {
-    case SVP_PSF_GAUSSIAN: return "gaussian";
-    case SVP_PSF_LORENTZIAN: return "lorentzian";
-    case SVP_PSF_MOFFAT: return "moffat";
-    }
-    return "unknown";
-}
-
 void cli_psf_describe(cli_run *run, const cli_psf *psf)
 {
     cli_setting_str(run, "psf_file", psf->path);
@@ -652,7 +642,7 @@ void cli_psf_describe(cli_run *run, const cli_psf *psf)
         cli_setting_num(run, "pixel_um", psf->pixel_um);
         if (svp_psf_field_at(psf->field, 0.5 * (svp_psf_field_width(psf->field) - 1),
                              0.5 * (svp_psf_field_height(psf->field) - 1), &centre) == SVP_OK) {
-            cli_setting_str(run, "psf_model", model_name(centre.model));
+            cli_setting_str(run, "psf_model", cli_psf_model_names[centre.model]);
             cli_setting_num(run, "psf_centre_fwhm_px", centre.fwhm);
             if (centre.model == SVP_PSF_MOFFAT)
                 cli_setting_num(run, "psf_centre_beta", centre.beta);
@@ -675,7 +665,7 @@ void cli_psf_describe(cli_run *run, const cli_psf *psf)
     }
     const svp_psf *p = &psf->model;
     cli_setting_str(run, "psf_kind", "model");
-    cli_setting_str(run, "psf_model", model_name(p->model));
+    cli_setting_str(run, "psf_model", cli_psf_model_names[p->model]);
     cli_setting_num(run, "pixel_um", psf->pixel_um);
     cli_setting_num(run, "psf_fwhm_px", p->fwhm);
     if (p->fwhm_minor > 0) {

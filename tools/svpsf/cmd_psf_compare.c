@@ -155,10 +155,10 @@ int cmd_psf_compare(int argc, char **argv)
         goto cleanup;
     }
     const int beta_comparable = ma.model != SVP_PSF_GAUSSIAN && mb.model != SVP_PSF_GAUSSIAN;
-    static const char *const mnames[] = {"gaussian", "lorentzian", "moffat"};
     if (ma.model != mb.model)
-        cli_note(&run, "the maps use different models (A %s, B %s)%s", mnames[ma.model & 3],
-                 mnames[mb.model & 3], beta_comparable ? "" : ": beta is not compared");
+        cli_note(&run, "the maps use different models (A %s, B %s)%s",
+                 cli_psf_model_names[ma.model], cli_psf_model_names[mb.model],
+                 beta_comparable ? "" : ": beta is not compared");
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
             double p[SVP_FIELD_NPARAM], q[SVP_FIELD_NPARAM];
