@@ -1385,17 +1385,13 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
             res->angle_err = INFINITY;
         }
         if (!o.elliptical) res->angle_err = 0;
+        /* r0 (σ for a Gaussian) and ∂r0/∂β = r0 kβ / 2 from the fitted shape (kβ = 0 Gaussian) */
+        spot_shape sh;
+        spot_shape_setup(o.model, t, &sh);
         memset(grad, 0, sizeof grad);
-        if (o.model == SVP_PSF_GAUSSIAN) {
-            res->r0 = F / (2.0 * sqrt(2.0 * log(2.0)));
-            grad[P_FWHM] = res->r0 / F;
-        } else {
-            double beta = o.model == SVP_PSF_LORENTZIAN ? 1.0 : t[P_BETA];
-            double E = expm1(log(2.0) / beta);
-            res->r0 = F / (2.0 * sqrt(E));
-            grad[P_FWHM] = res->r0 / F;
-            grad[P_BETA] = res->r0 * log(2.0) * (E + 1.0) / (2.0 * beta * beta * E);
-        }
+        res->r0 = svp_psf_fwhm_to_r0(F, sh.beta);
+        grad[P_FWHM] = res->r0 / F;
+        grad[P_BETA] = 0.5 * res->r0 * sh.kbeta;
         res->r0_err = sqrt_or_inf(propagate(C, grad));
     }
     res->chi2 = lmr.chi2;
