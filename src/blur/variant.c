@@ -118,9 +118,7 @@ static inline double hat(const int *i0, const double *frac, int node, int x)
 void svp_halo_scatter(const double *restrict alpha, size_t n, const double *restrict in,
                       double *restrict out, double *restrict tmp)
 {
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-    for (size_t i = 0; i < n; i++) tmp[i] = alpha[i] * in[i];
-    const double add = svp_sum(tmp, n) / (double)n;
+    const double add = svp_dot(alpha, in, tmp, n) / (double)n;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
     for (size_t i = 0; i < n; i++) out[i] += add;
 }

@@ -119,6 +119,13 @@ double svp_sum(const double *restrict x, size_t n)
     return s;
 }
 
+double svp_dot(const double *a, const double *b, double *restrict prod, size_t n)
+{
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t i = 0; i < n; i++) prod[i] = a[i] * b[i];
+    return svp_sum(prod, n);
+}
+
 double svp_max(const double *restrict x, size_t n)
 {
     double m = -INFINITY;

@@ -38,6 +38,8 @@ void svp_free(void *p);
 /* Deterministic sum (the same for every thread count): fixed blocks summed in parallel, the
  * block sums added in order. */
 double svp_sum(const double *restrict x, size_t n);
+/* Σ a b with svp_sum's order (prod: n scratch values, overwritten with a ⊙ b). */
+double svp_dot(const double *a, const double *b, double *restrict prod, size_t n);
 double svp_max(const double *restrict x, size_t n); /* of finite values; -inf when none */
 double svp_min(const double *restrict x, size_t n);
 

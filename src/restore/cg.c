@@ -31,11 +31,7 @@ typedef struct cg_work {
 
 static double dot(cg_work *c, const double *a, const double *b)
 {
-    const size_t n = (size_t)c->w * c->h;
-    double *restrict p = c->prod;
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-    for (size_t i = 0; i < n; i++) p[i] = a[i] * b[i];
-    return svp_sum(p, n);
+    return svp_dot(a, b, c->prod, (size_t)c->w * c->h);
 }
 
 static inline int neighbour(int t, int size, svp_boundary b)

@@ -574,10 +574,8 @@ svp_status svp_halo_correct(double halo, const svp_image *pl_apparent,
     /* no restrict: field_true may alias either input (everything below is pointwise) */
     const double *pl = pl_apparent->data;
     const double *b_app = field_apparent->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) weighted[i] = b_app[i] * pl[i];
     const double mean_pl = svp_sum(pl, n) / (double)n;
-    const double mean_weighted = svp_sum(weighted, n) / (double)n;
+    const double mean_weighted = svp_dot(b_app, pl, weighted, n) / (double)n; /* weighted = B̃Ĩ */
     double pl_abs_max = fmax(fabs(svp_max(pl, n)), fabs(svp_min(pl, n)));
     const double tiny = HALO_DEN_TINY * pl_abs_max;
     double *b = field_true->data;

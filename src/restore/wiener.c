@@ -421,14 +421,6 @@ static void zero_precondition(svp_blur *blur, const double *filter, const double
     svp_blur_spectrum_out(blur, out, 0);
 }
 
-/* Σ a b, in a fixed order whatever the thread count (prod: n scratch values). */
-static double dot_det(const double *a, const double *b, double *prod, size_t n)
-{
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-    for (size_t i = 0; i < n; i++) prod[i] = a[i] * b[i];
-    return svp_sum(prod, n);
-}
-
 static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_missing,
                               double balance, int max_steps, svp_deconv_report *report,
                               double *restrict x_data)
@@ -449,7 +441,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
     for (size_t i = 0; i < n; i++) t1[i] = isfinite(y_data[i]) ? y_data[i] : 0.0;
     if ((st = svp_blur_adjoint(blur, &img_t1, &img_r)) != SVP_OK) goto cleanup;
     memset(x_data, 0, n * sizeof(double));
-    const double rhs_norm = sqrt(dot_det(r, r, prod, n));
+    const double rhs_norm = sqrt(svp_dot(r, r, prod, n));
     int it = 0, pairs = 1, converged = 1;
     double res_norm = 0;
     if (rhs_norm > 0 && isfinite(rhs_norm)) {
@@ -457,7 +449,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
         zero_precondition(blur, filter, r, z);
         pairs++;
         memcpy(p, z, n * sizeof(double));
-        double rz = dot_det(r, z, prod, n);
+        double rz = svp_dot(r, z, prod, n);
         for (it = 0; it < max_steps; it++) {
             /* ap = (Hᵀ M H + λ L L) p */
             if ((st = svp_blur_apply(blur, &img_p, &img_t1)) != SVP_OK) goto cleanup;
@@ -474,7 +466,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
                 for (size_t i = 0; i < n; i++) ap[i] += balance * t2[i];
             }
-            const double pap = dot_det(p, ap, prod, n);
+            const double pap = svp_dot(p, ap, prod, n);
             if (!(pap > 0) || !isfinite(pap)) { /* exact convergence or a flat direction */
                 converged = 1;
                 break;
@@ -485,7 +477,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
                 x_data[i] += step * p[i];
                 r[i] -= step * ap[i];
             }
-            res_norm = sqrt(dot_det(r, r, prod, n));
+            res_norm = sqrt(svp_dot(r, r, prod, n));
             if (res_norm <= ZERO_CG_TOL * rhs_norm) {
                 converged = 1;
                 it++;
@@ -493,7 +485,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
             }
             zero_precondition(blur, filter, r, z);
             pairs++;
-            const double rz_new = dot_det(r, z, prod, n);
+            const double rz_new = svp_dot(r, z, prod, n);
             const double beta = rz_new / rz;
             rz = rz_new;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
