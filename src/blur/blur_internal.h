@@ -140,6 +140,10 @@ void svp_halo_gather(const double *restrict alpha, size_t n, const double *restr
 svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary);
 /* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
  * both of the operator's size, x not y; `what` names the method in the message. */
+/* Tikhonov inverse filter in place (wiener.c): filt (ny x ncx, holding |Ĥ|²) becomes
+ * 1 / (nx ny max(|Ĥ|² + λ |L̂|², 1e-12 max |Ĥ|²)), L̂ the 5-point Laplacian's transfer
+ * function on the nx x ny frame. */
+void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance);
 svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
                                    const char *what);
 

@@ -13,7 +13,6 @@
 #include <stdlib.h>
 #include <string.h>
 
-#define PI 3.14159265358979323846
 #define CG_TOL 1e-10
 
 typedef struct cg_work {
@@ -107,8 +106,7 @@ static svp_status setup_preconditioner(const svp_blur *b, cg_work *c)
     if (!c->pre_filter || !c->frame_r || !c->frame_c)
         return svp_fail(SVP_ERR_NOMEM, "out of memory for the CG preconditioner");
     if (kernel) SVP_CHECK(svp_frame_set_kernel(f, kernel, b->kcx, b->kcy, SVP_BOUNDARY_PERIODIC));
-    const double keep = 1.0 - b->halo, scale = 1.0 / ((double)f->nx * f->ny);
-    double hmax2 = 0;
+    const double keep = 1.0 - b->halo;
     for (size_t i = 0; i < ns; i++) {
         double complex hk = kernel ? keep * f->otf[i] : 1.0;
         if (i == 0) hk = 1.0; /* the halo keeps the mean: Ĥ(0) = (1 − α) + α */
@@ -141,20 +139,7 @@ static svp_status setup_preconditioner(const svp_blur *b, cg_work *c)
                 }
             }
     }
-    for (size_t i = 0; i < ns; i++)
-        if (c->pre_filter[i] > hmax2) hmax2 = c->pre_filter[i];
-    /* a floor keeps the preconditioner bounded where neither H nor L passes anything */
-    const double floor = 1e-12 * (hmax2 > 0 ? hmax2 : 1.0);
-    for (int ky = 0; ky < f->ny; ky++) {
-        double sy = sin(PI * ky / f->ny);
-        for (int kx = 0; kx < f->ncx; kx++) {
-            double sx = sin(PI * kx / f->nx);
-            double l = 4.0 * sx * sx + 4.0 * sy * sy;
-            size_t i = (size_t)ky * f->ncx + kx;
-            double d = c->pre_filter[i] + c->lambda * l * l;
-            c->pre_filter[i] = scale / (d > floor ? d : floor);
-        }
-    }
+    svp_tikhonov_invert(c->pre_filter, f->nx, f->ny, f->ncx, c->lambda);
     return SVP_OK;
 }
 

@@ -371,6 +371,27 @@ static void laplacian_neumann(int w, int h, const double *restrict in, double *r
     }
 }
 
+void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance)
+{
+    const size_t nc = (size_t)ny * ncx;
+    const double scale = 1.0 / ((double)nx * ny);
+    double hmax2 = 0;
+    for (size_t k = 0; k < nc; k++)
+        if (filt[k] > hmax2) hmax2 = filt[k];
+    /* a floor keeps the filter bounded where neither H nor L passes anything */
+    const double floor = 1e-12 * (hmax2 > 0 ? hmax2 : 1.0);
+#pragma omp parallel for schedule(static) if (nc > SVP_PARALLEL_MIN)
+    for (int v = 0; v < ny; v++) {
+        const double ly = laplacian_axis(v, ny);
+        for (int u = 0; u < ncx; u++) {
+            const double lap = laplacian_axis(u, nx) + ly;
+            const size_t k = (size_t)v * ncx + u;
+            const double d = filt[k] + balance * lap * lap;
+            filt[k] = scale / (d > floor ? d : floor);
+        }
+    }
+}
+
 /* The preconditioner's filter on the operator's frame for this balance, cached in the blur. */
 static svp_status zero_filter(svp_blur *blur, double balance, const double **out)
 {
@@ -386,24 +407,12 @@ static svp_status zero_filter(svp_blur *blur, double balance, const double **out
         return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener filter", f->nx, ny);
     double *restrict filt = blur->wiener_filter;
     const fftw_complex *restrict otf = f->otf;
-    const double keep = 1.0 - blur->halo, scale = 1.0 / ((double)f->nx * ny);
-    double hmax2 = 0;
+    const double keep = 1.0 - blur->halo;
     for (size_t k = 0; k < nc; k++) {
         double complex hk = keep * otf[k] + (k == 0 ? blur->halo : 0.0);
         filt[k] = creal(hk) * creal(hk) + cimag(hk) * cimag(hk);
-        if (filt[k] > hmax2) hmax2 = filt[k];
     }
-    const double floor = 1e-12 * (hmax2 > 0 ? hmax2 : 1.0);
-#pragma omp parallel for schedule(static) if (nc > SVP_PARALLEL_MIN)
-    for (int v = 0; v < ny; v++) {
-        const double ly = laplacian_axis(v, ny);
-        for (int u = 0; u < ncx; u++) {
-            const double lap = laplacian_axis(u, f->nx) + ly;
-            const size_t k = (size_t)v * ncx + u;
-            const double d = filt[k] + balance * lap * lap;
-            filt[k] = scale / (d > floor ? d : floor);
-        }
-    }
+    svp_tikhonov_invert(filt, f->nx, ny, ncx, balance);
     blur->wiener_balance = balance;
     *out = filt;
     return SVP_OK;
