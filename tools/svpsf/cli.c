@@ -424,14 +424,17 @@ void cli_path_stem(const char *path, char *stem, size_t size)
     stem[n] = '\0';
 }
 
-void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size)
+size_t cli_yaml_extension(const char *path)
 {
     size_t n = strlen(path);
-    if (n > 5 && strcmp(path + n - 5, ".yaml") == 0)
-        n -= 5;
-    else if (n > 4 && strcmp(path + n - 4, ".yml") == 0)
-        n -= 4;
-    snprintf(buf, size, "%.*s%s", (int)n, path, ext);
+    if (n > 5 && strcmp(path + n - 5, ".yaml") == 0) return 5;
+    if (n > 4 && strcmp(path + n - 4, ".yml") == 0) return 4;
+    return 0;
+}
+
+void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size)
+{
+    snprintf(buf, size, "%.*s%s", (int)(strlen(path) - cli_yaml_extension(path)), path, ext);
 }
 
 const char *const cli_psf_model_names[] = {"gaussian", "lorentzian", "moffat", NULL};

@@ -204,6 +204,9 @@ void cli_path_stem(const char *path, char *stem, size_t size);
 /* path without its .yaml/.yml extension, followed by ext ("a/psf.yaml", ".summary.json" →
  * "a/psf.summary.json"; a path without that extension keeps it whole). */
 void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size);
+/* The length of path's ".yaml" or ".yml" ending (5 or 4; case-sensitive, not the whole name),
+ * else 0: what cli_path_sibling strips and what fit-psf/map-psf require of -o. */
+size_t cli_yaml_extension(const char *path);
 /* The PSF model names indexed by svp_psf_model, NULL-terminated (for cli_parse_choice). */
 extern const char *const cli_psf_model_names[];
 

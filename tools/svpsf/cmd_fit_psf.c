@@ -400,15 +400,9 @@ int cmd_fit_psf(int argc, char **argv)
     const char *spot_path = argv[optind];
     if (!(pixel_um > 0)) return cli_run_finish(&run, cli_error(&run, "--pixel-um P is required"));
     if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o PSF.yaml is required"));
-    {
-        size_t n = strlen(run.output);
-        if (!((n > 5 && strcmp(run.output + n - 5, ".yaml") == 0) ||
-              (n > 4 && strcmp(run.output + n - 4, ".yml") == 0)))
-            return cli_run_finish(&run, cli_error(&run,
-                                                  "-o %s: the PSF file must end in .yaml "
-                                                  "or .yml",
-                                                  run.output));
-    }
+    if (!cli_yaml_extension(run.output))
+        return cli_run_finish(&run, cli_error(&run, "-o %s: the PSF file must end in .yaml or .yml",
+                                              run.output));
     if (figures && no_figures)
         return cli_run_finish(&run, cli_error(&run, "--figures and --no-figures contradict"));
     if (!exc_path && use_direct)

@@ -335,15 +335,9 @@ int cmd_map_psf(int argc, char **argv)
         return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s'", argv[optind + 1]));
     const char *spots_path = argv[optind];
     if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o MAP.yaml is required"));
-    {
-        size_t n = strlen(run.output);
-        if (!((n > 5 && strcmp(run.output + n - 5, ".yaml") == 0) ||
-              (n > 4 && strcmp(run.output + n - 4, ".yml") == 0)))
-            return cli_run_finish(&run, cli_error(&run,
-                                                  "-o %s: the PSF map must end in .yaml "
-                                                  "or .yml",
-                                                  run.output));
-    }
+    if (!cli_yaml_extension(run.output))
+        return cli_run_finish(&run, cli_error(&run, "-o %s: the PSF map must end in .yaml or .yml",
+                                              run.output));
     so.model = (svp_psf_model)model;
 
     /* ---- read SPOTS.yaml, the images, the labels ---- */
