@@ -141,3 +141,31 @@ double svp_min(const double *restrict x, size_t n)
         if (isfinite(x[i]) && x[i] < m) m = x[i];
     return m;
 }
+
+/* Hoare's quickselect: O(n), so the statistics of a 10⁶-pixel mask need no sort. */
+double svp_select_kth(double *a, size_t n, size_t k)
+{
+    ptrdiff_t lo = 0, hi = (ptrdiff_t)n - 1, kk = (ptrdiff_t)k;
+    while (lo < hi) {
+        double pivot = a[lo + (hi - lo) / 2];
+        ptrdiff_t i = lo, j = hi;
+        while (i <= j) {
+            while (a[i] < pivot) i++;
+            while (a[j] > pivot) j--;
+            if (i <= j) {
+                double t = a[i];
+                a[i] = a[j];
+                a[j] = t;
+                i++;
+                j--;
+            }
+        }
+        if (kk <= j)
+            hi = j;
+        else if (kk >= i)
+            lo = i;
+        else
+            break;
+    }
+    return a[kk];
+}

@@ -41,6 +41,8 @@ double svp_sum(const double *restrict x, size_t n);
 /* Σ a b with svp_sum's order (prod: n scratch values, overwritten with a ⊙ b). */
 double svp_dot(const double *a, const double *b, double *restrict prod, size_t n);
 double svp_max(const double *restrict x, size_t n); /* of finite values; -inf when none */
+/* The k-th smallest of a[0..n) (0-based, n > 0, k < n) by quickselect; reorders a. */
+double svp_select_kth(double *a, size_t n, size_t k);
 double svp_min(const double *restrict x, size_t n);
 
 /* ---- FFT engine ---------------------------------------------------------------------------

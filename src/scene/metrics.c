@@ -143,35 +143,6 @@ svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
 
 /* ---- statistics ------------------------------------------------------------------------- */
 
-/* The k-th smallest of a[0..n) (Hoare's quickselect; reorders a): O(n), so the statistics of a
- * 10⁶-pixel mask need no sort. */
-static double select_kth(double *a, size_t n, size_t k)
-{
-    ptrdiff_t lo = 0, hi = (ptrdiff_t)n - 1, kk = (ptrdiff_t)k;
-    while (lo < hi) {
-        double pivot = a[lo + (hi - lo) / 2];
-        ptrdiff_t i = lo, j = hi;
-        while (i <= j) {
-            while (a[i] < pivot) i++;
-            while (a[j] > pivot) j--;
-            if (i <= j) {
-                double t = a[i];
-                a[i] = a[j];
-                a[j] = t;
-                i++;
-                j--;
-            }
-        }
-        if (kk <= j)
-            hi = j;
-        else if (kk >= i)
-            lo = i;
-        else
-            break;
-    }
-    return a[kk];
-}
-
 /* Quantile q of a[0..n) with linear interpolation between order statistics (numpy's default);
  * reorders a. */
 static double quantile(double *a, size_t n, double q)
@@ -179,7 +150,7 @@ static double quantile(double *a, size_t n, double q)
     if (n == 0) return NAN;
     double pos = q * (double)(n - 1);
     size_t i = (size_t)floor(pos);
-    double x = select_kth(a, n, i);
+    double x = svp_select_kth(a, n, i);
     if (i + 1 >= n) return x;
     double y = INFINITY; /* after the selection everything beyond i is >= a[i] */
     for (size_t k = i + 1; k < n; k++) y = fmin(y, a[k]);

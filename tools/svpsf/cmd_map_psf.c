@@ -3,6 +3,7 @@
  * writes the PSF-map YAML that forward/correct read (svp_psf_field_write). */
 #include "cli.h"
 
+#include "core/internal.h"
 #include "io/yaml.h"
 
 #include <math.h>
@@ -104,35 +105,6 @@ static int cmp_peak(const void *a, const void *b)
     return pa[1] < pb[1] ? -1 : pa[1] > pb[1];
 }
 
-/* The k-th smallest of v[0..n-1] (Hoare's selection; reorders v). */
-static double select_kth(double *v, size_t n, size_t k)
-{
-    size_t lo = 0, hi = n - 1;
-    while (lo < hi) {
-        double pivot = v[lo + (hi - lo) / 2];
-        size_t i = lo, j = hi;
-        while (i <= j) {
-            while (v[i] < pivot) i++;
-            while (v[j] > pivot) j--;
-            if (i <= j) {
-                double t = v[i];
-                v[i] = v[j];
-                v[j] = t;
-                i++;
-                if (j == 0) break;
-                j--;
-            }
-        }
-        if (k <= j)
-            hi = j;
-        else if (k >= i)
-            lo = i;
-        else
-            break;
-    }
-    return v[k];
-}
-
 /* 1 when no pixel of the (2 r + 1)² window beats sm[y, x] (ties: the first in raster order
  * wins); the 3 x 3 neighbours first, which rejects most pixels at once. */
 static int is_local_max(const double *sm, int w, int h, int x, int y, int r)
@@ -168,9 +140,9 @@ static int detect(cli_run *run, const svp_image *img, const char *path, int wind
         code = cli_error(run, "%s: fewer than 9 finite pixels: no spots to detect", path);
         goto done;
     }
-    const double med = select_kth(tmp, nf, nf / 2);
+    const double med = svp_select_kth(tmp, nf, nf / 2);
     for (size_t i = 0; i < nf; i++) tmp[i] = fabs(tmp[i] - med);
-    double sigma = 1.4826 * select_kth(tmp, nf, nf / 2);
+    double sigma = 1.4826 * svp_select_kth(tmp, nf, nf / 2);
     if (!(sigma > 0)) sigma = sqrt(fmax(med, 1.0)); /* flat background: shot noise */
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
