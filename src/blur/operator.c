@@ -183,14 +183,18 @@ void svp_frame_fold(const svp_frame *f, const double *restrict frame, double *re
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale)
 {
+    /* Written out in real arithmetic: C99 complex products carry a NaN fix-up branch
+     * (__muldc3) that keeps the loop from vectorising. */
     const size_t n = (size_t)f->ny * f->ncx;
-    const fftw_complex *restrict otf = f->otf;
-    if (conjugate) {
+    const double *restrict o = (const double *)f->otf;
+    double *restrict s = (double *)spectrum;
+    const double sign = conjugate ? -1.0 : 1.0;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
-        for (size_t i = 0; i < n; i++) spectrum[i] *= scale * conj(otf[i]);
-    } else {
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
-        for (size_t i = 0; i < n; i++) spectrum[i] *= scale * otf[i];
+    for (size_t i = 0; i < n; i++) {
+        const double pr = scale * o[2 * i], pi = sign * scale * o[2 * i + 1];
+        const double sr = s[2 * i], si = s[2 * i + 1];
+        s[2 * i] = pr * sr - pi * si;
+        s[2 * i + 1] = pr * si + pi * sr;
     }
 }
 
