@@ -617,6 +617,19 @@ static void test_spot_border_saturation_empty(void **state)
     poisson_draw(ex, img, &s);
     svp_spot_result ref;
     ASSERT_OK(svp_spot_fit(img, &o, &ref, NULL, NULL));
+    /* a level above every pixel cuts nothing and must change nothing (it once set the
+     * start's amplitude, and a level 10-1e5 times the peak moved the fit) */
+    for (int k = 0; k < 3; k++) {
+        const double level[3] = {6000.0, 6.0e5, 1.0e9};
+        o.saturation = level[k];
+        ASSERT_OK(svp_spot_fit(img, &o, &r, NULL, NULL));
+        assert_int_equal(r.n_saturated, 0);
+        assert_false(r.flags & SVP_SPOT_SATURATED);
+        ASSERT_CLOSE(r.fwhm, ref.fwhm, 1e-6 * ref.fwhm);
+        ASSERT_CLOSE(r.beta, ref.beta, 1e-6 * ref.beta);
+        assert_int_equal(r.n_clipped, ref.n_clipped);
+    }
+    o.saturation = 0;
     for (size_t i = 0; i < 31 * 31; i++) img->data[i] = fmin(img->data[i], 3000.0);
     ASSERT_OK(svp_spot_fit(img, &o, &r, NULL, NULL));
     assert_true(r.flags & SVP_SPOT_SATURATED);

@@ -1161,7 +1161,9 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
             if (sw.use[j] && data[j] > amp0) amp0 = data[j];
         }
     amp0 -= bg0;
-    if (isfinite(sat_level)) amp0 = fmax(amp0, sat_level - bg0);
+    /* a saturated peak is at least the saturation level (only when pixels were cut: a level
+     * above every pixel says nothing about the peak and must not move the start) */
+    if (isfinite(sat_level) && res->n_saturated > 0) amp0 = fmax(amp0, sat_level - bg0);
     int n_half = 0;
     for (size_t i = 0; i < N; i++)
         if (isfinite(data[i]) && data[i] - bg0 >= 0.5 * amp0) n_half++;
