@@ -51,6 +51,14 @@ void svp_set_fft_effort(svp_fft_effort effort)
     pthread_mutex_unlock(&fft_lock);
 }
 
+svp_fft_effort svp_get_fft_effort(void)
+{
+    pthread_mutex_lock(&fft_lock);
+    svp_fft_effort e = fft_effort;
+    pthread_mutex_unlock(&fft_lock);
+    return e;
+}
+
 svp_status svp_fft_wisdom_load(const char *path)
 {
     pthread_once(&fft_once, fft_init);

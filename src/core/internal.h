@@ -57,6 +57,8 @@ typedef struct svp_fft_plan {
 } svp_fft_plan;
 
 svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out);
+/* The planning effort last set by svp_set_fft_effort (for summaries). */
+svp_fft_effort svp_get_fft_effort(void);
 void svp_fft_forward(const svp_fft_plan *plan, double *in, fftw_complex *out);
 /* Inverse real FFT, scaled by 1/(ny nx) so forward followed by inverse is the identity.
  * Destroys `in`. */

@@ -77,6 +77,12 @@ for f in report.md summary.json maps/m_z_corrected_rw.tif figures/B_z_apparent.p
 done
 grep -q '"stage": "forward"' "$T/run/summary.json" || fail "summary.json has no plan"
 grep -q '"seconds"' "$T/run/summary.json" || fail "summary.json has no stage times"
+# the run's context, as in every command's summary.json
+for k in working_directory started_utc inputs fft_planning peak_memory_bytes threads versions; do
+    grep -q "\"$k\":" "$T/run/summary.json" || fail "summary.json has no $k"
+done
+grep -A1 '"role": "scene"' "$T/run/summary.json" | grep -q "\"path\": \"$T/good.yaml\"" ||
+    fail "summary.json inputs do not name the scene file"
 grep -q '"m_z/view/corrected_rw/median_abs_rel_err_pct"' "$T/run/summary.json" ||
     fail "summary.json has no metrics"
 head -c 8 "$T/run/figures/B_z_true.png" | od -An -c | grep -q 'P   N   G' || fail "not a PNG"
