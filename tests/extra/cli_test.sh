@@ -299,6 +299,19 @@ expect_bad beta_zero "beta0.yaml|beta" correct --field Bz.txt --pl pl.txt --psf 
 expect_bad beta_negative "beta_neg.yaml|beta" psf beta_neg.yaml -o bad.tif
 expect_bad unknown_yaml_key "typo.yaml:5:3|fwhm_umm" forward --field Bz.txt --pl pl.txt --psf typo.yaml -o bad $FAST
 [ -e bad ] && fail "bad inputs" "the output folder 'bad' was created" || pass "no output folder after bad inputs"
+# a run that fails after its output folders were made removes the ones it created (still
+# empty), deepest first, and never a folder that existed before: here the signed shift is
+# refused only once the inputs are read and the outputs planned
+mkdir -p kept_empty
+expect_bad fail_late_dirs "shift" correct --field Bz.txt --pl pl.txt --psf moffat.yaml \
+    -o kept_empty/new1/new2 --method r --shift -50 $FAST
+if [ -d kept_empty ] && [ -z "$(ls -A kept_empty)" ]; then
+    pass "failed run: the folders it created are removed, the empty folder that existed is kept"
+else
+    fail "failed run folders" "kept_empty: $(ls -AR kept_empty 2>&1)"
+fi
+expect_bad fail_late_dec "k63.txt|larger" deconvolve fwd_zp/field.txt --psf k63.txt -o nd1/x.tif --method rl --compat skimage
+[ -e nd1 ] && fail "failed deconvolve" "left the folder nd1" || pass "failed deconvolve leaves no new folder"
 mkdir -p exists
 echo "old validity" >exists/validity.txt
 expect_bad output_exists "exists/validity.txt|exists|--force" forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o exists --format txt $FAST

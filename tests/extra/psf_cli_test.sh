@@ -73,6 +73,9 @@ expect_fail "pair size mismatch" 1 "wide.npy" "$S" fit-psf spot.npy --excitation
 expect_fail "output not yaml" 1 "fit/x.tif" "$S" fit-psf spot.npy --pixel-um 0.05 -o fit/x.tif
 expect_fail "not converged" 2 "did not converge" "$S" fit-psf spot.npy --pixel-um 0.05 --no-figures -o fit/nc.yaml --max-iterations 2 2>/dev/null
 [ -e fit/x.yaml ] && bad "a failed run wrote fit/x.yaml" || ok "failed runs write nothing"
+# a failed fit leaves neither its output folder nor its figures folder behind
+expect_fail "fit-psf: no spot" 1 "empty.npy" "$S" fit-psf empty.npy --pixel-um 0.05 -o fq1/psf.yaml
+[ -e fq1 ] && bad "a failed fit-psf left $(find fq1 | tr '\n' ' ')" || ok "failed fit-psf leaves no new folder"
 
 # ---- the pair: p = Moffat beta 1.1, FWHM 0.61 um; I_G beta 3.3, 0.48 um ----
 if "$S" fit-psf pl.npy --excitation exc.npy --pixel-um 0.05 -o pair/p.yaml >"$T/pair.txt" 2>&1; then
@@ -134,6 +137,9 @@ expect_fail "map: no field size" 1 "bad3.yaml" sh -c "printf 'pixel_um: 0.05\nsp
 expect_fail "map: labels size" 1 "spot.npy" "$S" map-psf field.yaml --labels spot.npy -o map/b4.yaml
 expect_fail "map: bad degree" 1 "--degree" "$S" map-psf field.yaml --degree 11 -o map/b5.yaml
 expect_fail "map: no overwrite" 1 "map/cut.yaml exists" "$S" map-psf spots.yaml -o map/cut.yaml
+printf 'pixel_um: 0.05\nfield: {width: 72, height: 72}\nspots:\n  - {file: empty72.npy, x: 12, y: 12}\n  - {file: empty72.npy, x: 36, y: 36}\n' >allbad.yaml
+expect_fail "map: every spot fails" 1 "allbad.yaml" "$S" map-psf allbad.yaml -o nm1/map.yaml
+[ -e nm1 ] && bad "a failed map-psf left the folder nm1" || ok "failed map-psf leaves no new folder"
 expect_fail "map: empty image" 1 "bad6.yaml" sh -c "printf 'pixel_um: 0.05\nimage: empty.npy\n' > bad6.yaml; \"$S\" map-psf bad6.yaml -o map/b6.yaml"
 
 # ---- psf-compare ----

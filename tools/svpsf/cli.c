@@ -731,6 +731,48 @@ const char *cli_output_file(cli_run *run, const char *role, const char *path)
     return add_output(run, role, xstrdup(path), 1);
 }
 
+/* The folders this process created, in creation order (parents before children): a run that
+ * fails removes those still empty (cli_remove_created_dirs), so a failed run writes nothing. */
+static char **created_dirs;
+static int n_created_dirs;
+
+static void record_created_dir(const char *path)
+{
+    for (int i = 0; i < n_created_dirs; i++)
+        if (strcmp(created_dirs[i], path) == 0) return;
+    created_dirs = xrealloc(created_dirs, (size_t)(n_created_dirs + 1) * sizeof *created_dirs);
+    created_dirs[n_created_dirs++] = xstrdup(path);
+}
+
+void cli_expect_dirs(const char *path)
+{
+    char buf[PATH_MAX];
+    if (!path || !*path || strlen(path) >= sizeof buf) return;
+    strcpy(buf, path);
+    for (char *p = buf + 1;; p++) {
+        if (*p == '/' || *p == '\0') {
+            char saved = *p;
+            *p = '\0';
+            struct stat st;
+            if (buf[0] && stat(buf, &st) != 0 && errno == ENOENT) record_created_dir(buf);
+            *p = saved;
+            if (saved == '\0') break;
+        }
+    }
+}
+
+void cli_remove_created_dirs(void)
+{
+    /* deepest first; rmdir removes only empty folders, so nothing written is ever lost */
+    for (int i = n_created_dirs - 1; i >= 0; i--) {
+        rmdir(created_dirs[i]);
+        free(created_dirs[i]);
+    }
+    free(created_dirs);
+    created_dirs = NULL;
+    n_created_dirs = 0;
+}
+
 /* mkdir -p for the folder part of `path` (dir_itself: path is the folder). */
 static int make_dirs(const cli_run *run, const char *path)
 {
@@ -741,7 +783,9 @@ static int make_dirs(const cli_run *run, const char *path)
         if (*p == '/' || *p == '\0') {
             char saved = *p;
             *p = '\0';
-            if (buf[0] && mkdir(buf, 0777) != 0 && errno != EEXIST)
+            if (buf[0] && mkdir(buf, 0777) == 0)
+                record_created_dir(buf);
+            else if (buf[0] && errno != EEXIST)
                 return cli_error(run, "%s: cannot create the output folder (%s)", buf,
                                  strerror(errno));
             struct stat st;

@@ -286,6 +286,13 @@ const char *cli_output_file(cli_run *run, const char *role, const char *path);
  * output directory creatable (it is created here when missing). Prints the fault and returns
  * the exit code; 0 when all can be written. Call before any computation that writes. */
 int cli_outputs_check(cli_run *run);
+/* A failed run writes nothing: the folders cli_outputs_check created are recorded, and main()
+ * calls cli_remove_created_dirs() when a command exits nonzero, removing those still empty
+ * (deepest first; a folder that existed before the run or holds a file is never removed).
+ * cli_expect_dirs records the folders of `path` that do not exist yet, for a command whose
+ * folders the library creates (simulate). */
+void cli_expect_dirs(const char *path);
+void cli_remove_created_dirs(void);
 /* Writes an image to a planned output path with the run's format (or the path's extension
  * when the run planned an exact file), atomically, overwriting only with --force. */
 int cli_write_image(cli_run *run, const char *path, const svp_image *image);

@@ -164,6 +164,15 @@ int cmd_simulate(int argc, char **argv)
         o.argc = argc + 1;
         o.argv = full;
     }
+    /* the library creates DIR and its maps/, figures/, tables/: recorded so that a failed run
+     * leaves none of them behind when empty (cli_remove_created_dirs) */
+    cli_expect_dirs(run.output);
+    static const char *const subdirs[] = {"maps", "figures", "tables"};
+    for (int i = 0; i < 3; i++) {
+        char sub[4096];
+        snprintf(sub, sizeof sub, "%s/%s", run.output, subdirs[i]);
+        cli_expect_dirs(sub);
+    }
     cli_progress_start(&run, "simulate");
     double t0 = cli_now();
     st = svp_scene_run(scene, run.output, &o, &result);

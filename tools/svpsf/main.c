@@ -88,7 +88,11 @@ int main(int argc, char **argv)
         argc = 3;
     }
     for (int i = 0; i < n_commands; i++)
-        if (strcmp(name, commands[i].name) == 0) return commands[i].run(argc - 1, argv + 1);
+        if (strcmp(name, commands[i].name) == 0) {
+            int code = commands[i].run(argc - 1, argv + 1);
+            if (code != CLI_EXIT_OK) cli_remove_created_dirs(); /* a failed run writes nothing */
+            return code;
+        }
     if (name[0] == '-')
         fprintf(stderr, "svpsf: unknown option %s before the command (see svpsf --help)\n", name);
     else
