@@ -274,6 +274,13 @@ done
 expect_ok wisdom forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis --wisdom wisdom.dat --fft measure
 [ -s wisdom.dat ] && pass "--wisdom saves FFTW wisdom" || fail "--wisdom" "wisdom.dat not written"
 expect_ok wisdom2 forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis2 --wisdom wisdom.dat --fft measure
+# a wisdom file that could not be saved is refused before any work: no output, no folder
+expect_bad wisdom_no_dir "--wisdom|nodir/w.dat|nodir|does not exist" forward --field Bz.txt --pl pl.txt \
+    --psf moffat.yaml -o fwd_wis3 --wisdom nodir/w.dat $FAST
+[ -e fwd_wis3 ] && fail "--wisdom in a missing folder" "fwd_wis3 was written" ||
+    pass "--wisdom in a missing folder: refused up front, nothing written"
+expect_bad wisdom_folder "--wisdom|fwd_wis|folder" forward --field Bz.txt --pl pl.txt \
+    --psf moffat.yaml -o fwd_wis3 --wisdom fwd_wis $FAST
 
 # ---- bad input: exit 1, the message names the file and the fault --------------------------------
 expect_bad missing_file "nope.npy|no such file" forward --field nope.npy --pl pl.txt --psf moffat.yaml -o bad $FAST

@@ -308,11 +308,38 @@ const char *cli_boundary_name(svp_boundary b)
     return (unsigned)b < 3 ? boundary_names[b] : "unknown";
 }
 
+static void dir_of(const char *path, char *dir, size_t size);
+
 /* Applies --threads, --fft and --wisdom once all options are known. */
 static int apply_common(cli_run *run)
 {
     if (run->threads > 0) svp_set_threads(run->threads);
     svp_set_fft_effort(run->fft_measure ? SVP_FFT_MEASURE : SVP_FFT_ESTIMATE);
+    if (run->wisdom) {
+        /* the wisdom is saved at the end of a successful run: a path that cannot be written is
+         * refused now, before any work or output, not after all outputs were written */
+        struct stat st_w;
+        if (stat(run->wisdom, &st_w) == 0) {
+            if (S_ISDIR(st_w.st_mode))
+                return cli_error(run, "--wisdom %s: is a folder, not a file", run->wisdom);
+            if (access(run->wisdom, R_OK | W_OK) != 0)
+                return cli_error(run,
+                                 "--wisdom %s: the wisdom file is not readable and writable (%s)",
+                                 run->wisdom, strerror(errno));
+        } else {
+            char dir[PATH_MAX];
+            dir_of(run->wisdom, dir, sizeof dir);
+            struct stat st_d;
+            if (stat(dir, &st_d) != 0 || !S_ISDIR(st_d.st_mode))
+                return cli_error(run,
+                                 "--wisdom %s: the folder %s does not exist (the wisdom file is "
+                                 "saved there after the run; it is not created)",
+                                 run->wisdom, dir);
+            if (access(dir, W_OK | X_OK) != 0)
+                return cli_error(run, "--wisdom %s: the folder %s is not writable (%s)",
+                                 run->wisdom, dir, strerror(errno));
+        }
+    }
     if (run->wisdom && access(run->wisdom, F_OK) == 0) {
         svp_status st = svp_fft_wisdom_load(run->wisdom);
         if (st != SVP_OK) return cli_fail(run, st, run->wisdom);
@@ -406,7 +433,8 @@ void cli_print_common_help(const cli_run *run, FILE *out)
                 "  --fft estimate|measure  FFT planning: measure is slower to plan, faster to\n"
                 "                        run (default %s)\n"
                 "  --wisdom FILE         load FFTW wisdom from FILE when it exists and save it\n"
-                "                        there after a successful run (default: none)\n",
+                "                        there after a successful run; FILE's folder must\n"
+                "                        exist (checked before any work) (default: none)\n",
                 run->fft_measure ? "measure" : "estimate");
     fputs("  -q, --quiet           no progress and no notes on stderr (errors still shown)\n"
           "  -h, --help            this help\n",
