@@ -36,6 +36,12 @@ static svp_status read_psf(const svp_yaml_doc *doc, svp_psf *psf, double *pixel_
     const svp_yaml_node *root = svp_yaml_root(doc), *node = NULL, *psf_node = NULL;
     double pixel_um = 0;
     SVP_CHECK(svp_yaml_expect_mapping(root, NULL));
+    /* `kind` marks a PSF-map file (svp_psf_field_read): say that, not "unknown key 'version'" */
+    const svp_yaml_node *kind = svp_yaml_get(root, "kind");
+    if (kind)
+        return svp_yaml_fail(kind, SVP_ERR_FORMAT,
+                             "a PSF-map file (kind: %s), not a single PSF file (pixel_um and psf)",
+                             svp_yaml_text(kind));
     SVP_CHECK(svp_yaml_check_keys(root, NULL, top_keys));
     SVP_CHECK(svp_yaml_require(root, "pixel_um", NULL, &node));
     SVP_CHECK(svp_yaml_number_in(node, "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &pixel_um));

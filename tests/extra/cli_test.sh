@@ -410,6 +410,13 @@ if awk -v s="$s" 'BEGIN { exit !(s > 1 - 1e-9 && s < 1 + 1e-9) }'; then
 else
     fail "region map flux" "sum $s"
 fi
+# a PSF map where one PSF is expected: named as a PSF map, with the commands that take maps;
+# a map of kind uniform is that one PSF
+expect_bad map_to_psf "map_grid.yaml|PSF map|kind grid|single PSF file|correct --psf" psf map_grid.yaml -o bad_map_k.txt
+expect_bad map_to_dec "map_grid.yaml|PSF map|single PSF file|forward --psf" deconvolve pl.txt --psf map_grid.yaml \
+    -o bad/x.txt --method rl $FAST
+expect_ok map_uniform_psf psf map_uniform.yaml --size 63 -o k63_uniform.txt
+check_close "psf on a PSF map of kind uniform = on the plain PSF file" k63.txt k63_uniform.txt 1e-12
 expect_bad map_bad_nodes "--nodes|0x2|1..64" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 0x2 -o bad $FAST
 expect_bad map_bad_nodes_text "--nodes|4y4" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 4y4 -o bad $FAST
 expect_bad map_bad_rank "map_grid.yaml|low rank 9|2 x 2" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 2x2 --rank 9 -o bad $FAST

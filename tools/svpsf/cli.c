@@ -522,7 +522,43 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
         svp_psf_defaults(&psf->model);
         psf->boundary = (svp_boundary)-1;
         svp_status st = svp_psf_file_read(path, &psf->model, &psf->pixel_um, &psf->boundary);
-        if (st != SVP_OK) return cli_fail(run, st, path);
+        if (st != SVP_OK) {
+            /* a PSF-map file: of kind uniform it is one PSF (as for forward/correct); a map
+             * that varies is refused with what to do instead */
+            char psf_error[1024];
+            snprintf(psf_error, sizeof psf_error, "%s", svp_last_error());
+            svp_psf_field *field = NULL;
+            double pixel_um = 0;
+            svp_status st_map = svp_psf_field_read(path, &field, &pixel_um);
+            if (st_map != SVP_OK) {
+                /* a file with `kind` is a PSF map with a fault of its own: report that */
+                if (strstr(psf_error, "a PSF-map file")) return cli_fail(run, st_map, path);
+                if (strstr(psf_error, path))
+                    cli_error(run, "%s", psf_error);
+                else
+                    cli_error(run, "%s: %s", path, psf_error);
+                return cli_exit_code(st);
+            }
+            static const char *const kinds[] = {"uniform", "grid", "poly", "regions"};
+            svp_psf_field_kind kind = svp_psf_field_get_kind(field);
+            if (kind == SVP_FIELD_UNIFORM) {
+                st = svp_psf_field_at(field, 0, 0, &psf->model);
+                svp_psf_field_free(field);
+                if (st != SVP_OK) return cli_fail(run, st, path);
+                psf->pixel_um = pixel_um;
+                psf->boundary = SVP_BOUNDARY_ZERO;
+                psf->is_model = 1;
+                cli_record_input(run, "psf", path, 0, 0);
+                return 0;
+            }
+            svp_psf_field_free(field);
+            return cli_error(run,
+                             "%s is a PSF map (kind %s: a PSF that may vary across the field); "
+                             "svpsf %s takes a single PSF file (pixel_um and psf) or a kernel "
+                             "image; PSF maps are taken by svpsf forward --psf MAP.yaml and "
+                             "svpsf correct --psf MAP.yaml (docs/cli.md, PSF-map files)",
+                             path, kinds[kind & 3], run->command);
+        }
         psf->is_model = 1;
         psf->has_boundary = (unsigned)psf->boundary < 3;
         if (!psf->has_boundary) psf->boundary = SVP_BOUNDARY_ZERO;
