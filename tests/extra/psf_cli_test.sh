@@ -138,7 +138,7 @@ expect_fail "map: labels size" 1 "spot.npy" "$S" map-psf field.yaml --labels spo
 expect_fail "map: bad degree" 1 "--degree" "$S" map-psf field.yaml --degree 11 -o map/b5.yaml
 expect_fail "map: no overwrite" 1 "map/cut.yaml exists" "$S" map-psf spots.yaml -o map/cut.yaml
 printf 'pixel_um: 0.05\nfield: {width: 72, height: 72}\nspots:\n  - {file: empty72.npy, x: 12, y: 12}\n  - {file: empty72.npy, x: 36, y: 36}\n' >allbad.yaml
-expect_fail "map: every spot fails" 1 "allbad.yaml" "$S" map-psf allbad.yaml -o nm1/map.yaml
+expect_fail "map: every spot fails" 1 "allbad.yaml: all 2 spots failed their fits" "$S" map-psf allbad.yaml -o nm1/map.yaml
 [ -e nm1 ] && bad "a failed map-psf left the folder nm1" || ok "failed map-psf leaves no new folder"
 expect_fail "map: empty image" 1 "bad6.yaml" sh -c "printf 'pixel_um: 0.05\nimage: empty.npy\n' > bad6.yaml; \"$S\" map-psf bad6.yaml -o map/b6.yaml"
 

@@ -557,6 +557,22 @@ yaml_ok:
         sample_of[k] = n_samples++;
     }
 
+    /* every fit failed: say so (with each spot's reason), not "no spots given" */
+    if (n_samples == 0 && n_spots > 0) {
+        for (int k = 0; k < n_spots; k++)
+            fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, spots[k].path,
+                    spots[k].error);
+        if (n_spots == 1)
+            code = cli_error(&run, "%s: its only spot failed its fit (%s); no PSF map written",
+                             spots_path, spots[0].error);
+        else
+            code = cli_error(&run,
+                             "%s: all %d spots failed their fits (spot 0: %s; each spot's "
+                             "reason above); no PSF map written",
+                             spots_path, n_spots, spots[0].error);
+        goto cleanup;
+    }
+
     /* ---- the map ---- */
     cli_stage_begin(&run, "map");
     if (labels) {

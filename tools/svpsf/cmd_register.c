@@ -348,7 +348,17 @@ int cmd_register(int argc, char **argv)
     svp_status st = svp_register(reference, moving, &opt, &r);
     if (opt.method == SVP_REGISTER_ECC) cli_progress_done(&run);
     if (st != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
+        /* the library says "moving image ..." / "reference image ...": name the file; any
+         * other fault is the pair's */
+        const char *msg = svp_last_error();
+        if (strncmp(msg, "moving image", 12) == 0)
+            code = cli_fail(&run, st, moving_path);
+        else if (strncmp(msg, "reference image", 15) == 0)
+            code = cli_fail(&run, st, reference_path);
+        else {
+            cli_error(&run, "%s onto %s: %s", moving_path, reference_path, msg);
+            code = cli_exit_code(st);
+        }
         goto cleanup;
     }
 
