@@ -456,6 +456,21 @@ expect_ok corr_auto10 correct --field field_noisy.txt --pl pl_noisier.txt --psf 
     --method w --balance auto -o corr_auto10 --format txt $FAST
 expect_ok dec_auto_pl deconvolve pl_noisy.txt --psf moffat_periodic.yaml -o dec_auto_pl.txt \
     --method wiener --balance auto $FAST
+# a search that ends on a bound of [1e-12, 1e2] is warned about and recorded
+expect_ok dec_auto_lo deconvolve pl_noisy.txt --psf moffat_periodic.yaml -o dec_auto_lo.txt \
+    --method wiener --balance auto --noise 1e-20 $FAST
+expect_ok corr_auto_hi correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
+    --method w --balance auto --noise 10 -o corr_auto_hi --format txt $FAST
+if grep -q 'warning: --balance auto: .*pl_noisy.txt.*lower end' err.dec_auto_lo &&
+    grep -q '"balance_at_bound": "lower"' dec_auto_lo.summary.json &&
+    [ "$(grep -c 'warning: --balance auto: .*upper end' err.corr_auto_hi)" = 2 ] &&
+    grep -q '"balance_at_bound_pl": "upper"' corr_auto_hi/summary.json &&
+    grep -q '"balance_at_bound_field": "upper"' corr_auto_hi/summary.json &&
+    ! grep -q 'warning' err.corr_auto && ! grep -q 'at_bound' corr_auto/summary.json; then
+    pass "--balance auto on a bound of its search: warned and recorded (lower: deconvolve --noise 1e-20; upper: correct --noise 10); not inside"
+else
+    fail "--balance auto at a bound" "$(cat err.dec_auto_lo err.corr_auto_hi err.corr_auto)"
+fi
 lam=$(jnum corr_auto/summary.json balance_pl)
 lam_f=$(jnum corr_auto/summary.json balance_field)
 sig=$(jnum corr_auto/summary.json noise_sigma_pl)

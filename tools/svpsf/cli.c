@@ -264,6 +264,29 @@ int cli_parse_balance(const cli_run *run, const char *text, double *balance, int
     return 0;
 }
 
+const char *cli_balance_bound_check(const cli_run *run, const char *what, double balance,
+                                    double sigma)
+{
+    /* the bisection ends within a factor 1.002 of the crossing; 1.01 tells an end from that */
+    if (balance <= 1.01 * CLI_BALANCE_AUTO_MIN) {
+        cli_warn(run,
+                 "--balance auto: the balance for %s ended on the lower end of its search, "
+                 "%g: even that leaves more residual than noise sigma %g explains (sigma too "
+                 "small?); the result is barely regularised",
+                 what, balance, sigma);
+        return "lower";
+    }
+    if (balance >= CLI_BALANCE_AUTO_MAX / 1.01) {
+        cli_warn(run,
+                 "--balance auto: the balance for %s ended on the upper end of its search, "
+                 "%g: even that leaves less residual than noise sigma %g explains (sigma too "
+                 "large?); the result is smoothed more than the noise asks",
+                 what, balance, sigma);
+        return "upper";
+    }
+    return NULL;
+}
+
 int cli_parse_int(const cli_run *run, const char *option, const char *text, int min, int max,
                   int *out)
 {

@@ -196,6 +196,15 @@ int cli_parse_double_in(const cli_run *run, const char *option, const char *text
                         int lo_closed, double hi, int hi_closed, double *out);
 /* --balance L|auto (correct, deconvolve): *is_auto = 1 for "auto", else L >= 0 in *balance. */
 int cli_parse_balance(const cli_run *run, const char *text, double *balance, int *is_auto);
+/* --balance auto searches λ in [CLI_BALANCE_AUTO_MIN, CLI_BALANCE_AUTO_MAX] (the library's
+ * svp_wiener_balance_discrepancy interval). When the chosen λ is at an end (within the
+ * bisection's resolution), the search was cut short by its bound, not met by the noise:
+ * warns on stderr naming `what` (the image) and the noise σ, and returns "lower" or "upper"
+ * for summary.json; NULL when λ lies inside. */
+#define CLI_BALANCE_AUTO_MIN 1e-12
+#define CLI_BALANCE_AUTO_MAX 1e2
+const char *cli_balance_bound_check(const cli_run *run, const char *what, double balance,
+                                    double sigma);
 /* zero | mirror | periodic. */
 int cli_parse_boundary(const cli_run *run, const char *option, const char *text, svp_boundary *out);
 const char *cli_boundary_name(svp_boundary b);

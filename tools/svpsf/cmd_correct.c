@@ -253,6 +253,16 @@ int cmd_correct(int argc, char **argv)
             cli_result_num(&run, key, r->balance);
             snprintf(key, sizeof key, "noise_sigma_%s", name);
             cli_result_num(&run, key, r->noise_sigma);
+            char what[600];
+            if (k == 0)
+                snprintf(what, sizeof what, "the PL %s", maps.pl_path);
+            else
+                snprintf(what, sizeof what, "field x PL of %s", maps.field_paths[k - 1]);
+            const char *bound = cli_balance_bound_check(&run, what, r->balance, r->noise_sigma);
+            if (bound) {
+                snprintf(key, sizeof key, "balance_at_bound_%s", name);
+                cli_result_str(&run, key, bound);
+            }
             if (at < sizeof bal)
                 at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (noise sigma %g)",
                                        at ? "," : ", balance by the discrepancy principle:",

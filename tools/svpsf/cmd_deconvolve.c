@@ -245,6 +245,8 @@ int cmd_deconvolve(int argc, char **argv)
             cli_result_num(&run, "noise_sigma", sigma_used);
             cli_result_str(&run, "noise_sigma_from", noise > 0 ? "--noise" : "estimated");
             cli_result_num(&run, "balance", opt.balance);
+            const char *bound = cli_balance_bound_check(&run, in_path, opt.balance, sigma_used);
+            if (bound) cli_result_str(&run, "balance_at_bound", bound);
         }
         cli_stage_begin(&run, "deconvolve");
         opt.progress = cli_progress;
