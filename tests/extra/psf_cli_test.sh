@@ -159,6 +159,10 @@ grep -q "max 0.00000 um" "$T/c0.txt" && grep -q "relative rms difference 0.0000"
 "$S" psf-compare map/cut.yaml fit/spot.yaml --scene-size 24 >"$T/c1.txt" 2>&1
 awk '/relative rms difference/ {v=$9; sub(",", "", v); exit !(v > 0.01)}' "$T/c1.txt" \
     && ok "psf-compare: different PSFs change the corrected field" || bad "psf-compare different: $(cat "$T/c1.txt")"
+# --scene-size larger than the field: reduced to it, with a note
+"$S" psf-compare fit/spot.yaml fit/spot.yaml --size 32x32 --scene-size 64 >"$T/c2.txt" 2>"$T/c2e.txt" \
+    && grep -q "scene-size 64 is larger than the 32 x 32 field: the scene is 32 x 32" "$T/c2e.txt" \
+    && ok "psf-compare --scene-size 64 on a 32 x 32 field: noted" || bad "psf-compare scene-size note: $(cat "$T/c2e.txt")"
 expect_fail "compare: one map" 1 "two PSF maps" "$S" psf-compare map/cut.yaml
 expect_fail "compare: missing" 1 "nothere.yaml" "$S" psf-compare map/cut.yaml nothere.yaml
 printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >other_px.yaml

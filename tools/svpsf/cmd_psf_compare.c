@@ -31,8 +31,9 @@ static void print_help(const cli_run *run, FILE *out)
           "                        corrected_b.EXT and summary.json into DIR (default: print\n"
           "                        only)\n"
           "  --size WxH            the field size when both are uniform (default 256x256)\n"
-          "  --scene-size N        side of the reference scene, px (default 128, at most the\n"
-          "                        field)\n",
+          "  --scene-size N        side of the reference scene, px, 16..1024 (default 128;\n"
+          "                        at most the field: a larger N is reduced to it, with a\n"
+          "                        note)\n",
           out);
     cli_print_common_help(run, out);
 }
@@ -68,7 +69,7 @@ int cmd_psf_compare(int argc, char **argv)
         {"scene-size", required_argument, NULL, OPT_SCENE_SIZE},
         {NULL, 0, NULL, 0},
     };
-    int w = 0, h = 0, scene_n = 128, code = 0;
+    int w = 0, h = 0, scene_n = 128, scene_given = 0, code = 0;
     svp_psf_field *fa = NULL, *fb = NULL, *wa = NULL, *wb = NULL;
     svp_image *dfw = NULL, *dbe = NULL, *btrue = NULL, *pltrue = NULL, *plapp = NULL, *bapp = NULL,
               *plc = NULL, *bc_a = NULL, *bc_b = NULL;
@@ -89,6 +90,7 @@ int cmd_psf_compare(int argc, char **argv)
         case OPT_SCENE_SIZE:
             if (cli_parse_int(&run, "--scene-size", optarg, 16, 1024, &scene_n))
                 return cli_run_finish(&run, CLI_EXIT_USAGE);
+            scene_given = 1;
             break;
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
@@ -120,8 +122,13 @@ int cmd_psf_compare(int argc, char **argv)
         w = bw, h = bh;
     else if (!w)
         w = h = 256;
+    /* the scene is at most the field (as --help says); an explicit larger N is noted */
+    const int scene_asked = scene_n;
     if (scene_n > w) scene_n = w;
     if (scene_n > h) scene_n = h;
+    if (scene_given && scene_n < scene_asked)
+        cli_note(&run, "--scene-size %d is larger than the %d x %d field: the scene is %d x %d",
+                 scene_asked, w, h, scene_n, scene_n);
     const double um = ua;
     const char *out_dfw = NULL, *out_dbe = NULL, *png_dfw = NULL, *png_dbe = NULL, *out_ca = NULL,
                *out_cb = NULL, *out_sum = NULL;
