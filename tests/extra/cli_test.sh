@@ -336,6 +336,10 @@ expect_bad bad_method "--method|foo" correct --field Bz.txt --pl pl.txt --psf mo
 expect_bad missing_value "--pl|needs a value" forward --field Bz.txt --pl
 expect_bad missing_required "--psf|required" forward --field Bz.txt --pl pl.txt -o bad
 expect_bad even_size "--size|odd" psf moffat.yaml -o k.tif --size 4
+expect_bad big_size "--size|16387|16385" psf moffat.yaml -o k.tif --size 16387
+run help_psf_size psf --help
+grep -q -- "--size N .*1\.\.16385" out.help_psf_size && grep -q "default is at most 2049" out.help_psf_size &&
+    pass "psf --help states --size 1..16385 and the default's 2049 cap" || fail "psf --help --size" "$(grep -A4 -- --size out.help_psf_size)"
 run no_args
 [ "$(cat rc.no_args)" = 1 ] && grep -q usage err.no_args && pass "no command: usage on stderr, exit 1" || fail "no command" "exit $(cat rc.no_args)"
 

@@ -22,10 +22,11 @@ static void print_help(const cli_run *run, FILE *out)
           "\n"
           "  PSF.yaml              the PSF file\n"
           "  -o, --output KERNEL   the kernel image; .tif, .npy or .txt (required)\n"
-          "  --size N              odd kernel side in pixels (default: 2 ceil(support) + 1 when\n"
-          "                        the file sets a support; else the diameter holding 99 % of\n"
-          "                        the light, 2 ceil(r99) + 1; for beta <= 1, whose light over\n"
-          "                        the plane diverges, 2 ceil(10 FWHM) + 1; at most 2049)\n",
+          "  --size N              odd kernel side in pixels, 1..16385 (default: 2 ceil(support)\n"
+          "                        + 1 when the file sets a support; else the diameter holding\n"
+          "                        99 % of the light, 2 ceil(r99) + 1; for beta <= 1, whose\n"
+          "                        light over the plane diverges, 2 ceil(10 FWHM) + 1; the\n"
+          "                        default is at most 2049, a larger kernel needs --size)\n",
           out);
     cli_print_common_help(run, out);
 }
