@@ -38,6 +38,18 @@ static void print_help(const cli_run *run, FILE *out)
     cli_print_common_help(run, out);
 }
 
+/* Progress of one of several library calls as a share [lo, hi] of the whole job. */
+typedef struct progress_span {
+    cli_run *run;
+    double lo, hi;
+} progress_span;
+
+static int span_progress(void *user, double fraction)
+{
+    const progress_span *s = user;
+    return cli_progress(s->run, s->lo + (s->hi - s->lo) * fraction);
+}
+
 static int load(cli_run *run, const char *path, svp_psf_field **f, double *um)
 {
     svp_status st = svp_psf_field_read(path, f, um);
@@ -237,19 +249,28 @@ int cmd_psf_compare(int argc, char **argv)
         }
     svp_variant_options vo;
     svp_variant_defaults(&vo);
-    svp_correct_options co;
+    svp_correct_options co, cb;
     svp_correct_defaults(&co);
+    /* the two corrections are the long part: each reports half of the stage's progress */
+    progress_span half_a = {&run, 0.0, 0.5}, half_b = {&run, 0.5, 1.0};
+    cb = co;
+    co.deconv.progress = cb.deconv.progress = span_progress;
+    co.deconv.progress_user = &half_a;
+    cb.deconv.progress_user = &half_b;
+    cli_progress_start(&run, "reference scene");
     if ((st = svp_blur_new_field(wa, n, n, SVP_BOUNDARY_ZERO, &vo, &ha)) != SVP_OK ||
         (st = svp_blur_new_field(wb, n, n, SVP_BOUNDARY_ZERO, &vo, &hb)) != SVP_OK ||
         (st = svp_forward_transform(ha, pltrue, (const svp_image *const *)&btrue, 1, plapp, &bapp,
                                     NULL)) != SVP_OK ||
         (st = svp_inverse_transform(ha, plapp, (const svp_image *const *)&bapp, 1, &co, plc, &bc_a,
                                     NULL, NULL)) != SVP_OK ||
-        (st = svp_inverse_transform(hb, plapp, (const svp_image *const *)&bapp, 1, &co, plc, &bc_b,
+        (st = svp_inverse_transform(hb, plapp, (const svp_image *const *)&bapp, 1, &cb, plc, &bc_b,
                                     NULL, NULL)) != SVP_OK) {
+        cli_progress_done(&run);
         code = cli_fail(&run, st, "reference scene");
         goto cleanup;
     }
+    cli_progress_done(&run);
     double s_ab = 0, s_a = 0, s_at = 0, s_bt = 0, s_t = 0, m_ab = 0, m_t = 0;
     for (size_t i = 0; i < (size_t)n * n; i++) {
         double a = bc_a->data[i], b = bc_b->data[i], t = btrue->data[i];
