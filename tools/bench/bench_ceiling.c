@@ -14,6 +14,7 @@
  * relative max difference of the two iterates after the timed iterations (what single
  * precision costs in accuracy on this input). */
 #include "bench_common.h"
+#include "core/internal.h" /* svp_fft_good_size: the library's own frame sizes */
 
 #include <complex.h>
 #include <fftw3.h>
@@ -23,25 +24,13 @@
 #include <stdlib.h>
 #include <string.h>
 
-static int good_size(int n)
-{
-    for (int m = n;; m++) {
-        int r = m;
-        while (r % 2 == 0) r /= 2;
-        while (r % 3 == 0) r /= 3;
-        while (r % 5 == 0) r /= 5;
-        while (r % 7 == 0) r /= 7;
-        if (r == 1) return m;
-    }
-}
-
 /* The same probe for a real type R, its complex type C and FFTW prefix P. The transfer
  * function is a real, positive Moffat-like low-pass (β = 1.1, FWHM 6 px), so iterates stay
  * positive and finite; its exact shape does not change the time. */
 #define DEFINE_PROBE(NAME, R, C, P)                                                                  \
     static int NAME(int n, int reps, const double *y_in, double *x_out, double *best)             \
     {                                                                                              \
-        const int m = good_size(2 * n - 1), ncx = m / 2 + 1;                                       \
+        const int m = svp_fft_good_size(2 * n - 1), ncx = m / 2 + 1;                                       \
         R *fr = P##alloc_real((size_t)m * m);                                                      \
         C *sp = P##alloc_complex((size_t)m * ncx);                                                 \
         R *otf = P##alloc_real((size_t)m * ncx);                                                   \
