@@ -221,6 +221,12 @@ typedef struct svp_deconv_options {
     void *progress_user;
     int cg_max_steps;          /* zero-boundary Wiener: CG step cap; default 400 */
     svp_deconv_report *report; /* optional out (svp_deconv_wiener fills it); default NULL */
+    int single_precision;      /* RL with a space-invariant operator: 1 = its convolutions
+                                  transform in single precision (float FFTW), 1.4-2.4x faster,
+                                  results within about 1e-6 of the peak of double's; the
+                                  iteration itself stays double. 0 (default): double.
+                                  SVP_ERR_UNSUPPORTED with a space-variant operator. Wiener
+                                  ignores it. */
 } svp_deconv_options;
 
 SVP_API void svp_deconv_defaults(svp_deconv_options *options);

@@ -39,6 +39,11 @@ void svp_frame_crop(const svp_frame *f, const double *restrict frame, double *re
 /* Cᵀ: image → frame (zeros elsewhere); Eᵀ: frame → image (sums every copy of a pixel). */
 void svp_frame_embed(const svp_frame *f, const double *restrict image, double *restrict frame);
 void svp_frame_fold(const svp_frame *f, const double *restrict frame, double *restrict image);
+/* The same four between a double image and a float frame (the single-precision transforms). */
+void svp_frame_extend_f(const svp_frame *f, const double *restrict image, float *restrict frame);
+void svp_frame_crop_f(const svp_frame *f, const float *restrict frame, double *restrict image);
+void svp_frame_embed_f(const svp_frame *f, const double *restrict image, float *restrict frame);
+void svp_frame_fold_f(const svp_frame *f, const float *restrict frame, double *restrict image);
 /* spectrum *= otf (conj != 0: *= conj(otf)), scaled by `scale`. */
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale);
@@ -85,6 +90,14 @@ struct svp_blur {
     /* Periodic and mirror Wiener: the gain conj(P) / (|P|² + λ|L|²) for wiener_balance
      * (valid when wiener_gain_ok); mirror also its full-period frame with OTF and buffers. All
      * made on first use, freed with the operator. */
+    /* Single precision (svp_blur_set_single, invariant operators only): H and Hᵀ transform
+     * in float on the same frame (row-pruned like `pruned` in zero mode); the buffers and the
+     * OTF / (nx ny) in float are made on first use and kept. */
+    int single;
+    const svp_fftf_rows *rows_f;
+    float *work_rf;
+    fftwf_complex *work_cf;
+    fftwf_complex *otf_f;
     fftw_complex *wiener_gain;
     int wiener_gain_ok;
     svp_frame *wiener_frame;
@@ -98,6 +111,10 @@ struct svp_blur {
  * transform of b->work_c (destroyed), unscaled. H x = C K E x is spectrum_in(x, 0), multiply by
  * the OTF / (nx ny), spectrum_out(.., 0) (plus the halo). */
 void svp_blur_spectrum_in(svp_blur *b, const double *restrict image, int adjoint_side);
+/* Single-precision H and Hᵀ for invariant operators: on (1) makes the float plans, buffers and
+ * OTF if needed; off (0) returns to double (buffers kept). SVP_ERR_UNSUPPORTED for space-variant
+ * operators. Results agree with double to about 1e-6 of the largest value. */
+svp_status svp_blur_set_single(svp_blur *b, int on);
 void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
 
 /* Dispatch targets of svp_blur_apply / _adjoint / _free / _memory for kind != INVARIANT

@@ -124,61 +124,68 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
     return SVP_OK;
 }
 
-void svp_frame_extend(const svp_frame *f, const double *restrict image, double *restrict frame)
-{
-    const int nx = f->nx, w = f->width;
-    const int *sx = f->src_x, *sy = f->src_y;
-#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
-    for (int j = 0; j < f->ny; j++) {
-        double *out = frame + (size_t)j * nx;
-        if (sy[j] < 0) {
-            memset(out, 0, (size_t)nx * sizeof(double));
-            continue;
-        }
-        const double *in = image + (size_t)sy[j] * w;
-        for (int i = 0; i < nx; i++) out[i] = sx[i] >= 0 ? in[sx[i]] : 0.0;
+/* E, C, Cᵀ and Eᵀ between a double image and a frame of element type FT (double for the
+ * operator's own frames, float for its single-precision transforms). */
+#define SVP_FRAME_OPS(EXTEND, CROP, EMBED, FOLD, FT)                                                \
+    void EXTEND(const svp_frame *f, const double *restrict image, FT *restrict frame)             \
+    {                                                                                              \
+        const int nx = f->nx, w = f->width;                                                        \
+        const int *sx = f->src_x, *sy = f->src_y;                                                  \
+        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        for (int j = 0; j < f->ny; j++) {                                                          \
+            FT *out = frame + (size_t)j * nx;                                                      \
+            if (sy[j] < 0) {                                                                       \
+                memset(out, 0, (size_t)nx * sizeof(FT));                                           \
+                continue;                                                                          \
+            }                                                                                      \
+            const double *in = image + (size_t)sy[j] * w;                                          \
+            for (int i = 0; i < nx; i++) out[i] = sx[i] >= 0 ? (FT)in[sx[i]] : (FT)0;              \
+        }                                                                                          \
+    }                                                                                              \
+    void CROP(const svp_frame *f, const FT *restrict frame, double *restrict image)               \
+    {                                                                                              \
+        const int w = f->width;                                                                    \
+        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        for (int y = 0; y < f->height; y++) {                                                      \
+            const FT *in = frame + (size_t)(y + f->off_y) * f->nx + f->off_x;                      \
+            double *out = image + (size_t)y * w;                                                   \
+            for (int i = 0; i < w; i++) out[i] = (double)in[i];                                    \
+        }                                                                                          \
+    }                                                                                              \
+    void EMBED(const svp_frame *f, const double *restrict image, FT *restrict frame)              \
+    {                                                                                              \
+        const int w = f->width, nx = f->nx;                                                        \
+        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        for (int j = 0; j < f->ny; j++) {                                                          \
+            FT *out = frame + (size_t)j * nx;                                                      \
+            memset(out, 0, (size_t)nx * sizeof(FT));                                               \
+            int y = j - f->off_y;                                                                  \
+            if (y >= 0 && y < f->height) {                                                         \
+                const double *in = image + (size_t)y * w;                                          \
+                for (int i = 0; i < w; i++) out[f->off_x + i] = (FT)in[i];                         \
+            }                                                                                      \
+        }                                                                                          \
+    }                                                                                              \
+    void FOLD(const svp_frame *f, const FT *restrict frame, double *restrict image)               \
+    {                                                                                              \
+        const int w = f->width, h = f->height, nx = f->nx;                                         \
+        const int *sx = f->src_x, *sy = f->src_y;                                                  \
+        /* each image row gathers the frame rows that copy it, in frame order (deterministic) */   \
+        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        for (int y = 0; y < h; y++) {                                                              \
+            double *out = image + (size_t)y * w;                                                   \
+            memset(out, 0, (size_t)w * sizeof(double));                                            \
+            for (int j = 0; j < f->ny; j++) {                                                      \
+                if (sy[j] != y) continue;                                                          \
+                const FT *in = frame + (size_t)j * nx;                                             \
+                for (int i = 0; i < nx; i++)                                                       \
+                    if (sx[i] >= 0) out[sx[i]] += (double)in[i];                                   \
+            }                                                                                      \
+        }                                                                                          \
     }
-}
 
-void svp_frame_crop(const svp_frame *f, const double *restrict frame, double *restrict image)
-{
-    const int w = f->width;
-#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
-    for (int y = 0; y < f->height; y++)
-        memcpy(image + (size_t)y * w, frame + (size_t)(y + f->off_y) * f->nx + f->off_x,
-               (size_t)w * sizeof(double));
-}
-
-void svp_frame_embed(const svp_frame *f, const double *restrict image, double *restrict frame)
-{
-    const int w = f->width, nx = f->nx;
-#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
-    for (int j = 0; j < f->ny; j++) {
-        double *out = frame + (size_t)j * nx;
-        memset(out, 0, (size_t)nx * sizeof(double));
-        int y = j - f->off_y;
-        if (y >= 0 && y < f->height)
-            memcpy(out + f->off_x, image + (size_t)y * w, (size_t)w * sizeof(double));
-    }
-}
-
-void svp_frame_fold(const svp_frame *f, const double *restrict frame, double *restrict image)
-{
-    const int w = f->width, h = f->height, nx = f->nx;
-    const int *sx = f->src_x, *sy = f->src_y;
-    /* Each image row gathers the frame rows that copy it, in frame order (deterministic). */
-#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
-    for (int y = 0; y < h; y++) {
-        double *out = image + (size_t)y * w;
-        memset(out, 0, (size_t)w * sizeof(double));
-        for (int j = 0; j < f->ny; j++) {
-            if (sy[j] != y) continue;
-            const double *in = frame + (size_t)j * nx;
-            for (int i = 0; i < nx; i++)
-                if (sx[i] >= 0) out[sx[i]] += in[i];
-        }
-    }
-}
+SVP_FRAME_OPS(svp_frame_extend, svp_frame_crop, svp_frame_embed, svp_frame_fold, double)
+SVP_FRAME_OPS(svp_frame_extend_f, svp_frame_crop_f, svp_frame_embed_f, svp_frame_fold_f, float)
 
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale)
@@ -323,6 +330,9 @@ void svp_blur_free(svp_blur *b)
     }
     svp_free(b->wiener_work_r);
     svp_free(b->wiener_work_c);
+    svp_free(b->work_rf);
+    svp_free(b->work_cf);
+    svp_free(b->otf_f);
     free(b);
 }
 
@@ -418,10 +428,103 @@ void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side
         svp_frame_crop(f, b->work_r, image);
 }
 
+/* ---- single precision ---------------------------------------------------------------------- */
+
+svp_status svp_blur_set_single(svp_blur *b, int on)
+{
+    if (!b) return svp_fail(SVP_ERR_INVALID, "svp_blur_set_single: the operator is NULL");
+    if (!on) {
+        b->single = 0;
+        return SVP_OK;
+    }
+    if (b->kind != SVP_BLUR_INVARIANT)
+        return svp_fail(SVP_ERR_UNSUPPORTED, "single precision is available for space-invariant "
+                                             "operators only");
+    const svp_frame *f = &b->frame;
+    if (!b->rows_f) {
+        /* zero mode: only the image's rows are non-zero in, and kept out */
+        const int rows = b->boundary == SVP_BOUNDARY_ZERO ? f->height : f->ny;
+        const size_t nc = (size_t)f->ny * f->ncx;
+        float *r = svp_alloc((size_t)f->ny * f->nx * sizeof(float));
+        fftwf_complex *c = svp_alloc(nc * sizeof(fftwf_complex));
+        fftwf_complex *o = svp_alloc(nc * sizeof(fftwf_complex));
+        const svp_fftf_rows *plan = NULL;
+        svp_status st = (!r || !c || !o) ? svp_fail(SVP_ERR_NOMEM, "out of memory for the %d x "
+                                                                   "%d float frame", f->nx, f->ny)
+                                         : svp_fftf_rows_get(f->ny, f->nx, rows, &plan);
+        if (st != SVP_OK) {
+            svp_free(r);
+            svp_free(c);
+            svp_free(o);
+            return st;
+        }
+        const double scale = 1.0 / ((double)f->nx * f->ny);
+        const double *restrict od = (const double *)f->otf;
+        float *restrict of = (float *)o;
+        for (size_t i = 0; i < 2 * nc; i++) of[i] = (float)(scale * od[i]);
+        b->rows_f = plan;
+        b->work_rf = r;
+        b->work_cf = c;
+        b->otf_f = o;
+    }
+    b->single = 1;
+    return SVP_OK;
+}
+
+/* H (adjoint 0) or Hᵀ (1) of an invariant operator with float transforms: the image goes into
+ * the float frame as svp_blur_spectrum_in places it (zero padding, E or Cᵀ), and comes back
+ * as svp_blur_spectrum_out takes it (C or Eᵀ), converted on the way. */
+static void apply_single(svp_blur *b, const double *restrict in, double *restrict out,
+                         int adjoint)
+{
+    const svp_frame *f = &b->frame;
+    const svp_fftf_rows *p = b->rows_f;
+    float *restrict fr = b->work_rf;
+    if (b->boundary == SVP_BOUNDARY_ZERO) {
+        const int w = f->width, nx = f->nx;
+#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
+        for (int j = 0; j < p->rows; j++) {
+            float *row = fr + (size_t)j * nx;
+            if (j < f->height) {
+                const double *src = in + (size_t)j * w;
+                for (int i = 0; i < w; i++) row[i] = (float)src[i];
+                memset(row + w, 0, (size_t)(nx - w) * sizeof(float));
+            } else {
+                memset(row, 0, (size_t)nx * sizeof(float));
+            }
+        }
+    } else if (adjoint) {
+        svp_frame_embed_f(f, in, fr);
+    } else {
+        svp_frame_extend_f(f, in, fr);
+    }
+    svp_fftf_forward_rows(p, fr, b->work_cf);
+    const size_t n = (size_t)f->ny * f->ncx;
+    const float *restrict o = (const float *)b->otf_f;
+    float *restrict s = (float *)b->work_cf;
+    const float sign = adjoint ? -1.0f : 1.0f;
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
+    for (size_t i = 0; i < n; i++) {
+        const float pr = o[2 * i], pi = sign * o[2 * i + 1], sr = s[2 * i], si = s[2 * i + 1];
+        s[2 * i] = pr * sr - pi * si;
+        s[2 * i + 1] = pr * si + pi * sr;
+    }
+    svp_fftf_inverse_rows_unscaled(p, b->work_cf, fr);
+    if (adjoint && b->boundary != SVP_BOUNDARY_ZERO)
+        svp_frame_fold_f(f, fr, out);
+    else
+        svp_frame_crop_f(f, fr, out);
+}
+
 svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
 {
     SVP_CHECK(check_io(b, x, y, "svp_blur_apply"));
     if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_apply(b, x->data, y->data);
+    if (b->single) {
+        apply_single(b, x->data, y->data, 0);
+        add_halo(b, x->data, y->data);
+        return SVP_OK;
+    }
     svp_frame *f = &b->frame;
     svp_blur_spectrum_in(b, x->data, 0);
     svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
@@ -434,6 +537,11 @@ svp_status svp_blur_adjoint(svp_blur *b, const svp_image *y, svp_image *x)
 {
     SVP_CHECK(check_io(b, y, x, "svp_blur_adjoint"));
     if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_adjoint(b, y->data, x->data);
+    if (b->single) {
+        apply_single(b, y->data, x->data, 1);
+        add_halo(b, y->data, x->data);
+        return SVP_OK;
+    }
     svp_frame *f = &b->frame;
     svp_blur_spectrum_in(b, y->data, 1);
     svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));

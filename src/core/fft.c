@@ -23,7 +23,10 @@ typedef struct plan_entry {
 } plan_entry;
 static plan_entry *plan_cache;
 
-static void fft_init(void) { fft_threads_ok = fftw_init_threads() != 0; }
+static void fft_init(void)
+{
+    fft_threads_ok = fftw_init_threads() != 0 && fftwf_init_threads() != 0;
+}
 
 const char *svp_version(void) { return SVPSF_VERSION; }
 const char *svp_fftw_version(void) { return fftw_version; }
@@ -251,9 +254,101 @@ void svp_fft_inverse_pruned_unscaled(const svp_fft_pruned *p, fftw_complex *in, 
     fftw_execute_dft_c2r(p->rows_c2r, in, out);
 }
 
+typedef struct rowsf_entry {
+    svp_fftf_rows plan;
+    int threads;
+    struct rowsf_entry *next;
+} rowsf_entry;
+static rowsf_entry *rowsf_cache;
+
+static void rowsf_destroy(svp_fftf_rows *p)
+{
+    if (p->rows_r2c) fftwf_destroy_plan(p->rows_r2c);
+    if (p->cols_fwd) fftwf_destroy_plan(p->cols_fwd);
+    if (p->cols_bwd) fftwf_destroy_plan(p->cols_bwd);
+    if (p->rows_c2r) fftwf_destroy_plan(p->rows_c2r);
+}
+
+svp_status svp_fftf_rows_get(int ny, int nx, int rows, const svp_fftf_rows **out)
+{
+    if (ny < 1 || nx < 1 || rows < 1 || rows > ny)
+        return svp_fail(SVP_ERR_INVALID, "float FFT size %d x %d with %d rows", ny, nx, rows);
+    pthread_once(&fft_once, fft_init);
+    int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();
+    pthread_mutex_lock(&fft_lock);
+    for (rowsf_entry *e = rowsf_cache; e; e = e->next) {
+        if (e->plan.ny == ny && e->plan.nx == nx && e->plan.rows == rows && e->threads == threads) {
+            *out = &e->plan;
+            pthread_mutex_unlock(&fft_lock);
+            return SVP_OK;
+        }
+    }
+    svp_status status = SVP_OK;
+    int ncx = nx / 2 + 1;
+    float *r = svp_alloc((size_t)ny * nx * sizeof(float));
+    fftwf_complex *c = svp_alloc((size_t)ny * ncx * sizeof(fftwf_complex));
+    rowsf_entry *e = calloc(1, sizeof *e);
+    if (!r || !c || !e) {
+        status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d float FFT", ny, nx);
+        goto cleanup;
+    }
+    if (fft_threads_ok) fftwf_plan_with_nthreads(threads);
+    unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);
+    svp_fftf_rows *p = &e->plan;
+    p->ny = ny;
+    p->nx = nx;
+    p->ncx = ncx;
+    p->rows = rows;
+    e->threads = threads;
+    p->rows_r2c = fftwf_plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx, flags);
+    p->cols_fwd = fftwf_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,
+                                      FFTW_FORWARD, flags);
+    p->cols_bwd = fftwf_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,
+                                      FFTW_BACKWARD, flags);
+    p->rows_c2r = fftwf_plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx, flags);
+    if (!p->rows_r2c || !p->cols_fwd || !p->cols_bwd || !p->rows_c2r) {
+        rowsf_destroy(p);
+        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a float %d x %d transform", ny,
+                          nx);
+        goto cleanup;
+    }
+    e->next = rowsf_cache;
+    rowsf_cache = e;
+    *out = p;
+    e = NULL;
+cleanup:
+    pthread_mutex_unlock(&fft_lock);
+    free(e);
+    svp_free(r);
+    svp_free(c);
+    return status;
+}
+
+void svp_fftf_forward_rows(const svp_fftf_rows *p, float *in, fftwf_complex *out)
+{
+    fftwf_execute_dft_r2c(p->rows_r2c, in, out);
+    const int ny = p->ny, ncx = p->ncx;
+#pragma omp parallel for schedule(static) if ((size_t)(ny - p->rows) * ncx > SVP_PARALLEL_MIN)
+    for (int j = p->rows; j < ny; j++)
+        memset(out + (size_t)j * ncx, 0, (size_t)ncx * sizeof(fftwf_complex));
+    fftwf_execute_dft(p->cols_fwd, out, out);
+}
+
+void svp_fftf_inverse_rows_unscaled(const svp_fftf_rows *p, fftwf_complex *in, float *out)
+{
+    fftwf_execute_dft(p->cols_bwd, in, in);
+    fftwf_execute_dft_c2r(p->rows_c2r, in, out);
+}
+
 void svp_fft_cleanup(void)
 {
     pthread_mutex_lock(&fft_lock);
+    while (rowsf_cache) {
+        rowsf_entry *next = rowsf_cache->next;
+        rowsf_destroy(&rowsf_cache->plan);
+        free(rowsf_cache);
+        rowsf_cache = next;
+    }
     while (pruned_cache) {
         pruned_entry *next = pruned_cache->next;
         pruned_destroy(&pruned_cache->plan);

@@ -84,6 +84,19 @@ void svp_fft_forward_pruned(const svp_fft_pruned *p, double *in, fftw_complex *o
 /* Rows 0 .. rows − 1 of the unnormalised c2r of in (destroyed) into out; out's other rows are
  * left as they were. */
 void svp_fft_inverse_pruned_unscaled(const svp_fft_pruned *p, fftw_complex *in, double *out);
+/* Single precision (fftw3f), for the optional float transforms of Richardson–Lucy: the same
+ * row-then-column decomposition for every frame (rows = ny for a full transform, fewer for a
+ * zero-padded one), cached like the double plans. */
+typedef struct svp_fftf_rows {
+    int ny, nx, ncx, rows;
+    fftwf_plan rows_r2c, cols_fwd, cols_bwd, rows_c2r;
+} svp_fftf_rows;
+
+svp_status svp_fftf_rows_get(int ny, int nx, int rows, const svp_fftf_rows **out);
+/* out (ny x ncx) = r2c of in (only rows 0 .. rows − 1 read, the rest taken as zero). */
+void svp_fftf_forward_rows(const svp_fftf_rows *p, float *in, fftwf_complex *out);
+/* Rows 0 .. rows − 1 of the unnormalised c2r of in (destroyed) into out. */
+void svp_fftf_inverse_rows_unscaled(const svp_fftf_rows *p, fftwf_complex *in, float *out);
 /* Frees every cached plan (tests and tools at exit). */
 void svp_fft_cleanup(void);
 

@@ -39,6 +39,9 @@ svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_op
         options = &defaults;
     }
     SVP_CHECK(check_args(blur, y, options, x));
+    /* single precision: the operator's float transforms for this call only */
+    const int was_single = blur->single;
+    if (options->single_precision) SVP_CHECK(svp_blur_set_single(blur, 1));
     const int w = y->width, h = y->height;
     const size_t n = (size_t)w * h;
     const double *restrict yd = y->data;
@@ -138,6 +141,7 @@ svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_op
         if (st != SVP_OK) goto cleanup;
     }
 cleanup:
+    if (options->single_precision && !was_single) svp_blur_set_single(blur, 0);
     svp_free(y_masked);
     svp_free(blurred);
     svp_free(correction);

@@ -28,6 +28,7 @@ void svp_deconv_defaults(svp_deconv_options *o)
     o->progress_user = NULL;
     o->cg_max_steps = ZERO_CG_MAX;
     o->report = NULL;
+    o->single_precision = 0;
 }
 
 svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,

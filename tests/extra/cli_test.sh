@@ -135,8 +135,8 @@ check_help() {
     pass "$cmd --help (exit 0, describes $*)"
 }
 check_help forward --field --pl --psf --output --boundary --format --force --threads --fft --wisdom --quiet
-check_help correct --field --pl --psf --output --method --iterations --balance --noise --cg-max-steps --pl-floor --shift --boundary --format --force --threads --quiet
-check_help deconvolve --psf --output --method --balance --iterations --cg-max-steps --boundary --compat --format --force --quiet
+check_help correct --field --pl --psf --output --method --iterations --precision --balance --noise --cg-max-steps --pl-floor --shift --boundary --format --force --threads --quiet
+check_help deconvolve --psf --output --method --balance --iterations --precision --cg-max-steps --boundary --compat --format --force --quiet
 check_help psf --output --size --force --quiet
 check_help demo --output --format --force --threads --quiet
 run help_word help correct
@@ -197,6 +197,11 @@ expect_ok corr_r correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.
     --method rl-signed --iterations 500 -o corr_r --format txt $FAST
 # float32 TIFF inputs: 1e-7 relative rounding before the deconvolution
 check_close "T^-1(T(B)), signed RL 500 iterations, zero boundary, float32 TIFF: field" Bz.txt corr_r/field.txt 5e-3
+expect_ok corr_r32 correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
+    --method rl-signed --iterations 500 --precision single -o corr_r32 --format txt $FAST
+check_close "correct --precision single (500 iterations) agrees with double" corr_r/field.txt corr_r32/field.txt 1e-3
+expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
+    --psf moffat_periodic.yaml --method w --precision single -o corr_w32
 if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then
     pass "correct prints its result paragraph (missing, flagged, time)"
 else
@@ -233,6 +238,13 @@ check_close "deconvolve wiener recovers the PL" pl.txt dec/pl_w.txt 1e-4
 [ -s dec/pl_w.summary.json ] && pass "deconvolve writes OUT_STEM.summary.json" || fail "deconvolve summary" "$(ls dec)"
 expect_ok dec_rl deconvolve fwd_m/pl.npy --psf moffat.yaml --boundary mirror -o dec/pl_rl.txt --method rl --iterations 300 $FAST
 check_close "deconvolve rl (300 iterations, mirror) recovers the PL" pl.txt dec/pl_rl.txt 1e-2
+# single precision: the same 300 iterations with float transforms, within float round-off
+expect_ok dec_rl32 deconvolve fwd_m/pl.npy --psf moffat.yaml --boundary mirror -o dec/pl_rl32.txt --method rl --iterations 300 --precision single $FAST
+check_close "deconvolve rl --precision single agrees with double" dec/pl_rl.txt dec/pl_rl32.txt 2e-4
+grep -q '"precision": "single"' dec/pl_rl32.summary.json && pass "summary.json records the precision" ||
+    fail "precision in summary" "$(grep precision dec/pl_rl32.summary.json)"
+expect_bad dec_w32 "--precision single|--method rl" deconvolve fwd_p/pl.npy --psf moffat.yaml -o dec/w32.txt --method wiener --precision single
+expect_bad dec_prec_bad "--precision|half" deconvolve fwd_p/pl.npy --psf moffat.yaml -o dec/h.txt --method rl --precision half
 expect_ok psf_k19 psf moffat.yaml -o k19.txt
 expect_ok dec_sk deconvolve fwd_zp/field.txt --psf k19.txt -o dec/sk.txt --method wiener --compat skimage --balance 0.1
 if awk '{ for (i = 1; i <= NF; i++) if ($i < -1 || $i > 1) bad = 1 } END { exit bad }' dec/sk.txt; then
@@ -421,6 +433,9 @@ expect_bad map_to_dec "map_grid.yaml|PSF map|single PSF file|forward --psf" deco
     -o bad/x.txt --method rl $FAST
 expect_ok map_uniform_psf psf map_uniform.yaml --size 63 -o k63_uniform.txt
 check_close "psf on a PSF map of kind uniform = on the plain PSF file" k63.txt k63_uniform.txt 1e-12
+expect_bad map_single "map_grid.yaml|--precision single|space-variant" correct --field map_g/field.npy --pl map_g/pl.npy \
+    --psf map_grid.yaml --precision single -o bad_single $FAST
+[ -e bad_single ] && fail "refused --precision single" "left bad_single" || pass "refused --precision single writes nothing"
 expect_bad map_bad_nodes "--nodes|0x2|1..64" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 0x2 -o bad $FAST
 expect_bad map_bad_nodes_text "--nodes|4y4" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 4y4 -o bad $FAST
 expect_bad map_bad_rank "map_grid.yaml|low rank 9|2 x 2" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 2x2 --rank 9 -o bad $FAST

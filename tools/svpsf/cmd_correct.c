@@ -13,6 +13,7 @@ enum {
     OPT_SHIFT,
     OPT_NOISE,
     OPT_CG_MAX_STEPS,
+    OPT_PRECISION,
 };
 
 static const char *const method_names[] = {"rw", "r", "w", "rl-signed", NULL};
@@ -62,6 +63,10 @@ static void print_help(const cli_run *run, FILE *out)
             "                        w: Wiener-Hunt on both\n"
             "                        rl-signed: as r, named for what it does\n"
             "  --iterations N        Richardson-Lucy iterations (default %d)\n"
+            "  --precision double|single  the Richardson-Lucy convolutions of rw, r and\n"
+            "                        rl-signed in double (default) or single precision (float\n"
+            "                        FFTs: 1.4-2.4x faster, within about 1e-5 of the peak at\n"
+            "                        100 iterations); one PSF only, not a space-variant map\n"
             "  --balance L|auto      Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
             "                        (default %g); auto: each Wiener deconvolution (of the PL\n"
             "                        for w, of field x PL for rw and w) picks its own by the\n"
@@ -102,13 +107,15 @@ int cmd_correct(int argc, char **argv)
         {"shift", required_argument, NULL, OPT_SHIFT},
         {"noise", required_argument, NULL, OPT_NOISE},
         {"cg-max-steps", required_argument, NULL, OPT_CG_MAX_STEPS},
+        {"precision", required_argument, NULL, OPT_PRECISION},
         {NULL, 0, NULL, 0},
     };
     cli_maps maps;
     cli_maps_init(&maps);
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
-    int method = 0;
+    int method = 0, precision = 0;
+    static const char *const precisions[] = {"double", "single", NULL};
     svp_correct_options opt;
     svp_correct_defaults(&opt);
     svp_blur *blur = NULL;
@@ -143,6 +150,9 @@ int cmd_correct(int argc, char **argv)
             bad = cli_parse_double_in(&run, "--pl-floor", optarg, 0, 0, 1, 0, &opt.pl_floor);
             break;
         case OPT_SHIFT: bad = cli_parse_double(&run, "--shift", optarg, &opt.shift); break;
+        case OPT_PRECISION:
+            bad = cli_parse_choice(&run, "--precision", optarg, precisions, &precision);
+            break;
         default:
             bad = cli_maps_option(&run, &maps, c, optarg);
             if (bad < 0) bad = cli_error(&run, "internal: option %d", c);
@@ -155,6 +165,10 @@ int cmd_correct(int argc, char **argv)
                                                     "deconvolution (--method rw or w)"));
     if (opt.noise_sigma > 0 && !opt.balance_auto)
         return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance auto"));
+    if (precision == 1 && opt.method == SVP_METHOD_W)
+        return cli_run_finish(&run, cli_error(&run, "--precision single applies to Richardson-"
+                                                    "Lucy: not with --method w"));
+    opt.deconv.single_precision = precision == 1;
     if ((code = cli_maps_open(&run, &maps, &psf))) goto cleanup;
 
     const int w = maps.pl->width, h = maps.pl->height;
@@ -189,6 +203,7 @@ int cmd_correct(int argc, char **argv)
     }
     cli_setting_str(&run, "method", method_names[method]);
     cli_setting_int(&run, "iterations", opt.deconv.iterations);
+    cli_setting_str(&run, "precision", precisions[precision]);
     if (opt.balance_auto)
         cli_setting_str(&run, "balance", "auto (discrepancy principle)");
     else
@@ -200,6 +215,11 @@ int cmd_correct(int argc, char **argv)
 
     cli_stage_begin(&run, "plan");
     if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
+    if (precision == 1 && svp_blur_is_variant(blur)) {
+        code = cli_error(&run, "%s: --precision single needs one PSF; this is a space-variant PSF "
+                               "map", psf.path ? psf.path : "the PSF");
+        goto cleanup;
+    }
 
     cli_stage_begin(&run, "transform");
     svp_status st = svp_image_new(w, h, &pl_true);

@@ -16,6 +16,7 @@ enum {
     OPT_BOUNDARY,
     OPT_COMPAT,
     OPT_CG_MAX_STEPS,
+    OPT_PRECISION,
 };
 
 static void print_help(const cli_run *run, FILE *out)
@@ -44,6 +45,9 @@ static void print_help(const cli_run *run, FILE *out)
             "  --noise SIGMA         with --balance auto: the noise's standard deviation in\n"
             "                        IN's units (default: estimated from IN)\n"
             "  --iterations N        Richardson-Lucy iterations (default %d)\n"
+            "  --precision double|single  Richardson-Lucy's convolutions in double (default)\n"
+            "                        or single precision (float FFTs: 1.4-2.4x faster, the\n"
+            "                        result within about 1e-5 of the peak at 100 iterations)\n"
             "  --cg-max-steps N      step cap of the zero-boundary Wiener solve (conjugate\n"
             "                        gradients; default %d); a solve that stops there above\n"
             "                        its tolerance is warned about and recorded\n"
@@ -83,10 +87,13 @@ int cmd_deconvolve(int argc, char **argv)
         {"cg-max-steps", required_argument, NULL, OPT_CG_MAX_STEPS},
         {"boundary", required_argument, NULL, OPT_BOUNDARY},
         {"compat", required_argument, NULL, OPT_COMPAT},
+        {"precision", required_argument, NULL, OPT_PRECISION},
         {NULL, 0, NULL, 0},
     };
     static const char *const methods[] = {"wiener", "rl", NULL};
     static const char *const compats[] = {"skimage", NULL};
+    static const char *const precisions[] = {"double", "single", NULL};
+    int precision = 0;
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
     const char *psf_path = NULL;
@@ -109,6 +116,9 @@ int cmd_deconvolve(int argc, char **argv)
         case OPT_PSF: psf_path = optarg; break;
         case OPT_METHOD: bad = cli_parse_choice(&run, "--method", optarg, methods, &method); break;
         case OPT_COMPAT: bad = cli_parse_choice(&run, "--compat", optarg, compats, &compat); break;
+        case OPT_PRECISION:
+            bad = cli_parse_choice(&run, "--precision", optarg, precisions, &precision);
+            break;
         case OPT_ITERATIONS:
             bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.iterations);
             break;
@@ -145,6 +155,10 @@ int cmd_deconvolve(int argc, char **argv)
     if (noise > 0 && !balance_auto)
         return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance "
                                                     "auto"));
+    if (precision == 1 && (method != 1 || compat >= 0))
+        return cli_run_finish(&run, cli_error(&run, "--precision single is for --method rl "
+                                                    "without --compat"));
+    opt.single_precision = precision == 1;
     if (compat >= 0 && boundary_given)
         return cli_run_finish(&run, cli_error(&run, "--boundary cannot be used with --compat "
                                                     "skimage (it fixes the boundary handling)"));
@@ -184,6 +198,7 @@ int cmd_deconvolve(int argc, char **argv)
         cli_setting_num(&run, "balance", opt.balance);
     else
         cli_setting_int(&run, "iterations", opt.iterations);
+    if (method == 1 && compat < 0) cli_setting_str(&run, "precision", precisions[precision]);
     cli_setting_str(&run, "compat", compat >= 0 ? compats[compat] : "none");
     if (compat < 0) cli_setting_str(&run, "boundary", cli_boundary_name(boundary));
     long long n_missing = (long long)svp_image_count_nonfinite(in);
