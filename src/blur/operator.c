@@ -351,9 +351,13 @@ size_t svp_blur_memory(const svp_blur *b)
     if (b->wiener_frame)
         wiener += svp_frame_memory(wf) + (size_t)wf->ny * wf->nx * sizeof(double) +
                   (size_t)wf->ny * wf->ncx * sizeof(fftw_complex);
+    size_t single = 0; /* the float frame, spectrum and OTF, once used */
+    if (b->rows_f)
+        single = (size_t)b->frame.ny * b->frame.nx * sizeof(float) +
+                 2 * (size_t)b->frame.ny * b->frame.ncx * sizeof(fftwf_complex);
     return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
            (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
-           (size_t)b->kernel->width * b->kernel->height * sizeof(double) + wiener;
+           (size_t)b->kernel->width * b->kernel->height * sizeof(double) + wiener + single;
 }
 
 static svp_status check_io(const svp_blur *b, const svp_image *in, const svp_image *out,

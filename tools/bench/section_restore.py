@@ -43,10 +43,11 @@ def main():
         return run_json([exe, mode, "--size", str(size), "--threads", str(t), "--reps", str(r),
                          "--wisdom", wisdom])
 
-    results = {"rl": {}, "compat": {}, "skimage": {}, "inverse": {}, "ceiling": {}}
+    results = {"rl": {}, "rl32": {}, "compat": {}, "skimage": {}, "inverse": {}, "ceiling": {}}
     for size in rl_sizes:
         for t in threads:
             results["rl"][(size, t)] = bench("rl", size, t, reps[size])
+            results["rl32"][(size, t)] = bench("rl32", size, t, reps[size])
     for size in sk_sizes:
         for t in threads:
             results["compat"][(size, t)] = bench("skimage", size, t, 3 if not args.quick else 2)
@@ -202,6 +203,26 @@ def render(res, threads, rl_sizes, sk_sizes, inv_size, skimage_note, quick):
               f"{ms(r['r2c_s'])} | {ms(r['c2r_s'])} | {ms(r['bound_s'])} | {r['ratio']:.2f} | "
               f"{verdict(r['ratio'], TARGET_BOUND)} | {r['maxrss_mb']:.0f} |")
     w("")
+    single = [(k, v) for k, v in sorted(res["rl32"].items()) if ok(v)]
+    if single:
+        w("The same with `svp_deconv_options.single_precision` (`--precision single`): the "
+          "operator's transforms in float (fftw3f, the same pruned frame), the iteration in "
+          "double. Its bound is the float r2c + c2r pair of the full frame, timed the same way; "
+          "`vs double` is the time per iteration of the double run above divided by this one; "
+          "`difference` is max |single − double| / max |double| after k₂ iterations of the same "
+          "input (what single precision costs in accuracy; the tests bound it by 5·10⁻⁷ per "
+          "iteration).\n")
+        w("| N² | threads | RL single ms/iter | float r2c ms | float c2r ms | bound ms | ratio | "
+          "vs double | difference | k₂ | peak MB |")
+        w("|---|---|---|---|---|---|---|---|---|---|---|")
+        for (size, t), r in single:
+            d = res["rl"].get((size, t))
+            gain = d["iter_s"] / r["iter_s"] if ok(d) else None
+            w(f"| {size}² | {r['threads']} | {ms(r['iter_s'])} | {ms(r['r2c_s'])} | "
+              f"{ms(r['c2r_s'])} | {ms(r['bound_s'])} | {r['ratio']:.2f} | "
+              f"{f'{gain:.2f}×' if gain else '–'} | {r['single_rel_diff']:.1e} | {r['k2']} | "
+              f"{r['maxrss_mb']:.0f} |")
+        w("")
 
     # (b) scikit-image
     w("### Against scikit-image 0.19 `restoration.richardson_lucy`\n")
@@ -244,6 +265,25 @@ def render(res, threads, rl_sizes, sk_sizes, inv_size, skimage_note, quick):
                 w(f"| {size}² | {label} | {sk_cell} | {mem_cell} | {name} | {t} | "
                   f"{ms(r_s) if r_s else describe_error(r)} | {f'{up:.0f}×' if up else '–'} | "
                   f"{tgt} |")
+            if kernel == "full":
+                # single precision against scikit-image in single precision (float32 input);
+                # where that was not timed, against its double run, marked as mixed
+                sk32 = res["skimage"].get((size, "full32"))
+                peer = sk32 if ok(sk32) else sk
+                mixed = not ok(sk32)
+                p_s = peer["iter_s"] if ok(peer) else None
+                for t in threads:
+                    r = res["rl32"].get((size, t))
+                    r_s = r["iter_s"] if ok(r) else None
+                    if r_s is None:
+                        continue
+                    up = p_s / r_s if p_s else None
+                    tgt = verdict(up, TARGET_SKIMAGE, False) \
+                        if size == 1024 and not mixed else "–"
+                    peer_mem = f"{peer['maxrss_mb']:.0f}" if ok(peer) else "–"
+                    w(f"| {size}² | {label}, {'float64 (mixed)' if mixed else 'float32'} input | "
+                      f"{f'{p_s:.2f}' if p_s else '–'} | {peer_mem} | RL single | {t} | "
+                      f"{ms(r_s)} | {f'{up:.0f}×' if up else '–'} | {tgt} |")
     w("")
     render_ceiling(res, threads, sk_sizes, w)
     compat_rows = [(k, v) for k, v in res["compat"].items() if ok(v)]

@@ -4,6 +4,9 @@
  *       time per Richardson–Lucy iteration (svp_deconv_rl) with a full-frame Moffat PSF
  *       (support 0 = whole field of view, zero boundary), and the FFT bound measured in the
  *       same process with the operator's own cached plans: 2 × (one r2c + one c2r).
+ *   svpsf_bench rl32     --size N ...  the same with single-precision transforms
+ *       (svp_deconv_options.single_precision) against the float FFT bound (fftw3f, the same
+ *       frame), plus the relative max difference to the double result after k2 iterations
  *   svpsf_bench skimage  --size N ...  the same for the scikit-image compatibility mode
  *       (svp_skimage_richardson_lucy with the (2N−1)² kernel)
  *   svpsf_bench inverse  --size N ...  T⁻¹ (R&W, 75 RL iterations) on an N² map vs the FFT
@@ -30,6 +33,7 @@ typedef struct bench_args {
     int size, threads, reps;
     const char *wisdom, *out;
     int kernel_full; /* export: 1 = the operator's (2N−1)² kernel, 0 = the compat (N−1)² one */
+    int single;      /* rl32: single-precision transforms */
 } bench_args;
 
 static int fail(const char *what, svp_status st)
@@ -142,6 +146,51 @@ cleanup:
     return st;
 }
 
+/* The same in single precision: FFTW_MEASURE float plans of the full ny x nx frame, made on
+ * the first call and kept (one size per run). */
+static svp_status time_fftf(int ny, int nx, int reps, fft_times *out)
+{
+    static fftwf_plan r2c, c2r;
+    static int pny, pnx;
+    const size_t nr = (size_t)ny * nx, nc = (size_t)ny * (nx / 2 + 1);
+    float *src = svp_alloc(nr * sizeof(float)), *re = svp_alloc(nr * sizeof(float));
+    fftwf_complex *cx = svp_alloc(nc * sizeof(fftwf_complex));
+    double *t_r2c = malloc((size_t)reps * sizeof(double));
+    double *t_c2r = malloc((size_t)reps * sizeof(double));
+    svp_status st = SVP_OK;
+    if (!src || !re || !cx || !t_r2c || !t_c2r) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d float FFT benchmark", nx, ny);
+        goto cleanup;
+    }
+    if (!r2c || pny != ny || pnx != nx) {
+        fftwf_plan_with_nthreads(svp_get_threads());
+        r2c = fftwf_plan_dft_r2c_2d(ny, nx, re, cx, FFTW_MEASURE);
+        c2r = fftwf_plan_dft_c2r_2d(ny, nx, cx, re, FFTW_MEASURE);
+        pny = ny;
+        pnx = nx;
+    }
+    for (size_t i = 0; i < nr; i++) src[i] = (float)rng();
+    for (int r = 0; r < reps; r++) {
+        memcpy(re, src, nr * sizeof(float));
+        double t0 = bench_now();
+        fftwf_execute_dft_r2c(r2c, re, cx);
+        double t1 = bench_now();
+        fftwf_execute_dft_c2r(c2r, cx, re);
+        double t2 = bench_now();
+        t_r2c[r] = t1 - t0;
+        t_c2r[r] = t2 - t1;
+    }
+    out->r2c = bench_median(t_r2c, reps);
+    out->c2r = bench_median(t_c2r, reps);
+cleanup:
+    svp_free(src);
+    svp_free(re);
+    svp_free(cx);
+    free(t_r2c);
+    free(t_c2r);
+    return st;
+}
+
 /* ---- cases --------------------------------------------------------------------------------- */
 
 static void setup_library(const bench_args *a)
@@ -179,6 +228,7 @@ typedef svp_status (*rl_runner)(void *ctx, int iterations, svp_image *out);
 typedef struct rl_ctx {
     svp_blur *blur;
     const svp_image *data, *kernel;
+    int single;
 } rl_ctx;
 
 static svp_status run_library_rl(void *p, int iterations, svp_image *out)
@@ -187,6 +237,7 @@ static svp_status run_library_rl(void *p, int iterations, svp_image *out)
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.iterations = iterations;
+    o.single_precision = c->single;
     return svp_deconv_rl(c->blur, c->data, &o, out);
 }
 
@@ -227,7 +278,7 @@ static int bench_rl(const bench_args *a, int compat)
         rc = fail("svp_psf_render", st);
         goto cleanup;
     }
-    rl_ctx ctx = {blur, data, kernel};
+    rl_ctx ctx = {blur, data, kernel, a->single};
     rl_runner run = compat ? run_skimage_rl : run_library_rl;
     int k1, k2;
     iteration_pair(n, &k1, &k2);
@@ -252,7 +303,7 @@ static int bench_rl(const bench_args *a, int compat)
         }
         per_iter[r] = ((tc - tb) - (tb - ta)) / (k2 - k1);
         fft_times ft;
-        if ((st = time_fft(ny, nx, 5, &ft)) != SVP_OK) {
+        if ((st = (a->single ? time_fftf : time_fft)(ny, nx, 5, &ft)) != SVP_OK) {
             rc = fail("FFT timing", st);
             goto cleanup;
         }
@@ -261,6 +312,25 @@ static int bench_rl(const bench_args *a, int compat)
         ratio[r] = per_iter[r] / (2.0 * (ft.r2c + ft.c2r));
     }
     size_t nonfinite = svp_image_count_nonfinite(out);
+    /* single precision: what it costs in accuracy, the k2-iteration result against double's */
+    double single_diff = 0;
+    if (a->single) {
+        svp_image *ref = NULL;
+        rl_ctx dctx = ctx;
+        dctx.single = 0;
+        if ((st = svp_image_new(n, n, &ref)) != SVP_OK || (st = run(&dctx, k2, ref)) != SVP_OK) {
+            svp_image_free(ref);
+            rc = fail("double reference", st);
+            goto cleanup;
+        }
+        double dmax = 0, rmax = 0;
+        for (size_t i = 0; i < (size_t)n * n; i++) {
+            dmax = fmax(dmax, fabs(out->data[i] - ref->data[i]));
+            rmax = fmax(rmax, fabs(ref->data[i]));
+        }
+        single_diff = dmax / rmax;
+        svp_image_free(ref);
+    }
     fft_times ft = {bench_median(t_r2c, a->reps), bench_median(t_c2r, a->reps)};
     double iter_s = bench_median(per_iter, a->reps);
     double bound_s = 2.0 * (ft.r2c + ft.c2r);
@@ -269,10 +339,10 @@ static int bench_rl(const bench_args *a, int compat)
            "\"kernel\": %d, "
            "\"k1\": %d, \"k2\": %d, \"iter_s\": %.6g, \"r2c_s\": %.6g, \"c2r_s\": %.6g, "
            "\"bound_s\": %.6g, \"ratio\": %.4g, \"setup_s\": %.4g, \"operator_mb\": %.1f, "
-           "\"nonfinite\": %zu, \"maxrss_mb\": %.1f}\n",
-           compat ? "skimage_compat" : "rl", n, svp_get_threads(), a->reps, nx, ny,
+           "\"nonfinite\": %zu, \"single_rel_diff\": %.3g, \"maxrss_mb\": %.1f}\n",
+           compat ? "skimage_compat" : a->single ? "rl_single" : "rl", n, svp_get_threads(), a->reps, nx, ny,
            kernel ? kernel->width : 2 * n - 1, k1, k2, iter_s, ft.r2c, ft.c2r, bound_s, ratio_s,
-           setup_s, svp_blur_memory(blur) / 1048576.0, nonfinite, bench_maxrss_mb());
+           setup_s, svp_blur_memory(blur) / 1048576.0, nonfinite, single_diff, bench_maxrss_mb());
 cleanup:
     svp_blur_free(blur);
     svp_image_free(pl);
@@ -507,14 +577,14 @@ cleanup:
 
 static int usage(void)
 {
-    fprintf(stderr, "usage: svpsf_bench rl|skimage|inverse|export --size N [--threads T] "
+    fprintf(stderr, "usage: svpsf_bench rl|rl32|skimage|inverse|export --size N [--threads T] "
                     "[--reps R] [--wisdom FILE] [--out DIR] [--kernel full|image]\n");
     return 2;
 }
 
 int main(int argc, char **argv)
 {
-    bench_args a = {NULL, 512, 1, 5, NULL, ".", 1};
+    bench_args a = {NULL, 512, 1, 5, NULL, ".", 1, 0};
     if (argc < 2) return usage();
     a.mode = argv[1];
     for (int i = 2; i < argc; i++) {
@@ -538,6 +608,10 @@ int main(int argc, char **argv)
     }
     if (a.size < 8 || a.threads < 1 || a.reps < 1) return usage();
     if (!strcmp(a.mode, "rl")) return bench_rl(&a, 0);
+    if (!strcmp(a.mode, "rl32")) {
+        a.single = 1;
+        return bench_rl(&a, 0);
+    }
     if (!strcmp(a.mode, "skimage")) return bench_rl(&a, 1);
     if (!strcmp(a.mode, "inverse")) return bench_inverse(&a);
     if (!strcmp(a.mode, "export")) return bench_export(&a);
