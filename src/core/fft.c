@@ -4,6 +4,7 @@
 #include <errno.h>
 #include <omp.h>
 #include <pthread.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -62,23 +63,69 @@ svp_fft_effort svp_get_fft_effort(void)
     return e;
 }
 
+/* A wisdom file holds FFTW's double-precision wisdom and, after it, the single-precision one
+ * (each an s-expression starting "(fftw-<version> fftw_wisdom" / "fftwf_wisdom"); files with
+ * the double part only (older ones) load as before. */
 svp_status svp_fft_wisdom_load(const char *path)
 {
     pthread_once(&fft_once, fft_init);
+    FILE *fp = fopen(path, "rb");
+    if (!fp) return svp_fail(SVP_ERR_IO, "%s: cannot read FFTW wisdom: %s", path, strerror(errno));
+    char *text = NULL;
+    long size = -1;
+    if (fseek(fp, 0, SEEK_END) == 0) size = ftell(fp);
+    if (size >= 0 && fseek(fp, 0, SEEK_SET) == 0) text = malloc((size_t)size + 1);
+    size_t got = text ? fread(text, 1, (size_t)size, fp) : 0;
+    fclose(fp);
+    if (!text || got != (size_t)size) {
+        free(text);
+        return svp_fail(SVP_ERR_IO, "%s: cannot read FFTW wisdom", path);
+    }
+    text[got] = '\0';
+    /* the single-precision part starts at the "(" before " fftwf_wisdom" */
+    char *single = strstr(text, " fftwf_wisdom");
+    while (single && single > text && *single != '(') single--;
+    if (single && *single != '(') single = NULL;
+    int has_double = 0;
+    for (const char *c = text; c < (single ? single : text + got); c++)
+        if (*c == '(') has_double = 1;
+    int ok = 1;
     pthread_mutex_lock(&fft_lock);
-    int ok = fftw_import_wisdom_from_filename(path);
+    if (single) {
+        char keep = *single;
+        *single = '\0';
+        if (has_double) ok = fftw_import_wisdom_from_string(text);
+        *single = keep;
+        ok = ok && fftwf_import_wisdom_from_string(single);
+    } else {
+        ok = fftw_import_wisdom_from_string(text);
+    }
     pthread_mutex_unlock(&fft_lock);
-    if (!ok) return svp_fail(SVP_ERR_IO, "%s: cannot read FFTW wisdom", path);
+    free(text);
+    if (!ok) return svp_fail(SVP_ERR_IO, "%s: not an FFTW wisdom file of this FFTW", path);
     return SVP_OK;
 }
 
 svp_status svp_fft_wisdom_save(const char *path)
 {
+    pthread_once(&fft_once, fft_init);
     pthread_mutex_lock(&fft_lock);
-    int ok = fftw_export_wisdom_to_filename(path);
+    char *d = fftw_export_wisdom_to_string();
+    char *f = fftwf_export_wisdom_to_string();
     pthread_mutex_unlock(&fft_lock);
-    if (!ok) return svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path, strerror(errno));
-    return SVP_OK;
+    svp_status st = SVP_OK;
+    FILE *fp = d && f ? fopen(path, "wb") : NULL;
+    if (!fp) {
+        st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path,
+                      d && f ? strerror(errno) : "out of memory");
+    } else {
+        int bad = fputs(d, fp) < 0 || fputs(f, fp) < 0;
+        if (fclose(fp) != 0 || bad)
+            st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path, strerror(errno));
+    }
+    if (d) fftw_free(d);
+    if (f) fftwf_free(f);
+    return st;
 }
 
 int svp_fft_good_size(int n)

@@ -286,6 +286,15 @@ done
 expect_ok wisdom forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis --wisdom wisdom.dat --fft measure
 [ -s wisdom.dat ] && pass "--wisdom saves FFTW wisdom" || fail "--wisdom" "wisdom.dat not written"
 expect_ok wisdom2 forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis2 --wisdom wisdom.dat --fft measure
+# both precisions in one wisdom file: the float plans of --precision single are kept too, and
+# the file loads again (also into a double-only run)
+expect_ok wisdom32 deconvolve fwd_m/pl.npy --psf moffat.yaml -o dec/w32a.txt --method rl --iterations 3 \
+    --precision single --wisdom wisdom2.dat --fft measure
+grep -q " fftw_wisdom" wisdom2.dat && grep -q " fftwf_wisdom" wisdom2.dat &&
+    pass "--wisdom keeps double and single-precision wisdom" || fail "--wisdom single" "$(head -c 200 wisdom2.dat)"
+expect_ok wisdom32b deconvolve fwd_m/pl.npy --psf moffat.yaml -o dec/w32b.txt --method rl --iterations 3 \
+    --precision single --wisdom wisdom2.dat --fft measure
+expect_ok wisdom32c forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_wis4 --wisdom wisdom2.dat --fft measure
 # a wisdom file that could not be saved is refused before any work: no output, no folder
 expect_bad wisdom_no_dir "--wisdom|nodir/w.dat|nodir|does not exist" forward --field Bz.txt --pl pl.txt \
     --psf moffat.yaml -o fwd_wis3 --wisdom nodir/w.dat $FAST
