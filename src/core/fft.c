@@ -210,182 +210,103 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
     fftw_execute_dft_c2r(plan->c2r, in, out);
 }
 
-typedef struct pruned_entry {
-    svp_fft_pruned plan;
-    int threads;
-    struct pruned_entry *next;
-} pruned_entry;
-static pruned_entry *pruned_cache;
-
-static void pruned_destroy(svp_fft_pruned *p)
-{
-    if (p->rows_r2c) fftw_destroy_plan(p->rows_r2c);
-    if (p->cols_fwd) fftw_destroy_plan(p->cols_fwd);
-    if (p->cols_bwd) fftw_destroy_plan(p->cols_bwd);
-    if (p->rows_c2r) fftw_destroy_plan(p->rows_c2r);
-}
-
-svp_status svp_fft_pruned_get(int ny, int nx, int rows, const svp_fft_pruned **out)
-{
-    if (ny < 1 || nx < 1 || rows < 1 || rows > ny)
-        return svp_fail(SVP_ERR_INVALID, "pruned FFT size %d x %d with %d rows", ny, nx, rows);
-    pthread_once(&fft_once, fft_init);
-    int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();
-    pthread_mutex_lock(&fft_lock);
-    for (pruned_entry *e = pruned_cache; e; e = e->next) {
-        if (e->plan.ny == ny && e->plan.nx == nx && e->plan.rows == rows && e->threads == threads) {
-            *out = &e->plan;
-            pthread_mutex_unlock(&fft_lock);
-            return SVP_OK;
-        }
+/* Row-then-column plans (svp_fft_pruned, svp_fftf_rows): one template for both precisions. T
+ * the plan struct, R / C its real and complex types, P the FFTW prefix (fftw_ or fftwf_). */
+#define SVP_ROWS_PLANS(T, ENTRY, CACHE, DESTROY, GET, FORWARD, INVERSE, R, C, P, WHAT)              \
+    typedef struct ENTRY {                                                                         \
+        T plan;                                                                                    \
+        int threads;                                                                               \
+        struct ENTRY *next;                                                                        \
+    } ENTRY;                                                                                       \
+    static ENTRY *CACHE;                                                                           \
+                                                                                                   \
+    static void DESTROY(T *p)                                                                      \
+    {                                                                                              \
+        if (p->rows_r2c) P##destroy_plan(p->rows_r2c);                                             \
+        if (p->cols_fwd) P##destroy_plan(p->cols_fwd);                                             \
+        if (p->cols_bwd) P##destroy_plan(p->cols_bwd);                                             \
+        if (p->rows_c2r) P##destroy_plan(p->rows_c2r);                                             \
+    }                                                                                              \
+                                                                                                   \
+    svp_status GET(int ny, int nx, int rows, const T **out)                                        \
+    {                                                                                              \
+        if (ny < 1 || nx < 1 || rows < 1 || rows > ny)                                             \
+            return svp_fail(SVP_ERR_INVALID, WHAT " FFT size %d x %d with %d rows", ny, nx, rows); \
+        pthread_once(&fft_once, fft_init);                                                         \
+        int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();                  \
+        pthread_mutex_lock(&fft_lock);                                                             \
+        for (ENTRY *e = CACHE; e; e = e->next) {                                                   \
+            if (e->plan.ny == ny && e->plan.nx == nx && e->plan.rows == rows &&                    \
+                e->threads == threads) {                                                           \
+                *out = &e->plan;                                                                   \
+                pthread_mutex_unlock(&fft_lock);                                                   \
+                return SVP_OK;                                                                     \
+            }                                                                                      \
+        }                                                                                          \
+        svp_status status = SVP_OK;                                                                \
+        int ncx = nx / 2 + 1;                                                                      \
+        R *r = svp_alloc((size_t)ny * nx * sizeof(R));                                             \
+        C *c = svp_alloc((size_t)ny * ncx * sizeof(C));                                            \
+        ENTRY *e = calloc(1, sizeof *e);                                                           \
+        if (!r || !c || !e) {                                                                      \
+            status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d " WHAT " FFT", ny, \
+                              nx);                                                                 \
+            goto cleanup;                                                                          \
+        }                                                                                          \
+        if (fft_threads_ok) P##plan_with_nthreads(threads);                                        \
+        unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);           \
+        T *p = &e->plan;                                                                           \
+        p->ny = ny;                                                                                \
+        p->nx = nx;                                                                                \
+        p->ncx = ncx;                                                                              \
+        p->rows = rows;                                                                            \
+        e->threads = threads;                                                                      \
+        p->rows_r2c = P##plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx, flags);  \
+        p->cols_fwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,              \
+                                       FFTW_FORWARD, flags);                                       \
+        p->cols_bwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,              \
+                                       FFTW_BACKWARD, flags);                                      \
+        p->rows_c2r = P##plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx, flags);  \
+        if (!p->rows_r2c || !p->cols_fwd || !p->cols_bwd || !p->rows_c2r) {                        \
+            DESTROY(p);                                                                            \
+            status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a " WHAT " %d x %d "          \
+                              "transform", ny, nx);                                                \
+            goto cleanup;                                                                          \
+        }                                                                                          \
+        e->next = CACHE;                                                                           \
+        CACHE = e;                                                                                 \
+        *out = p;                                                                                  \
+        e = NULL;                                                                                  \
+    cleanup:                                                                                       \
+        pthread_mutex_unlock(&fft_lock);                                                           \
+        free(e);                                                                                   \
+        svp_free(r);                                                                               \
+        svp_free(c);                                                                               \
+        return status;                                                                             \
+    }                                                                                              \
+                                                                                                   \
+    void FORWARD(const T *p, R *in, C *out)                                                        \
+    {                                                                                              \
+        P##execute_dft_r2c(p->rows_r2c, in, out);                                                  \
+        const int ny = p->ny, ncx = p->ncx;                                                        \
+        _Pragma("omp parallel for schedule(static) if ((size_t)(ny - p->rows) * ncx > SVP_PARALLEL_MIN)") \
+        for (int j = p->rows; j < ny; j++)                                                         \
+            memset(out + (size_t)j * ncx, 0, (size_t)ncx * sizeof(C));                             \
+        P##execute_dft(p->cols_fwd, out, out);                                                     \
+    }                                                                                              \
+                                                                                                   \
+    void INVERSE(const T *p, C *in, R *out)                                                        \
+    {                                                                                              \
+        P##execute_dft(p->cols_bwd, in, in);                                                       \
+        P##execute_dft_c2r(p->rows_c2r, in, out);                                                  \
     }
-    svp_status status = SVP_OK;
-    int ncx = nx / 2 + 1;
-    double *r = svp_alloc((size_t)ny * nx * sizeof(double));
-    fftw_complex *c = svp_alloc((size_t)ny * ncx * sizeof(fftw_complex));
-    pruned_entry *e = calloc(1, sizeof *e);
-    if (!r || !c || !e) {
-        status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d FFT", ny, nx);
-        goto cleanup;
-    }
-    if (fft_threads_ok) fftw_plan_with_nthreads(threads);
-    unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);
-    svp_fft_pruned *p = &e->plan;
-    p->ny = ny;
-    p->nx = nx;
-    p->ncx = ncx;
-    p->rows = rows;
-    e->threads = threads;
-    p->rows_r2c = fftw_plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx, flags);
-    p->cols_fwd = fftw_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1, FFTW_FORWARD,
-                                     flags);
-    p->cols_bwd = fftw_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,
-                                     FFTW_BACKWARD, flags);
-    p->rows_c2r = fftw_plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx, flags);
-    if (!p->rows_r2c || !p->cols_fwd || !p->cols_bwd || !p->rows_c2r) {
-        pruned_destroy(p);
-        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a pruned %d x %d transform", ny,
-                          nx);
-        goto cleanup;
-    }
-    e->next = pruned_cache;
-    pruned_cache = e;
-    *out = p;
-    e = NULL;
-cleanup:
-    pthread_mutex_unlock(&fft_lock);
-    free(e);
-    svp_free(r);
-    svp_free(c);
-    return status;
-}
 
-void svp_fft_forward_pruned(const svp_fft_pruned *p, double *in, fftw_complex *out)
-{
-    fftw_execute_dft_r2c(p->rows_r2c, in, out);
-    const size_t start = (size_t)p->rows * p->ncx, n = (size_t)p->ny * p->ncx - start;
-    if (n > SVP_PARALLEL_MIN) {
-        const int ny = p->ny, ncx = p->ncx;
-#pragma omp parallel for schedule(static)
-        for (int j = p->rows; j < ny; j++)
-            memset(out + (size_t)j * ncx, 0, (size_t)ncx * sizeof(fftw_complex));
-    } else {
-        memset(out + start, 0, n * sizeof(fftw_complex));
-    }
-    fftw_execute_dft(p->cols_fwd, out, out);
-}
-
-void svp_fft_inverse_pruned_unscaled(const svp_fft_pruned *p, fftw_complex *in, double *out)
-{
-    fftw_execute_dft(p->cols_bwd, in, in);
-    fftw_execute_dft_c2r(p->rows_c2r, in, out);
-}
-
-typedef struct rowsf_entry {
-    svp_fftf_rows plan;
-    int threads;
-    struct rowsf_entry *next;
-} rowsf_entry;
-static rowsf_entry *rowsf_cache;
-
-static void rowsf_destroy(svp_fftf_rows *p)
-{
-    if (p->rows_r2c) fftwf_destroy_plan(p->rows_r2c);
-    if (p->cols_fwd) fftwf_destroy_plan(p->cols_fwd);
-    if (p->cols_bwd) fftwf_destroy_plan(p->cols_bwd);
-    if (p->rows_c2r) fftwf_destroy_plan(p->rows_c2r);
-}
-
-svp_status svp_fftf_rows_get(int ny, int nx, int rows, const svp_fftf_rows **out)
-{
-    if (ny < 1 || nx < 1 || rows < 1 || rows > ny)
-        return svp_fail(SVP_ERR_INVALID, "float FFT size %d x %d with %d rows", ny, nx, rows);
-    pthread_once(&fft_once, fft_init);
-    int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();
-    pthread_mutex_lock(&fft_lock);
-    for (rowsf_entry *e = rowsf_cache; e; e = e->next) {
-        if (e->plan.ny == ny && e->plan.nx == nx && e->plan.rows == rows && e->threads == threads) {
-            *out = &e->plan;
-            pthread_mutex_unlock(&fft_lock);
-            return SVP_OK;
-        }
-    }
-    svp_status status = SVP_OK;
-    int ncx = nx / 2 + 1;
-    float *r = svp_alloc((size_t)ny * nx * sizeof(float));
-    fftwf_complex *c = svp_alloc((size_t)ny * ncx * sizeof(fftwf_complex));
-    rowsf_entry *e = calloc(1, sizeof *e);
-    if (!r || !c || !e) {
-        status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d float FFT", ny, nx);
-        goto cleanup;
-    }
-    if (fft_threads_ok) fftwf_plan_with_nthreads(threads);
-    unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);
-    svp_fftf_rows *p = &e->plan;
-    p->ny = ny;
-    p->nx = nx;
-    p->ncx = ncx;
-    p->rows = rows;
-    e->threads = threads;
-    p->rows_r2c = fftwf_plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx, flags);
-    p->cols_fwd = fftwf_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,
-                                      FFTW_FORWARD, flags);
-    p->cols_bwd = fftwf_plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,
-                                      FFTW_BACKWARD, flags);
-    p->rows_c2r = fftwf_plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx, flags);
-    if (!p->rows_r2c || !p->cols_fwd || !p->cols_bwd || !p->rows_c2r) {
-        rowsf_destroy(p);
-        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a float %d x %d transform", ny,
-                          nx);
-        goto cleanup;
-    }
-    e->next = rowsf_cache;
-    rowsf_cache = e;
-    *out = p;
-    e = NULL;
-cleanup:
-    pthread_mutex_unlock(&fft_lock);
-    free(e);
-    svp_free(r);
-    svp_free(c);
-    return status;
-}
-
-void svp_fftf_forward_rows(const svp_fftf_rows *p, float *in, fftwf_complex *out)
-{
-    fftwf_execute_dft_r2c(p->rows_r2c, in, out);
-    const int ny = p->ny, ncx = p->ncx;
-#pragma omp parallel for schedule(static) if ((size_t)(ny - p->rows) * ncx > SVP_PARALLEL_MIN)
-    for (int j = p->rows; j < ny; j++)
-        memset(out + (size_t)j * ncx, 0, (size_t)ncx * sizeof(fftwf_complex));
-    fftwf_execute_dft(p->cols_fwd, out, out);
-}
-
-void svp_fftf_inverse_rows_unscaled(const svp_fftf_rows *p, fftwf_complex *in, float *out)
-{
-    fftwf_execute_dft(p->cols_bwd, in, in);
-    fftwf_execute_dft_c2r(p->rows_c2r, in, out);
-}
+SVP_ROWS_PLANS(svp_fft_pruned, pruned_entry, pruned_cache, pruned_destroy, svp_fft_pruned_get,
+               svp_fft_forward_pruned, svp_fft_inverse_pruned_unscaled, double, fftw_complex,
+               fftw_, "pruned")
+SVP_ROWS_PLANS(svp_fftf_rows, rowsf_entry, rowsf_cache, rowsf_destroy, svp_fftf_rows_get,
+               svp_fftf_forward_rows, svp_fftf_inverse_rows_unscaled, float, fftwf_complex,
+               fftwf_, "float")
 
 void svp_fft_cleanup(void)
 {

@@ -108,15 +108,19 @@ typedef struct fft_times {
     double r2c, c2r; /* medians, seconds */
 } fft_times;
 
-/* One r2c and one c2r of the cached plan for ny x nx, timed separately; the input is refilled
- * (untimed) before each run so the unnormalised round trips never grow. */
-static svp_status time_fft(int ny, int nx, int reps, fft_times *out)
+/* One r2c and one c2r of the full ny x nx frame, timed separately; the input is refilled
+ * (untimed) before each run so the unnormalised round trips never grow. Double: the library's
+ * cached plan (the operator's own). Single: FFTW_MEASURE float plans made on the first call and
+ * kept (one size per run). */
+static svp_status time_fft_precision(int ny, int nx, int reps, int single, fft_times *out)
 {
+    static fftwf_plan r2c_f, c2r_f;
+    static int pny, pnx;
     const svp_fft_plan *plan = NULL;
-    SVP_CHECK(svp_fft_plan_get(ny, nx, &plan));
+    if (!single) SVP_CHECK(svp_fft_plan_get(ny, nx, &plan));
     const size_t nr = (size_t)ny * nx, nc = (size_t)ny * (nx / 2 + 1);
-    double *src = svp_alloc(nr * sizeof(double)), *re = svp_alloc(nr * sizeof(double));
-    fftw_complex *cx = svp_alloc(nc * sizeof(fftw_complex));
+    const size_t real = single ? sizeof(float) : sizeof(double);
+    void *src = svp_alloc(nr * real), *re = svp_alloc(nr * real), *cx = svp_alloc(nc * 2 * real);
     double *t_r2c = malloc((size_t)reps * sizeof(double));
     double *t_c2r = malloc((size_t)reps * sizeof(double));
     svp_status st = SVP_OK;
@@ -124,13 +128,31 @@ static svp_status time_fft(int ny, int nx, int reps, fft_times *out)
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d FFT benchmark", nx, ny);
         goto cleanup;
     }
-    for (size_t i = 0; i < nr; i++) src[i] = rng();
+    if (single && (!r2c_f || pny != ny || pnx != nx)) {
+        fftwf_plan_with_nthreads(svp_get_threads());
+        r2c_f = fftwf_plan_dft_r2c_2d(ny, nx, re, cx, FFTW_MEASURE);
+        c2r_f = fftwf_plan_dft_c2r_2d(ny, nx, cx, re, FFTW_MEASURE);
+        pny = ny;
+        pnx = nx;
+    }
+    for (size_t i = 0; i < nr; i++) {
+        if (single)
+            ((float *)src)[i] = (float)rng();
+        else
+            ((double *)src)[i] = rng();
+    }
     for (int r = 0; r < reps; r++) {
-        memcpy(re, src, nr * sizeof(double));
+        memcpy(re, src, nr * real);
         double t0 = bench_now();
-        svp_fft_forward(plan, re, cx);
+        if (single)
+            fftwf_execute_dft_r2c(r2c_f, re, cx);
+        else
+            svp_fft_forward(plan, re, cx);
         double t1 = bench_now();
-        svp_fft_inverse_unscaled(plan, cx, re);
+        if (single)
+            fftwf_execute_dft_c2r(c2r_f, cx, re);
+        else
+            svp_fft_inverse_unscaled(plan, cx, re);
         double t2 = bench_now();
         t_r2c[r] = t1 - t0;
         t_c2r[r] = t2 - t1;
@@ -146,49 +168,9 @@ cleanup:
     return st;
 }
 
-/* The same in single precision: FFTW_MEASURE float plans of the full ny x nx frame, made on
- * the first call and kept (one size per run). */
-static svp_status time_fftf(int ny, int nx, int reps, fft_times *out)
+static svp_status time_fft(int ny, int nx, int reps, fft_times *out)
 {
-    static fftwf_plan r2c, c2r;
-    static int pny, pnx;
-    const size_t nr = (size_t)ny * nx, nc = (size_t)ny * (nx / 2 + 1);
-    float *src = svp_alloc(nr * sizeof(float)), *re = svp_alloc(nr * sizeof(float));
-    fftwf_complex *cx = svp_alloc(nc * sizeof(fftwf_complex));
-    double *t_r2c = malloc((size_t)reps * sizeof(double));
-    double *t_c2r = malloc((size_t)reps * sizeof(double));
-    svp_status st = SVP_OK;
-    if (!src || !re || !cx || !t_r2c || !t_c2r) {
-        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d float FFT benchmark", nx, ny);
-        goto cleanup;
-    }
-    if (!r2c || pny != ny || pnx != nx) {
-        fftwf_plan_with_nthreads(svp_get_threads());
-        r2c = fftwf_plan_dft_r2c_2d(ny, nx, re, cx, FFTW_MEASURE);
-        c2r = fftwf_plan_dft_c2r_2d(ny, nx, cx, re, FFTW_MEASURE);
-        pny = ny;
-        pnx = nx;
-    }
-    for (size_t i = 0; i < nr; i++) src[i] = (float)rng();
-    for (int r = 0; r < reps; r++) {
-        memcpy(re, src, nr * sizeof(float));
-        double t0 = bench_now();
-        fftwf_execute_dft_r2c(r2c, re, cx);
-        double t1 = bench_now();
-        fftwf_execute_dft_c2r(c2r, cx, re);
-        double t2 = bench_now();
-        t_r2c[r] = t1 - t0;
-        t_c2r[r] = t2 - t1;
-    }
-    out->r2c = bench_median(t_r2c, reps);
-    out->c2r = bench_median(t_c2r, reps);
-cleanup:
-    svp_free(src);
-    svp_free(re);
-    svp_free(cx);
-    free(t_r2c);
-    free(t_c2r);
-    return st;
+    return time_fft_precision(ny, nx, reps, 0, out);
 }
 
 /* ---- cases --------------------------------------------------------------------------------- */
@@ -303,7 +285,7 @@ static int bench_rl(const bench_args *a, int compat)
         }
         per_iter[r] = ((tc - tb) - (tb - ta)) / (k2 - k1);
         fft_times ft;
-        if ((st = (a->single ? time_fftf : time_fft)(ny, nx, 5, &ft)) != SVP_OK) {
+        if ((st = time_fft_precision(ny, nx, 5, a->single, &ft)) != SVP_OK) {
             rc = fail("FFT timing", st);
             goto cleanup;
         }
