@@ -44,6 +44,9 @@ def main():
                          "--wisdom", wisdom])
 
     results = {"rl": {}, "rl32": {}, "compat": {}, "skimage": {}, "inverse": {}, "ceiling": {}}
+    # one untimed run first: the first process of a run was measured up to 2.5x slow (page
+    # cache, clocks, the wisdom file), which would land on whichever case comes first
+    bench("rl", rl_sizes[0], threads[0], 1)
     for size in rl_sizes:
         for t in threads:
             results["rl"][(size, t)] = bench("rl", size, t, reps[size])
