@@ -124,14 +124,19 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
     return SVP_OK;
 }
 
+/* Frame-sized loops run in parallel above SVP_PARALLEL_MIN values. */
+#define SVP_FRAME_BIG(f) ((size_t)(f)->nx * (f)->ny > SVP_PARALLEL_MIN)
+
+/* _Pragma inside a macro is beyond clang-format: this block is laid out by hand */
+/* clang-format off */
 /* E, C, Cᵀ and Eᵀ between a double image and a frame of element type FT (double for the
  * operator's own frames, float for its single-precision transforms). */
-#define SVP_FRAME_OPS(EXTEND, CROP, EMBED, FOLD, FT)                                                \
-    void EXTEND(const svp_frame *f, const double *restrict image, FT *restrict frame)             \
+#define SVP_FRAME_OPS(EXTEND, CROP, EMBED, FOLD, FT)                                               \
+    void EXTEND(const svp_frame *f, const double *restrict image, FT *restrict frame)              \
     {                                                                                              \
         const int nx = f->nx, w = f->width;                                                        \
         const int *sx = f->src_x, *sy = f->src_y;                                                  \
-        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        _Pragma("omp parallel for schedule(static) if (SVP_FRAME_BIG(f))")                         \
         for (int j = 0; j < f->ny; j++) {                                                          \
             FT *out = frame + (size_t)j * nx;                                                      \
             if (sy[j] < 0) {                                                                       \
@@ -142,20 +147,20 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
             for (int i = 0; i < nx; i++) out[i] = sx[i] >= 0 ? (FT)in[sx[i]] : (FT)0;              \
         }                                                                                          \
     }                                                                                              \
-    void CROP(const svp_frame *f, const FT *restrict frame, double *restrict image)               \
+    void CROP(const svp_frame *f, const FT *restrict frame, double *restrict image)                \
     {                                                                                              \
         const int w = f->width;                                                                    \
-        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        _Pragma("omp parallel for schedule(static) if (SVP_FRAME_BIG(f))")                         \
         for (int y = 0; y < f->height; y++) {                                                      \
             const FT *in = frame + (size_t)(y + f->off_y) * f->nx + f->off_x;                      \
             double *out = image + (size_t)y * w;                                                   \
             for (int i = 0; i < w; i++) out[i] = (double)in[i];                                    \
         }                                                                                          \
     }                                                                                              \
-    void EMBED(const svp_frame *f, const double *restrict image, FT *restrict frame)              \
+    void EMBED(const svp_frame *f, const double *restrict image, FT *restrict frame)               \
     {                                                                                              \
         const int w = f->width, nx = f->nx;                                                        \
-        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        _Pragma("omp parallel for schedule(static) if (SVP_FRAME_BIG(f))")                         \
         for (int j = 0; j < f->ny; j++) {                                                          \
             FT *out = frame + (size_t)j * nx;                                                      \
             memset(out, 0, (size_t)nx * sizeof(FT));                                               \
@@ -166,12 +171,12 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
             }                                                                                      \
         }                                                                                          \
     }                                                                                              \
-    void FOLD(const svp_frame *f, const FT *restrict frame, double *restrict image)               \
+    void FOLD(const svp_frame *f, const FT *restrict frame, double *restrict image)                \
     {                                                                                              \
         const int w = f->width, h = f->height, nx = f->nx;                                         \
         const int *sx = f->src_x, *sy = f->src_y;                                                  \
         /* each image row gathers the frame rows that copy it, in frame order (deterministic) */   \
-        _Pragma("omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)") \
+        _Pragma("omp parallel for schedule(static) if (SVP_FRAME_BIG(f))")                         \
         for (int y = 0; y < h; y++) {                                                              \
             double *out = image + (size_t)y * w;                                                   \
             memset(out, 0, (size_t)w * sizeof(double));                                            \
@@ -186,6 +191,7 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
 
 SVP_FRAME_OPS(svp_frame_extend, svp_frame_crop, svp_frame_embed, svp_frame_fold, double)
 SVP_FRAME_OPS(svp_frame_extend_f, svp_frame_crop_f, svp_frame_embed_f, svp_frame_fold_f, float)
+/* clang-format on */
 
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale)
@@ -219,7 +225,8 @@ static svp_status blur_finish(svp_blur *b, svp_blur **out)
     if (st == SVP_OK) {
         b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
         b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
-        if (!b->work_r || !b->work_c) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+        if (!b->work_r || !b->work_c)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
     }
     if (st != SVP_OK) {
         svp_blur_free(b);
@@ -276,8 +283,8 @@ svp_status svp_blur_new(const svp_psf *psf, int width, int height, svp_boundary 
     return blur_finish(b, out);
 }
 
-svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int normalise,
-                               int width, int height, svp_boundary boundary, svp_blur **out)
+svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int normalise, int width,
+                               int height, svp_boundary boundary, svp_blur **out)
 {
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new_kernel: out is NULL");
     *out = NULL;
@@ -288,8 +295,8 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
         cy = kernel->height / 2;
     }
     if (cx < 0 || cy < 0 || cx >= kernel->width || cy >= kernel->height)
-        return svp_fail(SVP_ERR_INVALID, "kernel centre (%d, %d) is outside the %d x %d kernel",
-                        cx, cy, kernel->width, kernel->height);
+        return svp_fail(SVP_ERR_INVALID, "kernel centre (%d, %d) is outside the %d x %d kernel", cx,
+                        cy, kernel->width, kernel->height);
     size_t n = (size_t)kernel->width * kernel->height;
     if (svp_image_count_nonfinite(kernel))
         return svp_fail(SVP_ERR_INVALID, "kernel has NaN or Inf values");
@@ -453,8 +460,10 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
         fftwf_complex *c = svp_alloc(nc * sizeof(fftwf_complex));
         fftwf_complex *o = svp_alloc(nc * sizeof(fftwf_complex));
         const svp_fftf_rows *plan = NULL;
-        svp_status st = (!r || !c || !o) ? svp_fail(SVP_ERR_NOMEM, "out of memory for the %d x "
-                                                                   "%d float frame", f->nx, f->ny)
+        svp_status st = (!r || !c || !o) ? svp_fail(SVP_ERR_NOMEM,
+                                                    "out of memory for the %d x "
+                                                    "%d float frame",
+                                                    f->nx, f->ny)
                                          : svp_fftf_rows_get(f->ny, f->nx, rows, &plan);
         if (st != SVP_OK) {
             svp_free(r);
@@ -478,8 +487,7 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
 /* H (adjoint 0) or Hᵀ (1) of an invariant operator with float transforms: the image goes into
  * the float frame as svp_blur_spectrum_in places it (zero padding, E or Cᵀ), and comes back
  * as svp_blur_spectrum_out takes it (C or Eᵀ), converted on the way. */
-static void apply_single(svp_blur *b, const double *restrict in, double *restrict out,
-                         int adjoint)
+static void apply_single(svp_blur *b, const double *restrict in, double *restrict out, int adjoint)
 {
     const svp_frame *f = &b->frame;
     const svp_fftf_rows *p = b->rows_f;

@@ -210,9 +210,11 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
     fftw_execute_dft_c2r(plan->c2r, in, out);
 }
 
+/* _Pragma inside a macro is beyond clang-format: this block is laid out by hand */
+/* clang-format off */
 /* Row-then-column plans (svp_fft_pruned, svp_fftf_rows): one template for both precisions. T
  * the plan struct, R / C its real and complex types, P the FFTW prefix (fftw_ or fftwf_). */
-#define SVP_ROWS_PLANS(T, ENTRY, CACHE, DESTROY, GET, FORWARD, INVERSE, R, C, P, WHAT)              \
+#define SVP_ROWS_PLANS(T, ENTRY, CACHE, DESTROY, GET, FORWARD, INVERSE, R, C, P, WHAT)             \
     typedef struct ENTRY {                                                                         \
         T plan;                                                                                    \
         int threads;                                                                               \
@@ -249,7 +251,7 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
         C *c = svp_alloc((size_t)ny * ncx * sizeof(C));                                            \
         ENTRY *e = calloc(1, sizeof *e);                                                           \
         if (!r || !c || !e) {                                                                      \
-            status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d " WHAT " FFT", ny, \
+            status = svp_fail(SVP_ERR_NOMEM, "out of memory planning a %d x %d " WHAT " FFT", ny,  \
                               nx);                                                                 \
             goto cleanup;                                                                          \
         }                                                                                          \
@@ -289,7 +291,8 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
     {                                                                                              \
         P##execute_dft_r2c(p->rows_r2c, in, out);                                                  \
         const int ny = p->ny, ncx = p->ncx;                                                        \
-        _Pragma("omp parallel for schedule(static) if ((size_t)(ny - p->rows) * ncx > SVP_PARALLEL_MIN)") \
+        const int big = (size_t)(ny - p->rows) * ncx > SVP_PARALLEL_MIN;                           \
+        _Pragma("omp parallel for schedule(static) if (big)")                                      \
         for (int j = p->rows; j < ny; j++)                                                         \
             memset(out + (size_t)j * ncx, 0, (size_t)ncx * sizeof(C));                             \
         P##execute_dft(p->cols_fwd, out, out);                                                     \
@@ -307,6 +310,7 @@ SVP_ROWS_PLANS(svp_fft_pruned, pruned_entry, pruned_cache, pruned_destroy, svp_f
 SVP_ROWS_PLANS(svp_fftf_rows, rowsf_entry, rowsf_cache, rowsf_destroy, svp_fftf_rows_get,
                svp_fftf_forward_rows, svp_fftf_inverse_rows_unscaled, float, fftwf_complex,
                fftwf_, "float")
+/* clang-format on */
 
 void svp_fft_cleanup(void)
 {

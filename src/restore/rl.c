@@ -16,8 +16,8 @@
 /* Pointwise loops run in parallel only above this many pixels (below, threads cost more). */
 #define PAR_MIN 32768
 
-static svp_status check_args(const svp_blur *blur, const svp_image *y,
-                             const svp_deconv_options *o, const svp_image *x)
+static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp_deconv_options *o,
+                             const svp_image *x)
 {
     const char *what = "Richardson–Lucy";
     SVP_CHECK(svp_deconv_check_images(blur, y, x, what));
@@ -73,8 +73,10 @@ svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_op
         }
     }
     if (n_finite == 0) {
-        st = svp_fail(SVP_ERR_INVALID, "Richardson–Lucy: all %zu pixels of the data y are NaN "
-                                       "or Inf", n);
+        st = svp_fail(SVP_ERR_INVALID,
+                      "Richardson–Lucy: all %zu pixels of the data y are NaN "
+                      "or Inf",
+                      n);
         goto cleanup;
     }
     if (y_min < 0) {

@@ -322,9 +322,12 @@ static int bench_rl(const bench_args *a, int compat)
            "\"k1\": %d, \"k2\": %d, \"iter_s\": %.6g, \"r2c_s\": %.6g, \"c2r_s\": %.6g, "
            "\"bound_s\": %.6g, \"ratio\": %.4g, \"setup_s\": %.4g, \"operator_mb\": %.1f, "
            "\"nonfinite\": %zu, \"single_rel_diff\": %.3g, \"maxrss_mb\": %.1f}\n",
-           compat ? "skimage_compat" : a->single ? "rl_single" : "rl", n, svp_get_threads(), a->reps, nx, ny,
-           kernel ? kernel->width : 2 * n - 1, k1, k2, iter_s, ft.r2c, ft.c2r, bound_s, ratio_s,
-           setup_s, svp_blur_memory(blur) / 1048576.0, nonfinite, single_diff, bench_maxrss_mb());
+           compat      ? "skimage_compat"
+           : a->single ? "rl_single"
+                       : "rl",
+           n, svp_get_threads(), a->reps, nx, ny, kernel ? kernel->width : 2 * n - 1, k1, k2,
+           iter_s, ft.r2c, ft.c2r, bound_s, ratio_s, setup_s, svp_blur_memory(blur) / 1048576.0,
+           nonfinite, single_diff, bench_maxrss_mb());
 cleanup:
     svp_blur_free(blur);
     svp_image_free(pl);
