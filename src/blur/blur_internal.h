@@ -44,6 +44,17 @@ void svp_frame_extend_f(const svp_frame *f, const double *restrict image, float 
 void svp_frame_crop_f(const svp_frame *f, const float *restrict frame, double *restrict image);
 void svp_frame_embed_f(const svp_frame *f, const double *restrict image, float *restrict frame);
 void svp_frame_fold_f(const svp_frame *f, const float *restrict frame, double *restrict image);
+/* Zero mode's load (E = Cᵀ there): frame rows 0 .. height − 1 = the image rows zero-padded to
+ * nx, rows height .. rows − 1 zero, rows beyond `rows` untouched. */
+void svp_frame_zero_load(const svp_frame *f, int rows, const double *restrict image,
+                         double *restrict frame);
+void svp_frame_zero_load_f(const svp_frame *f, int rows, const double *restrict image,
+                           float *restrict frame);
+/* s *= scale · otf (conjugate: scale · conj(otf)) on n interleaved complex values, in place. */
+void svp_spectrum_product(const double *restrict otf, double *restrict s, size_t n, int conjugate,
+                          double scale);
+void svp_spectrum_product_f(const float *restrict otf, float *restrict s, size_t n, int conjugate,
+                            float scale);
 /* spectrum *= otf (conj != 0: *= conj(otf)), scaled by `scale`. */
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale);

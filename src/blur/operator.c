@@ -130,8 +130,12 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
 /* _Pragma inside a macro is beyond clang-format: this block is laid out by hand */
 /* clang-format off */
 /* E, C, Cᵀ and Eᵀ between a double image and a frame of element type FT (double for the
- * operator's own frames, float for its single-precision transforms). */
-#define SVP_FRAME_OPS(EXTEND, CROP, EMBED, FOLD, FT)                                               \
+ * operator's own frames, float for its single-precision transforms); the zero-boundary load
+ * (rows 0 .. height − 1 = the image rows zero-padded to nx, rows height .. rows − 1 zero);
+ * and the in-place spectral product s *= scale · otf (conj(otf) when conjugate), written out
+ * in real arithmetic: C99 complex products carry a NaN fix-up branch (__muldc3) that keeps
+ * the loop from vectorising. */
+#define SVP_FRAME_OPS(EXTEND, CROP, EMBED, FOLD, ZERO_LOAD, PRODUCT, FT)                           \
     void EXTEND(const svp_frame *f, const double *restrict image, FT *restrict frame)              \
     {                                                                                              \
         const int nx = f->nx, w = f->width;                                                        \
@@ -187,28 +191,45 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
                     if (sx[i] >= 0) out[sx[i]] += (double)in[i];                                   \
             }                                                                                      \
         }                                                                                          \
+    }                                                                                              \
+    void ZERO_LOAD(const svp_frame *f, int rows, const double *restrict image, FT *restrict frame) \
+    {                                                                                              \
+        const int w = f->width, nx = f->nx;                                                        \
+        _Pragma("omp parallel for schedule(static) if (SVP_FRAME_BIG(f))")                         \
+        for (int j = 0; j < rows; j++) {                                                           \
+            FT *out = frame + (size_t)j * nx;                                                      \
+            if (j < f->height) {                                                                   \
+                const double *in = image + (size_t)j * w;                                          \
+                for (int i = 0; i < w; i++) out[i] = (FT)in[i];                                    \
+                memset(out + w, 0, (size_t)(nx - w) * sizeof(FT));                                 \
+            } else {                                                                               \
+                memset(out, 0, (size_t)nx * sizeof(FT));                                           \
+            }                                                                                      \
+        }                                                                                          \
+    }                                                                                              \
+    void PRODUCT(const FT *restrict otf, FT *restrict s, size_t n, int conjugate, FT scale)        \
+    {                                                                                              \
+        const FT sign = conjugate ? (FT)-1 : (FT)1;                                                \
+        _Pragma("omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)")                 \
+        for (size_t i = 0; i < n; i++) {                                                           \
+            const FT pr = scale * otf[2 * i], pi = sign * scale * otf[2 * i + 1];                  \
+            const FT sr = s[2 * i], si = s[2 * i + 1];                                             \
+            s[2 * i] = pr * sr - pi * si;                                                          \
+            s[2 * i + 1] = pr * si + pi * sr;                                                      \
+        }                                                                                          \
     }
 
-SVP_FRAME_OPS(svp_frame_extend, svp_frame_crop, svp_frame_embed, svp_frame_fold, double)
-SVP_FRAME_OPS(svp_frame_extend_f, svp_frame_crop_f, svp_frame_embed_f, svp_frame_fold_f, float)
+SVP_FRAME_OPS(svp_frame_extend, svp_frame_crop, svp_frame_embed, svp_frame_fold, svp_frame_zero_load,
+              svp_spectrum_product, double)
+SVP_FRAME_OPS(svp_frame_extend_f, svp_frame_crop_f, svp_frame_embed_f, svp_frame_fold_f,
+              svp_frame_zero_load_f, svp_spectrum_product_f, float)
 /* clang-format on */
 
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale)
 {
-    /* Written out in real arithmetic: C99 complex products carry a NaN fix-up branch
-     * (__muldc3) that keeps the loop from vectorising. */
-    const size_t n = (size_t)f->ny * f->ncx;
-    const double *restrict o = (const double *)f->otf;
-    double *restrict s = (double *)spectrum;
-    const double sign = conjugate ? -1.0 : 1.0;
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
-    for (size_t i = 0; i < n; i++) {
-        const double pr = scale * o[2 * i], pi = sign * scale * o[2 * i + 1];
-        const double sr = s[2 * i], si = s[2 * i + 1];
-        s[2 * i] = pr * sr - pi * si;
-        s[2 * i + 1] = pr * si + pi * sr;
-    }
+    svp_spectrum_product((const double *)f->otf, (double *)spectrum, (size_t)f->ny * f->ncx,
+                         conjugate, scale);
 }
 
 /* ---- the operator ------------------------------------------------------------------------ */
@@ -392,29 +413,13 @@ static void add_halo(const svp_blur *b, const double *in, double *out)
     for (size_t i = 0; i < n; i++) out[i] = keep * out[i] + add;
 }
 
-/* Zero mode: rows 0 .. height − 1 of the frame = the image rows, zero-padded to nx. With the
- * pruned transform the other rows are never read; without it they are zeroed here. */
-static void zero_load(const svp_blur *b, const double *restrict image, double *restrict frame)
-{
-    const svp_frame *f = &b->frame;
-    const int w = f->width, nx = f->nx, rows = b->pruned ? f->height : f->ny;
-#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
-    for (int j = 0; j < rows; j++) {
-        double *out = frame + (size_t)j * nx;
-        if (j < f->height) {
-            memcpy(out, image + (size_t)j * w, (size_t)w * sizeof(double));
-            memset(out + w, 0, (size_t)(nx - w) * sizeof(double));
-        } else {
-            memset(out, 0, (size_t)nx * sizeof(double));
-        }
-    }
-}
-
 void svp_blur_spectrum_in(svp_blur *b, const double *restrict image, int adjoint_side)
 {
     const svp_frame *f = &b->frame;
     if (b->boundary == SVP_BOUNDARY_ZERO)
-        zero_load(b, image, b->work_r); /* E and Cᵀ coincide: src = identity, off = 0 */
+        /* E and Cᵀ coincide (src = identity, off = 0); with the pruned transform the rows
+         * below the image are never read, without it they are zeroed */
+        svp_frame_zero_load(f, b->pruned ? f->height : f->ny, image, b->work_r);
     else if (adjoint_side)
         svp_frame_embed(f, image, b->work_r);
     else
@@ -492,35 +497,15 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
     const svp_frame *f = &b->frame;
     const svp_fftf_rows *p = b->rows_f;
     float *restrict fr = b->work_rf;
-    if (b->boundary == SVP_BOUNDARY_ZERO) {
-        const int w = f->width, nx = f->nx;
-#pragma omp parallel for schedule(static) if ((size_t)f->nx * f->ny > SVP_PARALLEL_MIN)
-        for (int j = 0; j < p->rows; j++) {
-            float *row = fr + (size_t)j * nx;
-            if (j < f->height) {
-                const double *src = in + (size_t)j * w;
-                for (int i = 0; i < w; i++) row[i] = (float)src[i];
-                memset(row + w, 0, (size_t)(nx - w) * sizeof(float));
-            } else {
-                memset(row, 0, (size_t)nx * sizeof(float));
-            }
-        }
-    } else if (adjoint) {
+    if (b->boundary == SVP_BOUNDARY_ZERO)
+        svp_frame_zero_load_f(f, p->rows, in, fr);
+    else if (adjoint)
         svp_frame_embed_f(f, in, fr);
-    } else {
+    else
         svp_frame_extend_f(f, in, fr);
-    }
     svp_fftf_forward_rows(p, fr, b->work_cf);
-    const size_t n = (size_t)f->ny * f->ncx;
-    const float *restrict o = (const float *)b->otf_f;
-    float *restrict s = (float *)b->work_cf;
-    const float sign = adjoint ? -1.0f : 1.0f;
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
-    for (size_t i = 0; i < n; i++) {
-        const float pr = o[2 * i], pi = sign * o[2 * i + 1], sr = s[2 * i], si = s[2 * i + 1];
-        s[2 * i] = pr * sr - pi * si;
-        s[2 * i + 1] = pr * si + pi * sr;
-    }
+    svp_spectrum_product_f((const float *)b->otf_f, (float *)b->work_cf, (size_t)f->ny * f->ncx,
+                           adjoint, 1.0f);
     svp_fftf_inverse_rows_unscaled(p, b->work_cf, fr);
     if (adjoint && b->boundary != SVP_BOUNDARY_ZERO)
         svp_frame_fold_f(f, fr, out);

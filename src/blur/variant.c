@@ -344,13 +344,7 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
         if (pair) term_spectrum(b, k + 1, v->spec2);
         const double *restrict o0 = (const double *)v->otf[k];
         if (K == 1) {
-            double *restrict c = (double *)b->work_c;
-#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-            for (size_t i = 0; i < ns; i++) {
-                const double pr = o0[2 * i], pi = o0[2 * i + 1], sr = c[2 * i], si = c[2 * i + 1];
-                c[2 * i] = pr * sr - pi * si;
-                c[2 * i + 1] = pr * si + pi * sr;
-            }
+            svp_spectrum_product(o0, (double *)b->work_c, ns, 0, 1.0);
             break;
         }
         /* written out in real arithmetic: no C99 complex NaN fix-ups, so it vectorises */

@@ -306,17 +306,7 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
 
     svp_frame_extend(f, y_data, frame);
     svp_fft_forward(f->plan, frame, spectrum);
-    {
-        /* real arithmetic: a C99 complex product's NaN fix-up keeps the loop scalar */
-        double *restrict sp = (double *)spectrum;
-        const double *restrict g = (const double *)gain;
-#pragma omp parallel for schedule(static) if (nc > 32768)
-        for (size_t k = 0; k < nc; k++) {
-            const double gr = g[2 * k], gi = g[2 * k + 1], sr = sp[2 * k], si = sp[2 * k + 1];
-            sp[2 * k] = gr * sr - gi * si;
-            sp[2 * k + 1] = gr * si + gi * sr;
-        }
-    }
+    svp_spectrum_product((const double *)gain, (double *)spectrum, nc, 0, 1.0);
     /* D1 = the gain at zero frequency (L(0) = 0), unscaled */
     const double p0 = creal(otf[0]);
     const double d_one = p0 != 0 && isfinite(1.0 / p0) ? 1.0 / p0 : 0.0;
