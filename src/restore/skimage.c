@@ -123,12 +123,18 @@ svp_status svp_skimage_richardson_lucy(const svp_image *image, const svp_image *
     /* zero frames of at least size + K − 1: no wrap-around reaches the image */
     svp_status st = svp_frame_init(&conv, w, h, kw - 1, kh - 1, SVP_BOUNDARY_ZERO);
     if (st != SVP_OK) return st;
-    if ((st = svp_frame_init(&corr, w, h, kw - 1, kh - 1, SVP_BOUNDARY_ZERO)) != SVP_OK)
-        goto cleanup;
     if ((st = svp_frame_set_kernel(&conv, psf, cx, cy, SVP_BOUNDARY_ZERO)) != SVP_OK)
         goto cleanup;
-    if ((st = svp_frame_set_kernel(&corr, psf, cx_flip, cy_flip, SVP_BOUNDARY_ZERO)) != SVP_OK)
-        goto cleanup;
+    /* The correlation's OTF is conv's itself when both centres coincide (odd kernel sides);
+     * only an even side shifts it by one pixel and needs a frame of its own. */
+    const svp_frame *cf = &conv;
+    if (cx_flip != cx || cy_flip != cy) {
+        if ((st = svp_frame_init(&corr, w, h, kw - 1, kh - 1, SVP_BOUNDARY_ZERO)) != SVP_OK ||
+            (st = svp_frame_set_kernel(&corr, psf, cx_flip, cy_flip, SVP_BOUNDARY_ZERO)) !=
+                SVP_OK)
+            goto cleanup;
+        cf = &corr;
+    }
     const int nx = conv.nx, ny = conv.ny;
     frame = svp_alloc((size_t)ny * nx * sizeof(double));
     spectrum = svp_alloc((size_t)ny * conv.ncx * sizeof(fftw_complex));
@@ -162,9 +168,9 @@ svp_status svp_skimage_richardson_lucy(const svp_image *image, const svp_image *
             for (int i = 0; i < w; i++) row[i] = in[i] / (row[i] + eps);
             for (int i = w; i < nx; i++) row[i] = 0.0;
         }
-        svp_fft_forward(corr.plan, frame, spectrum);
-        svp_frame_multiply(&corr, spectrum, 1, scale);
-        svp_fft_inverse_unscaled(corr.plan, spectrum, frame);
+        svp_fft_forward(cf->plan, frame, spectrum);
+        svp_frame_multiply(cf, spectrum, 1, scale);
+        svp_fft_inverse_unscaled(cf->plan, spectrum, frame);
         /* x *= correlation; the frame takes the new x (zero-padded) for the next iteration */
 #pragma omp parallel for schedule(static) if ((size_t)ny * nx > 32768)
         for (int j = 0; j < ny; j++) {
