@@ -3,12 +3,16 @@
 
 #include "../core/internal.h"
 #include "image_io.h"
+#include "yaml.h"
 
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/resource.h>
+#include <time.h>
+#include <unistd.h>
 
 /* ---- growable text ------------------------------------------------------------------------ */
 
@@ -380,4 +384,41 @@ svp_status svp_json_write_file(svp_json *j, const char *path, int overwrite)
     svp_status st = svp_json_finish(j, &text);
     if (st != SVP_OK) return svp_fail_context(st, "%s", path ? path : "(null)");
     return svp_io_atomic_write_text(path, text, overwrite);
+}
+
+/* ---- a run's context -------------------------------------------------------------------------- */
+
+svp_status svp_json_key_working_directory(svp_json *j)
+{
+    char cwd[4096];
+    if (!getcwd(cwd, sizeof cwd)) snprintf(cwd, sizeof cwd, "?");
+    return svp_json_key_string(j, "working_directory", cwd);
+}
+
+svp_status svp_json_key_started_utc(svp_json *j, double elapsed_s)
+{
+    char started[64] = "";
+    time_t t = time(NULL) - (time_t)elapsed_s;
+    struct tm tm;
+    if (gmtime_r(&t, &tm)) strftime(started, sizeof started, "%Y-%m-%dT%H:%M:%SZ", &tm);
+    return svp_json_key_string(j, "started_utc", started);
+}
+
+svp_status svp_json_key_versions(svp_json *j)
+{
+    SVP_CHECK(svp_json_key(j, "versions"));
+    SVP_CHECK(svp_json_begin_object(j));
+    SVP_CHECK(svp_json_key_string(j, "svpsf", svp_version()));
+    SVP_CHECK(svp_json_key_string(j, "fftw", svp_fftw_version()));
+    SVP_CHECK(svp_json_key_string(j, "opencv", svp_io_opencv_version()));
+    SVP_CHECK(svp_json_key_string(j, "libfyaml", svp_yaml_library_version()));
+    return svp_json_end_object(j);
+}
+
+svp_status svp_json_key_peak_memory(svp_json *j)
+{
+    struct rusage ru;
+    /* Linux reports KiB */
+    const double bytes = getrusage(RUSAGE_SELF, &ru) == 0 ? (double)ru.ru_maxrss * 1024.0 : 0.0;
+    return svp_json_key_number(j, "peak_memory_bytes", bytes);
 }

@@ -79,6 +79,15 @@ svp_status svp_json_key_bool(svp_json *j, const char *key, int v);
 /* An array of numbers on one line. */
 svp_status svp_json_number_array(svp_json *j, const double *v, size_t n);
 
+/* The run's context that every summary.json carries (svpsf simulate's, written by the library,
+ * and every other command's, written by the CLI), one key each: "working_directory";
+ * "started_utc" (now − elapsed_s, ISO 8601); "versions" {svpsf, fftw, opencv, libfyaml};
+ * "peak_memory_bytes" (this process's maximum resident set). */
+svp_status svp_json_key_working_directory(svp_json *j);
+svp_status svp_json_key_started_utc(svp_json *j, double elapsed_s);
+svp_status svp_json_key_versions(svp_json *j);
+svp_status svp_json_key_peak_memory(svp_json *j);
+
 /* Checks that exactly one complete top-level value was written and returns its text (owned by
  * j, ends with a newline). */
 svp_status svp_json_finish(svp_json *j, const char **text);

@@ -12,10 +12,8 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/resource.h>
 #include <sys/stat.h>
 #include <time.h>
-#include <unistd.h>
 
 #define GAMMA_NV_HZ_PER_T 28.033e9
 /* Shot-noise-limited CW-ODMR field noise of a Lorentzian dip at its steepest slope:
@@ -1119,14 +1117,8 @@ static svp_status write_summary(run_ctx *c, double total)
     for (int i = 0; i < c->o->argc && c->o->argv; i++) svp_json_string(j, c->o->argv[i]);
     svp_json_end_array(j);
     /* the run's context, as every command's summary.json has it */
-    char cwd[4096];
-    if (!getcwd(cwd, sizeof cwd)) snprintf(cwd, sizeof cwd, "?");
-    svp_json_key_string(j, "working_directory", cwd);
-    char started[64] = "";
-    time_t t_start = time(NULL) - (time_t)total;
-    struct tm tm;
-    if (gmtime_r(&t_start, &tm)) strftime(started, sizeof started, "%Y-%m-%dT%H:%M:%SZ", &tm);
-    svp_json_key_string(j, "started_utc", started);
+    svp_json_key_working_directory(j);
+    svp_json_key_started_utc(j, total);
     svp_json_key(j, "inputs");
     svp_json_begin_array(j);
     if (s->path) {
@@ -1213,19 +1205,11 @@ static svp_status write_summary(run_ctx *c, double total)
     svp_json_begin_array(j);
     for (int i = 0; i < s->n_outputs; i++) svp_json_string(j, s->outputs[i]);
     svp_json_end_array(j);
-    svp_json_key(j, "versions");
-    svp_json_begin_object(j);
-    svp_json_key_string(j, "svpsf", svp_version());
-    svp_json_key_string(j, "fftw", svp_fftw_version());
-    svp_json_key_string(j, "opencv", svp_io_opencv_version());
-    svp_json_key_string(j, "libfyaml", svp_yaml_library_version());
-    svp_json_end_object(j);
+    svp_json_key_versions(j);
     svp_json_key_int(j, "threads", svp_get_threads());
     svp_json_key_string(j, "fft_planning",
                         svp_get_fft_effort() == SVP_FFT_MEASURE ? "measure" : "estimate");
-    struct rusage ru;
-    svp_json_key_number(j, "peak_memory_bytes",
-                        getrusage(RUSAGE_SELF, &ru) == 0 ? (double)ru.ru_maxrss * 1024.0 : 0.0);
+    svp_json_key_peak_memory(j);
     svp_json_end_object(j);
     char path[4096];
     snprintf(path, sizeof path, "%s/summary.json", c->out_dir);

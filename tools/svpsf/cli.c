@@ -1125,13 +1125,6 @@ void cli_result_int(cli_run *run, const char *key, long long value)
     kv_int(&run->results, &run->n_results, key, value);
 }
 
-double cli_peak_memory_bytes(void)
-{
-    struct rusage ru;
-    if (getrusage(RUSAGE_SELF, &ru) != 0) return 0;
-    return (double)ru.ru_maxrss * 1024.0; /* Linux reports KiB */
-}
-
 /* ---- summary.json --------------------------------------------------------------------------- */
 
 static void json_kvs(svp_json *j, const char *name, const cli_kv *kv, int n)
@@ -1153,14 +1146,6 @@ int cli_summary_write(cli_run *run, const char *path)
 {
     if (run->stage_open) cli_stage_end(run);
     double total = cli_now() - run->t_start;
-    cli_versions v;
-    cli_get_versions(&v);
-    char cwd[PATH_MAX];
-    if (!getcwd(cwd, sizeof cwd)) snprintf(cwd, sizeof cwd, "?");
-    char started[64] = "";
-    time_t now = time(NULL) - (time_t)total;
-    struct tm tm;
-    if (gmtime_r(&now, &tm)) strftime(started, sizeof started, "%Y-%m-%dT%H:%M:%SZ", &tm);
 
     svp_json *j = NULL;
     svp_status st = svp_json_new(&j);
@@ -1177,10 +1162,8 @@ int cli_summary_write(cli_run *run, const char *path)
     else
         for (int i = 0; i < run->argc; i++) svp_json_string(j, run->argv[i]);
     svp_json_end_array(j);
-    svp_json_key(j, "working_directory");
-    svp_json_string(j, cwd);
-    svp_json_key(j, "started_utc");
-    svp_json_string(j, started);
+    svp_json_key_working_directory(j);
+    svp_json_key_started_utc(j, total);
 
     svp_json_key(j, "inputs");
     svp_json_begin_array(j);
@@ -1216,17 +1199,7 @@ int cli_summary_write(cli_run *run, const char *path)
     json_kvs(j, "settings", run->settings, run->n_settings);
     json_kvs(j, "results", run->results, run->n_results);
 
-    svp_json_key(j, "versions");
-    svp_json_begin_object(j);
-    svp_json_key(j, "svpsf");
-    svp_json_string(j, v.svpsf);
-    svp_json_key(j, "fftw");
-    svp_json_string(j, v.fftw);
-    svp_json_key(j, "opencv");
-    svp_json_string(j, v.opencv);
-    svp_json_key(j, "libfyaml");
-    svp_json_string(j, v.libfyaml);
-    svp_json_end_object(j);
+    svp_json_key_versions(j);
 
     svp_json_key(j, "threads");
     svp_json_int(j, svp_get_threads());
@@ -1248,8 +1221,7 @@ int cli_summary_write(cli_run *run, const char *path)
     svp_json_number(j, total);
     svp_json_end_object(j);
 
-    svp_json_key(j, "peak_memory_bytes");
-    svp_json_number(j, cli_peak_memory_bytes());
+    svp_json_key_peak_memory(j);
     svp_json_end_object(j);
 
     const char *text = NULL;

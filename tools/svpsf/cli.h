@@ -331,9 +331,6 @@ void cli_result_str(cli_run *run, const char *key, const char *value);
 void cli_result_num(cli_run *run, const char *key, double value);
 void cli_result_int(cli_run *run, const char *key, long long value);
 
-/* Peak resident memory of the process so far, bytes (getrusage ru_maxrss). */
-double cli_peak_memory_bytes(void);
-
 /* Writes the planned "summary" output (a JSON object: command, command line, working
  * directory, inputs with sizes, outputs, settings, results, versions, threads, timings per
  * stage, peak memory). */
