@@ -86,9 +86,8 @@ svp_status svp_fft_wisdom_load(const char *path)
     char *single = strstr(text, " fftwf_wisdom");
     while (single && single > text && *single != '(') single--;
     if (single && *single != '(') single = NULL;
-    int has_double = 0;
-    for (const char *c = text; c < (single ? single : text + got); c++)
-        if (*c == '(') has_double = 1;
+    /* a double part precedes it unless the file holds single-precision wisdom only */
+    const int has_double = !single || memchr(text, '(', (size_t)(single - text)) != NULL;
     int ok = 1;
     pthread_mutex_lock(&fft_lock);
     if (single) {
