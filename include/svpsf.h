@@ -319,6 +319,9 @@ typedef struct svp_correct_options {
                                     (of Ĩ, of B̃_c Ĩ); <= 0 (default) = estimated per image */
     svp_deconv_report *reports;  /* optional out, n_fields + 1 entries: [0] for Ĩ ⊘ p, [1 + c]
                                     for component c's numerator; default NULL */
+    const char *const *field_names; /* optional, n_fields entries: what the error messages call
+                                       the field maps (their files, say); default NULL =
+                                       "field_apparent[c]" */
 } svp_correct_options;
 
 SVP_API void svp_correct_defaults(svp_correct_options *options);

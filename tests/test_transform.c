@@ -1111,6 +1111,13 @@ static void test_bad_input(void **state)
     o.shift = 0.1; /* field_smooth(0) reaches −0.2 − ... < −0.1 */
     expect_error(svp_inverse_transform(op, pl, bc, NF, &o, pl_out, out, valid, NULL),
                  SVP_ERR_INVALID, "field_apparent[0]");
+    assert_non_null(strstr(svp_last_error(), "at pixel (x "));
+    /* the caller's names for the maps (the CLI passes the files) */
+    const char *names[NF];
+    for (int c = 0; c < NF; c++) names[c] = c == 0 ? "Bz.tif" : "other.tif";
+    o.field_names = names;
+    expect_error(svp_inverse_transform(op, pl, bc, NF, &o, pl_out, out, valid, NULL),
+                 SVP_ERR_INVALID, "Bz.tif: the shift c = 0.1");
     /* negative PL: T needs intensities; RL methods in T⁻¹ too (W accepts it) */
     svp_correct_defaults(&o);
     pl->data[5] = -0.25;

@@ -39,6 +39,7 @@ void svp_correct_defaults(svp_correct_options *options)
     options->balance_auto = 0;
     options->noise_sigma = 0.0;
     options->reports = NULL;
+    options->field_names = NULL;
 }
 
 /* ---- argument checks --------------------------------------------------------------------- */
@@ -296,10 +297,19 @@ static svp_status check_correct_options(const svp_correct_options *o)
     return SVP_OK;
 }
 
+/* What messages call field map c. */
+static const char *field_name(const svp_correct_options *o, int c, char *buf, size_t size)
+{
+    if (o->field_names && o->field_names[c]) return o->field_names[c];
+    snprintf(buf, size, "field_apparent[%d]", c);
+    return buf;
+}
+
 /* The shift c of eq. 5 for component `c`: B̃ + c > 0 at every measured pixel. */
 static svp_status signed_shift(const svp_image *field, const unsigned char *missing, size_t n,
-                               double requested, int c, double *shift)
+                               const svp_correct_options *o, int c, double *shift)
 {
+    const double requested = o->shift;
     double lo = INFINITY, hi = -INFINITY;
     size_t at = 0;
     for (size_t i = 0; i < n; i++) {
@@ -321,11 +331,15 @@ static svp_status signed_shift(const svp_image *field, const unsigned char *miss
             *shift += step;
         return SVP_OK;
     }
+    char buf[32];
+    const size_t w = (size_t)field->width;
     if (!(lo + requested > 0))
         return svp_fail(SVP_ERR_INVALID,
-                        "shift c = %g leaves field_apparent[%d] + c = %g <= 0 at pixel (%zu): "
-                        "the signed shift needs c > -min = %g",
-                        requested, c, lo + requested, at, -lo);
+                        "%s: the shift c = %g leaves the field + c = %g <= 0 at pixel (x %zu, "
+                        "y %zu) (field minimum %g there): the signed shift needs c > %g (or c = "
+                        "0: automatic)",
+                        field_name(o, c, buf, sizeof buf), requested, lo + requested, at % w,
+                        at / w, lo, -lo);
     *shift = requested;
     return SVP_OK;
 }
@@ -357,11 +371,13 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
     double *valid = NULL;
     svp_image *work = NULL, *coverage = NULL;
     progress_share *shares = NULL;
+    double *shifts = NULL;
 
     missing = malloc(n);
     valid = svp_alloc(n * sizeof(double));
     shares = calloc((size_t)n_fields + 1, sizeof *shares);
-    if (!missing || !valid || !shares) {
+    shifts = calloc((size_t)n_fields, sizeof *shifts);
+    if (!missing || !valid || !shares || !shifts) {
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", w, h);
         goto cleanup;
     }
@@ -430,6 +446,13 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
         }
     }
 
+    /* The signed shifts (eq. 5), all checked before any deconvolution. */
+    if (rl_field)
+        for (int c = 0; c < n_fields; c++) {
+            st = signed_shift(field_apparent[c], missing, n, &opt, c, &shifts[c]);
+            if (st != SVP_OK) goto cleanup;
+        }
+
     /* Ĩ ⊘ p, once for all components (eq. 4, denominator). */
     {
         const double *restrict pl = pl_apparent->data;
@@ -479,11 +502,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 
     /* Numerators (B̃_c Ĩ) ⊘ p, or ((B̃_c + c) Ĩ) ⊘ p − c (Ĩ ⊘ p) for the RL methods. */
     for (int c = 0; c < n_fields; c++) {
-        double shift = 0;
-        if (rl_field) {
-            st = signed_shift(field_apparent[c], missing, n, opt.shift, c, &shift);
-            if (st != SVP_OK) goto cleanup;
-        }
+        const double shift = shifts[c]; /* 0 unless rl_field */
         {
             const double *restrict pl = pl_apparent->data;
             const double *restrict b_app = field_apparent[c]->data;
@@ -494,7 +513,9 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
         st = deconvolve(blur, work, rl_field, &opt.deconv, opt.balance_auto, opt.noise_sigma,
                         &shares[c + 1], opt.reports ? &opt.reports[c + 1] : NULL, field_true[c]);
         if (st != SVP_OK) {
-            svp_fail_context(st, "deconvolving field_apparent[%d] x pl_apparent", c);
+            char buf[32];
+            svp_fail_context(st, "deconvolving %s x pl_apparent",
+                             field_name(&opt, c, buf, sizeof buf));
             goto cleanup;
         }
         const double *restrict pl_rec = pl_true->data;
@@ -531,6 +552,7 @@ cleanup:
     free(missing);
     svp_free(valid);
     free(shares);
+    free(shifts);
     svp_image_free(work);
     svp_image_free(coverage);
     return st;

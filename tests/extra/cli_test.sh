@@ -331,7 +331,7 @@ expect_bad unknown_yaml_key "typo.yaml:5:3|fwhm_umm" forward --field Bz.txt --pl
 # empty), deepest first, and never a folder that existed before: here the signed shift is
 # refused only once the inputs are read and the outputs planned
 mkdir -p kept_empty
-expect_bad fail_late_dirs "Bz.txt|--shift -50|at pixel (x |needs --shift >" correct --field Bz.txt --pl pl.txt --psf moffat.yaml \
+expect_bad fail_late_dirs "Bz.txt|shift c = -50|at pixel (x |needs c >" correct --field Bz.txt --pl pl.txt --psf moffat.yaml \
     -o kept_empty/new1/new2 --method r --shift -50 $FAST
 if [ -d kept_empty ] && [ -z "$(ls -A kept_empty)" ]; then
     pass "failed run: the folders it created are removed, the empty folder that existed is kept"

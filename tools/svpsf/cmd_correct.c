@@ -173,34 +173,8 @@ int cmd_correct(int argc, char **argv)
 
     const int w = maps.pl->width, h = maps.pl->height;
     const size_t n = (size_t)w * h;
-    /* --shift C (r, rl-signed): every measured field value plus C must be > 0 (eq. 5); checked
-     * here, before any work, to name the file and the pixel as (x, y). Missing pixels (NaN/Inf
-     * in the PL or any field) do not count, as in the library. */
-    if ((opt.method == SVP_METHOD_R || opt.method == SVP_METHOD_RL_SIGNED) && opt.shift != 0) {
-        for (int k = 0; k < maps.n_fields; k++) {
-            const double *b = maps.fields[k]->data;
-            double lo = INFINITY;
-            size_t at = 0;
-            for (size_t i = 0; i < n; i++) {
-                int missing = !isfinite(maps.pl->data[i]);
-                for (int j = 0; j < maps.n_fields && !missing; j++)
-                    missing = !isfinite(maps.fields[j]->data[i]);
-                if (!missing && b[i] < lo) {
-                    lo = b[i];
-                    at = i;
-                }
-            }
-            if (isfinite(lo) && !(lo + opt.shift > 0)) {
-                code = cli_error(&run,
-                                 "%s: --shift %g leaves the field + shift = %g <= 0 at pixel "
-                                 "(x %zu, y %zu) (field minimum %g there): the signed shift "
-                                 "needs --shift > %g (or leave --shift out: 0 = automatic)",
-                                 maps.field_paths[k], opt.shift, lo + opt.shift, at % (size_t)w,
-                                 at / (size_t)w, lo, -lo);
-                goto cleanup;
-            }
-        }
-    }
+    /* the library's messages name the field maps by their files */
+    opt.field_names = maps.field_paths;
     cli_setting_str(&run, "method", method_names[method]);
     cli_setting_int(&run, "iterations", opt.deconv.iterations);
     cli_setting_str(&run, "precision", precisions[precision]);
@@ -216,8 +190,10 @@ int cmd_correct(int argc, char **argv)
     cli_stage_begin(&run, "plan");
     if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
     if (precision == 1 && svp_blur_is_variant(blur)) {
-        code = cli_error(&run, "%s: --precision single needs one PSF; this is a space-variant PSF "
-                               "map", psf.path ? psf.path : "the PSF");
+        code = cli_error(&run,
+                         "%s: --precision single needs one PSF; this is a space-variant PSF "
+                         "map",
+                         psf.path ? psf.path : "the PSF");
         goto cleanup;
     }
 
