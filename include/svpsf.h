@@ -623,6 +623,9 @@ typedef struct svp_register_options {
                             (default) = the phase-correlation translation */
     svp_progress_fn progress; /* optional: once per ECC iteration */
     void *progress_user;
+    const char *reference_name, *moving_name; /* optional: what error messages call the two
+                            images (their files, say); NULL (default) = "reference image",
+                            "moving image" */
 } svp_register_options;
 
 SVP_API void svp_register_defaults(svp_register_options *options);

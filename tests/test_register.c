@@ -516,6 +516,12 @@ static void test_bad_input(void **state)
     assert_non_null(strstr(svp_last_error(), "3.5"));
     assert_int_equal(svp_register(flat, mov, &o, &r), SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "reference image is constant"));
+    /* the caller's names for the images (the CLI passes the files) */
+    o.reference_name = "flat.tif";
+    o.moving_name = "mov.tif";
+    assert_int_equal(svp_register(flat, mov, &o, &r), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "flat.tif is constant"));
+    o.reference_name = o.moving_name = NULL;
 
     /* unrelated images: a result, flagged by its significance (measured 3.45 against 24.2 for
      * the shifted pair; the response alone does not separate them: 0.68 against 1.00) */

@@ -48,6 +48,8 @@ void svp_register_defaults(svp_register_options *options)
     options->initial_affine = NULL;
     options->progress = NULL;
     options->progress_user = NULL;
+    options->reference_name = NULL;
+    options->moving_name = NULL;
 }
 
 static const char *motion_name(svp_register_motion m)
@@ -211,8 +213,8 @@ static svp_status prepare(const svp_image *img, const char *what, int normalise,
         }
     *nonfinite = n - count;
     if (count == 0)
-        return svp_fail(SVP_ERR_INVALID, "%s image: no finite pixel (all %zu are NaN or Inf)",
-                        what, n);
+        return svp_fail(SVP_ERR_INVALID, "%s: no finite pixel (all %zu are NaN or Inf)", what,
+                        n);
     const double mean = sum / count;
     double ss = 0;
     for (size_t i = 0; i < n; i++)
@@ -220,7 +222,7 @@ static svp_status prepare(const svp_image *img, const char *what, int normalise,
     const double sd = sqrt(ss / count);
     if (!(sd > 1e-12 * fabs(mean)) || !(sd > DBL_MIN))
         return svp_fail(SVP_ERR_INVALID,
-                        "%s image is constant (every finite pixel is %.6g): no texture to "
+                        "%s is constant (every finite pixel is %.6g): no texture to "
                         "register",
                         what, mean);
     const double shift = normalise ? mean : 0, scale = normalise ? 1 / sd : 1;
@@ -684,11 +686,13 @@ svp_status svp_register(const svp_image *reference, const svp_image *moving,
         st = svp_fail(SVP_ERR_NOMEM, "registration: out of memory for %d x %d images", w, h);
         goto cleanup;
     }
-    if ((st = prepare(reference, "reference", o->normalise, ref, ref_nan,
+    const char *ref_name = o->reference_name ? o->reference_name : "reference image";
+    const char *mov_name = o->moving_name ? o->moving_name : "moving image";
+    if ((st = prepare(reference, ref_name, o->normalise, ref, ref_nan,
                       &result->nonfinite_reference)) != SVP_OK)
         goto cleanup;
-    if ((st = prepare(moving, "moving", o->normalise, mov, mov_nan,
-                      &result->nonfinite_moving)) != SVP_OK)
+    if ((st = prepare(moving, mov_name, o->normalise, mov, mov_nan, &result->nonfinite_moving)) !=
+        SVP_OK)
         goto cleanup;
 
     double *a = result->affine;

@@ -71,7 +71,7 @@ expect_in err "did not converge after 2 iterations"
 run 1 register ref.npy wide.npy
 expect_in err "size mismatch: reference ref.npy is 96 x 80"
 run 1 register ref.npy flat.npy
-expect_in err "flat.npy: moving image is constant"
+expect_in err "flat.npy is constant"
 run 1 register ref.npy missing.npy
 expect_in err "missing.npy"
 run 1 register ref.npy

@@ -344,21 +344,16 @@ int cmd_register(int argc, char **argv)
         opt.progress = cli_progress;
         opt.progress_user = &run;
     }
+    opt.reference_name = reference_path;
+    opt.moving_name = moving_path;
     svp_register_result r;
     svp_status st = svp_register(reference, moving, &opt, &r);
     if (opt.method == SVP_REGISTER_ECC) cli_progress_done(&run);
     if (st != SVP_OK) {
-        /* the library says "moving image ..." / "reference image ...": name the file; any
-         * other fault is the pair's */
-        const char *msg = svp_last_error();
-        if (strncmp(msg, "moving image", 12) == 0)
-            code = cli_fail(&run, st, moving_path);
-        else if (strncmp(msg, "reference image", 15) == 0)
-            code = cli_fail(&run, st, reference_path);
-        else {
-            cli_error(&run, "%s onto %s: %s", moving_path, reference_path, msg);
-            code = cli_exit_code(st);
-        }
+        /* the library names an image by its file (options above); the fault is the pair's */
+        char pair[8192];
+        snprintf(pair, sizeof pair, "%s onto %s", moving_path, reference_path);
+        code = cli_fail(&run, st, pair);
         goto cleanup;
     }
 
