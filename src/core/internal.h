@@ -102,5 +102,13 @@ void svp_fft_cleanup(void);
 
 /* Progress helper: calls the callback if any; returns SVP_ERR_CANCELLED when it asks to stop. */
 svp_status svp_report_progress(svp_progress_fn fn, void *user, double fraction);
+/* One part of a longer job: a progress callback for the part (svp_progress_share_fn, user =
+ * the share) forwards fraction f of the part as base + span · f of the whole to fn / user. */
+typedef struct svp_progress_share {
+    svp_progress_fn fn;
+    void *user;
+    double base, span;
+} svp_progress_share;
+int svp_progress_share_fn(void *share, double fraction);
 
 #endif

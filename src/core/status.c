@@ -69,3 +69,11 @@ svp_status svp_report_progress(svp_progress_fn fn, void *user, double fraction)
     if (fn && fn(user, fraction)) return svp_fail(SVP_ERR_CANCELLED, "cancelled by the caller");
     return SVP_OK;
 }
+
+int svp_progress_share_fn(void *share, double fraction)
+{
+    const svp_progress_share *s = share;
+    if (fraction < 0) fraction = 0;
+    if (fraction > 1) fraction = 1;
+    return s->fn(s->user, s->base + s->span * fraction);
+}

@@ -226,21 +226,6 @@ cleanup:
 
 /* ---- inverse transform T⁻¹ (eq. 4) ------------------------------------------------------- */
 
-/* Maps one deconvolution's progress into its share [base, base + span] of the whole job. */
-typedef struct progress_share {
-    svp_progress_fn fn;
-    void *user;
-    double base, span;
-} progress_share;
-
-static int share_progress(void *user, double fraction)
-{
-    const progress_share *s = user;
-    if (fraction < 0) fraction = 0;
-    if (fraction > 1) fraction = 1;
-    return s->fn(s->user, s->base + s->span * fraction);
-}
-
 static int uses_rl_for_pl(svp_method m) { return m != SVP_METHOD_W; }
 static int uses_rl_for_field(svp_method m)
 {
@@ -252,12 +237,12 @@ static int uses_rl_for_field(svp_method m)
  * σ noise_sigma, or estimated from y when <= 0). report (may be NULL) receives what it did. */
 static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                              const svp_deconv_options *base, int balance_auto, double noise_sigma,
-                             progress_share *share, svp_deconv_report *report, svp_image *x)
+                             svp_progress_share *share, svp_deconv_report *report, svp_image *x)
 {
     svp_deconv_options o = *base;
     o.report = report;
     if (base->progress) {
-        o.progress = share_progress;
+        o.progress = svp_progress_share_fn;
         o.progress_user = share;
     }
     double sigma_used = 0;
@@ -370,7 +355,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
     unsigned char *missing = NULL;
     double *valid = NULL;
     svp_image *work = NULL, *coverage = NULL;
-    progress_share *shares = NULL;
+    svp_progress_share *shares = NULL;
     double *shifts = NULL;
 
     missing = malloc(n);

@@ -38,18 +38,6 @@ static void print_help(const cli_run *run, FILE *out)
     cli_print_common_help(run, out);
 }
 
-/* Progress of one of several library calls as a share [lo, hi] of the whole job. */
-typedef struct progress_span {
-    cli_run *run;
-    double lo, hi;
-} progress_span;
-
-static int span_progress(void *user, double fraction)
-{
-    const progress_span *s = user;
-    return cli_progress(s->run, s->lo + (s->hi - s->lo) * fraction);
-}
-
 static int load(cli_run *run, const char *path, svp_psf_field **f, double *um)
 {
     svp_status st = svp_psf_field_read(path, f, um);
@@ -252,9 +240,10 @@ int cmd_psf_compare(int argc, char **argv)
     svp_correct_options co, cb;
     svp_correct_defaults(&co);
     /* the two corrections are the long part: each reports half of the stage's progress */
-    progress_span half_a = {&run, 0.0, 0.5}, half_b = {&run, 0.5, 1.0};
+    svp_progress_share half_a = {cli_progress, &run, 0.0, 0.5},
+                       half_b = {cli_progress, &run, 0.5, 0.5};
     cb = co;
-    co.deconv.progress = cb.deconv.progress = span_progress;
+    co.deconv.progress = cb.deconv.progress = svp_progress_share_fn;
     co.deconv.progress_user = &half_a;
     cb.deconv.progress_user = &half_b;
     cli_progress_start(&run, "reference scene");
