@@ -386,6 +386,45 @@ static void test_adjoint_identity(void **state)
     svp_psf_field_free(f);
 }
 
+/* Point-symmetric PSFs (elliptical Moffats here) give real term spectra, stored as such: tent
+ * grids that are not row-pruned, and low rank at every rank — its eigen-PSFs of (numerically)
+ * zero singular value are projected onto the symmetric ones, which changes the operator by
+ * round-off only: full rank still equals the tent operator on the sample grid. Row-pruned
+ * tents keep complex spectra (their phase). */
+static void test_real_spectra(void **state)
+{
+    (void)state;
+    const int w = 40, h = 36;
+    svp_psf_field *f = poly_field(w, h, 6, 1.5, 0);
+    svp_image *x = test_random_image(w, h, 19), *y = test_image(w, h), *yt = test_image(w, h);
+    svp_blur *op = NULL;
+    svp_variant_options o = tent_options(2);
+    ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_MIRROR, &o, &op));
+    assert_int_equal(svp_variant_real_spectra(op), 1);
+    svp_blur_free(op);
+    o = tent_options(12); /* 12 x 12 nodes on 36 rows: windows of ≈ 7 rows, pruned */
+    ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_MIRROR, &o, &op));
+    assert_int_equal(svp_variant_real_spectra(op), 0);
+    svp_blur_free(op);
+    o = tent_options(4); /* pruned here: complex spectra, the reference for full rank */
+    ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_MIRROR, &o, &op));
+    ASSERT_OK(svp_blur_apply(op, x, yt));
+    svp_blur_free(op);
+    for (int mean = 0; mean < 2; mean++) {
+        o = lowrank_options(4, 16, 0);
+        o.lowrank_mean = mean;
+        ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_MIRROR, &o, &op));
+        assert_int_equal(svp_variant_real_spectra(op), 1);
+        ASSERT_OK(svp_blur_apply(op, x, y));
+        ASSERT_CLOSE(test_max_abs_diff(y, yt) / test_max_abs(yt), 0, 1e-12);
+        svp_blur_free(op);
+    }
+    svp_image_free(x);
+    svp_image_free(y);
+    svp_image_free(yt);
+    svp_psf_field_free(f);
+}
+
 /* A uniform field reproduces svp_blur_new to 1e-12 (tent, low rank, exact); a two-region field
  * whose regions have identical parameters does too. */
 static void test_uniform_and_identical_regions(void **state)
@@ -1109,6 +1148,7 @@ int main(void)
         cmocka_unit_test(test_flux_and_positivity),
         cmocka_unit_test(test_adjoint_identity),
         cmocka_unit_test(test_uniform_and_identical_regions),
+        cmocka_unit_test(test_real_spectra),
         cmocka_unit_test(test_second_order_convergence),
         cmocka_unit_test(test_low_rank),
         cmocka_unit_test(test_cg_matches_wiener),

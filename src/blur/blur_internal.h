@@ -19,7 +19,10 @@ typedef struct svp_frame {
     int off_x, off_y;
     int *src_x, *src_y;
     const svp_fft_plan *plan;
-    fftw_complex *otf; /* ny x ncx, NULL until a kernel is set */
+    fftw_complex *otf; /* ny x ncx, NULL until a kernel is set or when otf_re holds it */
+    /* The OTF of a point-symmetric kernel is real: svp_frame_keep_real keeps only its real
+     * part here (ny x ncx; otf NULL), which halves what a spectral product reads. */
+    double *otf_re;
 } svp_frame;
 
 /* Frame geometry for an image of width x height, kernel radii rx, ry (offsets that reach). */
@@ -30,6 +33,20 @@ svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
  * image size never connect two pixels and are dropped. */
 svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, int cy,
                                 svp_boundary boundary);
+/* When every |Im otf| is at most 1e-12 max |otf| — a kernel point-symmetric about its centre
+ * up to round-off, whose imaginary parts are only the FFT's round-off — replaces otf by its
+ * real part in otf_re (the operator then uses the kernel's point-symmetric part, which differs
+ * from the kernel by that round-off). Returns 1 when it did, 0 when the OTF stays complex. */
+int svp_frame_keep_real(svp_frame *f);
+/* The OTF at spectral index k, whichever form the frame holds. */
+static inline double complex svp_frame_otf(const svp_frame *f, size_t k)
+{
+    return f->otf_re ? f->otf_re[k] : f->otf[k];
+}
+/* max |Im z| <= 1e-12 max |z| over n values (a real spectrum up to round-off). */
+int svp_spectrum_is_real(const fftw_complex *z, size_t n);
+/* s *= scale · o on n interleaved complex values, o real, in place. */
+void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, double scale);
 void svp_frame_release(svp_frame *f);
 size_t svp_frame_memory(const svp_frame *f);
 
@@ -135,6 +152,9 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
 svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x);
 void svp_variant_release(svp_blur *b);
 size_t svp_variant_memory(const svp_blur *b);
+/* Tent / low rank: 1 when the term spectra are stored real (every term's kernel point-symmetric
+ * and no row-pruning phase), 0 when complex. */
+int svp_variant_real_spectra(const svp_blur *b);
 svp_status svp_exact_apply(svp_blur *b, const double *restrict x, double *restrict y);
 svp_status svp_exact_adjoint(svp_blur *b, const double *restrict y, double *restrict x);
 void svp_exact_release(svp_blur *b);

@@ -82,12 +82,49 @@ void svp_frame_release(svp_frame *f)
     free(f->src_x);
     free(f->src_y);
     svp_free(f->otf);
+    svp_free(f->otf_re);
     memset(f, 0, sizeof *f);
 }
 
 size_t svp_frame_memory(const svp_frame *f)
 {
-    return (size_t)f->ny * f->ncx * sizeof(fftw_complex) + (size_t)(f->nx + f->ny) * sizeof(int);
+    const size_t value = f->otf_re ? sizeof(double) : sizeof(fftw_complex);
+    return (size_t)f->ny * f->ncx * value + (size_t)(f->nx + f->ny) * sizeof(int);
+}
+
+int svp_spectrum_is_real(const fftw_complex *z, size_t n)
+{
+    const double *restrict d = (const double *)z;
+    double re = 0, im = 0;
+    for (size_t i = 0; i < n; i++) {
+        const double a = fabs(d[2 * i]), b = fabs(d[2 * i + 1]);
+        re = a > re ? a : re;
+        im = b > im ? b : im;
+    }
+    return im <= 1e-12 * (re > im ? re : im);
+}
+
+int svp_frame_keep_real(svp_frame *f)
+{
+    const size_t n = (size_t)f->ny * f->ncx;
+    if (!f->otf || !svp_spectrum_is_real(f->otf, n)) return 0;
+    double *re = svp_alloc(n * sizeof(double));
+    if (!re) return 0; /* the complex OTF stays: slower, not wrong */
+    for (size_t i = 0; i < n; i++) re[i] = creal(f->otf[i]);
+    svp_free(f->otf);
+    f->otf = NULL;
+    f->otf_re = re;
+    return 1;
+}
+
+void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, double scale)
+{
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
+    for (size_t i = 0; i < n; i++) {
+        const double g = scale * o[i];
+        s[2 * i] *= g;
+        s[2 * i + 1] *= g;
+    }
 }
 
 static int wrap(int d, int n)
@@ -99,6 +136,8 @@ static int wrap(int d, int n)
 svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, int cy,
                                 svp_boundary boundary)
 {
+    svp_free(f->otf_re);
+    f->otf_re = NULL;
     double *placed = svp_calloc((size_t)f->ny * f->nx, sizeof(double));
     if (!f->otf) f->otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
     if (!placed || !f->otf) {
@@ -148,7 +187,11 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
                 continue;                                                                          \
             }                                                                                      \
             const double *in = image + (size_t)sy[j] * w;                                          \
-            for (int i = 0; i < nx; i++) out[i] = sx[i] >= 0 ? (FT)in[sx[i]] : (FT)0;              \
+            /* the image row itself is one contiguous copy; only the margins look up src */        \
+            const int lo = f->off_x, hi = f->off_x + w;                                            \
+            for (int i = 0; i < lo; i++) out[i] = sx[i] >= 0 ? (FT)in[sx[i]] : (FT)0;              \
+            for (int i = 0; i < w; i++) out[lo + i] = (FT)in[i];                                   \
+            for (int i = hi; i < nx; i++) out[i] = sx[i] >= 0 ? (FT)in[sx[i]] : (FT)0;             \
         }                                                                                          \
     }                                                                                              \
     void CROP(const svp_frame *f, const FT *restrict frame, double *restrict image)                \
@@ -187,7 +230,11 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
             for (int j = 0; j < f->ny; j++) {                                                      \
                 if (sy[j] != y) continue;                                                          \
                 const FT *in = frame + (size_t)j * nx;                                             \
-                for (int i = 0; i < nx; i++)                                                       \
+                const int lo = f->off_x, hi = f->off_x + w;                                        \
+                for (int i = 0; i < w; i++) out[i] += (double)in[lo + i];                          \
+                for (int i = 0; i < lo; i++)                                                       \
+                    if (sx[i] >= 0) out[sx[i]] += (double)in[i];                                   \
+                for (int i = hi; i < nx; i++)                                                      \
                     if (sx[i] >= 0) out[sx[i]] += (double)in[i];                                   \
             }                                                                                      \
         }                                                                                          \
@@ -228,8 +275,11 @@ SVP_FRAME_OPS(svp_frame_extend_f, svp_frame_crop_f, svp_frame_embed_f, svp_frame
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale)
 {
-    svp_spectrum_product((const double *)f->otf, (double *)spectrum, (size_t)f->ny * f->ncx,
-                         conjugate, scale);
+    if (f->otf_re)
+        svp_spectrum_scale(f->otf_re, (double *)spectrum, (size_t)f->ny * f->ncx, scale);
+    else
+        svp_spectrum_product((const double *)f->otf, (double *)spectrum, (size_t)f->ny * f->ncx,
+                             conjugate, scale);
 }
 
 /* ---- the operator ------------------------------------------------------------------------ */
@@ -240,6 +290,7 @@ static svp_status blur_finish(svp_blur *b, svp_blur **out)
     int ry = b->kernel->height - 1 - b->kcy > b->kcy ? b->kernel->height - 1 - b->kcy : b->kcy;
     svp_status st = svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary);
     if (st == SVP_OK) st = svp_frame_set_kernel(&b->frame, b->kernel, b->kcx, b->kcy, b->boundary);
+    if (st == SVP_OK) svp_frame_keep_real(&b->frame);
     /* zero mode: the image fills only the first height rows of the frame */
     if (st == SVP_OK && b->boundary == SVP_BOUNDARY_ZERO && b->frame.ny > b->height)
         st = svp_fft_pruned_get(b->frame.ny, b->frame.nx, b->height, &b->pruned);
@@ -477,9 +528,12 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
             return st;
         }
         const double scale = 1.0 / ((double)f->nx * f->ny);
-        const double *restrict od = (const double *)f->otf;
         float *restrict of = (float *)o;
-        for (size_t i = 0; i < 2 * nc; i++) of[i] = (float)(scale * od[i]);
+        for (size_t i = 0; i < nc; i++) {
+            const double complex z = svp_frame_otf(f, i);
+            of[2 * i] = (float)(scale * creal(z));
+            of[2 * i + 1] = (float)(scale * cimag(z));
+        }
         b->rows_f = plan;
         b->work_rf = r;
         b->work_cf = c;

@@ -20,16 +20,21 @@
 
 #include <lapacke.h>
 #include <math.h>
+#include <omp.h>
 #include <stdlib.h>
 #include <string.h>
 
 struct svp_variant_data {
     int n_terms;        /* K nodes or R eigen-PSFs */
     fftw_complex **otf; /* n_terms spectra (ny x ncx), each scaled by 1 / (nx ny) */
-    fftw_complex *acc;  /* ny x ncx accumulator */
-    double *tmp;        /* width x height */
-    double *scale;      /* s per pixel, NULL = 1 */
-    double *alpha;      /* halo fraction per pixel, NULL = no halo anywhere */
+    /* The same, real, when every term's kernel is point-symmetric (its OTF real up to
+     * round-off, see svp_frame_keep_real) and the terms are not row-pruned (whose phase makes
+     * them complex); otf is NULL then. Halves the spectra's memory and what the products read. */
+    double **otf_re;
+    fftw_complex *acc; /* ny x ncx accumulator */
+    double *tmp;       /* width x height */
+    double *scale;     /* s per pixel, NULL = 1 */
+    double *alpha;     /* halo fraction per pixel, NULL = no halo anywhere */
     /* node / sample grid: per column x the lower node ix0[x] and the fraction fx[x] towards
      * node ix0[x] + 1 (likewise rows) */
     int gx, gy;
@@ -58,7 +63,13 @@ struct svp_variant_data {
     int *ly0;
     double *lty;
     char *unit;
-    char *row_on; /* adjoint: per frame row, ext's row holds a term (see accumulate_weighted) */
+    char *row_on; /* adjoint: per frame row, ext's row holds a term (see accumulate_rows) */
+    /* The fused transforms (term_spectrum, the apply's way back, the adjoint): row plans, the
+     * frame's column plans (v->pruned's, or a full-rows set), and per-thread row blocks. */
+    const svp_fft_block *block;
+    const svp_fft_pruned *cols;
+    double *blk;
+    int blk_threads;
     fftw_complex *spec2; /* ny x ncx: the second spectrum of a pair (K > 1) */
 };
 
@@ -131,9 +142,11 @@ void svp_halo_gather(const double *restrict alpha, size_t n, const double *restr
     for (size_t i = 0; i < n; i++) out[i] += alpha[i] * mean;
 }
 
-/* Frame rows 0 .. rows − 1 of term k's extended weighted input c_k ⊙ E(s ⊙ x) (= E(c_k ⊙ s
- * ⊙ x): the weights are functions of the source pixel): row t is frame row (start + t) mod ny. */
-static void fill_weighted(const svp_blur *b, int k, int start, int rows, double *restrict fr)
+/* Window rows t0 .. t0 + nb − 1 of term k's extended weighted input c_k ⊙ E(s ⊙ x) (= E(c_k ⊙
+ * s ⊙ x): the weights are functions of the source pixel) into fr, rows `stride` apart: window
+ * row t is frame row (start + t) mod ny. */
+static void fill_rows(const svp_blur *b, int k, int start, int t0, int nb, double *restrict fr,
+                      int stride)
 {
     const svp_variant_data *v = b->variant;
     const int nx = b->frame.nx, ny = b->frame.ny, gy = v->gy;
@@ -142,18 +155,18 @@ static void fill_weighted(const svp_blur *b, int k, int start, int rows, double 
     const double *restrict cw = tent ? v->wx + (size_t)(k % v->gx) * nx : NULL;
     const double *restrict rw = tent ? v->wy + (size_t)(k / v->gx) * ny : NULL;
     const double *restrict lr = tent ? NULL : v->wx + (size_t)k * gy * nx;
-#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
-    for (int t = 0; t < rows; t++) {
-        const int fy = start + t < ny ? start + t : (start + t) % ny;
-        double *restrict out = fr + (size_t)t * nx;
+    for (int t = t0; t < t0 + nb; t++) {
+        const int fy = (start + t) % ny;
+        double *restrict out = fr + (size_t)(t - t0) * stride;
         const double *restrict e = ext + (size_t)fy * nx;
-        if (tent) {
+        if (v->unit[k]) {
+            memcpy(out, e, (size_t)nx * sizeof(double));
+        } else if (tent) {
             const double hy = rw[fy];
-            if (hy == 0) {
+            if (hy == 0)
                 memset(out, 0, (size_t)nx * sizeof(double));
-                continue;
-            }
-            for (int q = 0; q < nx; q++) out[q] = hy * cw[q] * e[q];
+            else
+                for (int q = 0; q < nx; q++) out[q] = hy * cw[q] * e[q];
         } else {
             const int j0 = v->ly0[fy];
             if (j0 < 0) {
@@ -168,81 +181,46 @@ static void fill_weighted(const svp_blur *b, int k, int start, int rows, double 
     }
 }
 
-/* Adjoint: acc (+)= c_k ⊙ z on the frame rows start .. start + rows − 1 (z's row t is frame
- * row (start + t) mod ny), acc = v->ext, with the apply's row x column weight tables (the
- * weights are functions of the source pixel, so c_k ⊙ E(u) = E(c_k ⊙ u) and the transpose
- * Eᵀ(c_k ⊙ z) = c_k ⊙ Eᵀ z). on[fy]: acc's row fy already holds a term this application, so
- * the first term to reach a row assigns it (rows of zero weight are not touched). */
-static void accumulate_weighted(const svp_blur *b, int k, int start, int rows,
-                                const double *restrict z)
+/* Adjoint: acc (+)= c_k ⊙ z (+ c_k+1 ⊙ z1 when z1) on window rows t0 .. t0 + nb − 1 (z's rows
+ * `stride` apart, window row t = frame row (start + t) mod ny), acc = v->ext, with the apply's
+ * row x column weight tables (the weights are functions of the source pixel, so c_k ⊙ E(u) =
+ * E(c_k ⊙ u) and the transpose Eᵀ(c_k ⊙ z) = c_k ⊙ Eᵀ z). on[fy]: acc's row fy already holds
+ * a term this application, so the first term to reach a row assigns it (rows of zero weight
+ * are not touched). A pair is two non-unit terms over the same rows. */
+static void accumulate_rows(const svp_blur *b, int k, int start, int t0, int nb,
+                            const double *restrict z, const double *restrict z1, int stride)
 {
     const svp_variant_data *v = b->variant;
     const int nx = b->frame.nx, ny = b->frame.ny, gy = v->gy;
     const int tent = b->kind == SVP_BLUR_TENT, unit = v->unit[k];
     double *restrict acc = v->ext;
     char *restrict on = v->row_on;
-    const double *restrict cw = tent ? v->wx + (size_t)(k % v->gx) * nx : NULL;
-    const double *restrict rw = tent ? v->wy + (size_t)(k / v->gx) * ny : NULL;
-    const double *restrict lr = tent ? NULL : v->wx + (size_t)k * gy * nx;
-#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
-    for (int t = 0; t < rows; t++) {
-        const int fy = start + t < ny ? start + t : (start + t) % ny;
-        double *restrict out = acc + (size_t)fy * nx;
-        const double *restrict in = z + (size_t)t * nx;
-        const int first = !on[fy];
-        if (unit) {
-            if (first)
-                memcpy(out, in, (size_t)nx * sizeof(double));
-            else
-                for (int q = 0; q < nx; q++) out[q] += in[q];
-        } else if (tent) {
-            const double hy = rw[fy];
-            if (hy == 0) continue;
-            if (first)
-                for (int q = 0; q < nx; q++) out[q] = hy * cw[q] * in[q];
-            else
-                for (int q = 0; q < nx; q++) out[q] += hy * cw[q] * in[q];
-        } else {
-            const int j0 = v->ly0[fy];
-            if (j0 < 0) continue;
-            const int j1 = j0 + 1 < gy ? j0 + 1 : j0;
-            const double ty = v->lty[fy], sy = 1 - ty;
-            const double *restrict a0 = lr + (size_t)j0 * nx, *restrict a1 = lr + (size_t)j1 * nx;
-            if (first)
-                for (int q = 0; q < nx; q++) out[q] = (sy * a0[q] + ty * a1[q]) * in[q];
-            else
-                for (int q = 0; q < nx; q++) out[q] += (sy * a0[q] + ty * a1[q]) * in[q];
-        }
-        on[fy] = 1;
-    }
-}
-
-/* The same for two non-unit terms k and k + 1 whose rows start at the same frame row (z0,
- * z1 their inverse transforms): one pass over acc adds both weighted products. */
-static void accumulate_pair(const svp_blur *b, int k, int start, int rows,
-                            const double *restrict z0, const double *restrict z1)
-{
-    const svp_variant_data *v = b->variant;
-    const int nx = b->frame.nx, ny = b->frame.ny, gy = v->gy;
-    const int tent = b->kind == SVP_BLUR_TENT;
-    double *restrict acc = v->ext;
-    char *restrict on = v->row_on;
+    const int k1 = z1 ? k + 1 : k;
     const double *restrict cw0 = tent ? v->wx + (size_t)(k % v->gx) * nx : NULL;
-    const double *restrict cw1 = tent ? v->wx + (size_t)((k + 1) % v->gx) * nx : NULL;
+    const double *restrict cw1 = tent ? v->wx + (size_t)(k1 % v->gx) * nx : NULL;
     const double *restrict rw0 = tent ? v->wy + (size_t)(k / v->gx) * ny : NULL;
-    const double *restrict rw1 = tent ? v->wy + (size_t)((k + 1) / v->gx) * ny : NULL;
+    const double *restrict rw1 = tent ? v->wy + (size_t)(k1 / v->gx) * ny : NULL;
     const double *restrict lr0 = tent ? NULL : v->wx + (size_t)k * gy * nx;
-    const double *restrict lr1 = tent ? NULL : v->wx + (size_t)(k + 1) * gy * nx;
-#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
-    for (int t = 0; t < rows; t++) {
-        const int fy = start + t < ny ? start + t : (start + t) % ny;
+    const double *restrict lr1 = tent ? NULL : v->wx + (size_t)k1 * gy * nx;
+    for (int t = t0; t < t0 + nb; t++) {
+        const int fy = (start + t) % ny;
         double *restrict out = acc + (size_t)fy * nx;
-        const double *restrict i0 = z0 + (size_t)t * nx, *restrict i1 = z1 + (size_t)t * nx;
+        const double *restrict i0 = z + (size_t)(t - t0) * stride;
+        const double *restrict i1 = z1 ? z1 + (size_t)(t - t0) * stride : NULL;
         const int first = !on[fy];
-        if (tent) {
-            const double h0 = rw0[fy], h1 = rw1[fy];
-            if (h0 == 0 && h1 == 0) continue;
+        if (unit) { /* never in a pair */
             if (first)
+                memcpy(out, i0, (size_t)nx * sizeof(double));
+            else
+                for (int q = 0; q < nx; q++) out[q] += i0[q];
+        } else if (tent) {
+            const double h0 = rw0[fy], h1 = i1 ? rw1[fy] : 0.0;
+            if (h0 == 0 && h1 == 0) continue;
+            if (!i1 && first)
+                for (int q = 0; q < nx; q++) out[q] = h0 * cw0[q] * i0[q];
+            else if (!i1)
+                for (int q = 0; q < nx; q++) out[q] += h0 * cw0[q] * i0[q];
+            else if (first)
                 for (int q = 0; q < nx; q++) out[q] = h0 * cw0[q] * i0[q] + h1 * cw1[q] * i1[q];
             else
                 for (int q = 0; q < nx; q++) out[q] += h0 * cw0[q] * i0[q] + h1 * cw1[q] * i1[q];
@@ -253,7 +231,11 @@ static void accumulate_pair(const svp_blur *b, int k, int start, int rows,
             const double ty = v->lty[fy], sy = 1 - ty;
             const double *restrict a0 = lr0 + (size_t)j0 * nx, *restrict a1 = lr0 + (size_t)j1 * nx;
             const double *restrict b0 = lr1 + (size_t)j0 * nx, *restrict b1 = lr1 + (size_t)j1 * nx;
-            if (first)
+            if (!i1 && first)
+                for (int q = 0; q < nx; q++) out[q] = (sy * a0[q] + ty * a1[q]) * i0[q];
+            else if (!i1)
+                for (int q = 0; q < nx; q++) out[q] += (sy * a0[q] + ty * a1[q]) * i0[q];
+            else if (first)
                 for (int q = 0; q < nx; q++)
                     out[q] = (sy * a0[q] + ty * a1[q]) * i0[q] + (sy * b0[q] + ty * b1[q]) * i1[q];
             else
@@ -281,7 +263,12 @@ static void fold_scaled(const svp_blur *b, const double *restrict fr, const char
         for (int j = 0; j < ny; j++) {
             if (sy[j] != y || (on && !on[j])) continue;
             const double *restrict in = fr + (size_t)j * nx;
-            for (int q = 0; q < nx; q++)
+            /* the image row is contiguous in the frame; only the margins look up src */
+            const int lo = f->off_x, hi = f->off_x + w;
+            for (int q = 0; q < w; q++) out[q] += in[lo + q];
+            for (int q = 0; q < lo; q++)
+                if (sx[q] >= 0) out[sx[q]] += in[q];
+            for (int q = hi; q < nx; q++)
                 if (sx[q] >= 0) out[sx[q]] += in[q];
         }
         if (scale) {
@@ -291,22 +278,95 @@ static void fold_scaled(const svp_blur *b, const double *restrict fr, const char
     }
 }
 
-/* out = the spectrum of term k's weighted frame c_k ⊙ E(s ⊙ x) (v->ext made), row-pruned
- * for pruned tents (its rows moved to the top: the phase is in otf[k]). */
+/* The per-thread row blocks of the fused transforms (two per thread: a pair's terms), made
+ * for at least `threads` threads. */
+static svp_status ensure_blocks(svp_variant_data *v, int bx, int threads)
+{
+    if (threads <= v->blk_threads) return SVP_OK;
+    svp_free(v->blk);
+    v->blk_threads = 0;
+    v->blk = svp_alloc((size_t)threads * 2 * SVP_FFT_BLOCK * bx * sizeof(double));
+    if (!v->blk) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d row blocks", threads);
+    v->blk_threads = threads;
+    return SVP_OK;
+}
+
+static inline double *thread_block(const svp_variant_data *v, int bx, int which)
+{
+    return v->blk + ((size_t)omp_get_thread_num() * 2 + which) * SVP_FFT_BLOCK * bx;
+}
+
+/* out = the spectrum of term k's weighted frame c_k ⊙ E(s ⊙ x) (v->ext made): its rows are
+ * made a block at a time and transformed along x while in cache, then the columns. Pruned
+ * tents transform only their window's rows (moved to the top: the phase is in otf[k]). */
 static void term_spectrum(svp_blur *b, int k, fftw_complex *out)
 {
     svp_variant_data *v = b->variant;
     const svp_frame *f = &b->frame;
-    if (v->pruned) {
-        fill_weighted(b, k, v->start[k], v->rows, b->work_r);
-        svp_fft_forward_pruned(v->pruned, b->work_r, out);
-    } else if (v->unit[k]) {
-        svp_fft_forward(f->plan, v->ext, out); /* r2c keeps its input */
-    } else {
-        fill_weighted(b, k, 0, f->ny, b->work_r);
-        svp_fft_forward(f->plan, b->work_r, out);
+    const svp_fft_block *p = v->block;
+    const int ncx = f->ncx, ny = f->ny, B = SVP_FFT_BLOCK;
+    const int rows = v->pruned ? v->rows : ny, start = v->pruned ? v->start[k] : 0;
+    const int nblk = (rows + B - 1) / B;
+#pragma omp parallel for schedule(static) if ((size_t)rows * f->nx > SVP_PARALLEL_MIN)
+    for (int ib = 0; ib < nblk; ib++) {
+        const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
+        double *blk = thread_block(v, p->bx, 0);
+        fill_rows(b, k, start, t0, nb, blk, p->bx);
+        svp_fft_block_forward(p, nb, blk, out + (size_t)t0 * ncx);
     }
+    if (rows < ny) memset(out + (size_t)rows * ncx, 0, (size_t)(ny - rows) * ncx * sizeof *out);
+    fftw_execute_dft(v->cols->cols_fwd, out, out);
 }
+
+/* acc (assign: =, else +=) otf_k · s0 (+ otf_k+1 · s1 when pair), ns complex values each,
+ * written out in real arithmetic (no C99 complex NaN fix-ups, so it vectorises); real
+ * spectra (otf_re) read half as much. The loop body is one of six: (real, complex) x (pair,
+ * pair assigning, single). */
+/* _Pragma inside a macro is beyond clang-format: laid out by hand */
+/* clang-format off */
+#define SVP_ACCUMULATE(RE, IM)                                                                     \
+    do {                                                                                           \
+        if (assign) {                                                                              \
+            _Pragma("omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)")            \
+            for (size_t i = 0; i < ns; i++) {                                                      \
+                a[2 * i] = (RE);                                                                   \
+                a[2 * i + 1] = (IM);                                                               \
+            }                                                                                      \
+        } else {                                                                                   \
+            _Pragma("omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)")            \
+            for (size_t i = 0; i < ns; i++) {                                                      \
+                a[2 * i] += (RE);                                                                  \
+                a[2 * i + 1] += (IM);                                                              \
+            }                                                                                      \
+        }                                                                                          \
+    } while (0)
+/* clang-format on */
+
+static void accumulate_spectra(svp_variant_data *v, int k, int pair, int assign,
+                               const double *restrict s0, const double *restrict s1, size_t ns)
+{
+    double *restrict a = (double *)v->acc;
+    if (v->otf_re) {
+        const double *restrict p0 = v->otf_re[k], *restrict p1 = pair ? v->otf_re[k + 1] : p0;
+        if (pair)
+            SVP_ACCUMULATE(p0[i] * s0[2 * i] + p1[i] * s1[2 * i],
+                           p0[i] * s0[2 * i + 1] + p1[i] * s1[2 * i + 1]);
+        else
+            SVP_ACCUMULATE(p0[i] * s0[2 * i], p0[i] * s0[2 * i + 1]);
+        return;
+    }
+    const double *restrict o0 = (const double *)v->otf[k];
+    const double *restrict o1 = pair ? (const double *)v->otf[k + 1] : o0;
+    if (pair)
+        SVP_ACCUMULATE((o0[2 * i] * s0[2 * i] - o0[2 * i + 1] * s0[2 * i + 1]) +
+                           (o1[2 * i] * s1[2 * i] - o1[2 * i + 1] * s1[2 * i + 1]),
+                       (o0[2 * i] * s0[2 * i + 1] + o0[2 * i + 1] * s0[2 * i]) +
+                           (o1[2 * i] * s1[2 * i + 1] + o1[2 * i + 1] * s1[2 * i]));
+    else
+        SVP_ACCUMULATE(o0[2 * i] * s0[2 * i] - o0[2 * i + 1] * s0[2 * i + 1],
+                       o0[2 * i] * s0[2 * i + 1] + o0[2 * i + 1] * s0[2 * i]);
+}
+#undef SVP_ACCUMULATE
 
 svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
@@ -315,6 +375,7 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     svp_frame *f = &b->frame;
     const size_t ns = (size_t)f->ny * f->ncx;
     const int K = v->n_terms;
+    SVP_CHECK(ensure_blocks(v, v->block->bx, omp_get_max_threads()));
     /* ext = E(s ⊙ x), shared by every term, in one pass */
     if (v->scale) {
         const int w = b->width, nx = f->nx;
@@ -329,7 +390,11 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
                 continue;
             }
             const double *restrict in = x + (size_t)sy[t] * w, *restrict sr = s + (size_t)sy[t] * w;
-            for (int q = 0; q < nx; q++) out[q] = sx[q] >= 0 ? sr[sx[q]] * in[sx[q]] : 0.0;
+            /* the image row is contiguous in the frame; only the margins look up src */
+            const int lo = f->off_x, hi = f->off_x + w;
+            for (int q = 0; q < lo; q++) out[q] = sx[q] >= 0 ? sr[sx[q]] * in[sx[q]] : 0.0;
+            for (int q = 0; q < w; q++) out[lo + q] = sr[q] * in[q];
+            for (int q = hi; q < nx; q++) out[q] = sx[q] >= 0 ? sr[sx[q]] * in[sx[q]] : 0.0;
         }
     } else {
         svp_frame_extend(f, x, v->ext);
@@ -342,43 +407,29 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
         const int pair = k + 1 < K;
         term_spectrum(b, k, b->work_c);
         if (pair) term_spectrum(b, k + 1, v->spec2);
-        const double *restrict o0 = (const double *)v->otf[k];
         if (K == 1) {
-            svp_spectrum_product(o0, (double *)b->work_c, ns, 0, 1.0);
+            if (v->otf_re)
+                svp_spectrum_scale(v->otf_re[0], (double *)b->work_c, ns, 1.0);
+            else
+                svp_spectrum_product((const double *)v->otf[0], (double *)b->work_c, ns, 0, 1.0);
             break;
         }
-        /* written out in real arithmetic: no C99 complex NaN fix-ups, so it vectorises */
-        double *restrict a = (double *)v->acc;
-        const double *restrict s0 = (const double *)b->work_c;
-        const double *restrict o1 = pair ? (const double *)v->otf[k + 1] : o0;
-        const double *restrict s1 = pair ? (const double *)v->spec2 : s0;
-        if (pair && k > 0) {
-#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-            for (size_t i = 0; i < ns; i++) {
-                const double p0 = o0[2 * i], q0 = o0[2 * i + 1], r0 = s0[2 * i], i0 = s0[2 * i + 1];
-                const double p1 = o1[2 * i], q1 = o1[2 * i + 1], r1 = s1[2 * i], i1 = s1[2 * i + 1];
-                a[2 * i] += (p0 * r0 - q0 * i0) + (p1 * r1 - q1 * i1);
-                a[2 * i + 1] += (p0 * i0 + q0 * r0) + (p1 * i1 + q1 * r1);
-            }
-        } else if (k == 0) { /* the first pair assigns (w1 = 0: K = 1 is handled above) */
-#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-            for (size_t i = 0; i < ns; i++) {
-                const double p0 = o0[2 * i], q0 = o0[2 * i + 1], r0 = s0[2 * i], i0 = s0[2 * i + 1];
-                const double p1 = o1[2 * i], q1 = o1[2 * i + 1], r1 = s1[2 * i], i1 = s1[2 * i + 1];
-                a[2 * i] = (p0 * r0 - q0 * i0) + (p1 * r1 - q1 * i1);
-                a[2 * i + 1] = (p0 * i0 + q0 * r0) + (p1 * i1 + q1 * r1);
-            }
-        } else { /* a last single term (odd K) */
-#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-            for (size_t i = 0; i < ns; i++) {
-                const double p0 = o0[2 * i], q0 = o0[2 * i + 1], r0 = s0[2 * i], i0 = s0[2 * i + 1];
-                a[2 * i] += p0 * r0 - q0 * i0;
-                a[2 * i + 1] += p0 * i0 + q0 * r0;
-            }
-        }
+        accumulate_spectra(v, k, pair, k == 0, (const double *)b->work_c,
+                           pair ? (const double *)v->spec2 : NULL, ns);
     }
-    svp_fft_inverse_unscaled(f->plan, acc, b->work_r);
-    svp_frame_crop(f, b->work_r, y);
+    /* back: the columns, then only the image's rows, a block at a time, cropped into y */
+    fftw_execute_dft(v->cols->cols_bwd, acc, acc);
+    const svp_fft_block *p = v->block;
+    const int w = b->width, h = b->height, B = SVP_FFT_BLOCK, nblk = (h + B - 1) / B;
+#pragma omp parallel for schedule(static) if ((size_t)h * f->nx > SVP_PARALLEL_MIN)
+    for (int ib = 0; ib < nblk; ib++) {
+        const int t0 = ib * B, nb = h - t0 < B ? h - t0 : B;
+        double *blk = thread_block(v, p->bx, 0);
+        svp_fft_block_inverse(p, nb, acc + (size_t)(f->off_y + t0) * f->ncx, blk);
+        for (int t = 0; t < nb; t++)
+            memcpy(y + (size_t)(t0 + t) * w, blk + (size_t)t * p->bx + f->off_x,
+                   (size_t)w * sizeof(double));
+    }
     if (v->alpha) svp_halo_scatter(v->alpha, (size_t)b->width * b->height, x, y, v->tmp);
     return SVP_OK;
 }
@@ -388,51 +439,69 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     if (b->kind == SVP_BLUR_EXACT) return svp_exact_adjoint(b, y, x);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
+    const svp_fft_block *p = v->block;
     const size_t ns = (size_t)f->ny * f->ncx;
-    const int K = v->n_terms;
+    const int K = v->n_terms, ny = f->ny, ncx = f->ncx, B = SVP_FFT_BLOCK;
+    SVP_CHECK(ensure_blocks(v, p->bx, omp_get_max_threads()));
     /* Hᵀ y = s ⊙ Eᵀ(Σ_k c_k ⊙ (P̃_k ⋆ C y)), C y the image embedded in the frame: one forward
-     * transform of C y; per term a conjugate product, an inverse transform (row-pruned for
-     * pruned tents) and a weighted accumulation into the frame v->ext; one fold at the end. */
+     * transform of C y (only the image's rows along x); per term a conjugate product, the
+     * columns back, then its rows (a pruned tent's window only) back a block at a time,
+     * weighted into the frame accumulator v->ext while in cache; one fold at the end. */
     fftw_complex *restrict spec_y = v->acc;
-    fftw_complex *restrict spec = b->work_c;
-    svp_frame_embed(f, y, b->work_r);
-    svp_fft_forward(f->plan, b->work_r, spec_y);
-    memset(v->row_on, 0, (size_t)f->ny);
+    const int h = b->height, w = b->width;
+    const int hb = (h + B - 1) / B;
+    memset(spec_y, 0, ns * sizeof *spec_y);
+#pragma omp parallel for schedule(static) if ((size_t)h * f->nx > SVP_PARALLEL_MIN)
+    for (int ib = 0; ib < hb; ib++) {
+        const int t0 = ib * B, nb = h - t0 < B ? h - t0 : B;
+        double *blk = thread_block(v, p->bx, 0);
+        for (int t = 0; t < nb; t++) {
+            double *row = blk + (size_t)t * p->bx;
+            memset(row, 0, (size_t)f->nx * sizeof(double));
+            memcpy(row + f->off_x, y + (size_t)(t0 + t) * w, (size_t)w * sizeof(double));
+        }
+        svp_fft_block_forward(p, nb, blk, spec_y + (size_t)(f->off_y + t0) * ncx);
+    }
+    fftw_execute_dft(v->cols->cols_fwd, spec_y, spec_y);
+    memset(v->row_on, 0, (size_t)ny);
+    fftw_complex *specs[2] = {b->work_c, v->spec2};
     for (int k = 0; k < K;) {
-        /* two non-unit terms over the same rows go in a pair: their inverse transforms land in
-         * work_r and spec2 (as a real frame), one accumulator pass adds both */
+        /* two non-unit terms over the same rows go in a pair: one accumulator pass adds both */
         const int pair = k + 1 < K && !v->unit[k] && !v->unit[k + 1] &&
                          (!v->pruned || v->start[k] == v->start[k + 1]);
-        double *zs[2] = {b->work_r, (double *)v->spec2};
-        for (int p = 0; p <= pair; p++) {
-            const double *restrict o = (const double *)v->otf[k + p];
+        for (int q = 0; q <= pair; q++) {
             const double *restrict yy = (const double *)spec_y;
-            double *restrict sp = (double *)spec;
-            /* sp = conj(otf_k) · spec_y, in real arithmetic */
+            double *restrict sp = (double *)specs[q];
+            if (v->otf_re) { /* sp = otf_k · spec_y (real: its own conjugate) */
+                const double *restrict o = v->otf_re[k + q];
 #pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
-            for (size_t i = 0; i < ns; i++) {
-                const double pr = o[2 * i], pi = o[2 * i + 1], yr = yy[2 * i], yi = yy[2 * i + 1];
-                sp[2 * i] = pr * yr + pi * yi;
-                sp[2 * i + 1] = pr * yi - pi * yr;
+                for (size_t i = 0; i < ns; i++) {
+                    sp[2 * i] = o[i] * yy[2 * i];
+                    sp[2 * i + 1] = o[i] * yy[2 * i + 1];
+                }
+            } else { /* sp = conj(otf_k) · spec_y, in real arithmetic */
+                const double *restrict o = (const double *)v->otf[k + q];
+#pragma omp parallel for schedule(static) if (ns > SVP_PARALLEL_MIN / 2)
+                for (size_t i = 0; i < ns; i++) {
+                    const double pr = o[2 * i], pi = o[2 * i + 1];
+                    const double yr = yy[2 * i], yi = yy[2 * i + 1];
+                    sp[2 * i] = pr * yr + pi * yi;
+                    sp[2 * i + 1] = pr * yi - pi * yr;
+                }
             }
-            if (v->pruned)
-                svp_fft_inverse_pruned_unscaled(v->pruned, spec, zs[p]);
-            else
-                svp_fft_inverse_unscaled(f->plan, spec, zs[p]);
+            fftw_execute_dft(v->cols->cols_bwd, specs[q], specs[q]);
         }
-        const int start = v->pruned ? v->start[k] : 0, rows = v->pruned ? v->rows : f->ny;
-        if (pair) {
-            accumulate_pair(b, k, start, rows, zs[0], zs[1]);
-            k += 2;
-            continue;
+        const int start = v->pruned ? v->start[k] : 0, rows = v->pruned ? v->rows : ny;
+        const int nblk = (rows + B - 1) / B;
+#pragma omp parallel for schedule(static) if ((size_t)rows * f->nx > SVP_PARALLEL_MIN)
+        for (int ib = 0; ib < nblk; ib++) {
+            const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
+            double *z0 = thread_block(v, p->bx, 0), *z1 = pair ? thread_block(v, p->bx, 1) : NULL;
+            svp_fft_block_inverse(p, nb, specs[0] + (size_t)t0 * ncx, z0);
+            if (pair) svp_fft_block_inverse(p, nb, specs[1] + (size_t)t0 * ncx, z1);
+            accumulate_rows(b, k, start, t0, nb, z0, z1, p->bx);
         }
-        if (K == 1 && v->unit[0]) { /* c_0 = 1: fold the term's frame itself */
-            fold_scaled(b, b->work_r, NULL, x);
-            if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
-            return SVP_OK;
-        }
-        accumulate_weighted(b, k, start, rows, b->work_r);
-        k++;
+        k += 1 + pair;
     }
     fold_scaled(b, v->ext, v->row_on, x);
     if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
@@ -447,6 +516,9 @@ void svp_variant_release(svp_blur *b)
         if (v->otf)
             for (int k = 0; k < v->n_terms; k++) svp_free(v->otf[k]);
         free(v->otf);
+        if (v->otf_re)
+            for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_re[k]);
+        free(v->otf_re);
         svp_free(v->acc);
         svp_free(v->tmp);
         svp_free(v->scale);
@@ -460,6 +532,7 @@ void svp_variant_release(svp_blur *b)
         free(v->frame_rows);
         svp_free(v->ext);
         svp_free(v->spec2);
+        svp_free(v->blk);
         free(v->wx);
         free(v->wy);
         free(v->ly0);
@@ -487,8 +560,8 @@ size_t svp_variant_memory(const svp_blur *b)
     bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
     bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double); /* work_r */
     if (v) {
-        bytes += (size_t)v->n_terms * spectrum; /* node / eigen-PSF spectra */
-        bytes += spectrum;                      /* accumulator (work_c counted by frame) */
+        bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* node spectra */
+        bytes += spectrum; /* accumulator (work_c counted by frame) */
         bytes += n * sizeof(double) * (1 + (v->scale != NULL) + (v->alpha != NULL));
         bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
         if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
@@ -496,15 +569,22 @@ size_t svp_variant_memory(const svp_blur *b)
         if (v->start) bytes += (size_t)v->n_terms * sizeof(int);
         if (v->ext) bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double);
         if (v->wx)
-            bytes += (size_t)(b->kind == SVP_BLUR_TENT ? v->gx : v->n_terms * v->gy) *
-                     b->frame.nx * sizeof(double);
+            bytes += (size_t)(b->kind == SVP_BLUR_TENT ? v->gx : v->n_terms * v->gy) * b->frame.nx *
+                     sizeof(double);
         if (v->wy) bytes += (size_t)v->gy * b->frame.ny * sizeof(double);
         if (v->ly0) bytes += (size_t)b->frame.ny * (sizeof(int) + sizeof(double));
         bytes += (size_t)v->n_terms;
         if (v->row_on) bytes += (size_t)b->frame.ny;
         if (v->spec2) bytes += spectrum;
+        if (v->blk)
+            bytes += (size_t)v->blk_threads * 2 * SVP_FFT_BLOCK * v->block->bx * sizeof(double);
     }
     return bytes;
+}
+
+int svp_variant_real_spectra(const svp_blur *b)
+{
+    return b && b->variant && b->variant->otf_re != NULL;
 }
 
 int svp_blur_is_variant(const svp_blur *b) { return b && b->kind != SVP_BLUR_INVARIANT; }
@@ -741,6 +821,9 @@ static svp_status setup_fill(svp_blur *b)
     const int tent = b->kind == SVP_BLUR_TENT;
     const size_t nwx = tent ? (size_t)gx * nx : (size_t)K * gy * nx;
     v->ext = svp_alloc((size_t)ny * nx * sizeof(double));
+    SVP_CHECK(svp_fft_block_get(nx, &v->block));
+    v->cols = v->pruned;
+    if (!v->cols) SVP_CHECK(svp_fft_pruned_get(ny, nx, ny, &v->cols));
     if (K > 1) {
         v->spec2 = svp_alloc((size_t)ny * f->ncx * sizeof(fftw_complex));
         if (!v->spec2) return svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's buffers");
@@ -868,6 +951,19 @@ static svp_status build_lowrank(svp_blur *b, const svp_variant_options *o, doubl
         st = svp_report_progress(o->progress, o->progress_user, 0.5 * (j + 1.0) / S);
     }
     if (st != SVP_OK) goto cleanup;
+    /* Point-symmetric samples (every Moffat and Gaussian PSF): k(d) = k(−d) is k[i] = k[m − 1 − i]
+     * on the (2 rx + 1) x (2 ry + 1) grid. Their eigen-PSFs of non-zero singular value are
+     * point-symmetric too; those of (numerically) zero singular value are arbitrary directions,
+     * and are projected onto the symmetric ones below: then every term's OTF is real
+     * (svp_variant_data.otf_re), a change of the operator within round-off of σ_r. */
+    int symmetric = 1;
+    for (int j = 0; j < S && symmetric; j++) {
+        const double *k = a + m * (size_t)j;
+        double peak = 0;
+        for (size_t i = 0; i < m; i++) peak = fabs(k[i]) > peak ? fabs(k[i]) : peak;
+        for (size_t i = 0; i < m / 2 && symmetric; i++)
+            symmetric = fabs(k[i] - k[m - 1 - i]) <= 1e-13 * peak;
+    }
     if (centred) {
         for (int j = 0; j < S; j++)
             for (size_t i = 0; i < m; i++) mean[i] += a[m * (size_t)j + i];
@@ -911,7 +1007,10 @@ static svp_status build_lowrank(svp_blur *b, const svp_variant_options *o, doubl
         const int q = r - centred; /* singular triplet of term r (−1: the mean) */
         for (int j = 0; j < S; j++)
             v->coef[(size_t)r * S + j] = q < 0 ? 1.0 : sv[q] * vt[q + (size_t)j * mn];
-        const svp_image eigen = {kw, kh, q < 0 ? mean : (double *)(uvec + m * (size_t)q)};
+        double *e = q < 0 ? mean : (double *)(uvec + m * (size_t)q);
+        if (symmetric)
+            for (size_t i = 0; i < m / 2; i++) e[i] = e[m - 1 - i] = 0.5 * (e[i] + e[m - 1 - i]);
+        const svp_image eigen = {kw, kh, e};
         flux[r] = svp_sum(eigen.data, m);
         st = term_otf(b, &eigen, rx, ry, &v->otf[r]);
         if (st == SVP_OK)
@@ -963,6 +1062,28 @@ cleanup:
     free(vt);
     free(flux);
     return st;
+}
+
+/* Real term spectra (svp_variant_data.otf_re) when every term's is real up to round-off and
+ * none carries a row-pruning phase. */
+static svp_status keep_real_spectra(svp_variant_data *v, size_t ns)
+{
+    if (v->pruned) return SVP_OK;
+    for (int k = 0; k < v->n_terms; k++)
+        if (!svp_spectrum_is_real(v->otf[k], ns)) return SVP_OK;
+    v->otf_re = calloc((size_t)v->n_terms, sizeof *v->otf_re);
+    if (!v->otf_re) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d spectra", v->n_terms);
+    for (int k = 0; k < v->n_terms; k++) {
+        double *re = svp_alloc(ns * sizeof(double));
+        if (!re) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d spectra", v->n_terms);
+        for (size_t i = 0; i < ns; i++) re[i] = creal(v->otf[k][i]);
+        v->otf_re[k] = re;
+        svp_free(v->otf[k]);
+        v->otf[k] = NULL;
+    }
+    free(v->otf);
+    v->otf = NULL;
+    return SVP_OK;
 }
 
 svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
@@ -1018,6 +1139,7 @@ svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
     }
     if (st == SVP_OK)
         st = lowrank ? build_lowrank(b, &o, support, rx, ry) : build_tent(b, &o, support, rx, ry);
+    if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
     if (st != SVP_OK) {
         svp_blur_free(b);

@@ -311,9 +311,100 @@ SVP_ROWS_PLANS(svp_fftf_rows, rowsf_entry, rowsf_cache, rowsf_destroy, svp_fftf_
                fftwf_, "float")
 /* clang-format on */
 
+typedef struct block_entry {
+    svp_fft_block plan;
+    struct block_entry *next;
+} block_entry;
+static block_entry *block_cache;
+
+static void block_destroy(svp_fft_block *p)
+{
+    if (p->r2c) fftw_destroy_plan(p->r2c);
+    if (p->c2r) fftw_destroy_plan(p->c2r);
+    if (p->r2c1) fftw_destroy_plan(p->r2c1);
+    if (p->c2r1) fftw_destroy_plan(p->c2r1);
+}
+
+svp_status svp_fft_block_get(int nx, const svp_fft_block **out)
+{
+    if (nx < 1) return svp_fail(SVP_ERR_INVALID, "row-block FFT width %d", nx);
+    pthread_once(&fft_once, fft_init);
+    pthread_mutex_lock(&fft_lock);
+    for (block_entry *e = block_cache; e; e = e->next)
+        if (e->plan.nx == nx) {
+            *out = &e->plan;
+            pthread_mutex_unlock(&fft_lock);
+            return SVP_OK;
+        }
+    svp_status status = SVP_OK;
+    const int ncx = nx / 2 + 1, B = SVP_FFT_BLOCK, bx = nx + (nx & 1);
+    /* planned 16 bytes past a 64-byte boundary: FFTW then picks no codelet that needs more
+     * than 16-byte alignment, and the rows of a frame (ncx complex apart) qualify */
+    double *r = svp_alloc(((size_t)B * bx + 2) * sizeof(double));
+    fftw_complex *c = svp_alloc(((size_t)B * ncx + 1) * sizeof(fftw_complex));
+    block_entry *e = calloc(1, sizeof *e);
+    if (!r || !c || !e) {
+        status = svp_fail(SVP_ERR_NOMEM, "out of memory planning %d-wide row FFTs", nx);
+        goto cleanup;
+    }
+    if (fft_threads_ok) fftw_plan_with_nthreads(1); /* run inside the caller's threads */
+    unsigned flags = fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE;
+    svp_fft_block *p = &e->plan;
+    p->nx = nx;
+    p->ncx = ncx;
+    p->bx = bx;
+    double *r16 = r ? r + 2 : NULL;
+    fftw_complex *c16 = c ? c + 1 : NULL;
+    p->r2c = fftw_plan_many_dft_r2c(1, &nx, B, r16, NULL, 1, bx, c16, NULL, 1, ncx, flags);
+    p->c2r = fftw_plan_many_dft_c2r(1, &nx, B, c16, NULL, 1, ncx, r16, NULL, 1, bx, flags);
+    p->r2c1 = fftw_plan_dft_r2c_1d(nx, r16, c16, flags);
+    p->c2r1 = fftw_plan_dft_c2r_1d(nx, c16, r16, flags);
+    if (!p->r2c || !p->c2r || !p->r2c1 || !p->c2r1) {
+        block_destroy(p);
+        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan %d-wide row transforms", nx);
+        goto cleanup;
+    }
+    e->next = block_cache;
+    block_cache = e;
+    *out = p;
+    e = NULL;
+cleanup:
+    pthread_mutex_unlock(&fft_lock);
+    free(e);
+    svp_free(r);
+    svp_free(c);
+    return status;
+}
+
+void svp_fft_block_forward(const svp_fft_block *p, int rows, double *in, fftw_complex *out)
+{
+    if (rows == SVP_FFT_BLOCK) {
+        fftw_execute_dft_r2c(p->r2c, in, out);
+        return;
+    }
+    for (int t = 0; t < rows; t++)
+        fftw_execute_dft_r2c(p->r2c1, in + (size_t)t * p->bx, out + (size_t)t * p->ncx);
+}
+
+void svp_fft_block_inverse(const svp_fft_block *p, int rows, fftw_complex *in, double *out)
+{
+    if (rows == SVP_FFT_BLOCK) {
+        fftw_execute_dft_c2r(p->c2r, in, out);
+        return;
+    }
+    for (int t = 0; t < rows; t++)
+        fftw_execute_dft_c2r(p->c2r1, in + (size_t)t * p->ncx, out + (size_t)t * p->bx);
+}
+
 void svp_fft_cleanup(void)
 {
     pthread_mutex_lock(&fft_lock);
+    while (block_cache) {
+        block_entry *next = block_cache->next;
+        block_destroy(&block_cache->plan);
+        free(block_cache);
+        block_cache = next;
+    }
     while (rowsf_cache) {
         rowsf_entry *next = rowsf_cache->next;
         rowsf_destroy(&rowsf_cache->plan);

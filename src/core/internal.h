@@ -84,6 +84,25 @@ void svp_fft_forward_pruned(const svp_fft_pruned *p, double *in, fftw_complex *o
 /* Rows 0 .. rows − 1 of the unnormalised c2r of in (destroyed) into out; out's other rows are
  * left as they were. */
 void svp_fft_inverse_pruned_unscaled(const svp_fft_pruned *p, fftw_complex *in, double *out);
+/* Row blocks: single-threaded r2c / c2r plans for SVP_FFT_BLOCK rows (and for 1 row, the
+ * tail) of an nx-wide frame, to be run from the caller's own parallel loop over blocks so
+ * that each block can be made (a weighted copy, an extension) or used (a crop, a weighted
+ * sum) while it is in cache; with a frame's column plans (svp_fft_pruned.cols_*) they make
+ * the same 2-D transform as svp_fft_forward without a frame-sized input or output buffer.
+ * Real rows are bx = nx rounded up to even apart (so every row is 16-byte aligned when the
+ * block is), complex rows ncx; the plans assume 16-byte alignment only, so any row of an
+ * svp_alloc'd frame may be passed. Cached like svp_fft_plan. */
+#define SVP_FFT_BLOCK 8
+typedef struct svp_fft_block {
+    int nx, ncx, bx;
+    fftw_plan r2c, c2r;   /* SVP_FFT_BLOCK rows; c2r destroys its input */
+    fftw_plan r2c1, c2r1; /* one row */
+} svp_fft_block;
+
+svp_status svp_fft_block_get(int nx, const svp_fft_block **out);
+/* rows (1 .. SVP_FFT_BLOCK) packed rows: in → out. */
+void svp_fft_block_forward(const svp_fft_block *p, int rows, double *in, fftw_complex *out);
+void svp_fft_block_inverse(const svp_fft_block *p, int rows, fftw_complex *in, double *out);
 /* Single precision (fftw3f), for the optional float transforms of Richardson–Lucy: the same
  * row-then-column decomposition for every frame (rows = ny for a full transform, fewer for a
  * zero-padded one), cached like the double plans. */

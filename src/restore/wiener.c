@@ -277,7 +277,6 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
 
     /* gain G = conj(P) / (|P|² + λ|L|²) / (nx ny); residual filter R = λ|L|² / (...) too */
     const double scale = 1.0 / ((double)nx * ny);
-    const fftw_complex *restrict otf = f->otf;
     if (need_gain || filled) {
         blur->wiener_gain_ok = 0;
 #pragma omp parallel for schedule(static) if (nc > 32768)
@@ -286,10 +285,10 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
                 size_t k = (size_t)v * ncx + u;
                 double lap = lap_x[u] + lap_y[v];
                 double prior = balance * lap * lap;
-                double denom =
-                    creal(otf[k]) * creal(otf[k]) + cimag(otf[k]) * cimag(otf[k]) + prior;
+                const double complex o = svp_frame_otf(f, k);
+                double denom = creal(o) * creal(o) + cimag(o) * cimag(o) + prior;
                 /* a frequency neither the PSF nor the prior sees: the pseudo-inverse gives 0 */
-                fftw_complex g = denom > 0 ? conj(otf[k]) * (scale / denom) : 0;
+                fftw_complex g = denom > 0 ? conj(o) * (scale / denom) : 0;
                 if (!isfinite(creal(g)) || !isfinite(cimag(g))) g = 0;
                 gain[k] = g;
                 if (residual) residual[k] = denom > 0 ? prior / denom * scale : 0.0;
@@ -308,7 +307,7 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
     svp_fft_forward(f->plan, frame, spectrum);
     svp_spectrum_product((const double *)gain, (double *)spectrum, nc, 0, 1.0);
     /* D1 = the gain at zero frequency (L(0) = 0), unscaled */
-    const double p0 = creal(otf[0]);
+    const double p0 = creal(svp_frame_otf(f, 0));
     const double d_one = p0 != 0 && isfinite(1.0 / p0) ? 1.0 / p0 : 0.0;
     svp_fft_inverse_unscaled(f->plan, spectrum, frame);
     svp_frame_crop(f, frame, x_data);
@@ -406,10 +405,9 @@ static svp_status zero_filter(svp_blur *blur, double balance, const double **out
     if (!blur->wiener_filter)
         return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener filter", f->nx, ny);
     double *restrict filt = blur->wiener_filter;
-    const fftw_complex *restrict otf = f->otf;
     const double keep = 1.0 - blur->halo;
     for (size_t k = 0; k < nc; k++) {
-        double complex hk = keep * otf[k] + (k == 0 ? blur->halo : 0.0);
+        double complex hk = keep * svp_frame_otf(f, k) + (k == 0 ? blur->halo : 0.0);
         filt[k] = creal(hk) * creal(hk) + cimag(hk) * cimag(hk);
     }
     svp_tikhonov_invert(filt, f->nx, ny, ncx, balance);
