@@ -296,26 +296,49 @@ static inline double *thread_block(const svp_variant_data *v, int bx, int which)
     return v->blk + ((size_t)omp_get_thread_num() * 2 + which) * SVP_FFT_BLOCK * bx;
 }
 
-/* out = the spectrum of term k's weighted frame c_k ⊙ E(s ⊙ x) (v->ext made): its rows are
- * made a block at a time and transformed along x while in cache, then the columns. Pruned
- * tents transform only their window's rows (moved to the top: the phase is in otf[k]). */
-static void term_spectrum(svp_blur *b, int k, fftw_complex *out)
+/* out[q] = the spectrum of term k + q's weighted frame c_k+q ⊙ E(s ⊙ x) (v->ext made), for q
+ * below n (1 or 2: two terms over the same rows): the rows are made a block at a time and
+ * transformed along x while in cache (a pair's second term reads the block's rows of ext
+ * from cache too), then the columns. Every frame row is a copy of an image row (or zero) and
+ * the weights are functions of the source pixel, so only the image's own rows are made and
+ * transformed: the margin rows copy their source row's transform. Pruned tents transform only
+ * their window's rows (moved to the top: the phase is in otf[k]). */
+static void term_spectra(svp_blur *b, int k, int n, fftw_complex *const *out)
 {
     svp_variant_data *v = b->variant;
     const svp_frame *f = &b->frame;
     const svp_fft_block *p = v->block;
     const int ncx = f->ncx, ny = f->ny, B = SVP_FFT_BLOCK;
-    const int rows = v->pruned ? v->rows : ny, start = v->pruned ? v->start[k] : 0;
+    const int rows = v->pruned ? v->rows : b->height;
+    const int start = v->pruned ? v->start[k] : f->off_y; /* window row 0's frame row */
     const int nblk = (rows + B - 1) / B;
+    const size_t row_bytes = (size_t)ncx * sizeof(fftw_complex);
 #pragma omp parallel for schedule(static) if ((size_t)rows * f->nx > SVP_PARALLEL_MIN)
     for (int ib = 0; ib < nblk; ib++) {
         const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
-        double *blk = thread_block(v, p->bx, 0);
-        fill_rows(b, k, start, t0, nb, blk, p->bx);
-        svp_fft_block_forward(p, nb, blk, out + (size_t)t0 * ncx);
+        const int r0 = v->pruned ? t0 : start + t0; /* where the block's transforms go */
+        for (int q = 0; q < n; q++) {
+            double *blk = thread_block(v, p->bx, q);
+            fill_rows(b, k + q, start, t0, nb, blk, p->bx);
+            svp_fft_block_forward(p, nb, blk, out[q] + (size_t)r0 * ncx);
+        }
     }
-    if (rows < ny) memset(out + (size_t)rows * ncx, 0, (size_t)(ny - rows) * ncx * sizeof *out);
-    fftw_execute_dft(v->cols->cols_fwd, out, out);
+    for (int q = 0; q < n; q++) {
+        fftw_complex *o = out[q];
+        if (v->pruned) {
+            if (rows < ny) memset(o + (size_t)rows * ncx, 0, (size_t)(ny - rows) * row_bytes);
+        } else {
+            for (int fy = 0; fy < ny; fy++) {
+                const int y = f->src_y[fy];
+                if (y >= 0 && fy == f->off_y + y) continue; /* an image row itself */
+                if (y < 0)
+                    memset(o + (size_t)fy * ncx, 0, row_bytes);
+                else
+                    memcpy(o + (size_t)fy * ncx, o + (size_t)(f->off_y + y) * ncx, row_bytes);
+            }
+        }
+        fftw_execute_dft(v->cols->cols_fwd, o, o);
+    }
 }
 
 /* acc (assign: =, else +=) otf_k · s0 (+ otf_k+1 · s1 when pair), ns complex values each,
@@ -405,8 +428,13 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     fftw_complex *acc = K == 1 ? b->work_c : v->acc;
     for (int k = 0; k < K; k += 2) {
         const int pair = k + 1 < K;
-        term_spectrum(b, k, b->work_c);
-        if (pair) term_spectrum(b, k + 1, v->spec2);
+        fftw_complex *const out[2] = {b->work_c, v->spec2};
+        if (pair && (!v->pruned || v->start[k] == v->start[k + 1])) {
+            term_spectra(b, k, 2, out);
+        } else {
+            term_spectra(b, k, 1, out);
+            if (pair) term_spectra(b, k + 1, 1, out + 1);
+        }
         if (K == 1) {
             if (v->otf_re)
                 svp_spectrum_scale(v->otf_re[0], (double *)b->work_c, ns, 1.0);
@@ -434,6 +462,22 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     return SVP_OK;
 }
 
+/* The adjoint's transpose of term_spectra's row copies: every frame row that copies an image
+ * row (a margin row) is added onto that row's own frame row in the half spectrum after the
+ * column transforms (the row transforms are linear and the weights of a copy are its source
+ * row's), so only the image's rows need transforming back; in frame-row order. */
+static void fold_spectrum_rows(const svp_frame *f, fftw_complex *restrict s)
+{
+    const int ncx = f->ncx;
+    for (int fy = 0; fy < f->ny; fy++) {
+        const int y = f->src_y[fy];
+        if (y < 0 || fy == f->off_y + y) continue;
+        double *restrict to = (double *)(s + (size_t)(f->off_y + y) * ncx);
+        const double *restrict from = (const double *)(s + (size_t)fy * ncx);
+        for (int i = 0; i < 2 * ncx; i++) to[i] += from[i];
+    }
+}
+
 svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
     if (b->kind == SVP_BLUR_EXACT) return svp_exact_adjoint(b, y, x);
@@ -450,7 +494,10 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     fftw_complex *restrict spec_y = v->acc;
     const int h = b->height, w = b->width;
     const int hb = (h + B - 1) / B;
-    memset(spec_y, 0, ns * sizeof *spec_y);
+    /* rows outside the image are zero (its rows' transforms are written below) */
+    memset(spec_y, 0, (size_t)f->off_y * ncx * sizeof *spec_y);
+    memset(spec_y + (size_t)(f->off_y + h) * ncx, 0,
+           (size_t)(ny - f->off_y - h) * ncx * sizeof *spec_y);
 #pragma omp parallel for schedule(static) if ((size_t)h * f->nx > SVP_PARALLEL_MIN)
     for (int ib = 0; ib < hb; ib++) {
         const int t0 = ib * B, nb = h - t0 < B ? h - t0 : B;
@@ -490,15 +537,18 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
                 }
             }
             fftw_execute_dft(v->cols->cols_bwd, specs[q], specs[q]);
+            if (!v->pruned) fold_spectrum_rows(f, specs[q]);
         }
-        const int start = v->pruned ? v->start[k] : 0, rows = v->pruned ? v->rows : ny;
+        /* the rows back: a pruned tent's window, else the image's rows (margins folded in) */
+        const int start = v->pruned ? v->start[k] : f->off_y;
+        const int rows = v->pruned ? v->rows : h, first = v->pruned ? 0 : f->off_y;
         const int nblk = (rows + B - 1) / B;
 #pragma omp parallel for schedule(static) if ((size_t)rows * f->nx > SVP_PARALLEL_MIN)
         for (int ib = 0; ib < nblk; ib++) {
             const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
             double *z0 = thread_block(v, p->bx, 0), *z1 = pair ? thread_block(v, p->bx, 1) : NULL;
-            svp_fft_block_inverse(p, nb, specs[0] + (size_t)t0 * ncx, z0);
-            if (pair) svp_fft_block_inverse(p, nb, specs[1] + (size_t)t0 * ncx, z1);
+            svp_fft_block_inverse(p, nb, specs[0] + (size_t)(first + t0) * ncx, z0);
+            if (pair) svp_fft_block_inverse(p, nb, specs[1] + (size_t)(first + t0) * ncx, z1);
             accumulate_rows(b, k, start, t0, nb, z0, z1, p->bx);
         }
         k += 1 + pair;

@@ -111,54 +111,54 @@ static svp_image *random_image(int n, uint64_t seed)
     return x;
 }
 
-/* Best and median of reps applications of b (H x, or Hᵀ x when adjoint), after one untimed
- * warm-up application (first touches of the work buffers and the accumulator). Returns 0 on
- * failure. */
-static int time_operator(svp_blur *b, int adjoint, const svp_image *in, svp_image *out, int reps,
-                         double *best, double *median)
-{
-    svp_status (*op)(svp_blur *, const svp_image *, svp_image *) =
-        adjoint ? svp_blur_adjoint : svp_blur_apply;
-    double t[64];
-    if (reps > 64) reps = 64;
-    if (op(b, in, out) != SVP_OK) return 0;
-    for (int r = 0; r < reps; r++) {
-        const double t0 = bench_now();
-        if (op(b, in, out) != SVP_OK) return 0;
-        t[r] = bench_now() - t0;
-    }
-    *median = bench_median(t, reps);
-    *best = t[0];
-    return 1;
-}
+/* Timings of one operator against its bound, interleaved: each repetition times one
+ * application H x, one adjoint Hᵀ x and then K forward + 1 inverse real FFTs of the
+ * operator's frame (the cached plans the operator uses, buffers of its work buffers' sizes),
+ * after one untimed warm-up round, so a change of machine load hits all three alike. Best =
+ * the fastest repetition; the ratios' medians are the medians of the per-repetition ratios. */
+typedef struct timing {
+    double apply, apply_med, adjoint, adjoint_med, ffts, ffts_med, ratio_med, adjoint_ratio_med;
+} timing;
 
-/* Best and median of reps timings of K forward + 1 inverse real FFTs of the operator's frame
- * (the cached plans the operator uses, its work buffers' sizes), after one untimed warm-up
- * round. */
-static double time_ffts(const svp_blur *b, int K, int reps, double *median)
+static int time_interleaved(svp_blur *b, int K, const svp_image *in, svp_image *out,
+                            svp_image *back, int reps, timing *tm)
 {
     const svp_frame *f = &b->frame;
     const size_t nr = (size_t)f->ny * f->nx, nc = (size_t)f->ny * f->ncx;
     double *r = svp_alloc(nr * sizeof(double));
     fftw_complex *c = svp_alloc(nc * sizeof(fftw_complex));
-    if (!r || !c) {
-        svp_free(r);
-        svp_free(c);
-        return NAN;
-    }
-    double t[65];
+    double ta[64], tj[64], tf[64], ra[64], rj[64];
     if (reps > 64) reps = 64;
-    for (int rep = -1; rep < reps; rep++) {                     /* rep −1: warm-up */
+    int ok = r && c;
+    for (int rep = -1; ok && rep < reps; rep++) {               /* rep −1: warm-up */
         for (size_t i = 0; i < nr; i++) r[i] = (double)(i % 7); /* keep the data finite */
         double t0 = bench_now();
+        ok = svp_blur_apply(b, in, out) == SVP_OK;
+        const double t1 = bench_now();
+        ok = ok && svp_blur_adjoint(b, in, back) == SVP_OK;
+        const double t2 = bench_now();
         for (int k = 0; k < K; k++) svp_fft_forward(f->plan, r, c);
         svp_fft_inverse_unscaled(f->plan, c, r);
-        if (rep >= 0) t[rep] = bench_now() - t0;
+        const double t3 = bench_now();
+        if (rep < 0) continue;
+        ta[rep] = t1 - t0;
+        tj[rep] = t2 - t1;
+        tf[rep] = t3 - t2;
+        ra[rep] = ta[rep] / tf[rep];
+        rj[rep] = tj[rep] / tf[rep];
     }
     svp_free(r);
     svp_free(c);
-    *median = bench_median(t, reps);
-    return t[0];
+    if (!ok) return 0;
+    tm->ratio_med = bench_median(ra, reps);
+    tm->adjoint_ratio_med = bench_median(rj, reps);
+    tm->apply_med = bench_median(ta, reps); /* sorts: [0] is then the best */
+    tm->apply = ta[0];
+    tm->adjoint_med = bench_median(tj, reps);
+    tm->adjoint = tj[0];
+    tm->ffts_med = bench_median(tf, reps);
+    tm->ffts = tf[0];
+    return 1;
 }
 
 static int cmd_apply(int argc, char **argv)
@@ -199,18 +199,17 @@ static int cmd_apply(int argc, char **argv)
         if (svp_psf_field_at(f, 0.5 * (n - 1), 0.5 * (n - 1), &pc) != SVP_OK ||
             svp_blur_new(&pc, n, n, SVP_BOUNDARY_MIRROR, &b) != SVP_OK)
             return fail("invariant operator");
-        double best, med, fft_med;
-        double adj, adj_med;
-        if (!time_operator(b, 0, x, y, reps, &best, &med)) return fail("invariant apply");
-        if (!time_operator(b, 1, x, xa, reps, &adj, &adj_med)) return fail("invariant adjoint");
-        const double t_fft = time_ffts(b, 1, reps, &fft_med);
+        timing tm;
+        if (!time_interleaved(b, 1, x, y, xa, reps, &tm)) return fail("invariant operator");
         printf("{\"kind\": \"invariant\", \"label\": \"invariant (central PSF)\", \"K\": 1, "
                "\"size\": %d, \"variation\": \"%s\", \"frame\": [%d, %d], \"apply_s\": %.6g, "
                "\"ffts_s\": %.6g, \"ratio\": %.4g, \"apply_median_s\": %.6g, "
                "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"adjoint_s\": %.6g, "
-               "\"adjoint_ratio\": %.4g, \"adjoint_median_s\": %.6g, \"threads\": %d}\n",
-               n, var, b->frame.nx, b->frame.ny, best, t_fft, best / t_fft, med, fft_med,
-               med / fft_med, adj, adj / t_fft, adj_med, svp_get_threads());
+               "\"adjoint_ratio\": %.4g, \"adjoint_median_s\": %.6g, "
+               "\"adjoint_ratio_median\": %.4g, \"threads\": %d}\n",
+               n, var, b->frame.nx, b->frame.ny, tm.apply, tm.ffts, tm.apply / tm.ffts,
+               tm.apply_med, tm.ffts_med, tm.ratio_med, tm.adjoint, tm.adjoint / tm.ffts,
+               tm.adjoint_med, tm.adjoint_ratio_med, svp_get_threads());
         fflush(stdout);
         svp_blur_free(b);
     }
@@ -249,11 +248,8 @@ static int cmd_apply(int argc, char **argv)
         double t0 = bench_now();
         if (svp_blur_new_field(f, n, n, SVP_BOUNDARY_MIRROR, &o, &b) != SVP_OK) return fail(label);
         const double t_build = bench_now() - t0;
-        double best, med, fft_med;
-        double adj, adj_med;
-        if (!time_operator(b, 0, x, y, reps, &best, &med)) return fail("apply");
-        if (!time_operator(b, 1, x, xa, reps, &adj, &adj_med)) return fail("adjoint");
-        const double t_fft = time_ffts(b, K, reps, &fft_med);
+        timing tm;
+        if (!time_interleaved(b, K, x, y, xa, reps, &tm)) return fail(label);
         const double err = exact ? rel_l2(y, ye) : NAN;
         const svp_frame *fr = &b->frame;
         const int real = svp_variant_real_spectra(b); /* real parts only: 8 bytes a value */
@@ -263,12 +259,14 @@ static int cmd_apply(int argc, char **argv)
                "\"%s\", \"frame\": [%d, %d], \"build_s\": %.6g, \"apply_s\": %.6g, "
                "\"ffts_s\": %.6g, \"ratio\": %.4g, \"apply_median_s\": %.6g, "
                "\"ffts_median_s\": %.6g, \"ratio_median\": %.4g, \"adjoint_s\": %.6g, "
-               "\"adjoint_ratio\": %.4g, \"adjoint_median_s\": %.6g, \"rel_err\": %s, "
-               "\"spectra_mb\": %.2f, \"real_spectra\": %d, \"operator_mb\": %.2f, "
-               "\"peak_rss_mb\": %.1f, \"threads\": %d}\n",
-               tent ? "tent" : "lowrank", label, K, n, var, fr->nx, fr->ny, t_build, best, t_fft,
-               best / t_fft, med, fft_med, med / fft_med, adj, adj / t_fft, adj_med, jnum(err),
-               spectra, real, svp_blur_memory(b) / 1048576.0, bench_maxrss_mb(), svp_get_threads());
+               "\"adjoint_ratio\": %.4g, \"adjoint_median_s\": %.6g, "
+               "\"adjoint_ratio_median\": %.4g, \"rel_err\": %s, \"spectra_mb\": %.2f, "
+               "\"real_spectra\": %d, \"operator_mb\": %.2f, \"peak_rss_mb\": %.1f, "
+               "\"threads\": %d}\n",
+               tent ? "tent" : "lowrank", label, K, n, var, fr->nx, fr->ny, t_build, tm.apply,
+               tm.ffts, tm.apply / tm.ffts, tm.apply_med, tm.ffts_med, tm.ratio_med, tm.adjoint,
+               tm.adjoint / tm.ffts, tm.adjoint_med, tm.adjoint_ratio_med, jnum(err), spectra, real,
+               svp_blur_memory(b) / 1048576.0, bench_maxrss_mb(), svp_get_threads());
         fflush(stdout);
         svp_blur_free(b);
     }
