@@ -9,12 +9,15 @@
  *   by the expansion's flux for a renormalised low-rank operator.
  * The node spectra are accumulated in the Fourier domain: one application is K forward FFTs
  * and one inverse; the adjoint Hᵀ y = Σ_k s c_k ⊙ (P̃_k ⋆ y) + α <y> is one forward and K
- * inverse FFTs. For tent grids whose node windows cover at most 70 % of the frame's rows
- * (about 5 x 5 nodes and finer) the K transforms are row-pruned (only the window's rows are
- * transformed along x, see svp_variant_data.pruned), and the weights and the boundary
- * extension are applied in one pass. The adjoint uses the same row x column weight tables on
- * the frame: each term's inverse transform is weighted into one frame accumulator, folded
- * back onto the image (Eᵀ) and scaled by s once. */
+ * inverse FFTs. Each term's weighted rows are made a block at a time and transformed along x
+ * while in cache (svp_fft_block), the frame's column plans finish the transform; only the
+ * image's rows are transformed (a margin row copies its source row's spectrum), and only the
+ * image's rows come back. For tent grids whose node windows cover at most 70 % of the frame's
+ * rows (about 5 x 5 nodes and finer) the K transforms are row-pruned instead (only the
+ * window's rows, see svp_variant_data.pruned). The adjoint uses the same row x column weight
+ * tables on the frame: each term's inverse transform is weighted into one frame accumulator
+ * block by block, folded back onto the image (Eᵀ) and scaled by s once. Point-symmetric
+ * kernels have real spectra, stored as such (svp_variant_data.otf_re). */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
