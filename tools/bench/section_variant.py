@@ -91,7 +91,7 @@ def main():
     else:
         inv_cmd += ["--iterations", "10,30,100", "--reprs", "single,t1,t4,t8,t16,r2,r4,r8",
                     "--max-k-iterations", "6400"]
-    inv = run_lines(inv_cmd)
+    inv = run_lines(inv_cmd, threads=args.threads)
     failed += [r for r in inv if "error" in r]
 
     # the plot: error vs time per application, one curve per representation and variation
@@ -231,7 +231,8 @@ def main():
 
     out.append(f"### T⁻¹ end to end (strong field, {n_acc} × {n_acc})\n")
     out.append("True PL: fringes (3 periods) times a dark stripe quenched to 15 % down the middle; "
-               "true field smooth and signed. T is computed with the exact operator; T⁻¹ is "
+               f"true field smooth and signed ({args.threads} thread(s)). T is computed with "
+               "the exact operator; T⁻¹ is "
                "method R (Richardson–Lucy on the PL and on the shifted numerator) with each "
                "representation, or with the single central PSF. Error: max and rms of |B_rec − B| "
                "over lit pixels (true PL ≥ half its peak) relative to max |B|.\n")
