@@ -503,13 +503,16 @@ SVP_API svp_status svp_psf_field_write(const char *path, const svp_psf_field *fi
  *    keeps unit flux at every rank. A plain SVD (lowrank_mean = 0) keeps flux only
  *    approximately (tests measure up to 60 % at rank 1); with renormalise (default) its
  *    coefficient maps are divided per pixel by the expansion's flux so a point source keeps
- *    unit flux exactly. Positivity is not guaranteed by either. rank = sx sy with
+ *    unit flux exactly (with lowrank_mean and no halo that flux is 1 to round-off, and the
+ *    division is skipped). Positivity is not guaranteed by either. rank = sx sy with
  *    renormalise = 0 equals the tent operator on the same grid, so the error never falls below
  *    the tent's on the sample grid. The SVD holds sx sy kernels of (2 rx + 1)(2 ry + 1) values: at most 2^27
  *    values (1 GB); beyond that set a support.
  * All kernels share one radius: support (pixels) if > 0, else the field's PSF support, else the
  * whole field of view (offsets up to width − 1, height − 1), as svp_blur_new. Memory: one
- * complex spectrum of the padded frame per node / eigen-PSF (svp_blur_memory). */
+ * spectrum of the padded frame per node / eigen-PSF (svp_blur_memory), real for point-symmetric
+ * PSFs (every Moffat and Gaussian) unless the tent's node transforms are row-pruned, complex
+ * otherwise. */
 typedef enum svp_variant_repr {
     SVP_VARIANT_TENT = 0,   /* default */
     SVP_VARIANT_LOWRANK = 1

@@ -1106,6 +1106,17 @@ static svp_status build_lowrank(svp_blur *b, const svp_variant_options *o, doubl
             }
         }
         free(fs);
+        /* Mean-centred: the eigen-PSFs after the mean sum to zero, so the flux is 1 up to
+         * round-off; without a halo the scale is then 1 to round-off and is dropped (it would
+         * cost a pass over the image in every application and adjoint). */
+        if (st == SVP_OK && !v->alpha) {
+            double dev = 0;
+            for (size_t i = 0; i < n; i++) dev = fmax(dev, fabs(v->scale[i] - 1.0));
+            if (dev <= 1e-13) {
+                svp_free(v->scale);
+                v->scale = NULL;
+            }
+        }
     }
 cleanup:
     free(a);
