@@ -45,6 +45,8 @@ static inline double complex svp_frame_otf(const svp_frame *f, size_t k)
 }
 /* max |Im z| <= 1e-12 max |z| over n values (a real spectrum up to round-off). */
 int svp_spectrum_is_real(const fftw_complex *z, size_t n);
+/* A new svp_alloc'd array of the n real parts of z; NULL when out of memory. */
+double *svp_spectrum_real_part(const fftw_complex *z, size_t n);
 /* s *= scale · o on n interleaved complex values, o real, in place. */
 void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, double scale);
 void svp_frame_release(svp_frame *f);
@@ -115,9 +117,6 @@ struct svp_blur {
     double wiener_balance;
     int wiener_steps; /* CG steps and FFT pairs (at frame size) of the last zero-boundary */
     int wiener_pairs; /* Wiener solve, for benchmarks and tests */
-    /* Periodic and mirror Wiener: the gain conj(P) / (|P|² + λ|L|²) for wiener_balance
-     * (valid when wiener_gain_ok); mirror also its full-period frame with OTF and buffers. All
-     * made on first use, freed with the operator. */
     /* Single precision (svp_blur_set_single, invariant operators only): H and Hᵀ transform
      * in float on the same frame (row-pruned like `pruned` in zero mode); the buffers and the
      * OTF / (nx ny) in float are made on first use and kept. */
@@ -126,6 +125,9 @@ struct svp_blur {
     float *work_rf;
     fftwf_complex *work_cf;
     fftwf_complex *otf_f;
+    /* Periodic and mirror Wiener: the gain conj(P) / (|P|² + λ|L|²) for wiener_balance
+     * (valid when wiener_gain_ok); mirror also its full-period frame with OTF and buffers. All
+     * made on first use, freed with the operator. */
     fftw_complex *wiener_gain;
     int wiener_gain_ok;
     svp_frame *wiener_frame;
@@ -186,12 +188,12 @@ void svp_halo_gather(const double *restrict alpha, size_t n, const double *restr
                      double *restrict out);
 /* Image size >= 1 x 1 and a known boundary mode (operator.c; every operator constructor). */
 svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary);
-/* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
- * both of the operator's size, x not y; `what` names the method in the message. */
 /* Tikhonov inverse filter in place (wiener.c): filt (ny x ncx, holding |Ĥ|²) becomes
  * 1 / (nx ny max(|Ĥ|² + λ |L̂|², 1e-12 max |Ĥ|²)), L̂ the 5-point Laplacian's transfer
  * function on the nx x ny frame. */
 void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance);
+/* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
+ * both of the operator's size, x not y; `what` names the method in the message. */
 svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
                                    const char *what);
 

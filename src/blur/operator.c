@@ -104,13 +104,20 @@ int svp_spectrum_is_real(const fftw_complex *z, size_t n)
     return im <= 1e-12 * (re > im ? re : im);
 }
 
+double *svp_spectrum_real_part(const fftw_complex *z, size_t n)
+{
+    double *re = svp_alloc(n * sizeof(double));
+    if (re)
+        for (size_t i = 0; i < n; i++) re[i] = creal(z[i]);
+    return re;
+}
+
 int svp_frame_keep_real(svp_frame *f)
 {
     const size_t n = (size_t)f->ny * f->ncx;
     if (!f->otf || !svp_spectrum_is_real(f->otf, n)) return 0;
-    double *re = svp_alloc(n * sizeof(double));
+    double *re = svp_spectrum_real_part(f->otf, n);
     if (!re) return 0; /* the complex OTF stays: slower, not wrong */
-    for (size_t i = 0; i < n; i++) re[i] = creal(f->otf[i]);
     svp_free(f->otf);
     f->otf = NULL;
     f->otf_re = re;

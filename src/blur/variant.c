@@ -35,7 +35,6 @@ struct svp_variant_data {
      * them complex); otf is NULL then. Halves the spectra's memory and what the products read. */
     double **otf_re;
     fftw_complex *acc; /* ny x ncx accumulator */
-    double *tmp;       /* width x height */
     double *scale;     /* s per pixel, NULL = 1 */
     double *alpha;     /* halo fraction per pixel, NULL = no halo anywhere */
     /* node / sample grid: per column x the lower node ix0[x] and the fraction fx[x] towards
@@ -47,28 +46,27 @@ struct svp_variant_data {
     /* Row-pruned tent path: node k's weighted input is non-zero only in the frame rows
      * start[k] .. start[k] + rows − 1 (cyclically); its spectrum is that of the same rows moved
      * to the top times e^{−2πi ky start / ny}, a phase folded into otf[k] at build time, so
-     * the forward transform needs only `rows` row transforms (svp_fft_forward_pruned) and the
-     * adjoint's inverse only those rows back. NULL pruned = the full transforms. */
-    const svp_fft_pruned *pruned;
+     * the forward transform needs only `rows` row transforms and the adjoint's inverse only
+     * those rows back. pruned 0: the image's rows (term_spectra). */
+    int pruned;
     int rows;
     int *start;
-    int *frame_rows; /* per image row y: up to 3 frame rows copying it (−1 = none) */
-    /* Apply: ext = E(s ⊙ x) on the frame, made once per application; term k's weighted frame
-     * is then a row weight times a column weight times ext, one contiguous pass per term.
+    /* Apply: ext = E(s ⊙ x) on the frame, made once per application; term k's weighted rows
+     * are then a row weight times a column weight times ext's rows (fill_rows).
      *   tent:     wy[j ny + fy] (hat of node row j at frame row fy) · wx[i nx + q];
      *   low rank: the coefficient rows of term r interpolated along x on the frame columns,
      *             wx[(r gy + j) nx + q], blended between sample rows ly0[fy] and ly0[fy] + 1
      *             with weight lty[fy] (ly0 −1: a zero row).
      * unit[k]: term k's weight is 1 on every frame pixel (tent 1 x 1, the low-rank mean): its
-     * frame is ext itself. */
+     * rows are ext's. */
     double *ext;
     double *wx, *wy;
     int *ly0;
     double *lty;
     char *unit;
     char *row_on; /* adjoint: per frame row, ext's row holds a term (see accumulate_rows) */
-    /* The fused transforms (term_spectrum, the apply's way back, the adjoint): row plans, the
-     * frame's column plans (v->pruned's, or a full-rows set), and per-thread row blocks. */
+    /* The fused transforms (term_spectra, the apply's way back, the adjoint): row plans, the
+     * frame's column plans, and per-thread row blocks. */
     const svp_fft_block *block;
     const svp_fft_pruned *cols;
     double *blk;
@@ -283,20 +281,20 @@ static void fold_scaled(const svp_blur *b, const double *restrict fr, const char
 
 /* The per-thread row blocks of the fused transforms (two per thread: a pair's terms), made
  * for at least `threads` threads. */
-static svp_status ensure_blocks(svp_variant_data *v, int bx, int threads)
+static svp_status ensure_blocks(svp_variant_data *v, int threads)
 {
     if (threads <= v->blk_threads) return SVP_OK;
     svp_free(v->blk);
     v->blk_threads = 0;
-    v->blk = svp_alloc((size_t)threads * 2 * SVP_FFT_BLOCK * bx * sizeof(double));
+    v->blk = svp_alloc((size_t)threads * 2 * SVP_FFT_BLOCK * v->block->bx * sizeof(double));
     if (!v->blk) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d row blocks", threads);
     v->blk_threads = threads;
     return SVP_OK;
 }
 
-static inline double *thread_block(const svp_variant_data *v, int bx, int which)
+static inline double *thread_block(const svp_variant_data *v, int which)
 {
-    return v->blk + ((size_t)omp_get_thread_num() * 2 + which) * SVP_FFT_BLOCK * bx;
+    return v->blk + ((size_t)omp_get_thread_num() * 2 + which) * SVP_FFT_BLOCK * v->block->bx;
 }
 
 /* out[q] = the spectrum of term k + q's weighted frame c_k+q ⊙ E(s ⊙ x) (v->ext made), for q
@@ -321,7 +319,7 @@ static void term_spectra(svp_blur *b, int k, int n, fftw_complex *const *out)
         const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
         const int r0 = v->pruned ? t0 : start + t0; /* where the block's transforms go */
         for (int q = 0; q < n; q++) {
-            double *blk = thread_block(v, p->bx, q);
+            double *blk = thread_block(v, q);
             fill_rows(b, k + q, start, t0, nb, blk, p->bx);
             svp_fft_block_forward(p, nb, blk, out[q] + (size_t)r0 * ncx);
         }
@@ -401,7 +399,7 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
     svp_frame *f = &b->frame;
     const size_t ns = (size_t)f->ny * f->ncx;
     const int K = v->n_terms;
-    SVP_CHECK(ensure_blocks(v, v->block->bx, omp_get_max_threads()));
+    SVP_CHECK(ensure_blocks(v, omp_get_max_threads()));
     /* ext = E(s ⊙ x), shared by every term, in one pass */
     if (v->scale) {
         const int w = b->width, nx = f->nx;
@@ -455,13 +453,13 @@ svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *rest
 #pragma omp parallel for schedule(static) if ((size_t)h * f->nx > SVP_PARALLEL_MIN)
     for (int ib = 0; ib < nblk; ib++) {
         const int t0 = ib * B, nb = h - t0 < B ? h - t0 : B;
-        double *blk = thread_block(v, p->bx, 0);
+        double *blk = thread_block(v, 0);
         svp_fft_block_inverse(p, nb, acc + (size_t)(f->off_y + t0) * f->ncx, blk);
         for (int t = 0; t < nb; t++)
             memcpy(y + (size_t)(t0 + t) * w, blk + (size_t)t * p->bx + f->off_x,
                    (size_t)w * sizeof(double));
     }
-    if (v->alpha) svp_halo_scatter(v->alpha, (size_t)b->width * b->height, x, y, v->tmp);
+    if (v->alpha) svp_halo_scatter(v->alpha, (size_t)b->width * b->height, x, y, b->work_r_image);
     return SVP_OK;
 }
 
@@ -489,7 +487,7 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     const svp_fft_block *p = v->block;
     const size_t ns = (size_t)f->ny * f->ncx;
     const int K = v->n_terms, ny = f->ny, ncx = f->ncx, B = SVP_FFT_BLOCK;
-    SVP_CHECK(ensure_blocks(v, p->bx, omp_get_max_threads()));
+    SVP_CHECK(ensure_blocks(v, omp_get_max_threads()));
     /* Hᵀ y = s ⊙ Eᵀ(Σ_k c_k ⊙ (P̃_k ⋆ C y)), C y the image embedded in the frame: one forward
      * transform of C y (only the image's rows along x); per term a conjugate product, the
      * columns back, then its rows (a pruned tent's window only) back a block at a time,
@@ -504,7 +502,7 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
 #pragma omp parallel for schedule(static) if ((size_t)h * f->nx > SVP_PARALLEL_MIN)
     for (int ib = 0; ib < hb; ib++) {
         const int t0 = ib * B, nb = h - t0 < B ? h - t0 : B;
-        double *blk = thread_block(v, p->bx, 0);
+        double *blk = thread_block(v, 0);
         for (int t = 0; t < nb; t++) {
             double *row = blk + (size_t)t * p->bx;
             memset(row, 0, (size_t)f->nx * sizeof(double));
@@ -549,7 +547,7 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
 #pragma omp parallel for schedule(static) if ((size_t)rows * f->nx > SVP_PARALLEL_MIN)
         for (int ib = 0; ib < nblk; ib++) {
             const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
-            double *z0 = thread_block(v, p->bx, 0), *z1 = pair ? thread_block(v, p->bx, 1) : NULL;
+            double *z0 = thread_block(v, 0), *z1 = pair ? thread_block(v, 1) : NULL;
             svp_fft_block_inverse(p, nb, specs[0] + (size_t)(first + t0) * ncx, z0);
             if (pair) svp_fft_block_inverse(p, nb, specs[1] + (size_t)(first + t0) * ncx, z1);
             accumulate_rows(b, k, start, t0, nb, z0, z1, p->bx);
@@ -573,7 +571,6 @@ void svp_variant_release(svp_blur *b)
             for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_re[k]);
         free(v->otf_re);
         svp_free(v->acc);
-        svp_free(v->tmp);
         svp_free(v->scale);
         svp_free(v->alpha);
         free(v->ix0);
@@ -582,7 +579,6 @@ void svp_variant_release(svp_blur *b)
         free(v->fy);
         free(v->coef);
         free(v->start);
-        free(v->frame_rows);
         svp_free(v->ext);
         svp_free(v->spec2);
         svp_free(v->blk);
@@ -611,14 +607,12 @@ size_t svp_variant_memory(const svp_blur *b)
     const svp_variant_data *v = b->variant;
     const size_t spectrum = (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex);
     bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
-    bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double); /* work_r */
     if (v) {
         bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* node spectra */
         bytes += spectrum; /* accumulator (work_c counted by frame) */
-        bytes += n * sizeof(double) * (1 + (v->scale != NULL) + (v->alpha != NULL));
+        bytes += n * sizeof(double) * ((v->scale != NULL) + (v->alpha != NULL));
         bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
         if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
-        if (v->frame_rows) bytes += (size_t)3 * b->height * sizeof(int);
         if (v->start) bytes += (size_t)v->n_terms * sizeof(int);
         if (v->ext) bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double);
         if (v->wx)
@@ -802,12 +796,11 @@ static svp_status setup_pruning(svp_blur *b)
 {
     svp_variant_data *v = b->variant;
     const svp_frame *f = &b->frame;
-    const int ny = f->ny, h = b->height, K = v->gx * v->gy;
-    int *first = malloc((size_t)v->gy * sizeof(int)), *len = malloc((size_t)v->gy * sizeof(int));
+    const int ny = f->ny, K = v->gx * v->gy;
+    int *first = malloc((size_t)v->gy * sizeof(int));
     char *on = malloc((size_t)ny);
-    if (!first || !len || !on) {
+    if (!first || !on) {
         free(first);
-        free(len);
         free(on);
         return svp_fail(SVP_ERR_NOMEM, "out of memory for node windows");
     }
@@ -833,35 +826,19 @@ static svp_status setup_pruning(svp_blur *b)
             }
         }
         first[j] = any ? (best_end + 1) % ny : 0;
-        len[j] = any ? ny - best : 1;
-        if (len[j] > rows) rows = len[j];
+        const int len = any ? ny - best : 1;
+        if (len > rows) rows = len;
     }
     free(on);
     svp_status st = SVP_OK;
-    v->frame_rows = malloc((size_t)3 * h * sizeof(int));
-    if (!v->frame_rows) st = svp_fail(SVP_ERR_NOMEM, "out of memory for node windows");
-    for (int i = 0; st == SVP_OK && i < 3 * h; i++) v->frame_rows[i] = -1;
-    for (int fy = 0; st == SVP_OK && fy < ny; fy++) {
-        const int y = f->src_y[fy];
-        if (y < 0) continue;
-        int c = 0;
-        while (c < 3 && v->frame_rows[3 * y + c] >= 0) c++;
-        if (c == 3) { /* a row copied more than 3 times: the generic path */
-            free(v->frame_rows);
-            v->frame_rows = NULL;
-            break;
-        }
-        v->frame_rows[3 * y + c] = fy;
-    }
-    if (st == SVP_OK && v->frame_rows && rows <= 0.7 * ny) {
-        v->rows = rows;
+    if (rows <= 0.7 * ny) {
         v->start = malloc((size_t)K * sizeof(int));
         if (!v->start) st = svp_fail(SVP_ERR_NOMEM, "out of memory for node windows");
-        if (st == SVP_OK) st = svp_fft_pruned_get(ny, f->nx, rows, &v->pruned);
         for (int k = 0; st == SVP_OK && k < K; k++) v->start[k] = first[k / v->gx];
+        v->pruned = st == SVP_OK;
+        v->rows = rows;
     }
     free(first);
-    free(len);
     return st;
 }
 
@@ -875,8 +852,7 @@ static svp_status setup_fill(svp_blur *b)
     const size_t nwx = tent ? (size_t)gx * nx : (size_t)K * gy * nx;
     v->ext = svp_alloc((size_t)ny * nx * sizeof(double));
     SVP_CHECK(svp_fft_block_get(nx, &v->block));
-    v->cols = v->pruned;
-    if (!v->cols) SVP_CHECK(svp_fft_pruned_get(ny, nx, ny, &v->cols));
+    SVP_CHECK(svp_fft_pruned_get(ny, nx, 0, &v->cols)); /* the column plans only */
     if (K > 1) {
         v->spec2 = svp_alloc((size_t)ny * f->ncx * sizeof(fftw_complex));
         if (!v->spec2) return svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's buffers");
@@ -1011,9 +987,7 @@ static svp_status build_lowrank(svp_blur *b, const svp_variant_options *o, doubl
      * (svp_variant_data.otf_re), a change of the operator within round-off of σ_r. */
     int symmetric = 1;
     for (int j = 0; j < S && symmetric; j++) {
-        const double *k = a + m * (size_t)j;
-        double peak = 0;
-        for (size_t i = 0; i < m; i++) peak = fabs(k[i]) > peak ? fabs(k[i]) : peak;
+        const double *k = a + m * (size_t)j, peak = svp_max(k, m); /* kernels are >= 0 */
         for (size_t i = 0; i < m / 2 && symmetric; i++)
             symmetric = fabs(k[i] - k[m - 1 - i]) <= 1e-13 * peak;
     }
@@ -1138,10 +1112,9 @@ static svp_status keep_real_spectra(svp_variant_data *v, size_t ns)
     v->otf_re = calloc((size_t)v->n_terms, sizeof *v->otf_re);
     if (!v->otf_re) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d spectra", v->n_terms);
     for (int k = 0; k < v->n_terms; k++) {
-        double *re = svp_alloc(ns * sizeof(double));
-        if (!re) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d spectra", v->n_terms);
-        for (size_t i = 0; i < ns; i++) re[i] = creal(v->otf[k][i]);
-        v->otf_re[k] = re;
+        v->otf_re[k] = svp_spectrum_real_part(v->otf[k], ns);
+        if (!v->otf_re[k])
+            return svp_fail(SVP_ERR_NOMEM, "out of memory for %d spectra", v->n_terms);
         svp_free(v->otf[k]);
         v->otf[k] = NULL;
     }
@@ -1173,15 +1146,12 @@ svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
     svp_variant_data *v = NULL;
     if (st == SVP_OK) {
         v = b->variant = calloc(1, sizeof *v);
-        b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
         b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
-        if (!v || !b->work_r || !b->work_c)
-            st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+        if (!v || !b->work_c) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
     }
     if (st == SVP_OK) {
         v->acc = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
-        v->tmp = svp_alloc((size_t)width * height * sizeof(double));
-        if (!v->acc || !v->tmp) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+        if (!v->acc) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
     }
     if (st == SVP_OK) {
         /* no more nodes than pixels along an axis */

@@ -231,7 +231,7 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
                                                                                                    \
     svp_status GET(int ny, int nx, int rows, const T **out)                                        \
     {                                                                                              \
-        if (ny < 1 || nx < 1 || rows < 1 || rows > ny)                                             \
+        if (ny < 1 || nx < 1 || rows < 0 || rows > ny)                                             \
             return svp_fail(SVP_ERR_INVALID, WHAT " FFT size %d x %d with %d rows", ny, nx, rows); \
         pthread_once(&fft_once, fft_init);                                                         \
         int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();                  \
@@ -262,13 +262,17 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
         p->ncx = ncx;                                                                              \
         p->rows = rows;                                                                            \
         e->threads = threads;                                                                      \
-        p->rows_r2c = P##plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx, flags);  \
+        if (rows > 0) { /* rows = 0: the column plans only */                                      \
+            p->rows_r2c = P##plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx,      \
+                                               flags);                                             \
+            p->rows_c2r = P##plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx,      \
+                                               flags);                                             \
+        }                                                                                          \
         p->cols_fwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,              \
                                        FFTW_FORWARD, flags);                                       \
         p->cols_bwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,              \
                                        FFTW_BACKWARD, flags);                                      \
-        p->rows_c2r = P##plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx, flags);  \
-        if (!p->rows_r2c || !p->cols_fwd || !p->cols_bwd || !p->rows_c2r) {                        \
+        if ((rows > 0 && (!p->rows_r2c || !p->rows_c2r)) || !p->cols_fwd || !p->cols_bwd) {        \
             DESTROY(p);                                                                            \
             status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a " WHAT " %d x %d "          \
                               "transform", ny, nx);                                                \

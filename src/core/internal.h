@@ -77,6 +77,8 @@ typedef struct svp_fft_pruned {
     fftw_plan rows_c2r; /* rows x ncx complex → rows x nx real (destroys its input) */
 } svp_fft_pruned;
 
+/* rows = 0: the column plans only (rows_r2c and rows_c2r NULL), for callers that transform
+ * the rows themselves (svp_fft_block); svp_fft_forward_pruned / _inverse need rows >= 1. */
 svp_status svp_fft_pruned_get(int ny, int nx, int rows, const svp_fft_pruned **out);
 /* out (ny x ncx) = r2c of in (ny x nx, only rows 0 .. rows − 1 are read: the rest is taken
  * as zero). */
