@@ -456,6 +456,8 @@ expect_bad map_bad_size "map_grid.yaml|32 x 32|32 x 30|PSF map" forward --field 
     printf 'nodes: {nx: 2, ny: 2}\nnode_psfs:\n  - {fwhm_um: 1.0, beta: 2.5}\n'
 } >map_short.yaml
 expect_bad map_bad_count "map_short.yaml|node_psfs" correct --field Bz.txt --pl pl.txt --psf map_short.yaml -o bad $FAST
+# where one PSF is expected, a faulty PSF map is reported by its own fault, not as a PSF file
+expect_bad map_bad_count_psf "map_short.yaml|node_psfs" psf map_short.yaml -o bad_short.txt
 if [ -e bad ]; then fail "bad PSF maps" "the output folder 'bad' was created"; else pass "no output folder after bad PSF maps"; fi
 
 # ---- correct --balance auto: the discrepancy principle per Wiener deconvolution ---------------

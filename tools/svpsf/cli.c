@@ -3,6 +3,7 @@
 
 #include "io/image_io.h"
 #include "io/json.h"
+#include "io/yaml.h"
 
 #include <errno.h>
 #include <libfyaml.h>
@@ -489,6 +490,7 @@ void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size)
 }
 
 const char *const cli_psf_model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
+const char *const cli_precision_names[] = {"double", "single", NULL};
 
 /* ---- inputs --------------------------------------------------------------------------------- */
 
@@ -537,42 +539,48 @@ static int has_extension(const char *path, const char *ext)
     return strcasecmp(dot + 1, ext) == 0;
 }
 
+/* A YAML PSF file is a PSF map when it has a top-level `kind` (svp_psf_field_read), else a
+ * plain PSF file (svp_psf_file_read): *is_map says which. Returns the exit code (0: read). */
+static int yaml_is_psf_map(cli_run *run, const char *path, int *is_map)
+{
+    svp_yaml_doc *doc = NULL;
+    svp_status st = svp_yaml_load_file(path, &doc);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    *is_map = svp_yaml_get(svp_yaml_root(doc), "kind") != NULL;
+    svp_yaml_free(doc);
+    return 0;
+}
+
+/* A PSF map of kind uniform as one PSF (the invariant operator); frees the field. */
+static int uniform_map_psf(cli_run *run, const char *path, svp_psf_field *field, cli_psf *psf)
+{
+    svp_status st = svp_psf_field_at(field, 0, 0, &psf->model);
+    svp_psf_field_free(field);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    psf->is_model = 1;
+    psf->boundary = SVP_BOUNDARY_ZERO;
+    return 0;
+}
+
 int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
 {
     memset(psf, 0, sizeof *psf);
     psf->path = path;
     if (has_extension(path, "yaml") || has_extension(path, "yml")) {
-        svp_psf_defaults(&psf->model);
-        psf->boundary = (svp_boundary)-1;
-        svp_status st = svp_psf_file_read(path, &psf->model, &psf->pixel_um, &psf->boundary);
-        if (st != SVP_OK) {
-            /* a PSF-map file: of kind uniform it is one PSF (as for forward/correct); a map
-             * that varies is refused with what to do instead */
-            char psf_error[1024];
-            snprintf(psf_error, sizeof psf_error, "%s", svp_last_error());
+        int is_map = 0, code = yaml_is_psf_map(run, path, &is_map);
+        if (code) return code;
+        if (is_map) {
+            /* of kind uniform it is one PSF (as for forward/correct); a map that varies is
+             * refused with what to do instead */
             svp_psf_field *field = NULL;
-            double pixel_um = 0;
-            svp_status st_map = svp_psf_field_read(path, &field, &pixel_um);
-            if (st_map != SVP_OK) {
-                /* a file with `kind` is a PSF map with a fault of its own: report that */
-                if (strstr(psf_error, "a PSF-map file")) return cli_fail(run, st_map, path);
-                if (strstr(psf_error, path))
-                    cli_error(run, "%s", psf_error);
-                else
-                    cli_error(run, "%s: %s", path, psf_error);
-                return cli_exit_code(st);
-            }
+            svp_status st = svp_psf_field_read(path, &field, &psf->pixel_um);
+            if (st != SVP_OK) return cli_fail(run, st, path);
             static const char *const kinds[] = {"uniform", "grid", "poly", "regions"};
-            svp_psf_field_kind kind = svp_psf_field_get_kind(field);
+            const svp_psf_field_kind kind = svp_psf_field_get_kind(field);
             if (kind == SVP_FIELD_UNIFORM) {
-                st = svp_psf_field_at(field, 0, 0, &psf->model);
-                svp_psf_field_free(field);
-                if (st != SVP_OK) return cli_fail(run, st, path);
-                psf->pixel_um = pixel_um;
-                psf->boundary = SVP_BOUNDARY_ZERO;
-                psf->is_model = 1;
-                cli_record_input(run, "psf", path, 0, 0);
-                return 0;
+                code = uniform_map_psf(run, path, field, psf);
+                if (!code) cli_record_input(run, "psf", path, 0, 0);
+                return code;
             }
             svp_psf_field_free(field);
             return cli_error(run,
@@ -582,6 +590,10 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
                              "svpsf correct --psf MAP.yaml (docs/cli.md, PSF-map files)",
                              path, kinds[kind & 3], run->command);
         }
+        svp_psf_defaults(&psf->model);
+        psf->boundary = (svp_boundary)-1;
+        svp_status st = svp_psf_file_read(path, &psf->model, &psf->pixel_um, &psf->boundary);
+        if (st != SVP_OK) return cli_fail(run, st, path);
         psf->is_model = 1;
         psf->has_boundary = (unsigned)psf->boundary < 3;
         if (!psf->has_boundary) psf->boundary = SVP_BOUNDARY_ZERO;
@@ -691,13 +703,10 @@ int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *
 {
     if (!(has_extension(path, "yaml") || has_extension(path, "yml")))
         return cli_psf_load(run, path, psf);
-    /* a plain PSF file first (it may name a boundary), then a PSF map */
-    svp_psf model;
-    svp_psf_defaults(&model);
-    double pixel_um = 0;
-    svp_boundary boundary = (svp_boundary)-1;
-    if (svp_psf_file_read(path, &model, &pixel_um, &boundary) == SVP_OK)
-        return cli_psf_load(run, path, psf);
+    /* a plain PSF file (it may name a boundary) as one PSF; a PSF map */
+    int is_map = 0, code = yaml_is_psf_map(run, path, &is_map);
+    if (code) return code;
+    if (!is_map) return cli_psf_load(run, path, psf);
     memset(psf, 0, sizeof *psf);
     psf->path = path;
     psf->variant = *variant;
@@ -706,14 +715,9 @@ int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *
     svp_status st = svp_psf_field_read(path, &field, &psf->pixel_um);
     if (st != SVP_OK) return cli_fail(run, st, path);
     cli_record_input(run, "psf", path, svp_psf_field_width(field), svp_psf_field_height(field));
-    if (svp_psf_field_get_kind(field) == SVP_FIELD_UNIFORM) {
-        /* one PSF everywhere: the invariant operator */
-        st = svp_psf_field_at(field, 0, 0, &psf->model);
-        svp_psf_field_free(field);
-        if (st != SVP_OK) return cli_fail(run, st, path);
-        psf->is_model = 1;
-        return 0;
-    }
+    /* one PSF everywhere: the invariant operator */
+    if (svp_psf_field_get_kind(field) == SVP_FIELD_UNIFORM)
+        return uniform_map_psf(run, path, field, psf);
     psf->field = field;
     return 0;
 }

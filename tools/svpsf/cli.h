@@ -218,6 +218,8 @@ void cli_path_sibling(const char *path, const char *ext, char *buf, size_t size)
 size_t cli_yaml_extension(const char *path);
 /* The PSF model names indexed by svp_psf_model, NULL-terminated (for cli_parse_choice). */
 extern const char *const cli_psf_model_names[];
+/* --precision double|single (deconvolve, correct): index 1 = single_precision. */
+extern const char *const cli_precision_names[];
 
 /* ---- inputs ------------------------------------------------------------------------------ */
 

@@ -115,7 +115,6 @@ int cmd_correct(int argc, char **argv)
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
     int method = 0, precision = 0;
-    static const char *const precisions[] = {"double", "single", NULL};
     svp_correct_options opt;
     svp_correct_defaults(&opt);
     svp_blur *blur = NULL;
@@ -151,7 +150,7 @@ int cmd_correct(int argc, char **argv)
             break;
         case OPT_SHIFT: bad = cli_parse_double(&run, "--shift", optarg, &opt.shift); break;
         case OPT_PRECISION:
-            bad = cli_parse_choice(&run, "--precision", optarg, precisions, &precision);
+            bad = cli_parse_choice(&run, "--precision", optarg, cli_precision_names, &precision);
             break;
         default:
             bad = cli_maps_option(&run, &maps, c, optarg);
@@ -170,6 +169,13 @@ int cmd_correct(int argc, char **argv)
                                                     "Lucy: not with --method w"));
     opt.deconv.single_precision = precision == 1;
     if ((code = cli_maps_open(&run, &maps, &psf))) goto cleanup;
+    if (precision == 1 && psf.field) { /* refused before the map's operator is built */
+        code = cli_error(&run,
+                         "%s: --precision single needs one PSF; this is a space-variant PSF "
+                         "map",
+                         psf.path);
+        goto cleanup;
+    }
 
     const int w = maps.pl->width, h = maps.pl->height;
     const size_t n = (size_t)w * h;
@@ -177,7 +183,7 @@ int cmd_correct(int argc, char **argv)
     opt.field_names = maps.field_paths;
     cli_setting_str(&run, "method", method_names[method]);
     cli_setting_int(&run, "iterations", opt.deconv.iterations);
-    cli_setting_str(&run, "precision", precisions[precision]);
+    cli_setting_str(&run, "precision", cli_precision_names[precision]);
     if (opt.balance_auto)
         cli_setting_str(&run, "balance", "auto (discrepancy principle)");
     else
@@ -189,13 +195,6 @@ int cmd_correct(int argc, char **argv)
 
     cli_stage_begin(&run, "plan");
     if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
-    if (precision == 1 && svp_blur_is_variant(blur)) {
-        code = cli_error(&run,
-                         "%s: --precision single needs one PSF; this is a space-variant PSF "
-                         "map",
-                         psf.path ? psf.path : "the PSF");
-        goto cleanup;
-    }
 
     cli_stage_begin(&run, "transform");
     svp_status st = svp_image_new(w, h, &pl_true);

@@ -92,7 +92,6 @@ int cmd_deconvolve(int argc, char **argv)
     };
     static const char *const methods[] = {"wiener", "rl", NULL};
     static const char *const compats[] = {"skimage", NULL};
-    static const char *const precisions[] = {"double", "single", NULL};
     int precision = 0;
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
@@ -117,7 +116,7 @@ int cmd_deconvolve(int argc, char **argv)
         case OPT_METHOD: bad = cli_parse_choice(&run, "--method", optarg, methods, &method); break;
         case OPT_COMPAT: bad = cli_parse_choice(&run, "--compat", optarg, compats, &compat); break;
         case OPT_PRECISION:
-            bad = cli_parse_choice(&run, "--precision", optarg, precisions, &precision);
+            bad = cli_parse_choice(&run, "--precision", optarg, cli_precision_names, &precision);
             break;
         case OPT_ITERATIONS:
             bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.iterations);
@@ -198,7 +197,8 @@ int cmd_deconvolve(int argc, char **argv)
         cli_setting_num(&run, "balance", opt.balance);
     else
         cli_setting_int(&run, "iterations", opt.iterations);
-    if (method == 1 && compat < 0) cli_setting_str(&run, "precision", precisions[precision]);
+    if (method == 1 && compat < 0)
+        cli_setting_str(&run, "precision", cli_precision_names[precision]);
     cli_setting_str(&run, "compat", compat >= 0 ? compats[compat] : "none");
     if (compat < 0) cli_setting_str(&run, "boundary", cli_boundary_name(boundary));
     long long n_missing = (long long)svp_image_count_nonfinite(in);
@@ -299,8 +299,7 @@ int cmd_deconvolve(int argc, char **argv)
         printf("svpsf deconvolve: %s (%d x %d) deconvolved with Wiener-Hunt, balance %g%s%s "
                "-> %s in %.2f s",
                in_path, w, h, opt.balance, balance_auto ? " (discrepancy principle)" : "",
-               compat >= 0 ? " (scikit-image compatible)" : "", out_path,
-               cli_now() - run.t_start);
+               compat >= 0 ? " (scikit-image compatible)" : "", out_path, cli_now() - run.t_start);
     else
         printf("svpsf deconvolve: %s (%d x %d) deconvolved with %d Richardson-Lucy "
                "iterations%s -> %s in %.2f s",
