@@ -210,7 +210,8 @@ def render(res, threads, rl_sizes, sk_sizes, inv_size, skimage_note, quick):
     if single:
         w("The same with `svp_deconv_options.single_precision` (`--precision single`): the "
           "operator's transforms in float (fftw3f, the same pruned frame), the iteration in "
-          "double. Its bound is the float r2c + c2r pair of the full frame, timed the same way; "
+          "double. Its bound is the float r2c + c2r pair of the full frame (the library's cached "
+          "float plans, rows then columns over every row), timed the same way; "
           "`vs double` is the time per iteration of the double run above divided by this one; "
           "`difference` is max |single − double| / max |double| after k₂ iterations of the same "
           "input (what single precision costs in accuracy; the tests bound it by 5·10⁻⁷ per "

@@ -109,15 +109,17 @@ typedef struct fft_times {
 } fft_times;
 
 /* One r2c and one c2r of the full ny x nx frame, timed separately; the input is refilled
- * (untimed) before each run so the unnormalised round trips never grow. Double: the library's
- * cached plan (the operator's own). Single: FFTW_MEASURE float plans made on the first call and
- * kept (one size per run). */
+ * (untimed) before each run so the unnormalised round trips never grow. The library's cached
+ * plans: double the operator's own 2-D plan, single its float row-then-column plans (those of
+ * svp_blur_set_single) over every row. */
 static svp_status time_fft_precision(int ny, int nx, int reps, int single, fft_times *out)
 {
-    static fftwf_plan r2c_f, c2r_f;
-    static int pny, pnx;
     const svp_fft_plan *plan = NULL;
-    if (!single) SVP_CHECK(svp_fft_plan_get(ny, nx, &plan));
+    const svp_fftf_rows *plan_f = NULL;
+    if (single)
+        SVP_CHECK(svp_fftf_rows_get(ny, nx, ny, &plan_f));
+    else
+        SVP_CHECK(svp_fft_plan_get(ny, nx, &plan));
     const size_t nr = (size_t)ny * nx, nc = (size_t)ny * (nx / 2 + 1);
     const size_t real = single ? sizeof(float) : sizeof(double);
     void *src = svp_alloc(nr * real), *re = svp_alloc(nr * real), *cx = svp_alloc(nc * 2 * real);
@@ -127,13 +129,6 @@ static svp_status time_fft_precision(int ny, int nx, int reps, int single, fft_t
     if (!src || !re || !cx || !t_r2c || !t_c2r) {
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d FFT benchmark", nx, ny);
         goto cleanup;
-    }
-    if (single && (!r2c_f || pny != ny || pnx != nx)) {
-        fftwf_plan_with_nthreads(svp_get_threads());
-        r2c_f = fftwf_plan_dft_r2c_2d(ny, nx, re, cx, FFTW_MEASURE);
-        c2r_f = fftwf_plan_dft_c2r_2d(ny, nx, cx, re, FFTW_MEASURE);
-        pny = ny;
-        pnx = nx;
     }
     for (size_t i = 0; i < nr; i++) {
         if (single)
@@ -145,12 +140,12 @@ static svp_status time_fft_precision(int ny, int nx, int reps, int single, fft_t
         memcpy(re, src, nr * real);
         double t0 = bench_now();
         if (single)
-            fftwf_execute_dft_r2c(r2c_f, re, cx);
+            svp_fftf_forward_rows(plan_f, re, cx);
         else
             svp_fft_forward(plan, re, cx);
         double t1 = bench_now();
         if (single)
-            fftwf_execute_dft_c2r(c2r_f, cx, re);
+            svp_fftf_inverse_rows_unscaled(plan_f, cx, re);
         else
             svp_fft_inverse_unscaled(plan, cx, re);
         double t2 = bench_now();
