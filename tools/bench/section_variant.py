@@ -229,9 +229,9 @@ def main():
     if floors:
         out.append("- for comparison, the invariant operator (K = 1, no weights) against its 2 FFTs: "
                    + ", ".join(floors) + ". The bound transforms one buffer pair that stays in "
-                   "cache (in L3 at 1024², 2 × 9.3 MB); an application also streams the extended "
-                   "frame, the K spectra and the accumulator (see tools/bench/analysis.md, "
-                   "*variant*).")
+                   "cache (in L3 at 1024², 2 × 9.3 MB); an application also streams the input "
+                   "(once per pair of terms), the K spectra, two term spectra and the accumulator "
+                   "(see tools/bench/analysis.md, *variant*).")
     out.append("- memory for the K node spectra: reported per row above (8 bytes (real) or 16 "
                "(complex) × K × the padded frame's ny × (nx/2 + 1)); configurations over the 6 GB "
                "budget are skipped and say so.\n")
