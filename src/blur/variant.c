@@ -193,8 +193,8 @@ static inline void weight_span(double *restrict out, const double *restrict e, i
 
 /* Window rows t0 .. t0 + nb − 1 of term k's extended weighted input c_k ⊙ E(s ⊙ x) (= E(c_k ⊙
  * s ⊙ x): the weights are functions of the source pixel) into fr, from the same rows of
- * E(s ⊙ x) as extend_rows made them in ex (x non-NULL: only their margins, the image's part
- * is read from x), both `stride` apart: window row t is frame row (start + t) mod ny. */
+ * E(s ⊙ x) as extend_rows made them in ex (without a scale only their margins: the image's
+ * part is read from x), both `stride` apart: window row t is frame row (start + t) mod ny. */
 static void fill_rows(const svp_blur *b, const double *x, int k, int start, int t0, int nb,
                       const double *restrict ex, double *restrict fr, int stride)
 {
@@ -231,11 +231,7 @@ static void fill_rows(const svp_blur *b, const double *x, int k, int start, int 
             memset(out, 0, (size_t)nx * sizeof(double));
             continue;
         }
-        if (!x) {
-            weight_span(out, e, nx, c0, c1, s0, s1);
-            continue;
-        }
-        const double *mid = x + (size_t)y * b->width;
+        const double *mid = v->scale ? e + lo : x + (size_t)y * b->width;
         weight_span(out, e, lo, c0, c1, s0, s1);
         weight_span(out + lo, mid, hi - lo, c0 ? c0 + lo : NULL, c1 ? c1 + lo : NULL, s0, s1);
         weight_span(out + hi, e + hi, nx - hi, c0 ? c0 + hi : NULL, c1 ? c1 + hi : NULL, s0, s1);
@@ -382,7 +378,7 @@ static void term_spectra(svp_blur *b, const double *x, int k, int n, fftw_comple
         extend_rows(b, x, start, t0, nb, ex, p->bx);
         for (int q = 0; q < n; q++) {
             double *blk = thread_block(v, q);
-            fill_rows(b, v->scale ? NULL : x, k + q, start, t0, nb, ex, blk, p->bx);
+            fill_rows(b, x, k + q, start, t0, nb, ex, blk, p->bx);
             svp_fft_block_forward(p, nb, blk, out[q] + (size_t)r0 * ncx);
         }
     }
@@ -881,7 +877,9 @@ static svp_status setup_pruning(svp_blur *b)
     return st;
 }
 
-/* The apply's fill tables (see svp_variant_data.ext), after the terms are built. */
+/* The weight tables of the apply and the adjoint (see svp_variant_data.wx), their buffers
+ * (the adjoint's frame accumulator ext, a pair's second spectrum) and the transforms' plans,
+ * after the terms are built. */
 static svp_status setup_fill(svp_blur *b)
 {
     svp_variant_data *v = b->variant;
