@@ -46,7 +46,10 @@ typedef enum svp_status {
     SVP_ERR_CANCELLED = 7,   /* the progress callback asked to stop */
     SVP_ERR_NUMERIC = 8,     /* a numerical failure (no convergence, singular system) */
     SVP_ERR_UNSUPPORTED = 9, /* a feature that is not available in this build */
-    SVP_ERR_INTERNAL = 10    /* a bug: please report it */
+    SVP_ERR_INTERNAL = 10,   /* a bug: please report it */
+    SVP_ERR_DOUBTFUL = 11    /* the computation ran, but its result cannot be vouched for (not
+                                converged, implausible, regularised away, an automatic choice
+                                on the bound of its search); the message says what to change */
 } svp_status;
 
 /* A short constant description of a status code ("invalid argument", ...). */
@@ -209,7 +212,33 @@ typedef struct svp_deconv_report {
     double cg_residual; /* its final relative residual ‖Hᵀ M y − A x‖ / ‖Hᵀ M y‖ */
     int cg_capped;      /* 1: the CG stopped at the step cap with the residual above its
                            tolerance (1e-8): x is usable but not converged */
+    int balance_at_bound; /* discrepancy balance: -1 / +1 when the choice ended on the lower /
+                             upper end of its search (the data cannot tell λ: see svp_correct's
+                             doubt checks), else 0 */
+    /* Richardson–Lucy */
+    int iterations;     /* iterations taken */
+    double chi2;        /* with auto_stop: the last iterate's residual χ² per finite datum,
+                           Σ m (Hx − y)² / var / n_finite (1 = the noise level); else 0 */
+    int stop;           /* why RL stopped: an svp_rl_stop */
 } svp_deconv_report;
+
+/* Why a Richardson–Lucy run stopped. */
+typedef enum svp_rl_stop {
+    SVP_RL_STOP_COUNT = 0,       /* the requested number of iterations (auto_stop off) */
+    SVP_RL_STOP_DISCREPANCY = 1, /* auto_stop: the residual reached the noise level (χ² ≤ 1) */
+    SVP_RL_STOP_STALLED = 2,     /* auto_stop: the residual stopped falling above the noise level
+                                    (the model cannot reach it: light from outside the view, a
+                                    PSF that is off): fitting on would fit the model's error */
+    SVP_RL_STOP_CAP = 3          /* auto_stop: the iteration cap came first (still improving) */
+} svp_rl_stop;
+
+/* Richardson–Lucy acceleration. */
+typedef enum svp_rl_acceleration {
+    SVP_RL_PLAIN = 0,        /* x ← RL(x) */
+    SVP_RL_BIGGS_ANDREWS = 1 /* vector extrapolation (Biggs & Andrews, Appl. Opt. 36 (1997)
+                                1766): RL is applied to x_k + α (x_k − x_{k−1}), α from the
+                                correlation of the last two RL steps, in [0, 1) */
+} svp_rl_acceleration;
 
 typedef struct svp_deconv_options {
     double balance;        /* Wiener–Hunt λ in conj(P) / (|P|² + λ |L|²), L the Laplacian;
@@ -227,6 +256,14 @@ typedef struct svp_deconv_options {
                                   iteration itself stays double. 0 (default): double.
                                   SVP_ERR_UNSUPPORTED with a space-variant operator. Wiener
                                   ignores it. */
+    svp_rl_acceleration acceleration; /* RL: default SVP_RL_PLAIN */
+    int auto_stop;             /* RL: 1 = iterations is a cap; stop at the discrepancy
+                                  principle (χ² per finite datum ≤ 1) or when χ² falls by less
+                                  than 0.1 % over 10 iterations (stalled above the noise level),
+                                  whichever comes first (docs/model.md §6). Default 0. */
+    const svp_image *variance; /* RL auto_stop: the noise variance of every pixel of y (y's
+                                  size, > 0 where y is finite); NULL (default) = one σ² from
+                                  svp_noise_sigma_estimate(y) */
 } svp_deconv_options;
 
 SVP_API void svp_deconv_defaults(svp_deconv_options *options);
@@ -322,7 +359,67 @@ typedef struct svp_correct_options {
     const char *const *field_names; /* optional, n_fields entries: what the error messages call
                                        the field maps (their files, say); default NULL =
                                        "field_apparent[c]" */
+    int margin;                  /* pixels per side of the estimated object beyond the view
+                                    (light from outside the view, docs/model.md §3): 0
+                                    (default) = the view only; > 0 needs a zero-boundary operator
+                                    of (width + 2 margin) x (height + 2 margin) — the data term
+                                    covers the view only, every output is the view's size */
+    int auto_iterations;         /* RL methods: 1 = deconv.iterations is a cap; the PL's RL stops
+                                    by the discrepancy/stall rule (svp_deconv_options.auto_stop,
+                                    noise from the PL noise model below) and every numerator RL
+                                    runs the same count, so both halves of (4) share their
+                                    resolution; default 0 */
+    double pl_gain;              /* camera gain of pl_apparent (counts per detected photon):
+                                    var Ĩ = gain · max(Ĩ − pl_offset, 0); > 0 = given; 0
+                                    (default) = estimated from the PL's variance-mean relation
+                                    (svp_pl_noise_estimate) when a noise model is needed */
+    double pl_offset;            /* camera offset, subtracted from pl_apparent before anything
+                                    else; default 0 */
+    const svp_image *const *field_sigma; /* optional, n_fields entries: the 1σ uncertainty of
+                                    every pixel of B̃_c (what ODMR fits give); NULL (default) =
+                                    σ_c² = k_c² / Ĩ, k_c estimated from B̃_c */
+    int keep_doubtful;           /* 0 (default): a result the doubt checks reject returns
+                                    SVP_ERR_DOUBTFUL; 1: returns SVP_OK with the affected pixels'
+                                    validity 0 (all of them for a global doubt) and the doubts in
+                                    summary */
+    double plausible_factor;     /* doubt: |B_c| above plausible_factor · max|B̃_c| (measured
+                                    pixels) is implausible; default 10 */
+    double shrink_factor;        /* doubt: a field whose spread over the lit pixels (validity 1)
+                                    is below shrink_factor · the measured field's spread there
+                                    was regularised away; default 0.1 */
+    struct svp_correct_summary *summary; /* optional out; default NULL */
 } svp_correct_options;
+
+/* Why T⁻¹'s result is in doubt (bits of svp_correct_summary.doubts). */
+enum {
+    SVP_DOUBT_CG_CAPPED = 1,     /* a Wiener (CG) solve stopped at its step cap, not converged */
+    SVP_DOUBT_BALANCE_BOUND = 2, /* an automatic balance ended on its search's bound */
+    SVP_DOUBT_RL_CAP = 4,        /* automatic RL iterations ended on the cap */
+    SVP_DOUBT_IMPLAUSIBLE = 8,   /* |B_c| beyond plausible_factor · max|B̃_c| somewhere */
+    SVP_DOUBT_SHRUNK = 16        /* a field regularised away (spread below shrink_factor) */
+};
+
+/* What T⁻¹ did and what it doubts (svp_correct_options.summary). */
+typedef struct svp_correct_summary {
+    unsigned doubts;        /* SVP_DOUBT_* bits */
+    size_t n_implausible;   /* pixels with an implausible |B_c| (any component) */
+    double spread_ratio;    /* smallest over components: spread(B_c) / spread(B̃_c), lit pixels */
+    double pl_gain;         /* the PL gain used by the noise model (given or estimated; 0 when
+                               no noise model was needed) */
+    double pl_gain_offset;  /* with an estimated gain: the offset its variance-mean line implies
+                               (reported, never subtracted) */
+    double shift[16];       /* methods R/RL_SIGNED: the shift c of the first 16 components */
+    int rl_iterations;      /* RL on Ĩ: iterations taken (0 for method W) */
+    int rl_stop;            /* an svp_rl_stop */
+    double rl_chi2;         /* auto_iterations: χ² per datum where the PL's RL stopped */
+} svp_correct_summary;
+
+/* The PL's noise model from the image itself: in blocks of 16 x 16 the local mean and the
+ * Immerkær variance of the block; the gain is the slope of variance against mean (a robust
+ * line: Theil–Sen), offset where the line reaches variance 0. SVP_ERR_INVALID for images
+ * under 32 x 32 or with fewer than 8 usable blocks; gain 0 when the variance does not grow
+ * with the mean (noiseless or not Poisson-like). */
+SVP_API svp_status svp_pl_noise_estimate(const svp_image *pl, double *gain, double *offset);
 
 SVP_API void svp_correct_defaults(svp_correct_options *options);
 

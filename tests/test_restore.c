@@ -782,7 +782,18 @@ static void test_wiener_cg_cap_reported(void **state)
     co.reports = reports;
     const svp_image *fields[1] = {field};
     svp_image *outs[1] = {f_out};
-    ASSERT_OK(svp_inverse_transform(op, y, fields, 1, &co, pl_out, outs, NULL, NULL));
+    /* not converged: a result in doubt, named; kept on request with validity 0 everywhere */
+    assert_int_equal(svp_inverse_transform(op, y, fields, 1, &co, pl_out, outs, NULL, NULL),
+                     SVP_ERR_DOUBTFUL);
+    assert_non_null(strstr(svp_last_error(), "stopped at its step cap (2 conjugate-gradient"));
+    svp_correct_summary summary;
+    svp_image *valid = test_image(w, h);
+    co.keep_doubtful = 1;
+    co.summary = &summary;
+    ASSERT_OK(svp_inverse_transform(op, y, fields, 1, &co, pl_out, outs, valid, NULL));
+    assert_true(summary.doubts & SVP_DOUBT_CG_CAPPED);
+    assert_true(test_max_abs(valid) == 0.0);
+    svp_image_free(valid);
     double lambda = 0, sigma = 0;
     ASSERT_OK(svp_wiener_balance_discrepancy(op, y, 1e-3, &lambda, &sigma));
     for (int k = 0; k < 2; k++) {

@@ -591,6 +591,9 @@ static void test_dark_and_faint_regions(void **state)
         for (int k = 0; k < 4; k++) {
             svp_correct_options o = options_for(methods[k], 300, 1e-6);
             if (k == 3) o.pl_floor = 0.05;
+            /* the numerics of the hard case, not its verdict: W's ringing next to the region
+             * is implausible (test_doubt_checks); kept, it loses its validity */
+            o.keep_doubtful = 1;
             restored r = inverse_run(op, a.pl, a.field, NF, &o);
             double vmax = 0, vmean = 0;
             int count = 0;
@@ -951,7 +954,9 @@ static void test_missing_pixels(void **state)
         for (size_t i = 0; i < n; i++) {
             double e =
                 fmax(fabs(r.field[0]->data[i] / 0.625 - 1), fabs(r.field[1]->data[i] / -3.0 - 1));
-            if (r.valid->data[i] > 0)
+            /* hole pixels whose coverage is ~1e-8 (validity) carry no information: the
+             * automatic shift's round-off reaches 1e-6 there */
+            if (r.valid->data[i] > 1e-6)
                 err = fmax(err, e);
             else
                 err_flagged = fmax(err_flagged, e);

@@ -194,6 +194,15 @@ svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary)
 void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance);
 /* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
  * both of the operator's size, x not y; `what` names the method in the message. */
+/* k² of the field noise model σ_B² = k² / Ĩ (noise.c); 0 when nothing is usable. */
+svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
+/* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0
+ * estimated): Σ M (H x_λ − y)² / var = n_finite. *at_bound: −1 / +1 when the choice is the
+ * lower / upper end of the search, else 0 (wiener.c). */
+svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,
+                                              const svp_image *variance, double sigma,
+                                              int cg_max_steps, double *balance,
+                                              double *sigma_used, int *at_bound);
 svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
                                    const char *what);
 

@@ -23,6 +23,7 @@ const char *svp_status_string(svp_status status)
     case SVP_ERR_NUMERIC: return "numerical failure";
     case SVP_ERR_UNSUPPORTED: return "unsupported";
     case SVP_ERR_INTERNAL: return "internal error";
+    case SVP_ERR_DOUBTFUL: return "result in doubt";
     }
     return "unknown status";
 }

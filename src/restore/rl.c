@@ -15,6 +15,11 @@
 
 /* Pointwise loops run in parallel only above this many pixels (below, threads cost more). */
 #define PAR_MIN 32768
+/* auto_stop: stalled when χ² fell by less than STALL_FALL of itself over STALL_SPAN iterations */
+#define STALL_SPAN 10
+#define STALL_FALL 0.001
+/* Biggs–Andrews: the extrapolation weight's cap (α → 1 can overshoot without bound) */
+#define ALPHA_MAX 0.95
 
 static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp_deconv_options *o,
                              const svp_image *x)
@@ -24,6 +29,8 @@ static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp
     if (o->iterations < 1)
         return svp_fail(SVP_ERR_INVALID, "%s: iterations = %d: at least 1 is needed", what,
                         o->iterations);
+    if (o->acceleration != SVP_RL_PLAIN && o->acceleration != SVP_RL_BIGGS_ANDREWS)
+        return svp_fail(SVP_ERR_INVALID, "%s: unknown acceleration %d", what, (int)o->acceleration);
     if (!(o->floor >= 0) || !isfinite(o->floor))
         return svp_fail(SVP_ERR_INVALID, "%s: floor %g is invalid: it must be finite and >= 0",
                         what, o->floor);
@@ -47,6 +54,8 @@ svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_op
     const double *restrict yd = y->data;
     svp_status st = SVP_OK;
     double *y_masked = NULL, *blurred = NULL, *correction = NULL, *inv_norm = NULL;
+    double *x_prev = NULL, *step_1 = NULL, *step_2 = NULL;
+    if (options->report) memset(options->report, 0, sizeof *options->report);
 
     /* One pass: the finite mask folded into y (missing → 0), the range and the count. */
     y_masked = svp_alloc(n * sizeof(double));
@@ -123,24 +132,116 @@ svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_op
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
     for (size_t i = 0; i < n; i++) xd[i] = start;
 
+    /* The stopping rule's noise variance: the caller's map, or one σ² estimated from y. */
+    const int auto_stop = options->auto_stop;
+    const double *var_map = NULL;
+    double var_const = 0;
+    if (auto_stop) {
+        if (options->variance) {
+            if ((st = svp_image_same_size(y, options->variance, "y", "variance")) != SVP_OK)
+                goto cleanup;
+            var_map = options->variance->data;
+        } else {
+            double sigma = 0;
+            if ((st = svp_noise_sigma_estimate(y, &sigma)) != SVP_OK) goto cleanup;
+            var_const = sigma * sigma;
+        }
+        /* noiseless data: a variance at round-off, so χ² never reaches 1 and the stall decides */
+        var_const = fmax(var_const, 1e-24 * y_max * y_max);
+    }
+    /* Acceleration: the previous iterate and the last two RL steps. */
+    const int accel = options->acceleration == SVP_RL_BIGGS_ANDREWS;
+    if (accel) {
+        x_prev = svp_alloc(n * sizeof(double));
+        step_1 = svp_alloc(n * sizeof(double));
+        step_2 = svp_alloc(n * sizeof(double));
+        if (!x_prev || !step_1 || !step_2) {
+            st = svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for the acceleration");
+            goto cleanup;
+        }
+    }
+    double chi2_history[STALL_SPAN + 1] = {0};
+    int done = 0, stop = auto_stop ? SVP_RL_STOP_CAP : SVP_RL_STOP_COUNT;
+    double chi2 = 0;
     for (int k = 0; k < options->iterations; k++) {
+        if (accel) {
+            /* z = x_k + α (x_k − x_{k−1}), α = <g_{k−1}, g_{k−2}> / <g_{k−2}, g_{k−2}> in
+             * [0, ALPHA_MAX]; a pixel the extrapolation would push to or below 0 keeps 1 %
+             * of its value (RL cannot bring a zero back) */
+            double alpha = 0;
+            if (k >= 2) {
+                const double num = svp_dot(step_1, step_2, correction, n);
+                const double den = svp_dot(step_2, step_2, correction, n);
+                alpha = den > 0 ? num / den : 0.0;
+                alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
+            }
+            double *restrict xp = x_prev;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+            for (size_t i = 0; i < n; i++) {
+                const double xk = xd[i], z = xk + alpha * (xk - xp[i]);
+                xp[i] = xk;
+                xd[i] = z > 0.01 * xk ? z : 0.01 * xk;
+            }
+        }
         if ((st = svp_blur_apply(blur, &img_x, &img_blurred)) != SVP_OK) goto cleanup;
+        if (auto_stop) {
+            /* χ² of the point about to be updated, per finite datum */
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+            for (size_t i = 0; i < n; i++) {
+                const double r = isfinite(yd[i]) ? blurred[i] - yd[i] : 0.0;
+                const double v = var_map ? fmax(var_map[i], var_const) : var_const;
+                correction[i] = isfinite(yd[i]) ? r * r / v : 0.0;
+            }
+            chi2 = svp_sum(correction, n) / (double)n_finite;
+            for (int j = 0; j < STALL_SPAN; j++) chi2_history[j] = chi2_history[j + 1];
+            chi2_history[STALL_SPAN] = chi2;
+            if (chi2 <= 1.0) {
+                stop = SVP_RL_STOP_DISCREPANCY;
+                done = k;
+                break;
+            }
+            if (k >= STALL_SPAN &&
+                chi2_history[0] - chi2 < STALL_FALL * chi2) {
+                stop = SVP_RL_STOP_STALLED;
+                done = k;
+                break;
+            }
+        }
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) {
             double hx = blurred[i];
             blurred[i] = y_masked[i] / (hx > floor_abs ? hx : floor_abs);
         }
         if ((st = svp_blur_adjoint(blur, &img_blurred, &img_correction)) != SVP_OK) goto cleanup;
+        double *restrict g = step_2; /* becomes the newest step */
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) {
-            if (inv_norm[i] == 0) continue;
-            double v = xd[i] * correction[i] * inv_norm[i];
+            if (inv_norm[i] == 0) {
+                if (g) g[i] = 0.0;
+                continue;
+            }
+            const double old = xd[i];
+            double v = old * correction[i] * inv_norm[i];
             /* round-off can make Hᵀ(...) slightly negative; NaN/Inf never leave */
-            xd[i] = (v > 0 && v <= DBL_MAX) ? v : 0.0;
+            v = (v > 0 && v <= DBL_MAX) ? v : 0.0;
+            xd[i] = v;
+            if (g) g[i] = v - old;
         }
+        if (accel) {
+            step_2 = step_1;
+            step_1 = g;
+        }
+        done = k + 1;
         st = svp_report_progress(options->progress, options->progress_user,
                                  (double)(k + 1) / options->iterations);
         if (st != SVP_OK) goto cleanup;
+    }
+    if (stop == SVP_RL_STOP_DISCREPANCY || stop == SVP_RL_STOP_STALLED)
+        st = svp_report_progress(options->progress, options->progress_user, 1.0);
+    if (options->report) {
+        options->report->iterations = done;
+        options->report->chi2 = chi2;
+        options->report->stop = stop;
     }
 cleanup:
     if (options->single_precision && !was_single) svp_blur_set_single(blur, 0);
@@ -148,5 +249,8 @@ cleanup:
     svp_free(blurred);
     svp_free(correction);
     svp_free(inv_norm);
+    svp_free(x_prev);
+    svp_free(step_1);
+    svp_free(step_2);
     return st;
 }

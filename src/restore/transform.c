@@ -21,6 +21,11 @@
 #define PAR_MIN 32768
 /* Coverage of a missing pixel by measured ones below this is FFT round-off: nothing covers it. */
 #define COVERAGE_TINY 1e-9
+/* The automatic signed shift c = SHIFT_FACTOR · max|B̃| (eq. 5) */
+#define SHIFT_FACTOR 2.0
+/* A CG solve stopped at its cap is in doubt when its relative residual is still above this
+ * (its own tolerance is 1e-8; between the two the solution is converged to plotting accuracy) */
+#define CG_DOUBT_RESIDUAL 1e-4
 
 /* Used by the tests to assert that the last-resort NaN/Inf repair of T⁻¹ never fires. */
 svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_apparent,
@@ -40,6 +45,15 @@ void svp_correct_defaults(svp_correct_options *options)
     options->noise_sigma = 0.0;
     options->reports = NULL;
     options->field_names = NULL;
+    options->margin = 0;
+    options->auto_iterations = 0;
+    options->pl_gain = 0.0;
+    options->pl_offset = 0.0;
+    options->field_sigma = NULL;
+    options->keep_doubtful = 0;
+    options->plausible_factor = 10.0;
+    options->shrink_factor = 0.1;
+    options->summary = NULL;
 }
 
 /* ---- argument checks --------------------------------------------------------------------- */
@@ -63,13 +77,24 @@ static svp_status check_same(const svp_image *image, const char *what, int index
     return svp_image_same_size(ref, image, ref_name, name);
 }
 
-static svp_status check_operator(const svp_blur *blur, const svp_image *image, const char *what)
+/* The operator covers the image plus `margin` pixels on every side. */
+static svp_status check_operator(const svp_blur *blur, const svp_image *image, const char *what,
+                                 int margin)
 {
     if (!blur) return svp_fail(SVP_ERR_INVALID, "the blur operator is NULL");
     if (!image || !image->data) return svp_fail(SVP_ERR_INVALID, "%s is NULL", what);
-    if (image->width != svp_blur_width(blur) || image->height != svp_blur_height(blur))
+    if (image->width + 2 * margin != svp_blur_width(blur) ||
+        image->height + 2 * margin != svp_blur_height(blur)) {
+        if (margin)
+            return svp_fail(SVP_ERR_SIZE,
+                            "%s is %d x %d: with a margin of %d pixels the blur operator must be "
+                            "%d x %d, but it is %d x %d",
+                            what, image->width, image->height, margin,
+                            image->width + 2 * margin, image->height + 2 * margin,
+                            svp_blur_width(blur), svp_blur_height(blur));
         return svp_fail(SVP_ERR_SIZE, "%s is %d x %d but the blur operator is %d x %d", what,
                         image->width, image->height, svp_blur_width(blur), svp_blur_height(blur));
+    }
     return SVP_OK;
 }
 
@@ -135,7 +160,7 @@ static svp_status check_transform_args(const svp_blur *blur, const svp_image *pl
                                        const svp_image *pl_out, svp_image *const *fields_out,
                                        const svp_image *validity, const char *in_pl,
                                        const char *in_field, const char *out_pl,
-                                       const char *out_field)
+                                       const char *out_field, int margin)
 {
     if (!blur) return svp_fail(SVP_ERR_INVALID, "the blur operator is NULL");
     if (n_fields < 1)
@@ -143,7 +168,7 @@ static svp_status check_transform_args(const svp_blur *blur, const svp_image *pl
                         n_fields);
     if (!fields) return svp_fail(SVP_ERR_INVALID, "the %s array is NULL", in_field);
     if (!fields_out) return svp_fail(SVP_ERR_INVALID, "the %s array is NULL", out_field);
-    SVP_CHECK(check_operator(blur, pl, in_pl));
+    SVP_CHECK(check_operator(blur, pl, in_pl, margin));
     for (int c = 0; c < n_fields; c++) SVP_CHECK(check_same(fields[c], in_field, c, pl, in_pl));
     SVP_CHECK(check_same(pl_out, out_pl, -1, pl, in_pl));
     for (int c = 0; c < n_fields; c++)
@@ -162,7 +187,7 @@ svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
 {
     SVP_CHECK(check_transform_args(blur, pl_true, field_true, n_fields, pl_apparent, field_apparent,
                                    validity, "pl_true", "field_true", "pl_apparent",
-                                   "field_apparent"));
+                                   "field_apparent", 0));
     const int w = pl_true->width, h = pl_true->height;
     const size_t n = (size_t)w * h;
 
@@ -232,26 +257,36 @@ static int uses_rl_for_field(svp_method m)
     return m == SVP_METHOD_R || m == SVP_METHOD_RL_SIGNED;
 }
 
-/* y ⊘ p with the method's deconvolution, progress forwarded as the share `share`. A Wiener
- * deconvolution with balance_auto first chooses its balance by the discrepancy principle (noise
- * σ noise_sigma, or estimated from y when <= 0). report (may be NULL) receives what it did. */
+/* y ⊘ p with the method's deconvolution, progress forwarded as the share `share`. variance
+ * (may be NULL) is y's noise variance: RL's stopping rule (with auto_stop) and the Wiener
+ * discrepancy principle (balance_auto; noise_sigma > 0 overrides it with one σ) use it.
+ * report (may be NULL) receives what it did. */
 static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                              const svp_deconv_options *base, int balance_auto, double noise_sigma,
-                             svp_progress_share *share, svp_deconv_report *report, svp_image *x)
+                             const svp_image *variance, svp_progress_share *share,
+                             svp_deconv_report *report, svp_image *x)
 {
     svp_deconv_options o = *base;
     o.report = report;
+    if (use_rl && o.auto_stop) o.variance = variance;
     if (base->progress) {
         o.progress = svp_progress_share_fn;
         o.progress_user = share;
     }
     double sigma_used = 0;
-    if (!use_rl && balance_auto)
-        SVP_CHECK(svp_wiener_balance_discrepancy(blur, y, noise_sigma, &o.balance, &sigma_used));
+    int at_bound = 0;
+    if (!use_rl && balance_auto) {
+        /* the search's solves take the default step cap; the final solve the caller's */
+        svp_deconv_options d;
+        svp_deconv_defaults(&d);
+        SVP_CHECK(svp_wiener_balance_discrepancy_var(blur, y, noise_sigma > 0 ? NULL : variance,
+                                                     noise_sigma, d.cg_max_steps, &o.balance,
+                                                     &sigma_used, &at_bound));
+    }
     svp_status st = use_rl ? svp_deconv_rl(blur, y, &o, x) : svp_deconv_wiener(blur, y, &o, x);
-    if (report) {
-        if (use_rl) memset(report, 0, sizeof *report);
+    if (report && !use_rl) {
         report->noise_sigma = sigma_used;
+        report->balance_at_bound = at_bound;
     }
     if (st != SVP_OK) return st;
     if (base->progress) {
@@ -275,6 +310,21 @@ static svp_status check_correct_options(const svp_correct_options *o)
                         o->deconv.iterations);
     if (!isfinite(o->noise_sigma))
         return svp_fail(SVP_ERR_INVALID, "noise_sigma must be finite, got %g", o->noise_sigma);
+    if (o->margin < 0)
+        return svp_fail(SVP_ERR_INVALID, "margin must be >= 0 pixels, got %d", o->margin);
+    if (!(o->pl_gain >= 0) || !isfinite(o->pl_gain))
+        return svp_fail(SVP_ERR_INVALID, "pl_gain must be >= 0 and finite, got %g", o->pl_gain);
+    if (!isfinite(o->pl_offset))
+        return svp_fail(SVP_ERR_INVALID, "pl_offset must be finite, got %g", o->pl_offset);
+    if (!(o->plausible_factor > 1) || !isfinite(o->plausible_factor))
+        return svp_fail(SVP_ERR_INVALID, "plausible_factor must be > 1 and finite, got %g",
+                        o->plausible_factor);
+    if (!(o->shrink_factor >= 0 && o->shrink_factor < 1))
+        return svp_fail(SVP_ERR_INVALID, "shrink_factor must be in [0, 1), got %g",
+                        o->shrink_factor);
+    if (o->auto_iterations && o->method == SVP_METHOD_W)
+        return svp_fail(SVP_ERR_INVALID,
+                        "auto_iterations needs a Richardson-Lucy method (RW, R, RL_SIGNED), not W");
     if (o->method != SVP_METHOD_R && o->method != SVP_METHOD_RL_SIGNED && !o->balance_auto &&
         !(o->deconv.balance >= 0 && isfinite(o->deconv.balance)))
         return svp_fail(SVP_ERR_INVALID, "Wiener balance must be >= 0 and finite, got %g",
@@ -290,12 +340,15 @@ static const char *field_name(const svp_correct_options *o, int c, char *buf, si
     return buf;
 }
 
-/* The shift c of eq. 5 for component `c`: B̃ + c > 0 at every measured pixel. */
+/* The shift c of eq. 5 for component `c`: B̃ + c > 0 at every measured pixel. The automatic
+ * c = 2 max|B̃| keeps the shifted numerator between max|B̃| and 3 max|B̃| times Ĩ: its dips
+ * follow Ĩ's, where both RL runs converge alike, instead of B̃'s minimum, where the numerator
+ * alone would converge slowly (docs/model.md §3, eq. 5). */
 static svp_status signed_shift(const svp_image *field, const unsigned char *missing, size_t n,
                                const svp_correct_options *o, int c, double *shift)
 {
     const double requested = o->shift;
-    double lo = INFINITY, hi = -INFINITY;
+    double lo = INFINITY, big = 0;
     size_t at = 0;
     for (size_t i = 0; i < n; i++) {
         if (missing[i]) continue;
@@ -304,16 +357,10 @@ static svp_status signed_shift(const svp_image *field, const unsigned char *miss
             lo = v;
             at = i;
         }
-        if (v > hi) hi = v;
+        if (fabs(v) > big) big = fabs(v);
     }
     if (requested == 0) {
-        /* c = 0.1 · range − min; a constant map has no range: use its magnitude (or 1). */
-        double range = hi - lo;
-        if (!(range > 0)) range = fabs(lo) > 0 ? fabs(lo) : 1.0;
-        *shift = 0.1 * range - lo;
-        /* keep B̃ + c > 0 against rounding when |min| dwarfs the range */
-        for (double step = 0.1 * range + 1e-15 * fabs(lo); !(lo + *shift > 0); step *= 2)
-            *shift += step;
+        *shift = big > 0 ? SHIFT_FACTOR * big : 1.0;
         return SVP_OK;
     }
     char buf[32];
@@ -329,24 +376,21 @@ static svp_status signed_shift(const svp_image *field, const unsigned char *miss
     return SVP_OK;
 }
 
-svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_apparent,
-                                         const svp_image *const *field_apparent, int n_fields,
-                                         const svp_correct_options *options, svp_image *pl_true,
-                                         svp_image *const *field_true, svp_image *validity,
-                                         size_t *n_missing, size_t *n_repaired)
+/* T⁻¹ on the operator's grid (the view plus any margin, whose pixels arrive as NaN: missing).
+ * opt is resolved (gain known); field_sigma (may be NULL) on the same grid; reports has
+ * n_fields + 1 entries; validity receives the validity map (never NULL). */
+static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
+                               const svp_image *const *field_apparent, int n_fields,
+                               const svp_correct_options *options,
+                               const svp_image *const *field_sigma, svp_image *pl_true,
+                               svp_image *const *field_true, svp_image *validity,
+                               svp_deconv_report *reports, double *shifts, size_t *n_missing,
+                               size_t *n_repaired)
 {
     if (n_missing) *n_missing = 0;
     if (n_repaired) *n_repaired = 0;
-    svp_correct_options opt;
-    if (options)
-        opt = *options;
-    else
-        svp_correct_defaults(&opt);
-    SVP_CHECK(check_correct_options(&opt));
-    SVP_CHECK(check_transform_args(blur, pl_apparent, field_apparent, n_fields, pl_true, field_true,
-                                   validity, "pl_apparent", "field_apparent", "pl_true",
-                                   "field_true"));
-    if (opt.reports) memset(opt.reports, 0, ((size_t)n_fields + 1) * sizeof *opt.reports);
+    const svp_correct_options opt = *options;
+    memset(reports, 0, ((size_t)n_fields + 1) * sizeof *reports);
     const int w = pl_apparent->width, h = pl_apparent->height;
     const size_t n = (size_t)w * h;
     const int rl_pl = uses_rl_for_pl(opt.method), rl_field = uses_rl_for_field(opt.method);
@@ -354,15 +398,13 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
     svp_status st = SVP_OK;
     unsigned char *missing = NULL;
     double *valid = NULL;
-    svp_image *work = NULL, *coverage = NULL;
+    svp_image *work = NULL, *coverage = NULL, *pl_var = NULL, *num_var = NULL;
     svp_progress_share *shares = NULL;
-    double *shifts = NULL;
 
     missing = malloc(n);
-    valid = svp_alloc(n * sizeof(double));
+    valid = validity->data;
     shares = calloc((size_t)n_fields + 1, sizeof *shares);
-    shifts = calloc((size_t)n_fields, sizeof *shifts);
-    if (!missing || !valid || !shares || !shifts) {
+    if (!missing || !shares) {
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", w, h);
         goto cleanup;
     }
@@ -438,6 +480,22 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
             if (st != SVP_OK) goto cleanup;
         }
 
+    /* The PL's noise variance var Ĩ = g · max(Ĩ, g) (at least one photon's): RL's stopping rule
+     * and the discrepancy principle of W use it; the numerators' below. */
+    const int need_noise = opt.auto_iterations || opt.balance_auto;
+    if (need_noise && opt.pl_gain > 0) {
+        st = svp_image_new(w, h, &pl_var);
+        if (st != SVP_OK) goto cleanup;
+        const double g = opt.pl_gain;
+        const double *restrict pl = pl_apparent->data;
+        double *restrict v = pl_var->data;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+        for (size_t i = 0; i < n; i++) v[i] = missing[i] ? 1.0 : g * (pl[i] > g ? pl[i] : g);
+    }
+    svp_deconv_options deconv_pl = opt.deconv, deconv_field = opt.deconv;
+    deconv_pl.auto_stop = opt.auto_iterations;
+    deconv_field.auto_stop = 0;
+
     /* Ĩ ⊘ p, once for all components (eq. 4, denominator). */
     {
         const double *restrict pl = pl_apparent->data;
@@ -445,11 +503,21 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : pl[i];
     }
-    st = deconvolve(blur, work, rl_pl, &opt.deconv, opt.balance_auto, opt.noise_sigma, &shares[0],
-                    opt.reports, pl_true);
+    st = deconvolve(blur, work, rl_pl, &deconv_pl, opt.balance_auto, opt.noise_sigma, pl_var,
+                    &shares[0], &reports[0], pl_true);
     if (st != SVP_OK) {
         svp_fail_context(st, "deconvolving pl_apparent");
         goto cleanup;
+    }
+    /* both halves of (4) at the same resolution: the numerators run the PL's RL count */
+    if (rl_pl && opt.auto_iterations)
+        deconv_field.iterations = reports[0].iterations > 0 ? reports[0].iterations : 1;
+    /* the numerators' noise (discrepancy principle of RW and W): var(B̃Ĩ) = B̃² var Ĩ + Ĩ² σ_B²,
+     * σ_B² from the caller's map or k² / Ĩ; without any model, NULL (one σ estimated) */
+    double pl_var_const = 0;
+    if (opt.balance_auto && !rl_field && !pl_var) {
+        double sigma = 0;
+        if (svp_noise_sigma_estimate(pl_apparent, &sigma) == SVP_OK) pl_var_const = sigma * sigma;
     }
     const double pl_rec_max = svp_max(pl_true->data, n);
     const double floor_pl = opt.pl_floor * pl_rec_max;
@@ -495,8 +563,38 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
             for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : (b_app[i] + shift) * pl[i];
         }
-        st = deconvolve(blur, work, rl_field, &opt.deconv, opt.balance_auto, opt.noise_sigma,
-                        &shares[c + 1], opt.reports ? &opt.reports[c + 1] : NULL, field_true[c]);
+        const svp_image *var_c = NULL;
+        if (opt.balance_auto && !rl_field) {
+            double k2 = 0;
+            if (!(field_sigma && field_sigma[c]))
+                if ((st = svp_field_noise_k2(field_apparent[c], pl_apparent, &k2)) != SVP_OK)
+                    goto cleanup;
+            if (!num_var && (st = svp_image_new(w, h, &num_var)) != SVP_OK) goto cleanup;
+            const double *restrict pl = pl_apparent->data;
+            const double *restrict b_app = field_apparent[c]->data;
+            const double *restrict sig = field_sigma && field_sigma[c] ? field_sigma[c]->data : NULL;
+            double *restrict v = num_var->data;
+            double v_max = 0;
+            for (size_t i = 0; i < n; i++) {
+                if (missing[i]) {
+                    v[i] = 1.0;
+                    continue;
+                }
+                const double vi = pl_var ? pl_var->data[i] : pl_var_const;
+                const double p = pl[i] > 0 ? pl[i] : 0.0;
+                const double sb2 = sig ? (isfinite(sig[i]) ? sig[i] * sig[i] : 0.0)
+                                       : (p > 0 ? k2 / p : 0.0);
+                v[i] = b_app[i] * b_app[i] * vi + p * p * sb2;
+                if (v[i] > v_max) v_max = v[i];
+            }
+            if (v_max > 0) {
+                for (size_t i = 0; i < n; i++)
+                    if (!missing[i] && !(v[i] > 1e-12 * v_max)) v[i] = 1e-12 * v_max;
+                var_c = num_var;
+            }
+        }
+        st = deconvolve(blur, work, rl_field, &deconv_field, opt.balance_auto, opt.noise_sigma,
+                        var_c, &shares[c + 1], &reports[c + 1], field_true[c]);
         if (st != SVP_OK) {
             char buf[32];
             svp_fail_context(st, "deconvolving %s x pl_apparent",
@@ -531,15 +629,314 @@ finish:;
             repaired++;
         }
     if (n_repaired) *n_repaired = repaired;
-    if (validity) memcpy(validity->data, valid, n * sizeof(double));
 
 cleanup:
     free(missing);
-    svp_free(valid);
     free(shares);
-    free(shifts);
     svp_image_free(work);
     svp_image_free(coverage);
+    svp_image_free(pl_var);
+    svp_image_free(num_var);
+    return st;
+}
+
+/* A copy of `src` (w x h) in the middle of a (w + 2m) x (h + 2m) image whose margin is NaN
+ * (missing: no datum there), minus `offset`, clamped at 0 when `clamp`. */
+static svp_status padded_copy(const svp_image *src, int m, double offset, int clamp,
+                              svp_image **out)
+{
+    const int w = src->width, h = src->height, pw = w + 2 * m, ph = h + 2 * m;
+    SVP_CHECK(svp_image_new(pw, ph, out));
+    double *d = (*out)->data;
+    for (int j = 0; j < ph; j++)
+        for (int i = 0; i < pw; i++) {
+            double v = NAN;
+            if (i >= m && i < m + w && j >= m && j < m + h) {
+                v = src->data[(size_t)(j - m) * w + (i - m)] - offset;
+                if (clamp && v < 0) v = 0.0;
+            }
+            d[(size_t)j * pw + i] = v;
+        }
+    return SVP_OK;
+}
+
+static void crop_into(const svp_image *big, int m, svp_image *dst)
+{
+    for (int j = 0; j < dst->height; j++)
+        memcpy(dst->data + (size_t)j * dst->width, big->data + (size_t)(j + m) * big->width + m,
+               (size_t)dst->width * sizeof(double));
+}
+
+/* Spread of the finite values at the pixels where `where` is 1: √mean((v − mean)²). */
+static double spread(const double *v, const unsigned char *where, size_t n)
+{
+    double s = 0, s2 = 0;
+    size_t k = 0;
+    for (size_t i = 0; i < n; i++)
+        if (where[i] && isfinite(v[i])) {
+            s += v[i];
+            k++;
+        }
+    if (!k) return 0;
+    const double mean = s / (double)k;
+    for (size_t i = 0; i < n; i++)
+        if (where[i] && isfinite(v[i])) s2 += (v[i] - mean) * (v[i] - mean);
+    return sqrt(s2 / (double)k);
+}
+
+/* The doubt checks (docs/model.md §3, "Results in doubt") on the view: fills sum, and either
+ * sets validity 0 where the doubt applies (keep_doubtful) or returns SVP_ERR_DOUBTFUL with a
+ * message that says what to change. */
+static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl_apparent,
+                               const svp_image *const *field_apparent, int n_fields,
+                               svp_image *const *field_true, svp_image *validity,
+                               const svp_deconv_report *reports, svp_correct_summary *sum)
+{
+    const int w = pl_apparent->width;
+    const size_t n = (size_t)w * pl_apparent->height;
+    const int rl_pl = uses_rl_for_pl(o->method);
+    char msg[900] = "", name[64];
+    unsigned doubts = 0;
+    /* the solvers */
+    for (int k = 0; k <= n_fields; k++) {
+        const svp_deconv_report *r = &reports[k];
+        const char *what = k == 0 ? "pl_apparent" : field_name(o, k - 1, name, sizeof name);
+        if (r->wiener && r->cg_capped && r->cg_residual > CG_DOUBT_RESIDUAL &&
+            !(doubts & SVP_DOUBT_CG_CAPPED)) {
+            doubts |= SVP_DOUBT_CG_CAPPED;
+            if (!msg[0])
+                snprintf(msg, sizeof msg,
+                         "the Wiener-Hunt solve of %s%s stopped at its step cap (%d conjugate-"
+                         "gradient steps, relative residual %.3g): not converged; raise the step "
+                         "cap or the balance, or use method R",
+                         what, k ? " x PL" : "", r->cg_steps, r->cg_residual);
+        }
+        if (r->wiener && r->balance_at_bound && !(doubts & SVP_DOUBT_BALANCE_BOUND)) {
+            doubts |= SVP_DOUBT_BALANCE_BOUND;
+            if (!msg[0])
+                snprintf(msg, sizeof msg,
+                         "the automatic balance of %s%s ended on the %s end of its search "
+                         "(lambda = %g): the noise level (%s) %s; give the balance or the noise, "
+                         "or use method R",
+                         what, k ? " x PL" : "", r->balance_at_bound < 0 ? "lower" : "upper",
+                         r->balance, r->noise_sigma > 0 ? "estimated sigma" : "noise model",
+                         r->balance_at_bound < 0
+                             ? "is below what any balance leaves (noiseless data, or a noise "
+                               "estimate that is too small)"
+                             : "explains the data at every balance (the signal would be "
+                               "regularised away)");
+        }
+    }
+    if (rl_pl && o->auto_iterations && reports[0].stop == SVP_RL_STOP_CAP) {
+        doubts |= SVP_DOUBT_RL_CAP;
+        if (!msg[0])
+            snprintf(msg, sizeof msg,
+                     "the automatic Richardson-Lucy stop was not reached within the cap of %d "
+                     "iterations (chi2 per datum %.3g, still falling): raise the iteration cap",
+                     reports[0].iterations, reports[0].chi2);
+    }
+    /* the result: implausible values, a field regularised away */
+    unsigned char *lit = malloc(n);
+    if (!lit) return svp_fail(SVP_ERR_NOMEM, "out of memory for the doubt checks");
+    size_t n_lit = 0;
+    for (size_t i = 0; i < n; i++) {
+        int ok = validity->data[i] >= 1.0 && isfinite(pl_apparent->data[i]);
+        for (int c = 0; c < n_fields && ok; c++) ok = isfinite(field_apparent[c]->data[i]);
+        lit[i] = (unsigned char)ok;
+        n_lit += (size_t)ok;
+    }
+    size_t n_bad = 0;
+    double worst = 0;
+    size_t worst_at = 0;
+    int worst_c = 0;
+    double worst_meas = 0;
+    sum->spread_ratio = INFINITY;
+    for (int c = 0; c < n_fields; c++) {
+        double meas = 0;
+        for (size_t i = 0; i < n; i++) {
+            const double v = field_apparent[c]->data[i];
+            if (isfinite(v) && isfinite(pl_apparent->data[i]) && fabs(v) > meas) meas = fabs(v);
+        }
+        const double limit = o->plausible_factor * meas;
+        for (size_t i = 0; i < n; i++) {
+            const double b = fabs(field_true[c]->data[i]);
+            if (!(b > limit && meas > 0)) continue;
+            /* an already flagged pixel (validity < 1/2: dark, uncovered) just loses the rest
+             * of its validity; a lit one puts the result in doubt */
+            if (validity->data[i] < 0.5) {
+                validity->data[i] = 0.0;
+                continue;
+            }
+            {
+                n_bad++;
+                if (b / meas > worst) {
+                    worst = b / meas;
+                    worst_at = i;
+                    worst_c = c;
+                    worst_meas = meas;
+                }
+                if (o->keep_doubtful) validity->data[i] = 0.0;
+            }
+        }
+        const double s_meas = spread(field_apparent[c]->data, lit, n);
+        if (n_lit > 0 && s_meas > 0) {
+            const double ratio = spread(field_true[c]->data, lit, n) / s_meas;
+            if (ratio < sum->spread_ratio) sum->spread_ratio = ratio;
+            if (ratio < o->shrink_factor && !(doubts & SVP_DOUBT_SHRUNK)) {
+                doubts |= SVP_DOUBT_SHRUNK;
+                if (!msg[0])
+                    snprintf(msg, sizeof msg,
+                             "the corrected %s varies %.3g times as much as the measured map "
+                             "over the lit pixels (doubt below %g): the signal was regularised "
+                             "away; use a smaller balance or method R",
+                             field_name(o, c, name, sizeof name), ratio, o->shrink_factor);
+            }
+        }
+    }
+    free(lit);
+    if (!isfinite(sum->spread_ratio)) sum->spread_ratio = 0;
+    sum->n_implausible = n_bad;
+    if (n_bad) {
+        doubts |= SVP_DOUBT_IMPLAUSIBLE;
+        if (!msg[0])
+            snprintf(msg, sizeof msg,
+                     "the corrected %s reaches %.3g at pixel (%zu, %zu), %.3g times the measured "
+                     "map's largest |value| %.3g (%zu pixels beyond %g times): the correction "
+                     "amplified noise or model error; use method R, automatic iterations, or a "
+                     "larger balance",
+                     field_name(o, worst_c, name, sizeof name),
+                     field_true[worst_c]->data[worst_at], worst_at % (size_t)w,
+                     worst_at / (size_t)w, worst, worst_meas, n_bad, o->plausible_factor);
+    }
+    sum->doubts = doubts;
+    if (!doubts) return SVP_OK;
+    if (!o->keep_doubtful) return svp_fail(SVP_ERR_DOUBTFUL, "result in doubt: %s", msg);
+    /* kept on request: a doubt about the whole solve takes every pixel's validity */
+    if (doubts & ~(unsigned)SVP_DOUBT_IMPLAUSIBLE) memset(validity->data, 0, n * sizeof(double));
+    return SVP_OK;
+}
+
+svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_apparent,
+                                         const svp_image *const *field_apparent, int n_fields,
+                                         const svp_correct_options *options, svp_image *pl_true,
+                                         svp_image *const *field_true, svp_image *validity,
+                                         size_t *n_missing, size_t *n_repaired)
+{
+    if (n_missing) *n_missing = 0;
+    if (n_repaired) *n_repaired = 0;
+    svp_correct_options opt;
+    if (options)
+        opt = *options;
+    else
+        svp_correct_defaults(&opt);
+    SVP_CHECK(check_correct_options(&opt));
+    const int m = opt.margin;
+    SVP_CHECK(check_transform_args(blur, pl_apparent, field_apparent, n_fields, pl_true, field_true,
+                                   validity, "pl_apparent", "field_apparent", "pl_true",
+                                   "field_true", m));
+    if (m > 0 && svp_blur_boundary(blur) != SVP_BOUNDARY_ZERO)
+        return svp_fail(SVP_ERR_INVALID,
+                        "a margin beyond the view needs the zero boundary (the mirror and periodic "
+                        "boundaries already say what lies outside)");
+    if (opt.field_sigma)
+        for (int c = 0; c < n_fields; c++)
+            if (opt.field_sigma[c])
+                SVP_CHECK(check_same(opt.field_sigma[c], "field_sigma", c, pl_apparent,
+                                     "pl_apparent"));
+    const int w = pl_apparent->width, h = pl_apparent->height;
+    const size_t n = (size_t)w * h;
+    svp_correct_summary local_sum, *sum = opt.summary ? opt.summary : &local_sum;
+    memset(sum, 0, sizeof *sum);
+
+    /* The PL noise model: the gain given, or estimated from the view when a choice needs it. */
+    if ((opt.auto_iterations || opt.balance_auto) && opt.pl_gain == 0) {
+        double g = 0, o_est = 0;
+        if (svp_pl_noise_estimate(pl_apparent, &g, &o_est) == SVP_OK && g > 0) {
+            opt.pl_gain = g;
+            sum->pl_gain_offset = o_est;
+        }
+    }
+    sum->pl_gain = opt.pl_gain;
+
+    svp_status st = SVP_OK;
+    const int clamp = opt.pl_offset != 0 && uses_rl_for_pl(opt.method);
+    const int copy_pl = m > 0 || opt.pl_offset != 0;
+    svp_image *pl_in = NULL, *pl_out = NULL, *valid = NULL;
+    svp_image **fields_in = calloc((size_t)n_fields, sizeof *fields_in);
+    svp_image **fields_out = calloc((size_t)n_fields, sizeof *fields_out);
+    svp_image **sigma_in = calloc((size_t)n_fields, sizeof *sigma_in);
+    svp_deconv_report *reports = calloc((size_t)n_fields + 1, sizeof *reports);
+    double *shifts = calloc((size_t)n_fields, sizeof *shifts);
+    if (!fields_in || !fields_out || !sigma_in || !reports || !shifts) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", w, h);
+        goto cleanup;
+    }
+    if (copy_pl && (st = padded_copy(pl_apparent, m, opt.pl_offset, clamp, &pl_in)) != SVP_OK)
+        goto cleanup;
+    const int pw = w + 2 * m, ph = h + 2 * m;
+    for (int c = 0; c < n_fields && m > 0; c++) {
+        if ((st = padded_copy(field_apparent[c], m, 0, 0, &fields_in[c])) != SVP_OK) goto cleanup;
+        if (opt.field_sigma && opt.field_sigma[c] &&
+            (st = padded_copy(opt.field_sigma[c], m, 0, 0, &sigma_in[c])) != SVP_OK)
+            goto cleanup;
+        if ((st = svp_image_new(pw, ph, &fields_out[c])) != SVP_OK) goto cleanup;
+    }
+    if (m > 0 && (st = svp_image_new(pw, ph, &pl_out)) != SVP_OK) goto cleanup;
+    if ((st = svp_image_new(pw, ph, &valid)) != SVP_OK) goto cleanup;
+    {
+        const svp_image *const *f_in = m > 0 ? (const svp_image *const *)fields_in : field_apparent;
+        svp_image *const *f_out = m > 0 ? fields_out : field_true;
+        const svp_image *const *s_in =
+            m > 0 ? (opt.field_sigma ? (const svp_image *const *)sigma_in : NULL) : opt.field_sigma;
+        size_t miss = 0;
+        st = inverse_core(blur, copy_pl ? pl_in : pl_apparent, f_in, n_fields, &opt, s_in,
+                          m > 0 ? pl_out : pl_true, f_out, valid, reports, shifts, &miss,
+                          n_repaired);
+        if (st != SVP_OK) goto cleanup;
+        if (n_missing) *n_missing = miss - ((size_t)pw * ph - n);
+    }
+    if (m > 0) {
+        crop_into(pl_out, m, pl_true);
+        for (int c = 0; c < n_fields; c++) crop_into(fields_out[c], m, field_true[c]);
+    }
+    svp_image *vv = validity;
+    if (!vv) {
+        if ((st = svp_image_new(w, h, &vv)) != SVP_OK) goto cleanup;
+    }
+    crop_into(valid, m, vv);
+    if (opt.reports) memcpy(opt.reports, reports, ((size_t)n_fields + 1) * sizeof *reports);
+    for (int c = 0; c < n_fields && c < 16; c++) sum->shift[c] = shifts[c];
+    sum->rl_iterations = uses_rl_for_pl(opt.method) ? reports[0].iterations : 0;
+    sum->rl_stop = reports[0].stop;
+    sum->rl_chi2 = reports[0].chi2;
+    {
+        const svp_image *pl_view = opt.pl_offset != 0 ? NULL : pl_apparent;
+        svp_image *pl_tmp = NULL;
+        if (!pl_view) { /* the doubt checks see the PL as deconvolved */
+            st = padded_copy(pl_apparent, 0, opt.pl_offset, clamp, &pl_tmp);
+            pl_view = pl_tmp;
+        }
+        if (st == SVP_OK)
+            st = doubt_checks(&opt, pl_view, field_apparent, n_fields, field_true, vv, reports,
+                              sum);
+        svp_image_free(pl_tmp);
+    }
+    if (vv != validity) svp_image_free(vv);
+
+cleanup:
+    svp_image_free(pl_in);
+    svp_image_free(pl_out);
+    svp_image_free(valid);
+    for (int c = 0; fields_in && c < n_fields; c++) {
+        svp_image_free(fields_in[c]);
+        svp_image_free(fields_out[c]);
+        svp_image_free(sigma_in[c]);
+    }
+    free(fields_in);
+    free(fields_out);
+    free(sigma_in);
+    free(reports);
+    free(shifts);
     return st;
 }
 

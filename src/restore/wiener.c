@@ -29,6 +29,9 @@ void svp_deconv_defaults(svp_deconv_options *o)
     o->cg_max_steps = ZERO_CG_MAX;
     o->report = NULL;
     o->single_precision = 0;
+    o->acceleration = SVP_RL_PLAIN;
+    o->auto_stop = 0;
+    o->variance = NULL;
 }
 
 svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
@@ -629,16 +632,27 @@ svp_status svp_noise_sigma_estimate(const svp_image *y, double *sigma)
 svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, double sigma,
                                           double *balance, double *sigma_used)
 {
+    return svp_wiener_balance_discrepancy_var(blur, y, NULL, sigma, ZERO_CG_MAX, balance,
+                                              sigma_used, NULL);
+}
+
+svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,
+                                              const svp_image *variance, double sigma,
+                                              int cg_max_steps, double *balance,
+                                              double *sigma_used, int *at_bound)
+{
     const char *what = "discrepancy principle";
+    if (at_bound) *at_bound = 0;
     if (!blur || !y || !y->data || !balance)
         return svp_fail(SVP_ERR_INVALID, "%s: NULL argument", what);
     if (y->width != blur->width || y->height != blur->height)
         return svp_fail(SVP_ERR_SIZE, "%s: the operator is %d x %d but the data y are %d x %d",
                         what, blur->width, blur->height, y->width, y->height);
+    if (variance) SVP_CHECK(svp_image_same_size(y, variance, "y", "variance"));
     if (!isfinite(sigma))
         return svp_fail(SVP_ERR_INVALID, "%s: noise deviation %g is not finite", what, sigma);
-    if (sigma <= 0) SVP_CHECK(svp_noise_sigma_estimate(y, &sigma));
-    if (sigma_used) *sigma_used = sigma;
+    if (!variance && sigma <= 0) SVP_CHECK(svp_noise_sigma_estimate(y, &sigma));
+    if (sigma_used) *sigma_used = variance ? 0.0 : sigma;
     const int w = y->width, h = y->height;
     const size_t n = (size_t)w * h;
     const size_t n_finite = n - svp_image_count_nonfinite(y);
@@ -650,10 +664,14 @@ svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, do
     if (st == SVP_OK) st = svp_image_new(w, h, &hx);
     double *prod = svp_alloc(n * sizeof(double));
     if (st == SVP_OK && !prod) st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", what);
-    const double target = (double)n_finite * sigma * sigma;
+    /* Σ r² / var = n_finite; a constant variance folds into the target */
+    const double target = variance ? (double)n_finite : (double)n_finite * sigma * sigma;
+    const double var_floor = variance ? 1e-300 : 1.0;
     double lo = DISCREPANCY_LOG_MIN, hi = DISCREPANCY_LOG_MAX;
+    int bound = 0;
     svp_deconv_options o;
     svp_deconv_defaults(&o);
+    o.cg_max_steps = cg_max_steps;
     /* residual at log10 λ = t, compared with the target: > 0 when λ is too large */
     for (int step = 0; st == SVP_OK && step < DISCREPANCY_STEPS + 2; step++) {
         double t = step == 0 ? hi : step == 1 ? lo : 0.5 * (lo + hi);
@@ -663,15 +681,18 @@ svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, do
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
         for (size_t i = 0; i < n; i++) {
             double r = isfinite(y->data[i]) ? hx->data[i] - y->data[i] : 0.0;
-            prod[i] = r * r;
+            double v = variance ? variance->data[i] : 1.0;
+            prod[i] = r * r / (v > var_floor ? v : var_floor);
         }
         const double too_large = svp_sum(prod, n) - target;
         if (step == 0 && !(too_large > 0)) { /* even the largest λ fits: take it */
             lo = hi;
+            bound = 1;
             break;
         }
         if (step == 1 && too_large >= 0) { /* even the smallest λ misses: take it */
             hi = lo;
+            bound = -1;
             break;
         }
         if (step >= 2) {
@@ -682,6 +703,7 @@ svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, do
         }
     }
     if (st == SVP_OK) *balance = pow(10.0, 0.5 * (lo + hi));
+    if (at_bound) *at_bound = bound;
     svp_image_free(x);
     svp_image_free(hx);
     svp_free(prod);

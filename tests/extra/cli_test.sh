@@ -486,20 +486,24 @@ expect_ok corr_auto10 correct --field field_noisy.txt --pl pl_noisier.txt --psf 
     --method w --balance auto -o corr_auto10 --format txt $FAST
 expect_ok dec_auto_pl deconvolve pl_noisy.txt --psf moffat_periodic.yaml -o dec_auto_pl.txt \
     --method wiener --balance auto $FAST
-# a search that ends on a bound of [1e-12, 1e2] is warned about and recorded
-expect_ok dec_auto_lo deconvolve pl_noisy.txt --psf moffat_periodic.yaml -o dec_auto_lo.txt \
+# a search that ends on a bound of [1e-12, 1e2] cannot be vouched for: exit 3, nothing written;
+# --keep-doubtful writes it, warned and recorded
+run dec_auto_lo deconvolve pl_noisy.txt --psf moffat_periodic.yaml -o dec_auto_lo.txt \
     --method wiener --balance auto --noise 1e-20 $FAST
-expect_ok corr_auto_hi correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
+run corr_auto_hi correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
     --method w --balance auto --noise 10 -o corr_auto_hi --format txt $FAST
-if grep -q 'warning: --balance auto: .*pl_noisy.txt.*lower end' err.dec_auto_lo &&
-    grep -q '"balance_at_bound": "lower"' dec_auto_lo.summary.json &&
-    [ "$(grep -c 'warning: --balance auto: .*upper end' err.corr_auto_hi)" = 2 ] &&
-    grep -q '"balance_at_bound_pl": "upper"' corr_auto_hi/summary.json &&
-    grep -q '"balance_at_bound_field": "upper"' corr_auto_hi/summary.json &&
+expect_ok corr_auto_keep correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
+    --method w --balance auto --noise 10 -o corr_auto_keep --format txt --keep-doubtful $FAST
+if [ "$(cat rc.dec_auto_lo)" = 3 ] && grep -q 'pl_noisy.txt: result in doubt: --balance auto ended on the lower end' err.dec_auto_lo &&
+    [ ! -e dec_auto_lo.txt ] && [ "$(cat rc.corr_auto_hi)" = 3 ] && [ ! -e corr_auto_hi ] &&
+    grep -q 'result in doubt: the automatic balance of pl_apparent ended on the upper end' err.corr_auto_hi &&
+    grep -q '"balance_at_bound_pl": "upper"' corr_auto_keep/summary.json &&
+    grep -q '"doubts": "balance_at_bound' corr_auto_keep/summary.json &&
+    grep -q 'kept by --keep-doubtful' err.corr_auto_keep &&
     ! grep -q 'warning' err.corr_auto && ! grep -q 'at_bound' corr_auto/summary.json; then
-    pass "--balance auto on a bound of its search: warned and recorded (lower: deconvolve --noise 1e-20; upper: correct --noise 10); not inside"
+    pass "--balance auto on a bound of its search: exit 3, nothing written (lower: deconvolve --noise 1e-20; upper: correct --noise 10); --keep-doubtful writes and records it; not inside"
 else
-    fail "--balance auto at a bound" "$(cat err.dec_auto_lo err.corr_auto_hi err.corr_auto)"
+    fail "--balance auto at a bound" "$(cat rc.dec_auto_lo err.dec_auto_lo rc.corr_auto_hi err.corr_auto_hi err.corr_auto_keep err.corr_auto)"
 fi
 lam=$(jnum corr_auto/summary.json balance_pl)
 lam_f=$(jnum corr_auto/summary.json balance_field)
@@ -544,14 +548,20 @@ expect_bad corr_noise_alone "--noise|--balance auto" correct --field Bz.txt --pl
 expect_bad corr_bad_balance "--balance|-1|auto" correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o bad --balance -1
 
 # ---- the zero-boundary Wiener's CG step cap is reported --------------------------------------
-# 2 steps cannot reach the 1e-8 tolerance: exit 0, a warning per capped solve, recorded.
-expect_ok corr_cap correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat.yaml --method w \
+# 2 steps cannot converge: exit 3, nothing written; with --keep-doubtful a warning per capped
+# solve, recorded, validity 0
+run corr_cap correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat.yaml --method w \
     --cg-max-steps 2 -o corr_cap --format txt $FAST
-if [ "$(grep -c 'warning: .*step cap' err.corr_cap)" = 2 ] && grep -q '"n_cg_capped": 2' corr_cap/summary.json &&
-    grep -q '"cg_capped_pl": 1' corr_cap/summary.json && grep -q '"cg_capped_field": 1' corr_cap/summary.json; then
-    pass "correct --cg-max-steps 2: both Wiener solves warn and are recorded as capped ($(tr '\n' ' ' <err.corr_cap | head -c 160))"
+expect_ok corr_cap_keep correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat.yaml --method w \
+    --cg-max-steps 2 -o corr_cap_keep --format txt --keep-doubtful $FAST
+if [ "$(cat rc.corr_cap)" = 3 ] && [ ! -e corr_cap ] && grep -q 'stopped at its step cap (2 conjugate-gradient steps' err.corr_cap &&
+    [ "$(grep -c 'warning: .*step cap' err.corr_cap_keep)" = 2 ] && grep -q '"n_cg_capped": 2' corr_cap_keep/summary.json &&
+    grep -q '"cg_capped_pl": 1' corr_cap_keep/summary.json && grep -q '"cg_capped_field": 1' corr_cap_keep/summary.json &&
+    grep -q '"doubts": "cg_not_converged' corr_cap_keep/summary.json &&
+    /usr/bin/awk '{for (i = 1; i <= NF; i++) if ($i + 0 != 0) bad = 1} END {exit bad}' corr_cap_keep/validity.txt; then
+    pass "correct --cg-max-steps 2: exit 3 and nothing written; kept: both solves warn, are recorded as capped, validity 0 ($(tr '\n' ' ' <err.corr_cap | head -c 160))"
 else
-    fail "CG step cap" "$(cat err.corr_cap) $(grep cg corr_cap/summary.json)"
+    fail "CG step cap" "$(cat rc.corr_cap err.corr_cap err.corr_cap_keep) $(grep cg corr_cap_keep/summary.json)"
 fi
 expect_ok corr_nocap correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat.yaml --method w \
     -o corr_nocap --format txt $FAST
@@ -561,11 +571,14 @@ if grep -q '"n_cg_capped": 0' corr_nocap/summary.json && ! grep -q warning err.c
 else
     fail "CG default cap" "$(cat err.corr_nocap) $(grep cg corr_nocap/summary.json)"
 fi
-expect_ok dec_cap deconvolve pl_noisy.txt --psf moffat.yaml -o dec_cap.txt --method wiener --cg-max-steps 2 $FAST
-if grep -q 'warning: .*pl_noisy.txt.*step cap' err.dec_cap && grep -q '"cg_capped": 1' dec_cap.summary.json; then
-    pass "deconvolve --cg-max-steps 2: warned and recorded"
+run dec_cap deconvolve pl_noisy.txt --psf moffat.yaml -o dec_cap.txt --method wiener --cg-max-steps 2 $FAST
+expect_ok dec_cap_keep deconvolve pl_noisy.txt --psf moffat.yaml -o dec_cap_keep.txt --method wiener \
+    --cg-max-steps 2 --keep-doubtful $FAST
+if [ "$(cat rc.dec_cap)" = 3 ] && [ ! -e dec_cap.txt ] && grep -q 'result in doubt: the Wiener solve did not converge' err.dec_cap &&
+    grep -q 'warning: .*pl_noisy.txt.*step cap' err.dec_cap_keep && grep -q '"cg_capped": 1' dec_cap_keep.summary.json; then
+    pass "deconvolve --cg-max-steps 2: exit 3 and nothing written; kept with --keep-doubtful, warned and recorded"
 else
-    fail "deconvolve CG cap" "$(cat err.dec_cap) $(grep cg dec_cap.summary.json)"
+    fail "deconvolve CG cap" "$(cat rc.dec_cap err.dec_cap err.dec_cap_keep) $(grep cg dec_cap_keep.summary.json)"
 fi
 
 echo "$n_pass passed, $n_fail failed"

@@ -93,6 +93,7 @@ int cli_exit_code(svp_status status)
     case SVP_ERR_FORMAT:
     case SVP_ERR_SIZE:
     case SVP_ERR_EXISTS: return CLI_EXIT_USAGE;
+    case SVP_ERR_DOUBTFUL: return CLI_EXIT_DOUBTFUL;
     default: return CLI_EXIT_RUNTIME;
     }
 }

@@ -75,7 +75,8 @@ int cmd_register(int argc, char **argv);
 enum {
     CLI_EXIT_OK = 0,
     CLI_EXIT_USAGE = 1,  /* bad usage or bad input: the message names the file or option */
-    CLI_EXIT_RUNTIME = 2 /* a runtime failure (memory, numerics, a bug) */
+    CLI_EXIT_RUNTIME = 2, /* a runtime failure (memory, numerics, a bug) */
+    CLI_EXIT_DOUBTFUL = 3 /* a result the program cannot vouch for: nothing written */
 };
 
 /* INVALID, IO, FORMAT, SIZE, EXISTS → 1 (the user can fix the input); others → 2. */

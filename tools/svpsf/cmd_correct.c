@@ -14,7 +14,36 @@ enum {
     OPT_NOISE,
     OPT_CG_MAX_STEPS,
     OPT_PRECISION,
+    OPT_ACCELERATION,
+    OPT_MARGIN,
+    OPT_GAIN,
+    OPT_OFFSET,
+    OPT_FIELD_SIGMA,
+    OPT_KEEP_DOUBTFUL,
+    OPT_PLAUSIBLE,
 };
+
+static const char *const acceleration_names[] = {"none", "biggs-andrews", NULL};
+static const char *const stop_names[] = {"count", "discrepancy", "stalled", "cap"};
+static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound",
+                                          "iterations_at_cap", "implausible_values",
+                                          "regularised_away"};
+
+/* --margin auto: the radius holding 90 % of the PSF's light within the view (a kernel image:
+ * its half-width), at most a quarter of the view's larger side. */
+static int auto_margin(const cli_psf *psf, int w, int h)
+{
+    const int cap = (w > h ? w : h) / 4;
+    double r = 0;
+    if (psf->is_model) {
+        if (svp_psf_encircled_radius(&psf->model, 0.9, 0.5 * hypot(w, h), &r) != SVP_OK) r = cap;
+    } else if (psf->kernel_raw) {
+        const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
+        r = 0.5 * (kw > kh ? kw : kh);
+    }
+    int m = (int)ceil(r);
+    return m < cap ? m : cap;
+}
 
 static const char *const method_names[] = {"rw", "r", "w", "rl-signed", NULL};
 static const svp_method method_values[] = {SVP_METHOD_RW, SVP_METHOD_R, SVP_METHOD_W,
@@ -62,7 +91,29 @@ static void print_help(const cli_run *run, FILE *out)
             "                        r: Richardson-Lucy on both (signed data through a shift)\n"
             "                        w: Wiener-Hunt on both\n"
             "                        rl-signed: as r, named for what it does\n"
-            "  --iterations N        Richardson-Lucy iterations (default %d)\n"
+            "  --iterations N|auto   Richardson-Lucy iterations (default %d); auto: that many at\n"
+            "                        most, stopping when the PL's residual reaches its noise\n"
+            "                        (chi2 per pixel 1) or stops falling (the model's floor);\n"
+            "                        the numerators run the same count (docs/model.md §6)\n"
+            "  --acceleration none|biggs-andrews  Richardson-Lucy vector extrapolation\n"
+            "                        (default none); biggs-andrews reaches plain RL's error in\n"
+            "                        fewer iterations (docs/accuracy.md)\n"
+            "  --margin auto|PX      estimate the object on the view plus PX pixels per side, the\n"
+            "                        data term over the view only: light from outside the view\n"
+            "                        (zero boundary, one PSF; default 0; auto: the radius of 90 %%\n"
+            "                        of the PSF's light, at most a quarter of the view)\n"
+            "  --gain G              camera gain of the PL (counts per detected photon): the PL's\n"
+            "                        shot noise var = G (PL - offset) for the automatic choices;\n"
+            "                        default: estimated from the PL and reported\n"
+            "  --offset O            camera offset subtracted from the PL first (default 0)\n"
+            "  --field-sigma FILE    per-pixel 1-sigma uncertainty of a --field map (repeat in\n"
+            "                        the order of --field); default: sigma^2 = k^2 / PL, k\n"
+            "                        estimated from the map\n"
+            "  --keep-doubtful       write a result the doubt checks reject (exit 0), its\n"
+            "                        affected pixels with validity 0 and the doubts in\n"
+            "                        summary.json; without it such a run exits 3, writing nothing\n"
+            "  --plausible-factor K  a corrected |field| above K x the measured map's largest\n"
+            "                        |value| at a lit pixel is implausible (default %g)\n"
             "  --precision double|single  the Richardson-Lucy convolutions of rw, r and\n"
             "                        rl-signed in double (default) or single precision (float\n"
             "                        FFTs: 1.4-2.4x faster, within about 1e-5 of the peak at\n"
@@ -83,14 +134,20 @@ static void print_help(const cli_run *run, FILE *out)
             "                        (default: automatic, 0.1 range(Bt) - min(Bt) per map)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
-            d.deconv.iterations, d.deconv.balance, d.deconv.cg_max_steps, d.pl_floor);
+            d.deconv.iterations, d.plausible_factor, d.deconv.balance, d.deconv.cg_max_steps,
+            d.pl_floor);
     cli_print_variant_help(out);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: pl.EXT (recovered PL), field.EXT (recovered field; field_<stem>.EXT\n"
           "per input when several), validity.EXT (in [0, 1]: 1 where the recovered PL is above\n"
           "the floor, 0 at missing pixels nothing covers), summary.json. No NaN or Inf is ever\n"
-          "written.\n",
+          "written.\n"
+          "\n"
+          "exit status: 0 ok; 1 bad usage or input; 2 runtime failure; 3 the result cannot be\n"
+          "vouched for (a solve that did not converge, an automatic choice on the bound of its\n"
+          "search, implausible values, a field regularised away): nothing is written and the\n"
+          "message says what to change (docs/cli.md).\n",
           out);
 }
 
@@ -108,19 +165,30 @@ int cmd_correct(int argc, char **argv)
         {"noise", required_argument, NULL, OPT_NOISE},
         {"cg-max-steps", required_argument, NULL, OPT_CG_MAX_STEPS},
         {"precision", required_argument, NULL, OPT_PRECISION},
+        {"acceleration", required_argument, NULL, OPT_ACCELERATION},
+        {"margin", required_argument, NULL, OPT_MARGIN},
+        {"gain", required_argument, NULL, OPT_GAIN},
+        {"offset", required_argument, NULL, OPT_OFFSET},
+        {"field-sigma", required_argument, NULL, OPT_FIELD_SIGMA},
+        {"keep-doubtful", no_argument, NULL, OPT_KEEP_DOUBTFUL},
+        {"plausible-factor", required_argument, NULL, OPT_PLAUSIBLE},
         {NULL, 0, NULL, 0},
     };
     cli_maps maps;
     cli_maps_init(&maps);
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
-    int method = 0, precision = 0;
+    int method = 0, precision = 0, acceleration = 0, margin_auto = 0, n_sigma = 0;
+    const char *sigma_paths[CLI_MAX_FIELDS] = {NULL};
+    svp_image *field_sigma[CLI_MAX_FIELDS] = {NULL};
+    svp_correct_summary summary;
     svp_correct_options opt;
     svp_correct_defaults(&opt);
     svp_blur *blur = NULL;
     svp_image *pl_true = NULL, *validity = NULL;
     svp_image *field_true[CLI_MAX_FIELDS] = {NULL};
     int code = 0;
+    memset(&summary, 0, sizeof summary);
 
     int c;
     while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
@@ -133,7 +201,37 @@ int cmd_correct(int argc, char **argv)
             opt.method = method_values[method];
             break;
         case OPT_ITERATIONS:
-            bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.deconv.iterations);
+            if (strcmp(optarg, "auto") == 0)
+                opt.auto_iterations = 1;
+            else
+                bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000,
+                                    &opt.deconv.iterations);
+            break;
+        case OPT_ACCELERATION:
+            bad = cli_parse_choice(&run, "--acceleration", optarg, acceleration_names,
+                                   &acceleration);
+            opt.deconv.acceleration = (svp_rl_acceleration)acceleration;
+            break;
+        case OPT_MARGIN:
+            if (strcmp(optarg, "auto") == 0)
+                margin_auto = 1;
+            else
+                bad = cli_parse_int(&run, "--margin", optarg, 0, 100000, &opt.margin);
+            break;
+        case OPT_GAIN:
+            bad = cli_parse_double_in(&run, "--gain", optarg, 0, 0, INFINITY, 0, &opt.pl_gain);
+            break;
+        case OPT_OFFSET: bad = cli_parse_double(&run, "--offset", optarg, &opt.pl_offset); break;
+        case OPT_FIELD_SIGMA:
+            if (n_sigma >= CLI_MAX_FIELDS)
+                bad = cli_error(&run, "--field-sigma: at most %d maps", CLI_MAX_FIELDS);
+            else
+                sigma_paths[n_sigma++] = optarg;
+            break;
+        case OPT_KEEP_DOUBTFUL: opt.keep_doubtful = 1; break;
+        case OPT_PLAUSIBLE:
+            bad = cli_parse_double_in(&run, "--plausible-factor", optarg, 1, 0, INFINITY, 0,
+                                      &opt.plausible_factor);
             break;
         case OPT_BALANCE:
             bad = cli_parse_balance(&run, optarg, &opt.deconv.balance, &opt.balance_auto);
@@ -164,6 +262,9 @@ int cmd_correct(int argc, char **argv)
                                                     "deconvolution (--method rw or w)"));
     if (opt.noise_sigma > 0 && !opt.balance_auto)
         return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance auto"));
+    if ((opt.auto_iterations || acceleration) && opt.method == SVP_METHOD_W)
+        return cli_run_finish(&run, cli_error(&run, "--iterations auto and --acceleration apply "
+                                                    "to Richardson-Lucy: not with --method w"));
     if (precision == 1 && opt.method == SVP_METHOD_W)
         return cli_run_finish(&run, cli_error(&run, "--precision single applies to Richardson-"
                                                     "Lucy: not with --method w"));
@@ -179,10 +280,57 @@ int cmd_correct(int argc, char **argv)
 
     const int w = maps.pl->width, h = maps.pl->height;
     const size_t n = (size_t)w * h;
+    if (n_sigma && n_sigma != maps.n_fields) {
+        code = cli_error(&run, "--field-sigma: %d map%s for %d --field map%s: give one per field, in "
+                         "the same order",
+                         n_sigma, n_sigma == 1 ? "" : "s", maps.n_fields,
+                         maps.n_fields == 1 ? "" : "s");
+        goto cleanup;
+    }
+    for (int i = 0; i < n_sigma; i++) {
+        if ((code = cli_read_image(&run, "field_sigma", sigma_paths[i], &field_sigma[i])))
+            goto cleanup;
+        if (field_sigma[i]->width != w || field_sigma[i]->height != h) {
+            code = cli_error(&run,
+                             "size mismatch: field sigma %s is %d x %d (width x height) but PL %s "
+                             "is %d x %d",
+                             sigma_paths[i], field_sigma[i]->width, field_sigma[i]->height,
+                             maps.pl_path, w, h);
+            goto cleanup;
+        }
+        for (size_t k = 0; k < n; k++)
+            if (field_sigma[i]->data[k] < 0) {
+                code = cli_error(&run, "%s: field sigma is negative (%g) at pixel (%zu, %zu)",
+                                 sigma_paths[i], field_sigma[i]->data[k], k % (size_t)w,
+                                 k / (size_t)w);
+                goto cleanup;
+            }
+    }
+    if (n_sigma) opt.field_sigma = (const svp_image *const *)field_sigma;
+    if ((margin_auto || opt.margin > 0) && (psf.field || maps.boundary != SVP_BOUNDARY_ZERO)) {
+        if (!margin_auto) {
+            code = cli_error(&run, "--margin needs one PSF and the zero boundary%s",
+                             psf.field ? " (this is a space-variant PSF map)" : "");
+            goto cleanup;
+        }
+        opt.margin = 0; /* auto: only where it applies */
+    } else if (margin_auto) {
+        opt.margin = auto_margin(&psf, w, h);
+    }
+    opt.summary = &summary;
     /* the library's messages name the field maps by their files */
     opt.field_names = maps.field_paths;
     cli_setting_str(&run, "method", method_names[method]);
-    cli_setting_int(&run, "iterations", opt.deconv.iterations);
+    if (opt.auto_iterations)
+        cli_setting_str(&run, "iterations", "auto");
+    cli_setting_int(&run, opt.auto_iterations ? "iteration_cap" : "iterations",
+                    opt.deconv.iterations);
+    cli_setting_str(&run, "acceleration", acceleration_names[acceleration]);
+    cli_setting_int(&run, "margin", opt.margin);
+    if (opt.pl_gain > 0) cli_setting_num(&run, "gain", opt.pl_gain);
+    cli_setting_num(&run, "offset", opt.pl_offset);
+    cli_setting_num(&run, "plausible_factor", opt.plausible_factor);
+    cli_setting_int(&run, "keep_doubtful", opt.keep_doubtful);
     cli_setting_str(&run, "precision", cli_precision_names[precision]);
     if (opt.balance_auto)
         cli_setting_str(&run, "balance", "auto (discrepancy principle)");
@@ -194,7 +342,9 @@ int cmd_correct(int argc, char **argv)
     cli_setting_num(&run, "shift", opt.shift);
 
     cli_stage_begin(&run, "plan");
-    if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
+    if ((code = cli_psf_blur(&run, &psf, w + 2 * opt.margin, h + 2 * opt.margin, maps.boundary,
+                             &blur)))
+        goto cleanup;
 
     cli_stage_begin(&run, "transform");
     svp_status st = svp_image_new(w, h, &pl_true);
@@ -276,13 +426,46 @@ int cmd_correct(int argc, char **argv)
             cli_warn(&run,
                      "the Wiener deconvolution of %s%s stopped at the step cap (%d conjugate-"
                      "gradient steps) with relative residual %.3g above the tolerance 1e-8: "
-                     "not converged (raise --cg-max-steps or --balance)",
+                     "not converged (kept by --keep-doubtful; its validity is 0)",
                      k == 0 ? "the PL" : name, k == 0 ? "" : " x PL", r->cg_steps, r->cg_residual);
         }
     }
     if (opt.balance_auto)
         cli_result_str(&run, "noise_sigma_from", opt.noise_sigma > 0 ? "--noise" : "estimated");
     cli_result_int(&run, "n_cg_capped", n_capped);
+    if (opt.method != SVP_METHOD_W) {
+        cli_result_int(&run, "rl_iterations", summary.rl_iterations);
+        cli_result_str(&run, "rl_stop", stop_names[summary.rl_stop]);
+        if (opt.auto_iterations) cli_result_num(&run, "rl_chi2", summary.rl_chi2);
+    }
+    if (opt.method == SVP_METHOD_R || opt.method == SVP_METHOD_RL_SIGNED)
+        for (int k = 0; k < maps.n_fields && k < 16; k++) {
+            char key[64];
+            snprintf(key, sizeof key, maps.n_fields == 1 ? "shift" : "shift_%d", k);
+            cli_result_num(&run, key, summary.shift[k]);
+        }
+    if (summary.pl_gain > 0) {
+        cli_result_num(&run, "pl_gain", summary.pl_gain);
+        cli_result_str(&run, "pl_gain_from", opt.pl_gain > 0 ? "--gain" : "estimated");
+        if (!(opt.pl_gain > 0))
+            cli_result_num(&run, "pl_gain_offset_estimate", summary.pl_gain_offset);
+    }
+    cli_result_num(&run, "spread_ratio", summary.spread_ratio);
+    cli_result_int(&run, "n_implausible", (long long)summary.n_implausible);
+    {
+        char list[256] = "";
+        size_t at_l = 0;
+        for (int b = 0; b < 5; b++)
+            if (summary.doubts & (1u << b) && at_l < sizeof list)
+                at_l += (size_t)snprintf(list + at_l, sizeof list - at_l, "%s%s", at_l ? "," : "",
+                                         doubt_names[b]);
+        cli_result_str(&run, "doubts", list);
+        if (summary.doubts)
+            cli_warn(&run,
+                     "result in doubt (%s), kept by --keep-doubtful: the affected pixels have "
+                     "validity 0",
+                     list);
+    }
 
     if ((code = cli_maps_write(&run, &maps, pl_true, field_true, validity))) goto cleanup;
 
@@ -292,6 +475,9 @@ int cmd_correct(int argc, char **argv)
             snprintf(iters, sizeof iters, ", %d RL iterations", opt.deconv.iterations);
         if (has_wiener && !opt.balance_auto)
             snprintf(bal, sizeof bal, ", balance %g", opt.deconv.balance);
+        if (opt.auto_iterations)
+            snprintf(iters, sizeof iters, ", %d RL iterations (auto: %s)", summary.rl_iterations,
+                     stop_names[summary.rl_stop]);
         printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
                "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "
                "%zu pixels (%.2f %%) are flagged (validity < 1), %zu of them with no "
@@ -307,7 +493,10 @@ cleanup:
     svp_blur_free(blur);
     svp_image_free(pl_true);
     svp_image_free(validity);
-    for (int i = 0; i < CLI_MAX_FIELDS; i++) svp_image_free(field_true[i]);
+    for (int i = 0; i < CLI_MAX_FIELDS; i++) {
+        svp_image_free(field_true[i]);
+        svp_image_free(field_sigma[i]);
+    }
     cli_maps_release(&maps);
     cli_psf_release(&psf);
     return cli_run_finish(&run, code);

@@ -17,7 +17,12 @@ enum {
     OPT_COMPAT,
     OPT_CG_MAX_STEPS,
     OPT_PRECISION,
+    OPT_ACCELERATION,
+    OPT_KEEP_DOUBTFUL,
 };
+
+static const char *const acceleration_names[] = {"none", "biggs-andrews", NULL};
+static const char *const stop_names[] = {"count", "discrepancy", "stalled", "cap"};
 
 static void print_help(const cli_run *run, FILE *out)
 {
@@ -42,9 +47,16 @@ static void print_help(const cli_run *run, FILE *out)
             "  --balance L|auto      Wiener-Hunt regularisation lambda (default %g); auto:\n"
             "                        chosen by the discrepancy principle (the lambda whose\n"
             "                        residual |H x - IN|^2 is what the noise explains, n sigma^2)\n"
-            "  --noise SIGMA         with --balance auto: the noise's standard deviation in\n"
-            "                        IN's units (default: estimated from IN)\n"
-            "  --iterations N        Richardson-Lucy iterations (default %d)\n"
+            "  --noise SIGMA         with --balance auto or --iterations auto: the noise's\n"
+            "                        standard deviation in IN's units (default: estimated)\n"
+            "  --iterations N|auto   Richardson-Lucy iterations (default %d); auto: that many\n"
+            "                        at most, stopping when the residual reaches the noise\n"
+            "                        (chi2 per pixel 1) or stops falling (docs/model.md §6)\n"
+            "  --acceleration none|biggs-andrews  Richardson-Lucy vector extrapolation\n"
+            "                        (default none)\n"
+            "  --keep-doubtful       write a result in doubt (an automatic choice on its\n"
+            "                        bound, a CG solve not converged), exit 0, recorded in the\n"
+            "                        summary; without it such a run exits 3, writing nothing\n"
             "  --precision double|single  Richardson-Lucy's convolutions in double (default)\n"
             "                        or single precision (float FFTs: 1.4-2.4x faster, the\n"
             "                        result within about 1e-5 of the peak at 100 iterations)\n"
@@ -88,6 +100,8 @@ int cmd_deconvolve(int argc, char **argv)
         {"boundary", required_argument, NULL, OPT_BOUNDARY},
         {"compat", required_argument, NULL, OPT_COMPAT},
         {"precision", required_argument, NULL, OPT_PRECISION},
+        {"acceleration", required_argument, NULL, OPT_ACCELERATION},
+        {"keep-doubtful", no_argument, NULL, OPT_KEEP_DOUBTFUL},
         {NULL, 0, NULL, 0},
     };
     static const char *const methods[] = {"wiener", "rl", NULL};
@@ -96,7 +110,11 @@ int cmd_deconvolve(int argc, char **argv)
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
     const char *psf_path = NULL;
-    int method = -1, compat = -1, boundary_given = 0, balance_auto = 0;
+    int method = -1, compat = -1, boundary_given = 0, balance_auto = 0, acceleration = 0;
+    int keep_doubtful = 0;
+    char doubt[600] = "";
+    svp_deconv_report report;
+    memset(&report, 0, sizeof report);
     double noise = 0; /* 0: estimated */
     svp_boundary boundary = SVP_BOUNDARY_ZERO;
     svp_deconv_options opt;
@@ -119,8 +137,17 @@ int cmd_deconvolve(int argc, char **argv)
             bad = cli_parse_choice(&run, "--precision", optarg, cli_precision_names, &precision);
             break;
         case OPT_ITERATIONS:
-            bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.iterations);
+            if (strcmp(optarg, "auto") == 0)
+                opt.auto_stop = 1;
+            else
+                bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &opt.iterations);
             break;
+        case OPT_ACCELERATION:
+            bad = cli_parse_choice(&run, "--acceleration", optarg, acceleration_names,
+                                   &acceleration);
+            opt.acceleration = (svp_rl_acceleration)acceleration;
+            break;
+        case OPT_KEEP_DOUBTFUL: keep_doubtful = 1; break;
         case OPT_BALANCE: bad = cli_parse_balance(&run, optarg, &opt.balance, &balance_auto); break;
         case OPT_CG_MAX_STEPS:
             bad = cli_parse_int(&run, "--cg-max-steps", optarg, 1, 100000, &opt.cg_max_steps);
@@ -151,9 +178,12 @@ int cmd_deconvolve(int argc, char **argv)
     if (balance_auto && (method != 0 || compat >= 0))
         return cli_run_finish(&run, cli_error(&run, "--balance auto needs --method wiener "
                                                     "without --compat"));
-    if (noise > 0 && !balance_auto)
+    if ((opt.auto_stop || acceleration) && (method != 1 || compat >= 0))
+        return cli_run_finish(&run, cli_error(&run, "--iterations auto and --acceleration are for "
+                                                    "--method rl without --compat"));
+    if (noise > 0 && !balance_auto && !opt.auto_stop)
         return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance "
-                                                    "auto"));
+                                                    "auto or --iterations auto"));
     if (precision == 1 && (method != 1 || compat >= 0))
         return cli_run_finish(&run, cli_error(&run, "--precision single is for --method rl "
                                                     "without --compat"));
@@ -195,8 +225,11 @@ int cmd_deconvolve(int argc, char **argv)
         cli_setting_str(&run, "balance", "auto (discrepancy principle)");
     else if (method == 0)
         cli_setting_num(&run, "balance", opt.balance);
-    else
-        cli_setting_int(&run, "iterations", opt.iterations);
+    else {
+        if (opt.auto_stop) cli_setting_str(&run, "iterations", "auto");
+        cli_setting_int(&run, opt.auto_stop ? "iteration_cap" : "iterations", opt.iterations);
+        cli_setting_str(&run, "acceleration", acceleration_names[acceleration]);
+    }
     if (method == 1 && compat < 0)
         cli_setting_str(&run, "precision", cli_precision_names[precision]);
     cli_setting_str(&run, "compat", compat >= 0 ? compats[compat] : "none");
@@ -261,17 +294,47 @@ int cmd_deconvolve(int argc, char **argv)
             cli_result_str(&run, "noise_sigma_from", noise > 0 ? "--noise" : "estimated");
             cli_result_num(&run, "balance", opt.balance);
             const char *bound = cli_balance_bound_check(&run, in_path, opt.balance, sigma_used);
-            if (bound) cli_result_str(&run, "balance_at_bound", bound);
+            if (bound) {
+                cli_result_str(&run, "balance_at_bound", bound);
+                snprintf(doubt, sizeof doubt,
+                         "--balance auto ended on the %s end of its search (%g): the noise sigma "
+                         "%g %s; give --balance or --noise",
+                         bound, opt.balance, sigma_used,
+                         bound[0] == 'l' ? "is below what any balance leaves (noiseless data?)"
+                                         : "explains the data at every balance (the signal "
+                                           "would be smoothed away)");
+            }
+        }
+        svp_image *var = NULL;
+        if (opt.auto_stop && noise > 0) { /* the given σ as the stopping rule's variance */
+            if ((st = svp_image_new(w, h, &var)) != SVP_OK) {
+                code = cli_fail(&run, st, NULL);
+                goto cleanup;
+            }
+            for (size_t i = 0; i < (size_t)w * h; i++) var->data[i] = noise * noise;
+            opt.variance = var;
         }
         cli_stage_begin(&run, "deconvolve");
         opt.progress = cli_progress;
         opt.progress_user = &run;
-        svp_deconv_report report;
         opt.report = &report;
         if (method == 0)
             st = svp_deconv_wiener(blur, in, &opt, out);
         else
             st = svp_deconv_rl(blur, in, &opt, out);
+        svp_image_free(var);
+        opt.variance = NULL;
+        if (st == SVP_OK && method == 1) {
+            cli_result_int(&run, "rl_iterations", report.iterations);
+            cli_result_str(&run, "rl_stop", stop_names[report.stop]);
+            if (opt.auto_stop) cli_result_num(&run, "rl_chi2", report.chi2);
+            if (report.stop == SVP_RL_STOP_CAP && !doubt[0])
+                snprintf(doubt, sizeof doubt,
+                         "--iterations auto: the stopping rule was not met within the cap of %d "
+                         "iterations (chi2 per pixel %.3g, still falling); raise --iterations "
+                         "(the cap) or use --acceleration biggs-andrews",
+                         report.iterations, report.chi2);
+        }
         if (st == SVP_OK && method == 0) {
             if (report.cg_steps > 0) cli_result_int(&run, "cg_steps", report.cg_steps);
             cli_result_int(&run, "cg_capped", report.cg_capped);
@@ -279,9 +342,13 @@ int cmd_deconvolve(int argc, char **argv)
                 cli_result_num(&run, "cg_residual", report.cg_residual);
                 cli_warn(&run,
                          "the Wiener deconvolution of %s stopped at the step cap (%d conjugate-"
-                         "gradient steps) with relative residual %.3g above the tolerance 1e-8: "
-                         "not converged (raise --cg-max-steps or --balance)",
+                         "gradient steps) with relative residual %.3g above the tolerance 1e-8",
                          in_path, report.cg_steps, report.cg_residual);
+                if (report.cg_residual > 1e-4 && !doubt[0])
+                    snprintf(doubt, sizeof doubt,
+                             "the Wiener solve did not converge (relative residual %.3g after %d "
+                             "steps); raise --cg-max-steps or --balance",
+                             report.cg_residual, report.cg_steps);
             }
         }
     }
@@ -291,6 +358,16 @@ int cmd_deconvolve(int argc, char **argv)
         goto cleanup;
     }
 
+    cli_result_str(&run, "doubt", doubt);
+    if (doubt[0]) {
+        if (!keep_doubtful) {
+            cli_error(&run, "%s: result in doubt: %s (--keep-doubtful writes it anyway)", in_path,
+                      doubt);
+            code = CLI_EXIT_DOUBTFUL;
+            goto cleanup;
+        }
+        cli_warn(&run, "%s: result in doubt, kept by --keep-doubtful: %s", in_path, doubt);
+    }
     cli_stage_begin(&run, "write");
     if ((code = cli_write_image(&run, out_path, out))) goto cleanup;
     cli_stage_end(&run);
@@ -303,7 +380,7 @@ int cmd_deconvolve(int argc, char **argv)
     else
         printf("svpsf deconvolve: %s (%d x %d) deconvolved with %d Richardson-Lucy "
                "iterations%s -> %s in %.2f s",
-               in_path, w, h, opt.iterations, compat >= 0 ? " (scikit-image compatible)" : "",
+               in_path, w, h, opt.report ? report.iterations : opt.iterations, compat >= 0 ? " (scikit-image compatible)" : "",
                out_path, cli_now() - run.t_start);
     if (n_missing) printf("; %lld missing (NaN/Inf) input pixels", n_missing);
     printf("\n");
