@@ -344,10 +344,10 @@ typedef struct svp_correct_options {
                                     pl_floor · max(PL) before dividing; pixels below it have
                                     validity < 1; default 1e-3 */
     double shift;                /* c of the signed shift (methods R, RL_SIGNED); 0 (default)
-                                    = automatic per component: c = 0.1 · range(B̃) − min(B̃)
-                                    over the measured pixels (range := |B̃|, or 1, for a
-                                    constant map). An explicit c must give B̃ + c > 0 at every
-                                    measured pixel of every component. */
+                                    = automatic per component: c = 2 · max|B̃| over the
+                                    measured pixels (1 for an all-zero map; docs/model.md §3).
+                                    An explicit c must give B̃ + c > 0 at every measured pixel
+                                    of every component. */
     int balance_auto;            /* 1: every Wiener deconvolution of the method (Ĩ for W, each
                                     B̃_c Ĩ for RW and W) chooses its own balance by the
                                     discrepancy principle (svp_wiener_balance_discrepancy);

@@ -131,7 +131,7 @@ static void print_help(const cli_run *run, FILE *out)
             "  --pl-floor F          the recovered PL is floored at F x max(PL) before dividing;\n"
             "                        pixels below it get validity < 1 (default %g)\n"
             "  --shift C             the constant c of the signed shift for r/rl-signed\n"
-            "                        (default: automatic, 0.1 range(Bt) - min(Bt) per map)\n"
+            "                        (default: automatic, 2 max|Bt| per map)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
             d.deconv.iterations, d.plausible_factor, d.deconv.balance, d.deconv.cg_max_steps,
