@@ -328,15 +328,16 @@ SVP_API svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_tru
                                          svp_image *validity);
 
 typedef enum svp_method {
-    SVP_METHOD_RW = 0,       /* RL on Ĩ, Wiener on B̃Ĩ (reference study's "R&W"; default) */
-    SVP_METHOD_R = 1,        /* RL on both; the signed numerator through the shift of §2 */
+    SVP_METHOD_RW = 0,       /* RL on Ĩ, Wiener on B̃Ĩ (reference study's "R&W") */
+    SVP_METHOD_R = 1,        /* RL on both; the signed numerator through the shift of
+                                docs/model.md eq. 5 (default) */
     SVP_METHOD_W = 2,        /* Wiener on both */
     SVP_METHOD_RL_SIGNED = 3 /* RL on Ĩ and on (B̃ + c)Ĩ, minus c (Ĩ ⊘ p): same as R, the name
                                 says what it does */
 } svp_method;
 
 typedef struct svp_correct_options {
-    svp_method method;           /* default SVP_METHOD_RW */
+    svp_method method;           /* default SVP_METHOD_R */
     svp_deconv_options deconv;   /* svp_deconv_defaults() except iterations = 75 (the
                                     reference study's RL count for measured data); its
                                     progress callback receives the whole job's fraction */

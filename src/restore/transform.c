@@ -36,7 +36,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 
 void svp_correct_defaults(svp_correct_options *options)
 {
-    options->method = SVP_METHOD_RW;
+    options->method = SVP_METHOD_R; /* the foreign-data benchmark's winner (docs/accuracy.md) */
     svp_deconv_defaults(&options->deconv);
     options->deconv.iterations = 75; /* the reference study's RL count for measured data */
     options->pl_floor = 1e-3;
