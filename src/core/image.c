@@ -87,6 +87,18 @@ size_t svp_image_count_nonfinite(const svp_image *image)
 /* Fixed-size blocks make the summation order independent of the thread count. */
 #define SUM_BLOCK 4096
 
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+double svp_median(double *v, size_t n)
+{
+    qsort(v, n, sizeof *v, cmp_double);
+    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
 double svp_sum(const double *restrict x, size_t n)
 {
     size_t nblocks = (n + SUM_BLOCK - 1) / SUM_BLOCK;

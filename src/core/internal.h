@@ -41,6 +41,8 @@ double svp_sum(const double *restrict x, size_t n);
 /* Σ a b with svp_sum's order (prod: n scratch values, overwritten with a ⊙ b). */
 double svp_dot(const double *a, const double *b, double *restrict prod, size_t n);
 double svp_max(const double *restrict x, size_t n); /* of finite values; -inf when none */
+/* Median of v[0..n), n >= 1 (sorts v in place; the mean of the middle two for even n). */
+double svp_median(double *v, size_t n);
 /* The k-th smallest of a[0..n) (0-based, n > 0, k < n) by quickselect; reorders a. */
 double svp_select_kth(double *a, size_t n, size_t k);
 double svp_min(const double *restrict x, size_t n);

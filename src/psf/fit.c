@@ -855,19 +855,6 @@ static int spot_model_eval(void *user, const double *t, int n_params, int n_poin
     return 0;
 }
 
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-/* Median of v[0..n) (reorders v). */
-static double median_of(double *v, size_t n)
-{
-    qsort(v, n, sizeof *v, cmp_double);
-    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
-
 /* Pixels to integrate: within max(3, 3 F_major) of the centre (elsewhere the profile is flat
  * on the pixel scale and its centre value is within ~0.1 % of the pixel mean). */
 static void mark_integration(unsigned char *integrate, int w, int h, const double *t, int on)
@@ -1063,9 +1050,9 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
         for (size_t i = 0; i < N; i++)
             if (sw.use[i]) sw.scratch[nb++] = data[i];
     }
-    double bg0 = median_of(sw.scratch, nb);
+    double bg0 = svp_median(sw.scratch, nb);
     for (size_t i = 0; i < nb; i++) sw.scratch[i] = fabs(sw.scratch[i] - bg0);
-    double sigma_mad = 1.4826 * median_of(sw.scratch, nb);
+    double sigma_mad = 1.4826 * svp_median(sw.scratch, nb);
     const int known_noise = o.noise.gain > 0 || o.noise.sigma_bg > 0 || o.noise.excess > 0;
     double var_bg = known_noise ? svp_noise_variance(&o.noise, bg0) : sigma_mad * sigma_mad;
 

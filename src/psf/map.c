@@ -226,21 +226,6 @@ static svp_status screen_samples(const svp_psf_sample *samples, int n, int width
     return SVP_OK;
 }
 
-static double median_inplace(double *v, int n)
-{
-    /* insertion sort: n is a few hundred at most */
-    for (int i = 1; i < n; i++) {
-        double t = v[i];
-        int j = i - 1;
-        while (j >= 0 && v[j] > t) {
-            v[j + 1] = v[j];
-            j--;
-        }
-        v[j + 1] = t;
-    }
-    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
-
 /* ---- polynomial surfaces ---------------------------------------------------------------- */
 
 typedef struct poly_data {
@@ -412,7 +397,7 @@ svp_status svp_psf_map_poly(const svp_psf_sample *samples, int n, int width, int
             }
             double *tmp = A; /* free while not fitting */
             memcpy(tmp, zs, (size_t)d.n * sizeof(double));
-            double scale = fmax(1.0, 1.4826 * median_inplace(tmp, d.n));
+            double scale = fmax(1.0, 1.4826 * svp_median(tmp, (size_t)d.n));
             int removed = 0;
             for (int k = 0; k < d.n; k++) {
                 if (zs[k] > o.clip_kappa * scale) {
@@ -637,9 +622,9 @@ svp_status svp_psf_map_regions(const svp_psf_sample *samples, int n, const int *
                         tmp[c++] = v[q];
                     }
                 if (c < 5) continue;
-                double med = median_inplace(tmp, c);
+                double med = svp_median(tmp, (size_t)c);
                 for (int k = 0; k < c; k++) tmp[k] = fabs(tmp[k] - med);
-                double mad = 1.4826 * median_inplace(tmp, c);
+                double mad = 1.4826 * svp_median(tmp, (size_t)c);
                 if (!(mad > 0)) continue;
                 for (int i = 0; i < n; i++) {
                     if (label_of[i] != l || rep->reject[(size_t)i * NP + q] != SVP_MAP_KEPT)

@@ -20,18 +20,6 @@ static double mask_response(const double *d, int w, int i, int j)
            4 * c[i];
 }
 
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-static double median_of(double *v, size_t n)
-{
-    qsort(v, n, sizeof *v, cmp_double);
-    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
-
 svp_status svp_pl_noise_estimate(const svp_image *pl, double *gain, double *offset)
 {
     if (!pl || !pl->data || !gain || !offset)
@@ -93,7 +81,7 @@ svp_status svp_pl_noise_estimate(const svp_image *pl, double *gain, double *offs
                 const double dm = mean[q] - mean[p];
                 if (fabs(dm) > 1e-12 * (fabs(mean[p]) + fabs(mean[q]))) slopes[m++] = (var[q] - var[p]) / dm;
             }
-        double g = m ? median_of(slopes, m) : 0.0;
+        double g = m ? svp_median(slopes, m) : 0.0;
         free(slopes);
         if (!(g > 0) || !isfinite(g)) {
             *gain = 0;
@@ -101,7 +89,7 @@ svp_status svp_pl_noise_estimate(const svp_image *pl, double *gain, double *offs
             goto cleanup;
         }
         for (size_t p = 0; p < nb; p++) var[p] -= g * mean[p];
-        const double intercept = median_of(var, nb);
+        const double intercept = svp_median(var, nb);
         *gain = g;
         *offset = -intercept / g;
     }
@@ -129,7 +117,7 @@ svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, doubl
             if (!isfinite(r) || !(p > 0) || !isfinite(p)) continue;
             v[m++] = r * r * p / 36.0;
         }
-    if (m) *k2 = median_of(v, m) / 0.454936423119572;
+    if (m) *k2 = svp_median(v, m) / 0.454936423119572;
     free(v);
     return SVP_OK;
 }
