@@ -21,9 +21,60 @@
 /* Biggs–Andrews: the extrapolation weight's cap (α → 1 can overshoot without bound) */
 #define ALPHA_MAX 0.95
 /* an extrapolated pixel keeps at least this fraction of its value */
-#ifndef KEEP_FRACTION
 #define KEEP_FRACTION 0.5
-#endif
+
+/* Biggs–Andrews: x ← z = x_k + α (x_k − x_{k−1}) in place, x_prev ← x_k; α = <g_{k−1}, g_{k−2}> /
+ * <g_{k−2}, g_{k−2}> in [0, ALPHA_MAX] from the last two RL steps (0 for the first two), or
+ * alpha_in[k] when given; alpha_out[k] records it. A pixel the extrapolation would push below
+ * KEEP_FRACTION of its value keeps that fraction (RL cannot bring a zero back). scratch: n
+ * values for the dot products. */
+static void extrapolate(double *restrict x, double *restrict x_prev, const double *step_1,
+                        const double *step_2, double *scratch, size_t n, int k,
+                        const double *alpha_in, double *alpha_out)
+{
+    double alpha = 0;
+    if (alpha_in) {
+        alpha = alpha_in[k];
+    } else if (k >= 2) {
+        const double num = svp_dot(step_1, step_2, scratch, n);
+        const double den = svp_dot(step_2, step_2, scratch, n);
+        alpha = den > 0 ? num / den : 0.0;
+        alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
+    }
+    if (alpha_out) alpha_out[k] = alpha;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) {
+        const double xk = x[i], z = xk + alpha * (xk - x_prev[i]);
+        x_prev[i] = xk;
+        x[i] = z > KEEP_FRACTION * xk ? z : KEEP_FRACTION * xk;
+    }
+}
+
+/* Σ over finite data of (Hx − y)² / var (var_map, at least var_const; or var_const), in
+ * svp_sum's fixed order (scratch: n values). */
+static double residual_chi2(const double *y, const double *hx, const double *var_map,
+                            double var_const, double *scratch, size_t n)
+{
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) {
+        const double r = isfinite(y[i]) ? hx[i] - y[i] : 0.0;
+        const double v = var_map ? fmax(var_map[i], var_const) : var_const;
+        scratch[i] = isfinite(y[i]) ? r * r / v : 0.0;
+    }
+    return svp_sum(scratch, n);
+}
+
+/* The stopping rule after iteration k's χ² per datum (history: the last STALL_SPAN + 1 values,
+ * shifted here): SVP_RL_STOP_DISCREPANCY at χ² <= 1, SVP_RL_STOP_STALLED when χ² fell by less
+ * than STALL_FALL of itself over STALL_SPAN iterations, else SVP_RL_STOP_CAP (go on). */
+static int stopping_rule(double *history, double chi2, int k)
+{
+    for (int j = 0; j < STALL_SPAN; j++) history[j] = history[j + 1];
+    history[STALL_SPAN] = chi2;
+    if (chi2 <= 1.0) return SVP_RL_STOP_DISCREPANCY;
+    if (k >= STALL_SPAN && history[0] - chi2 < STALL_FALL * chi2) return SVP_RL_STOP_STALLED;
+    return SVP_RL_STOP_CAP;
+}
 
 static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp_deconv_options *o,
                              const svp_image *x)
@@ -175,48 +226,15 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
     int done = 0, stop = auto_stop ? SVP_RL_STOP_CAP : SVP_RL_STOP_COUNT;
     double chi2 = 0;
     for (int k = 0; k < options->iterations; k++) {
-        if (accel) {
-            /* z = x_k + α (x_k − x_{k−1}), α = <g_{k−1}, g_{k−2}> / <g_{k−2}, g_{k−2}> in
-             * [0, ALPHA_MAX]; a pixel the extrapolation would push to or below 0 keeps 1 %
-             * of its value (RL cannot bring a zero back) */
-            double alpha = 0;
-            if (alpha_in) {
-                alpha = alpha_in[k];
-            } else if (k >= 2) {
-                const double num = svp_dot(step_1, step_2, correction, n);
-                const double den = svp_dot(step_2, step_2, correction, n);
-                alpha = den > 0 ? num / den : 0.0;
-                alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
-            }
-            if (alpha_out) alpha_out[k] = alpha;
-            double *restrict xp = x_prev;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-            for (size_t i = 0; i < n; i++) {
-                const double xk = xd[i], z = xk + alpha * (xk - xp[i]);
-                xp[i] = xk;
-                xd[i] = z > KEEP_FRACTION * xk ? z : KEEP_FRACTION * xk;
-            }
-        }
+        if (accel)
+            extrapolate(xd, x_prev, step_1, step_2, correction, n, k, alpha_in, alpha_out);
         if ((st = svp_blur_apply(blur, &img_x, &img_blurred)) != SVP_OK) goto cleanup;
         if (auto_stop) {
-            /* χ² of the point about to be updated, per finite datum */
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-            for (size_t i = 0; i < n; i++) {
-                const double r = isfinite(yd[i]) ? blurred[i] - yd[i] : 0.0;
-                const double v = var_map ? fmax(var_map[i], var_const) : var_const;
-                correction[i] = isfinite(yd[i]) ? r * r / v : 0.0;
-            }
-            chi2 = svp_sum(correction, n) / (double)n_finite;
-            for (int j = 0; j < STALL_SPAN; j++) chi2_history[j] = chi2_history[j + 1];
-            chi2_history[STALL_SPAN] = chi2;
-            if (chi2 <= 1.0) {
-                stop = SVP_RL_STOP_DISCREPANCY;
-                done = k;
-                break;
-            }
-            if (k >= STALL_SPAN &&
-                chi2_history[0] - chi2 < STALL_FALL * chi2) {
-                stop = SVP_RL_STOP_STALLED;
+            chi2 = residual_chi2(yd, blurred, var_map, var_const, correction, n) /
+                   (double)n_finite;
+            const int why = stopping_rule(chi2_history, chi2, k);
+            if (why != SVP_RL_STOP_CAP) {
+                stop = why;
                 done = k;
                 break;
             }

@@ -413,9 +413,270 @@ static svp_status numerator_variance(const svp_image *field, double shift, const
     return SVP_OK;
 }
 
-/* T⁻¹ on the operator's grid (the view plus any margin, whose pixels arrive as NaN: missing).
- * opt is resolved (gain known); field_sigma (may be NULL) on the same grid; reports has
- * n_fields + 1 entries; validity receives the validity map (never NULL). */
+/* The state of one T⁻¹ on the operator's grid (the view plus any margin, whose pixels arrive as
+ * NaN: missing), shared by its stages below. */
+typedef struct inverse_run {
+    svp_blur *blur;
+    const svp_image *pl_apparent;
+    const svp_image *const *field_apparent;
+    const svp_image *const *field_sigma; /* may be NULL */
+    int n_fields, w, h, rl_pl, rl_field, accel;
+    size_t n, n_miss;
+    svp_correct_options opt;
+    svp_image *pl_true, *const *field_true;
+    double *valid; /* the validity map's pixels */
+    svp_deconv_report *reports;
+    double *shifts;
+    unsigned char *missing;
+    svp_image *work, *pl_var, *num_var;
+    svp_progress_share *shares;
+    double *alphas; /* the PL's extrapolation path (accelerated RL) */
+    int *counts;    /* RL iterations of every numerator */
+} inverse_run;
+
+/* Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution, so
+ * numerator and denominator of (4) see the same measurements. *pl_max: the largest measured Ĩ. */
+static svp_status mark_missing(inverse_run *r, double *pl_max)
+{
+    const size_t n = r->n;
+    const double *restrict pl = r->pl_apparent->data;
+    size_t n_miss = 0;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN) reduction(+ : n_miss)
+    for (size_t i = 0; i < n; i++) {
+        int m = !isfinite(pl[i]);
+        for (int c = 0; c < r->n_fields && !m; c++) m = !isfinite(r->field_apparent[c]->data[i]);
+        r->missing[i] = (unsigned char)m;
+        n_miss += (size_t)m;
+    }
+    r->n_miss = n_miss;
+    if (n_miss == n)
+        return svp_fail(SVP_ERR_INVALID, "every pixel of pl_apparent / field_apparent is NaN or "
+                                         "Inf: nothing to restore");
+    double top = -INFINITY;
+    for (size_t i = 0; i < n; i++) {
+        if (r->missing[i]) continue;
+        if (pl[i] > top) top = pl[i];
+        if (r->rl_pl && pl[i] < 0)
+            return svp_fail(SVP_ERR_INVALID,
+                            "pl_apparent is negative (%g) at pixel (%zu, %zu): Richardson-Lucy "
+                            "needs non-negative PL (clip the background or use method W)",
+                            pl[i], i % (size_t)r->w, i / (size_t)r->w);
+    }
+    *pl_max = top;
+    return SVP_OK;
+}
+
+/* Progress: each deconvolution's share is proportional to its FFT count (RL: iterations,
+ * Wiener: about one; with the zero boundary its CG takes typically 25–80 steps of 1.5 RL
+ * iterations' work each: counted as 40 iterations; the discrepancy principle adds 16 solves). */
+static void plan_progress(inverse_run *r)
+{
+    const svp_correct_options *o = &r->opt;
+    const double cost_w = (svp_blur_boundary(r->blur) == SVP_BOUNDARY_ZERO ? 40.0 : 1.0) *
+                          (o->balance_auto ? 17.0 : 1.0);
+    const double cost_pl = r->rl_pl ? o->deconv.iterations : cost_w;
+    const double cost_field = r->rl_field ? o->deconv.iterations : cost_w;
+    const double total = cost_pl + r->n_fields * cost_field;
+    double at = 0;
+    for (int k = 0; k <= r->n_fields; k++) {
+        const double cost = k == 0 ? cost_pl : cost_field;
+        r->shares[k].fn = o->deconv.progress;
+        r->shares[k].user = o->deconv.progress_user;
+        r->shares[k].base = at / total;
+        r->shares[k].span = cost / total;
+        at += cost;
+    }
+}
+
+/* work = Ĩ with the missing pixels NaN. */
+static void load_pl(inverse_run *r)
+{
+    const double *restrict pl = r->pl_apparent->data;
+    double *restrict y = r->work->data;
+#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
+    for (size_t i = 0; i < r->n; i++) y[i] = r->missing[i] ? NAN : pl[i];
+}
+
+/* Ĩ ⊘ p (eq. 4, denominator), once for all components; the PL's noise variance
+ * var Ĩ = g · max(Ĩ, g) (at least one photon's) for RL's stopping rule and W's discrepancy. */
+static svp_status deconvolve_pl(inverse_run *r)
+{
+    const svp_correct_options *o = &r->opt;
+    if ((o->auto_iterations || o->balance_auto) && o->pl_gain > 0) {
+        SVP_CHECK(svp_image_new(r->w, r->h, &r->pl_var));
+        const double g = o->pl_gain;
+        const double *restrict pl = r->pl_apparent->data;
+        double *restrict v = r->pl_var->data;
+#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
+        for (size_t i = 0; i < r->n; i++) v[i] = r->missing[i] ? 1.0 : g * (pl[i] > g ? pl[i] : g);
+    }
+    if (r->accel && !(r->alphas = malloc((size_t)o->deconv.iterations * sizeof *r->alphas)))
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for the extrapolation path");
+    svp_deconv_options d = o->deconv;
+    d.auto_stop = o->auto_iterations;
+    load_pl(r);
+    svp_status st = deconvolve(r->blur, r->work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
+                               r->pl_var, &r->shares[0], &r->reports[0], r->pl_true, NULL,
+                               r->alphas);
+    if (st != SVP_OK) return svp_fail_context(st, "deconvolving pl_apparent");
+    return SVP_OK;
+}
+
+/* Numerator c: (B̃_c Ĩ) ⊘ p, or ((B̃_c + c) Ĩ) ⊘ p for the RL methods (the shift is removed in
+ * divide_fields), into field_true[c]; RL runs at most `count` iterations on the PL's path and,
+ * with automatic iterations on the first pass, stops by its own noise. */
+static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int first_pass,
+                                       double pl_var_const)
+{
+    const svp_correct_options *o = &r->opt;
+    const double shift = r->shifts[c]; /* 0 unless rl_field */
+    {
+        const double *restrict pl = r->pl_apparent->data;
+        const double *restrict b_app = r->field_apparent[c]->data;
+        double *restrict y = r->work->data;
+#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
+        for (size_t i = 0; i < r->n; i++) y[i] = r->missing[i] ? NAN : (b_app[i] + shift) * pl[i];
+    }
+    const svp_image *var_c = NULL;
+    const int auto_num = first_pass && o->auto_iterations && r->rl_field;
+    if ((o->balance_auto && !r->rl_field) || auto_num) {
+        if (!r->num_var) SVP_CHECK(svp_image_new(r->w, r->h, &r->num_var));
+        SVP_CHECK(numerator_variance(r->field_apparent[c], shift, r->pl_apparent, r->missing,
+                                     r->pl_var, pl_var_const,
+                                     r->field_sigma ? r->field_sigma[c] : NULL, r->num_var,
+                                     &var_c));
+    }
+    svp_deconv_options d = o->deconv;
+    d.auto_stop = auto_num;
+    if (r->rl_field) d.iterations = count;
+    svp_status st = deconvolve(r->blur, r->work, r->rl_field, &d, o->balance_auto,
+                               o->noise_sigma, var_c, first_pass ? &r->shares[c + 1] : NULL,
+                               &r->reports[c + 1], r->field_true[c],
+                               r->accel ? r->alphas : NULL, NULL);
+    if (st != SVP_OK) {
+        char buf[32];
+        return svp_fail_context(st, "deconvolving %s x pl_apparent",
+                                field_name(o, c, buf, sizeof buf));
+    }
+    r->counts[c] = r->rl_field ? r->reports[c + 1].iterations : count;
+    return SVP_OK;
+}
+
+/* Every numerator, at the same RL count as the PL so both halves of (4) share their resolution.
+ * With automatic iterations each numerator may stop earlier (its noise includes the field's):
+ * the smallest count wins, and whatever ran longer — the PL included, on its own path — is run
+ * again to it. */
+static svp_status deconvolve_numerators(inverse_run *r)
+{
+    const svp_correct_options *o = &r->opt;
+    int count = o->deconv.iterations;
+    if (r->rl_pl && o->auto_iterations)
+        count = r->reports[0].iterations > 0 ? r->reports[0].iterations : 1;
+    double pl_var_const = 0; /* without a gain: one PL variance for the numerators' noise */
+    if ((o->balance_auto || o->auto_iterations) && !r->pl_var) {
+        double sigma = 0;
+        if (svp_noise_sigma_estimate(r->pl_apparent, &sigma) == SVP_OK) pl_var_const = sigma * sigma;
+    }
+    if (!(r->counts = calloc((size_t)r->n_fields, sizeof *r->counts)))
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r->w,
+                        r->h);
+    const int k_pl = count;
+    for (int c = 0; c < r->n_fields; c++) {
+        SVP_CHECK(deconvolve_numerator(r, c, count, 1, pl_var_const));
+        if (r->counts[c] < count) count = r->counts[c];
+    }
+    if (count == k_pl) return SVP_OK;
+    for (int c = 0; c < r->n_fields; c++)
+        if (r->counts[c] != count) SVP_CHECK(deconvolve_numerator(r, c, count, 0, pl_var_const));
+    svp_deconv_options d = o->deconv;
+    d.auto_stop = 0;
+    d.iterations = count;
+    const int stop = r->reports[0].stop;
+    const double chi2 = r->reports[0].chi2;
+    load_pl(r);
+    SVP_CHECK(deconvolve(r->blur, r->work, 1, &d, 0, 0, NULL, NULL, &r->reports[0], r->pl_true,
+                         r->accel ? r->alphas : NULL, NULL));
+    /* the count was the numerators' noise's choice, not the cap */
+    r->reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
+    r->reports[0].chi2 = chi2;
+    return SVP_OK;
+}
+
+/* Validity (eq. 6): the recovered PL against the floor, times, at missing pixels, the share of
+ * their light that the core PSF puts on measured pixels, c_i = (Hᵀm − α<m>)/(1 − α). */
+static svp_status validity_map(inverse_run *r, double floor_pl, int no_light)
+{
+    const size_t n = r->n;
+    const double *restrict pl_rec = r->pl_true->data;
+    double *restrict valid = r->valid;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) {
+        double v = no_light ? 0.0 : pl_rec[i] / floor_pl;
+        valid[i] = v > 1 ? 1.0 : (v > 0 ? v : 0.0);
+    }
+    if (r->n_miss == 0) return SVP_OK;
+    svp_image *coverage = NULL;
+    SVP_CHECK(svp_image_new(r->w, r->h, &coverage));
+    double *restrict m = r->work->data;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) m[i] = r->missing[i] ? 0.0 : 1.0;
+    svp_status st = svp_blur_adjoint(r->blur, r->work, coverage);
+    if (st == SVP_OK) {
+        const double alpha = svp_blur_halo(r->blur);
+        const double halo_part = alpha * (double)(n - r->n_miss) / (double)n;
+        const double *restrict cov = coverage->data;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+        for (size_t i = 0; i < n; i++) {
+            if (!r->missing[i]) continue;
+            double c = (cov[i] - halo_part) / (1.0 - alpha);
+            c = c > 1 ? 1.0 : c;
+            valid[i] *= c > COVERAGE_TINY ? c : 0.0;
+        }
+    }
+    svp_image_free(coverage);
+    return st;
+}
+
+/* Floored division (eq. 4), the shift removed (eq. 5): the recovered PL never drops below
+ * pl_floor · max. */
+static void divide_fields(inverse_run *r, double floor_pl, int no_light)
+{
+    for (int c = 0; c < r->n_fields; c++) {
+        const double shift = r->shifts[c];
+        const double *restrict pl_rec = r->pl_true->data;
+        double *restrict b = r->field_true[c]->data;
+#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
+        for (size_t i = 0; i < r->n; i++) {
+            double num = b[i] - shift * pl_rec[i];
+            b[i] = no_light ? 0.0 : num / (pl_rec[i] > floor_pl ? pl_rec[i] : floor_pl);
+        }
+    }
+}
+
+/* Last resort: never emit NaN/Inf (the tests assert this never fires). Returns the count. */
+static size_t repair_nonfinite(inverse_run *r)
+{
+    size_t repaired = 0;
+    for (int k = -1; k < r->n_fields; k++) {
+        double *restrict d = k < 0 ? r->pl_true->data : r->field_true[k]->data;
+        for (size_t i = 0; i < r->n; i++)
+            if (!isfinite(d[i])) {
+                d[i] = 0.0;
+                r->valid[i] = 0.0;
+                repaired++;
+            }
+    }
+    for (size_t i = 0; i < r->n; i++)
+        if (!isfinite(r->valid[i])) {
+            r->valid[i] = 0.0;
+            repaired++;
+        }
+    return repaired;
+}
+
+/* T⁻¹ on the operator's grid: the stages above in order. opt is resolved (gain known);
+ * field_sigma (may be NULL) on the same grid; reports has n_fields + 1 entries; validity
+ * receives the validity map (never NULL). */
 static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
                                const svp_image *const *field_apparent, int n_fields,
                                const svp_correct_options *options,
@@ -426,282 +687,55 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
 {
     if (n_missing) *n_missing = 0;
     if (n_repaired) *n_repaired = 0;
-    const svp_correct_options opt = *options;
     memset(reports, 0, ((size_t)n_fields + 1) * sizeof *reports);
-    const int w = pl_apparent->width, h = pl_apparent->height;
-    const size_t n = (size_t)w * h;
-    const int rl_pl = uses_rl_for_pl(opt.method), rl_field = uses_rl_for_field(opt.method);
-
+    inverse_run r = {.blur = blur, .pl_apparent = pl_apparent, .field_apparent = field_apparent,
+                     .field_sigma = field_sigma, .n_fields = n_fields, .w = pl_apparent->width,
+                     .h = pl_apparent->height, .opt = *options, .pl_true = pl_true,
+                     .field_true = field_true, .valid = validity->data, .reports = reports,
+                     .shifts = shifts};
+    r.n = (size_t)r.w * r.h;
+    r.rl_pl = uses_rl_for_pl(r.opt.method);
+    r.rl_field = uses_rl_for_field(r.opt.method);
+    r.accel = r.rl_pl && r.opt.deconv.acceleration != SVP_RL_PLAIN;
     svp_status st = SVP_OK;
-    unsigned char *missing = NULL;
-    double *valid = NULL;
-    svp_image *work = NULL, *coverage = NULL, *pl_var = NULL, *num_var = NULL;
-    svp_progress_share *shares = NULL;
-    double *alphas = NULL;
-    int *counts = NULL;
-
-    missing = malloc(n);
-    valid = validity->data;
-    shares = calloc((size_t)n_fields + 1, sizeof *shares);
-    if (!missing || !shares) {
-        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", w, h);
+    r.missing = malloc(r.n);
+    r.shares = calloc((size_t)n_fields + 1, sizeof *r.shares);
+    if (!r.missing || !r.shares) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r.w, r.h);
         goto cleanup;
     }
-    st = svp_image_new(w, h, &work);
-    if (st != SVP_OK) goto cleanup;
-
-    /* Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution,
-     * so numerator and denominator of (4) see the same measurements. */
-    size_t n_miss = 0;
-    {
-        const double *restrict pl = pl_apparent->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN) reduction(+ : n_miss)
-        for (size_t i = 0; i < n; i++) {
-            int m = !isfinite(pl[i]);
-            for (int c = 0; c < n_fields && !m; c++) m = !isfinite(field_apparent[c]->data[i]);
-            missing[i] = (unsigned char)m;
-            n_miss += (size_t)m;
-        }
-    }
-    if (n_missing) *n_missing = n_miss;
-    if (n_miss == n) {
-        st = svp_fail(SVP_ERR_INVALID,
-                      "every pixel of pl_apparent / field_apparent is NaN or Inf: nothing to "
-                      "restore");
-        goto cleanup;
-    }
-    double pl_in_max = -INFINITY;
-    for (size_t i = 0; i < n; i++) {
-        if (missing[i]) continue;
-        double v = pl_apparent->data[i];
-        if (v > pl_in_max) pl_in_max = v;
-        if (rl_pl && v < 0) {
-            st = svp_fail(SVP_ERR_INVALID,
-                          "pl_apparent is negative (%g) at pixel (%zu, %zu): Richardson-Lucy "
-                          "needs non-negative PL (clip the background or use method W)",
-                          v, i % (size_t)w, i / (size_t)w);
-            goto cleanup;
-        }
-    }
-
-    if (!(pl_in_max > 0)) {
+    if ((st = svp_image_new(r.w, r.h, &r.work)) != SVP_OK) goto cleanup;
+    double pl_max = 0;
+    if ((st = mark_missing(&r, &pl_max)) != SVP_OK) goto cleanup;
+    if (n_missing) *n_missing = r.n_miss;
+    if (!(pl_max > 0)) {
         /* No light anywhere: nothing to deconvolve, nothing known about the field. */
-        memset(pl_true->data, 0, n * sizeof(double));
-        for (int c = 0; c < n_fields; c++) memset(field_true[c]->data, 0, n * sizeof(double));
-        memset(valid, 0, n * sizeof(double));
-        goto finish;
-    }
-
-    /* Progress: each deconvolution's share is proportional to its FFT count (RL: iterations,
-     * Wiener: about one; with the zero boundary its CG takes typically 25–80 steps of 1.5 RL
-     * iterations' work each: counted as 40 iterations). */
-    {
-        /* the discrepancy principle adds 16 Wiener solves */
-        const double cost_w = (svp_blur_boundary(blur) == SVP_BOUNDARY_ZERO ? 40.0 : 1.0) *
-                              (opt.balance_auto ? 17.0 : 1.0);
-        double cost_pl = rl_pl ? opt.deconv.iterations : cost_w;
-        double cost_field = rl_field ? opt.deconv.iterations : cost_w;
-        double total = cost_pl + n_fields * cost_field, at = 0;
-        for (int k = 0; k <= n_fields; k++) {
-            double cost = k == 0 ? cost_pl : cost_field;
-            shares[k].fn = opt.deconv.progress;
-            shares[k].user = opt.deconv.progress_user;
-            shares[k].base = at / total;
-            shares[k].span = cost / total;
-            at += cost;
-        }
-    }
-
-    /* The signed shifts (eq. 5), all checked before any deconvolution. */
-    if (rl_field)
-        for (int c = 0; c < n_fields; c++) {
-            st = signed_shift(field_apparent[c], missing, n, &opt, c, &shifts[c]);
-            if (st != SVP_OK) goto cleanup;
-        }
-
-    /* The PL's noise variance var Ĩ = g · max(Ĩ, g) (at least one photon's): RL's stopping rule
-     * and the discrepancy principle of W use it; the numerators' below. */
-    const int need_noise = opt.auto_iterations || opt.balance_auto;
-    if (need_noise && opt.pl_gain > 0) {
-        st = svp_image_new(w, h, &pl_var);
+        memset(pl_true->data, 0, r.n * sizeof(double));
+        for (int c = 0; c < n_fields; c++) memset(field_true[c]->data, 0, r.n * sizeof(double));
+        memset(r.valid, 0, r.n * sizeof(double));
+    } else {
+        plan_progress(&r);
+        /* the signed shifts (eq. 5), all checked before any deconvolution */
+        for (int c = 0; r.rl_field && c < n_fields && st == SVP_OK; c++)
+            st = signed_shift(field_apparent[c], r.missing, r.n, &r.opt, c, &shifts[c]);
+        if (st == SVP_OK) st = deconvolve_pl(&r);
+        if (st == SVP_OK) st = deconvolve_numerators(&r);
         if (st != SVP_OK) goto cleanup;
-        const double g = opt.pl_gain;
-        const double *restrict pl = pl_apparent->data;
-        double *restrict v = pl_var->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) v[i] = missing[i] ? 1.0 : g * (pl[i] > g ? pl[i] : g);
+        const double floor_pl = r.opt.pl_floor * svp_max(pl_true->data, r.n);
+        const int no_light = !(floor_pl > 0) || !isfinite(floor_pl);
+        if ((st = validity_map(&r, floor_pl, no_light)) != SVP_OK) goto cleanup;
+        divide_fields(&r, floor_pl, no_light);
     }
-    svp_deconv_options deconv_pl = opt.deconv, deconv_field = opt.deconv;
-    deconv_pl.auto_stop = opt.auto_iterations;
-    deconv_field.auto_stop = opt.auto_iterations && rl_field;
-    /* the PL's extrapolation path (accelerated RL), which the numerators follow */
-    const int accel = rl_pl && opt.deconv.acceleration != SVP_RL_PLAIN;
-    if (accel && !(alphas = malloc((size_t)opt.deconv.iterations * sizeof *alphas))) {
-        st = svp_fail(SVP_ERR_NOMEM, "out of memory for the extrapolation path");
-        goto cleanup;
-    }
-
-    /* Ĩ ⊘ p, once for all components (eq. 4, denominator). */
-    {
-        const double *restrict pl = pl_apparent->data;
-        double *restrict y = work->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : pl[i];
-    }
-    st = deconvolve(blur, work, rl_pl, &deconv_pl, opt.balance_auto, opt.noise_sigma, pl_var,
-                    &shares[0], &reports[0], pl_true, NULL, alphas);
-    if (st != SVP_OK) {
-        svp_fail_context(st, "deconvolving pl_apparent");
-        goto cleanup;
-    }
-    /* both halves of (4) at the same resolution: the numerators run (at most) the PL's count */
-    int count = opt.deconv.iterations;
-    if (rl_pl && opt.auto_iterations) count = reports[0].iterations > 0 ? reports[0].iterations : 1;
-    /* without a gain, one PL variance for the numerators' noise */
-    double pl_var_const = 0;
-    if ((opt.balance_auto || opt.auto_iterations) && !pl_var) {
-        double sigma = 0;
-        if (svp_noise_sigma_estimate(pl_apparent, &sigma) == SVP_OK) pl_var_const = sigma * sigma;
-    }
-
-    /* Numerators (B̃_c Ĩ) ⊘ p, or ((B̃_c + c) Ĩ) ⊘ p for the RL methods (the shift is removed
-     * below), left in field_true[c]. With automatic iterations each numerator may stop earlier
-     * (its own noise includes the field's): the smallest count wins, and whatever ran longer
-     * is run again to it. */
-    if (!(counts = calloc((size_t)n_fields, sizeof *counts))) {
-        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", w, h);
-        goto cleanup;
-    }
-    const int k_pl = count;
-    for (int pass = 0; pass < 2; pass++) {
-        for (int c = 0; c < n_fields; c++) {
-            if (pass == 1 && counts[c] == count) continue;
-            const double shift = shifts[c]; /* 0 unless rl_field */
-            {
-                const double *restrict pl = pl_apparent->data;
-                const double *restrict b_app = field_apparent[c]->data;
-                double *restrict y = work->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-                for (size_t i = 0; i < n; i++)
-                    y[i] = missing[i] ? NAN : (b_app[i] + shift) * pl[i];
-            }
-            const svp_image *var_c = NULL;
-            const int auto_num = pass == 0 && deconv_field.auto_stop;
-            if ((opt.balance_auto && !rl_field) || auto_num) {
-                if (!num_var && (st = svp_image_new(w, h, &num_var)) != SVP_OK) goto cleanup;
-                st = numerator_variance(field_apparent[c], shift, pl_apparent, missing, pl_var,
-                                        pl_var_const, field_sigma ? field_sigma[c] : NULL,
-                                        num_var, &var_c);
-                if (st != SVP_OK) goto cleanup;
-            }
-            svp_deconv_options o = deconv_field;
-            o.auto_stop = auto_num;
-            if (rl_field) o.iterations = count;
-            st = deconvolve(blur, work, rl_field, &o, opt.balance_auto, opt.noise_sigma, var_c,
-                            pass == 0 ? &shares[c + 1] : NULL, &reports[c + 1], field_true[c],
-                            accel ? alphas : NULL, NULL);
-            if (st != SVP_OK) {
-                char buf[32];
-                svp_fail_context(st, "deconvolving %s x pl_apparent",
-                                 field_name(&opt, c, buf, sizeof buf));
-                goto cleanup;
-            }
-            counts[c] = rl_field ? reports[c + 1].iterations : count;
-            if (counts[c] < count) count = counts[c];
-        }
-        if (count == k_pl) break;
-        /* the PL again, to the final count, on its own path */
-        svp_deconv_options o = deconv_pl;
-        o.auto_stop = 0;
-        o.iterations = count;
-        const int stop = reports[0].stop;
-        const double chi2 = reports[0].chi2;
-        {
-            const double *restrict pl = pl_apparent->data;
-            double *restrict y = work->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-            for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : pl[i];
-        }
-        st = deconvolve(blur, work, 1, &o, 0, 0, NULL, NULL, &reports[0], pl_true,
-                        accel ? alphas : NULL, NULL);
-        if (st != SVP_OK) goto cleanup;
-        reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
-        reports[0].chi2 = chi2;
-    }
-    const double pl_rec_max = svp_max(pl_true->data, n);
-    const double floor_pl = opt.pl_floor * pl_rec_max;
-    const int no_light = !(floor_pl > 0) || !isfinite(floor_pl);
-
-    /* Validity (eq. 6): the recovered PL against the floor, times, at missing pixels, the share
-     * of their light that the core PSF puts on measured pixels, c_i = (Hᵀm − α<m>)/(1 − α). */
-    {
-        const double *restrict pl_rec = pl_true->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) {
-            double v = no_light ? 0.0 : pl_rec[i] / floor_pl;
-            valid[i] = v > 1 ? 1.0 : (v > 0 ? v : 0.0);
-        }
-    }
-    if (n_miss > 0) {
-        st = svp_image_new(w, h, &coverage);
-        if (st != SVP_OK) goto cleanup;
-        double *restrict m = work->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) m[i] = missing[i] ? 0.0 : 1.0;
-        st = svp_blur_adjoint(blur, work, coverage);
-        if (st != SVP_OK) goto cleanup;
-        const double alpha = svp_blur_halo(blur);
-        const double halo_part = alpha * (double)(n - n_miss) / (double)n;
-        const double *restrict cov = coverage->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) {
-            if (!missing[i]) continue;
-            double c = (cov[i] - halo_part) / (1.0 - alpha);
-            c = c > 1 ? 1.0 : c;
-            valid[i] *= c > COVERAGE_TINY ? c : 0.0;
-        }
-    }
-    /* Floored division (eq. 4), the shift removed (eq. 5): the recovered PL never drops below
-     * pl_floor · max. */
-    for (int c = 0; c < n_fields; c++) {
-        const double shift = shifts[c];
-        const double *restrict pl_rec = pl_true->data;
-        double *restrict b = field_true[c]->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) {
-            double num = b[i] - shift * pl_rec[i];
-            b[i] = no_light ? 0.0 : num / (pl_rec[i] > floor_pl ? pl_rec[i] : floor_pl);
-        }
-    }
-
-finish:;
-    /* Last resort: never emit NaN/Inf (the tests assert this never fires). */
-    size_t repaired = 0;
-    for (int k = -1; k < n_fields; k++) {
-        double *restrict d = k < 0 ? pl_true->data : field_true[k]->data;
-        for (size_t i = 0; i < n; i++)
-            if (!isfinite(d[i])) {
-                d[i] = 0.0;
-                valid[i] = 0.0;
-                repaired++;
-            }
-    }
-    for (size_t i = 0; i < n; i++)
-        if (!isfinite(valid[i])) {
-            valid[i] = 0.0;
-            repaired++;
-        }
+    const size_t repaired = repair_nonfinite(&r);
     if (n_repaired) *n_repaired = repaired;
-
 cleanup:
-    free(missing);
-    free(shares);
-    svp_image_free(work);
-    svp_image_free(coverage);
-    svp_image_free(pl_var);
-    svp_image_free(num_var);
-    free(alphas);
-    free(counts);
+    free(r.missing);
+    free(r.shares);
+    svp_image_free(r.work);
+    svp_image_free(r.pl_var);
+    svp_image_free(r.num_var);
+    free(r.alphas);
+    free(r.counts);
     return st;
 }
 
