@@ -547,6 +547,47 @@ expect_bad corr_auto_r "--balance auto|rw or w" correct --field Bz.txt --pl pl.t
 expect_bad corr_noise_alone "--noise|--balance auto" correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o bad --noise 0.1
 expect_bad corr_bad_balance "--balance|-1|auto" correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o bad --balance -1
 
+# ---- the options of trustworthy corrections (docs/model.md §3, §6) ---------------------------
+# an object beyond the view: recorded; refused where it cannot apply
+expect_ok corr_margin correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml --margin 6 \
+    -o corr_margin --format txt $FAST
+expect_ok corr_margin_auto correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
+    --margin auto -o corr_margin_auto --format txt $FAST
+if grep -q '"margin": 6' corr_margin/summary.json && grep -q '"margin": [1-9]' corr_margin_auto/summary.json; then
+    pass "correct --margin 6 / auto: recorded ($(jnum corr_margin_auto/summary.json margin) px for auto)"
+else
+    fail "--margin" "$(grep margin corr_margin/summary.json corr_margin_auto/summary.json)"
+fi
+expect_bad corr_margin_mirror "--margin needs one PSF and the zero boundary" correct --field Bz.txt \
+    --pl pl.txt --psf moffat.yaml --boundary mirror --margin 4 -o bad
+# automatic iterations: why RL stopped is recorded; not for W
+expect_ok corr_auto_it correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
+    --iterations 400 --iterations auto --gain 1e-4 -o corr_auto_it --format txt $FAST
+if grep -q '"rl_stop": "\(discrepancy\|stalled\)"' corr_auto_it/summary.json &&
+    grep -q '"iterations": "auto"' corr_auto_it/summary.json && grep -q '"pl_gain_from": "--gain"' corr_auto_it/summary.json; then
+    pass "correct --iterations auto: $(jnum corr_auto_it/summary.json rl_iterations) iterations, stopped by $(sed -n 's/.*"rl_stop": "\([a-z]*\)".*/\1/p' corr_auto_it/summary.json)"
+else
+    fail "--iterations auto" "$(cat err.corr_auto_it) $(grep rl_ corr_auto_it/summary.json)"
+fi
+expect_bad corr_auto_it_w "--iterations auto|Richardson-Lucy|--method w" correct --field Bz.txt --pl pl.txt \
+    --psf moffat.yaml --method w --iterations auto -o bad
+expect_bad corr_bad_gain "--gain|0|> 0" correct --field Bz.txt --pl pl.txt --psf moffat.yaml --gain 0 -o bad
+# per-pixel field sigma: one per field, the PL's size, never negative
+expect_bad corr_sigma_count "--field-sigma|2 maps for 1 --field map" correct --field Bz.txt --pl pl.txt \
+    --psf moffat.yaml --field-sigma Bz.txt --field-sigma Bz.txt -o bad
+awk '{for (i = 1; i <= NF; i++) $i = -1} 1' Bz.txt >sigma_neg.txt
+expect_bad corr_sigma_neg "sigma_neg.txt|negative" correct --field Bz.txt --pl pl.txt --psf moffat.yaml \
+    --field-sigma sigma_neg.txt -o bad
+# deconvolve: automatic iterations and acceleration
+expect_ok dec_auto_it deconvolve pl_noisy.txt --psf moffat_periodic.yaml -o dec_auto_it.txt --method rl \
+    --iterations 400 --iterations auto --acceleration biggs-andrews $FAST
+if grep -q '"rl_stop": "\(discrepancy\|stalled\)"' dec_auto_it.summary.json &&
+    grep -q '"acceleration": "biggs-andrews"' dec_auto_it.summary.json; then
+    pass "deconvolve --iterations auto --acceleration biggs-andrews: $(jnum dec_auto_it.summary.json rl_iterations) iterations"
+else
+    fail "deconvolve --iterations auto" "$(cat err.dec_auto_it) $(grep rl_ dec_auto_it.summary.json)"
+fi
+
 # ---- the zero-boundary Wiener's CG step cap is reported --------------------------------------
 # 2 steps cannot converge: exit 3, nothing written; with --keep-doubtful a warning per capped
 # solve, recorded, validity 0
