@@ -305,9 +305,9 @@ def read_psf(path):
     # one PSF: a plain PSF file (which may name a boundary) or a map of kind uniform
     c = ffi.new("svp_psf *")
     lib.svp_psf_defaults(c)
-    boundary = ffi.new("svp_boundary *", -1)
-    if lib.svp_psf_file_read(_path(p), c, pixel, boundary) == lib.SVP_OK:
-        b = _BOUNDARY_NAMES.get(int(boundary[0]))
+    boundary = ffi.new("int *", -1)  # stays -1 when the file names no boundary
+    if lib.svp_psf_file_read(_path(p), c, pixel, ffi.cast("svp_boundary *", boundary)) == 0:
+        b = _BOUNDARY_NAMES.get(boundary[0])
         return PSFFile(PSF._wrap(c), pixel[0], b)
     return PSFFile(fmap.at(0, 0), pixel[0], None)
 
@@ -566,6 +566,10 @@ def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=
         rep["balance"] = opt.balance
         if balance == "auto":
             rep["noise_sigma"] = used[0]
+            # an automatic choice on an end of its search [1e-12, 1e2] cannot be vouched for
+            # (`svpsf deconvolve` exits 3 on it): -1 lower end, +1 upper end, else 0
+            rep["balance_at_bound"] = -1 if opt.balance <= 1e-12 else (
+                1 if opt.balance >= 1e2 else 0)
     return x, rep
 
 
