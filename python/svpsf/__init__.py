@@ -567,9 +567,10 @@ def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=
         if balance == "auto":
             rep["noise_sigma"] = used[0]
             # an automatic choice on an end of its search [1e-12, 1e2] cannot be vouched for
-            # (`svpsf deconvolve` exits 3 on it): -1 lower end, +1 upper end, else 0
-            rep["balance_at_bound"] = -1 if opt.balance <= 1e-12 else (
-                1 if opt.balance >= 1e2 else 0)
+            # (`svpsf deconvolve` exits 3 on it): -1 lower end, +1 upper end, else 0 (the
+            # bisection ends within a factor 1.002 of a crossing; 1.01 tells an end from it)
+            rep["balance_at_bound"] = -1 if opt.balance <= 1.01e-12 else (
+                1 if opt.balance >= 1e2 / 1.01 else 0)
     return x, rep
 
 
