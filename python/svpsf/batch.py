@@ -193,7 +193,7 @@ def _make_client(dask):
         if n < 1:
             raise ValueError("--dask local:N: N >= 1")
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+                               dashboard_address=":0")
         return Client(cluster), cluster
     return Client(dask), None
 
