@@ -368,12 +368,21 @@ class Blur:
 
     def _apply(self, fn, x, out):
         imgs = _Images()
-        xi = imgs.view(_input(x, "image"))
+        x = _input(x, "image")
+        if x.shape != self.shape:
+            raise ValueError("the Blur is for images of shape %s, the image is %s"
+                             % (self.shape, x.shape))
         if out is None:
             out, oi = imgs.out(self.shape)
         else:
+            if not (isinstance(out, np.ndarray) and out.dtype == np.float64 and
+                    out.flags.c_contiguous and out.flags.writeable and out.shape == self.shape):
+                raise ValueError("out: a writable C-contiguous float64 array of shape %s is "
+                                 "needed" % (self.shape,))
+            if np.shares_memory(out, x):
+                raise ValueError("out must not share memory with the input")
             oi = imgs.view(out)
-        _check(fn(self._ptr, xi, oi))
+        _check(fn(self._ptr, imgs.view(x), oi))
         return out
 
     def apply(self, x, out=None):

@@ -193,7 +193,8 @@ def _make_client(dask):
         if n < 1:
             raise ValueError("--dask local:N: N >= 1")
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                               dashboard_address=":0")
+                               dashboard_address=":0",
+                               env={"OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "passive"})
         return Client(cluster), cluster
     return Client(dask), None
 
@@ -225,9 +226,15 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
         mode = "dask client"
     rows = [None] * len(folders)
     try:
-        if client is None:
-            for i, d in enumerate(folders):
-                rows[i] = correct_dataset(os.path.abspath(d), out_abs, **args)
+        if client is None:  # in this process: its library thread count is restored after
+            import svpsf
+
+            before = svpsf.get_threads()
+            try:
+                for i, d in enumerate(folders):
+                    rows[i] = correct_dataset(os.path.abspath(d), out_abs, **args)
+            finally:
+                svpsf.set_threads(before)
         else:
             from dask.distributed import as_completed
 

@@ -258,3 +258,21 @@ def test_read_image_is_the_librarys_buffer(tmp_path, maps):
     with pytest.raises(svpsf.Error) as e:
         svpsf.write_image(tmp_path / "back.npy", a)
     assert e.value.reason == "output exists"
+
+
+def test_blur_adjoint_and_out(maps):
+    pl, field = maps
+    for psf in (svpsf.PSF("moffat", fwhm=4.0, beta=1.2, halo=0.05),
+                svpsf.PSF("gaussian", fwhm=2.5)):
+        for boundary in ("zero", "mirror", "periodic"):
+            b = svpsf.Blur(psf, pl.shape, boundary=boundary)
+            # the exact adjoint: <H x, y> = <x, Hᵀ y>
+            lhs = np.vdot(b.apply(pl), field)
+            rhs = np.vdot(pl, b.adjoint(field))
+            assert lhs == pytest.approx(rhs, rel=1e-12)
+            out = np.empty_like(pl)
+            assert b.apply(pl, out=out) is out and np.array_equal(out, b.apply(pl))
+    with pytest.raises(ValueError, match="out"):
+        b.apply(pl, out=np.empty(pl.shape, dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        b.apply(pl[:-1])
