@@ -148,7 +148,7 @@ static void test_defaults(void **state)
     svp_correct_options o;
     memset(&o, 0xff, sizeof o);
     svp_correct_defaults(&o);
-    assert_int_equal(o.method, SVP_METHOD_RW);
+    assert_int_equal(o.method, SVP_METHOD_R);
     assert_int_equal(o.deconv.iterations, 75);
     ASSERT_CLOSE(o.pl_floor, 1e-3, 0);
     ASSERT_CLOSE(o.shift, 0, 0);

@@ -194,6 +194,13 @@ svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary)
 void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance);
 /* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
  * both of the operator's size, x not y; `what` names the method in the message. */
+/* svp_deconv_rl that follows a given extrapolation path: with acceleration, alpha_in (may be
+ * NULL: computed) gives the weight α of every iteration and alpha_out (may be NULL) receives the
+ * ones used (options->iterations entries each). T⁻¹ runs its numerators on the PL's path, so
+ * the two halves of (4) extrapolate alike and their errors cancel as without acceleration. */
+svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
+                              const svp_deconv_options *options, svp_image *x,
+                              const double *alpha_in, double *alpha_out);
 /* k² of the field noise model σ_B² = k² / Ĩ (noise.c); 0 when nothing is usable. */
 svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
 /* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0

@@ -20,6 +20,10 @@
 #define STALL_FALL 0.001
 /* Biggs–Andrews: the extrapolation weight's cap (α → 1 can overshoot without bound) */
 #define ALPHA_MAX 0.95
+/* an extrapolated pixel keeps at least this fraction of its value */
+#ifndef KEEP_FRACTION
+#define KEEP_FRACTION 0.5
+#endif
 
 static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp_deconv_options *o,
                              const svp_image *x)
@@ -39,6 +43,13 @@ static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp
 
 svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_options *options,
                          svp_image *x)
+{
+    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL);
+}
+
+svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
+                              const svp_deconv_options *options, svp_image *x,
+                              const double *alpha_in, double *alpha_out)
 {
     svp_deconv_options defaults;
     if (!options) {
@@ -169,18 +180,21 @@ svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_op
              * [0, ALPHA_MAX]; a pixel the extrapolation would push to or below 0 keeps 1 %
              * of its value (RL cannot bring a zero back) */
             double alpha = 0;
-            if (k >= 2) {
+            if (alpha_in) {
+                alpha = alpha_in[k];
+            } else if (k >= 2) {
                 const double num = svp_dot(step_1, step_2, correction, n);
                 const double den = svp_dot(step_2, step_2, correction, n);
                 alpha = den > 0 ? num / den : 0.0;
                 alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
             }
+            if (alpha_out) alpha_out[k] = alpha;
             double *restrict xp = x_prev;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
             for (size_t i = 0; i < n; i++) {
                 const double xk = xd[i], z = xk + alpha * (xk - xp[i]);
                 xp[i] = xk;
-                xd[i] = z > 0.01 * xk ? z : 0.01 * xk;
+                xd[i] = z > KEEP_FRACTION * xk ? z : KEEP_FRACTION * xk;
             }
         }
         if ((st = svp_blur_apply(blur, &img_x, &img_blurred)) != SVP_OK) goto cleanup;

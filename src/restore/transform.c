@@ -36,7 +36,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
 
 void svp_correct_defaults(svp_correct_options *options)
 {
-    options->method = SVP_METHOD_RW;
+    options->method = SVP_METHOD_R; /* the foreign-data benchmark's winner (docs/accuracy.md) */
     svp_deconv_defaults(&options->deconv);
     options->deconv.iterations = 75; /* the reference study's RL count for measured data */
     options->pl_floor = 1e-3;
@@ -264,7 +264,8 @@ static int uses_rl_for_field(svp_method m)
 static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                              const svp_deconv_options *base, int balance_auto, double noise_sigma,
                              const svp_image *variance, svp_progress_share *share,
-                             svp_deconv_report *report, svp_image *x)
+                             svp_deconv_report *report, svp_image *x, const double *alpha_in,
+                             double *alpha_out)
 {
     svp_deconv_options o = *base;
     o.report = report;
@@ -283,13 +284,15 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                                                      noise_sigma, d.cg_max_steps, &o.balance,
                                                      &sigma_used, &at_bound));
     }
-    svp_status st = use_rl ? svp_deconv_rl(blur, y, &o, x) : svp_deconv_wiener(blur, y, &o, x);
+    if (!share) o.progress = NULL;
+    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out)
+                           : svp_deconv_wiener(blur, y, &o, x);
     if (report && !use_rl) {
         report->noise_sigma = sigma_used;
         report->balance_at_bound = at_bound;
     }
     if (st != SVP_OK) return st;
-    if (base->progress) {
+    if (base->progress && share) {
         if (share->fn(share->user, share->base + share->span))
             return svp_fail(SVP_ERR_CANCELLED, "cancelled by the progress callback");
     }
@@ -376,6 +379,40 @@ static svp_status signed_shift(const svp_image *field, const unsigned char *miss
     return SVP_OK;
 }
 
+/* The noise variance of a numerator (B̃ + shift) Ĩ: (B̃ + shift)² var Ĩ + Ĩ² σ_B², var Ĩ from the
+ * PL map (else pl_var_const), σ_B from the caller's map (else k²/Ĩ, k² estimated). *out = var,
+ * or NULL when no part of the model is known (the caller then estimates one σ). */
+static svp_status numerator_variance(const svp_image *field, double shift, const svp_image *pl,
+                                     const unsigned char *missing, const svp_image *pl_var,
+                                     double pl_var_const, const svp_image *sigma,
+                                     svp_image *var, const svp_image **out)
+{
+    const size_t n = (size_t)pl->width * pl->height;
+    double k2 = 0;
+    *out = NULL;
+    if (!sigma) SVP_CHECK(svp_field_noise_k2(field, pl, &k2));
+    const double *restrict p = pl->data, *restrict b = field->data;
+    const double *restrict sig = sigma ? sigma->data : NULL;
+    double *restrict v = var->data;
+    double v_max = 0;
+    for (size_t i = 0; i < n; i++) {
+        if (missing[i]) {
+            v[i] = 1.0;
+            continue;
+        }
+        const double vi = pl_var ? pl_var->data[i] : pl_var_const;
+        const double pi = p[i] > 0 ? p[i] : 0.0, bs = b[i] + shift;
+        const double sb2 = sig ? (isfinite(sig[i]) ? sig[i] * sig[i] : 0.0) : (pi > 0 ? k2 / pi : 0.0);
+        v[i] = bs * bs * vi + pi * pi * sb2;
+        if (v[i] > v_max) v_max = v[i];
+    }
+    if (!(v_max > 0)) return SVP_OK;
+    for (size_t i = 0; i < n; i++)
+        if (!missing[i] && !(v[i] > 1e-12 * v_max)) v[i] = 1e-12 * v_max;
+    *out = var;
+    return SVP_OK;
+}
+
 /* T⁻¹ on the operator's grid (the view plus any margin, whose pixels arrive as NaN: missing).
  * opt is resolved (gain known); field_sigma (may be NULL) on the same grid; reports has
  * n_fields + 1 entries; validity receives the validity map (never NULL). */
@@ -400,6 +437,8 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
     double *valid = NULL;
     svp_image *work = NULL, *coverage = NULL, *pl_var = NULL, *num_var = NULL;
     svp_progress_share *shares = NULL;
+    double *alphas = NULL;
+    int *counts = NULL;
 
     missing = malloc(n);
     valid = validity->data;
@@ -494,7 +533,13 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
     }
     svp_deconv_options deconv_pl = opt.deconv, deconv_field = opt.deconv;
     deconv_pl.auto_stop = opt.auto_iterations;
-    deconv_field.auto_stop = 0;
+    deconv_field.auto_stop = opt.auto_iterations && rl_field;
+    /* the PL's extrapolation path (accelerated RL), which the numerators follow */
+    const int accel = rl_pl && opt.deconv.acceleration != SVP_RL_PLAIN;
+    if (accel && !(alphas = malloc((size_t)opt.deconv.iterations * sizeof *alphas))) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for the extrapolation path");
+        goto cleanup;
+    }
 
     /* Ĩ ⊘ p, once for all components (eq. 4, denominator). */
     {
@@ -504,20 +549,84 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
         for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : pl[i];
     }
     st = deconvolve(blur, work, rl_pl, &deconv_pl, opt.balance_auto, opt.noise_sigma, pl_var,
-                    &shares[0], &reports[0], pl_true);
+                    &shares[0], &reports[0], pl_true, NULL, alphas);
     if (st != SVP_OK) {
         svp_fail_context(st, "deconvolving pl_apparent");
         goto cleanup;
     }
-    /* both halves of (4) at the same resolution: the numerators run the PL's RL count */
-    if (rl_pl && opt.auto_iterations)
-        deconv_field.iterations = reports[0].iterations > 0 ? reports[0].iterations : 1;
-    /* the numerators' noise (discrepancy principle of RW and W): var(B̃Ĩ) = B̃² var Ĩ + Ĩ² σ_B²,
-     * σ_B² from the caller's map or k² / Ĩ; without any model, NULL (one σ estimated) */
+    /* both halves of (4) at the same resolution: the numerators run (at most) the PL's count */
+    int count = opt.deconv.iterations;
+    if (rl_pl && opt.auto_iterations) count = reports[0].iterations > 0 ? reports[0].iterations : 1;
+    /* without a gain, one PL variance for the numerators' noise */
     double pl_var_const = 0;
-    if (opt.balance_auto && !rl_field && !pl_var) {
+    if ((opt.balance_auto || opt.auto_iterations) && !pl_var) {
         double sigma = 0;
         if (svp_noise_sigma_estimate(pl_apparent, &sigma) == SVP_OK) pl_var_const = sigma * sigma;
+    }
+
+    /* Numerators (B̃_c Ĩ) ⊘ p, or ((B̃_c + c) Ĩ) ⊘ p for the RL methods (the shift is removed
+     * below), left in field_true[c]. With automatic iterations each numerator may stop earlier
+     * (its own noise includes the field's): the smallest count wins, and whatever ran longer
+     * is run again to it. */
+    if (!(counts = calloc((size_t)n_fields, sizeof *counts))) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", w, h);
+        goto cleanup;
+    }
+    const int k_pl = count;
+    for (int pass = 0; pass < 2; pass++) {
+        for (int c = 0; c < n_fields; c++) {
+            if (pass == 1 && counts[c] == count) continue;
+            const double shift = shifts[c]; /* 0 unless rl_field */
+            {
+                const double *restrict pl = pl_apparent->data;
+                const double *restrict b_app = field_apparent[c]->data;
+                double *restrict y = work->data;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+                for (size_t i = 0; i < n; i++)
+                    y[i] = missing[i] ? NAN : (b_app[i] + shift) * pl[i];
+            }
+            const svp_image *var_c = NULL;
+            const int auto_num = pass == 0 && deconv_field.auto_stop;
+            if ((opt.balance_auto && !rl_field) || auto_num) {
+                if (!num_var && (st = svp_image_new(w, h, &num_var)) != SVP_OK) goto cleanup;
+                st = numerator_variance(field_apparent[c], shift, pl_apparent, missing, pl_var,
+                                        pl_var_const, field_sigma ? field_sigma[c] : NULL,
+                                        num_var, &var_c);
+                if (st != SVP_OK) goto cleanup;
+            }
+            svp_deconv_options o = deconv_field;
+            o.auto_stop = auto_num;
+            if (rl_field) o.iterations = count;
+            st = deconvolve(blur, work, rl_field, &o, opt.balance_auto, opt.noise_sigma, var_c,
+                            pass == 0 ? &shares[c + 1] : NULL, &reports[c + 1], field_true[c],
+                            accel ? alphas : NULL, NULL);
+            if (st != SVP_OK) {
+                char buf[32];
+                svp_fail_context(st, "deconvolving %s x pl_apparent",
+                                 field_name(&opt, c, buf, sizeof buf));
+                goto cleanup;
+            }
+            counts[c] = rl_field ? reports[c + 1].iterations : count;
+            if (counts[c] < count) count = counts[c];
+        }
+        if (count == k_pl) break;
+        /* the PL again, to the final count, on its own path */
+        svp_deconv_options o = deconv_pl;
+        o.auto_stop = 0;
+        o.iterations = count;
+        const int stop = reports[0].stop;
+        const double chi2 = reports[0].chi2;
+        {
+            const double *restrict pl = pl_apparent->data;
+            double *restrict y = work->data;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+            for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : pl[i];
+        }
+        st = deconvolve(blur, work, 1, &o, 0, 0, NULL, NULL, &reports[0], pl_true,
+                        accel ? alphas : NULL, NULL);
+        if (st != SVP_OK) goto cleanup;
+        reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
+        reports[0].chi2 = chi2;
     }
     const double pl_rec_max = svp_max(pl_true->data, n);
     const double floor_pl = opt.pl_floor * pl_rec_max;
@@ -552,58 +661,12 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
             valid[i] *= c > COVERAGE_TINY ? c : 0.0;
         }
     }
-
-    /* Numerators (B̃_c Ĩ) ⊘ p, or ((B̃_c + c) Ĩ) ⊘ p − c (Ĩ ⊘ p) for the RL methods. */
+    /* Floored division (eq. 4), the shift removed (eq. 5): the recovered PL never drops below
+     * pl_floor · max. */
     for (int c = 0; c < n_fields; c++) {
-        const double shift = shifts[c]; /* 0 unless rl_field */
-        {
-            const double *restrict pl = pl_apparent->data;
-            const double *restrict b_app = field_apparent[c]->data;
-            double *restrict y = work->data;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-            for (size_t i = 0; i < n; i++) y[i] = missing[i] ? NAN : (b_app[i] + shift) * pl[i];
-        }
-        const svp_image *var_c = NULL;
-        if (opt.balance_auto && !rl_field) {
-            double k2 = 0;
-            if (!(field_sigma && field_sigma[c]))
-                if ((st = svp_field_noise_k2(field_apparent[c], pl_apparent, &k2)) != SVP_OK)
-                    goto cleanup;
-            if (!num_var && (st = svp_image_new(w, h, &num_var)) != SVP_OK) goto cleanup;
-            const double *restrict pl = pl_apparent->data;
-            const double *restrict b_app = field_apparent[c]->data;
-            const double *restrict sig = field_sigma && field_sigma[c] ? field_sigma[c]->data : NULL;
-            double *restrict v = num_var->data;
-            double v_max = 0;
-            for (size_t i = 0; i < n; i++) {
-                if (missing[i]) {
-                    v[i] = 1.0;
-                    continue;
-                }
-                const double vi = pl_var ? pl_var->data[i] : pl_var_const;
-                const double p = pl[i] > 0 ? pl[i] : 0.0;
-                const double sb2 = sig ? (isfinite(sig[i]) ? sig[i] * sig[i] : 0.0)
-                                       : (p > 0 ? k2 / p : 0.0);
-                v[i] = b_app[i] * b_app[i] * vi + p * p * sb2;
-                if (v[i] > v_max) v_max = v[i];
-            }
-            if (v_max > 0) {
-                for (size_t i = 0; i < n; i++)
-                    if (!missing[i] && !(v[i] > 1e-12 * v_max)) v[i] = 1e-12 * v_max;
-                var_c = num_var;
-            }
-        }
-        st = deconvolve(blur, work, rl_field, &deconv_field, opt.balance_auto, opt.noise_sigma,
-                        var_c, &shares[c + 1], &reports[c + 1], field_true[c]);
-        if (st != SVP_OK) {
-            char buf[32];
-            svp_fail_context(st, "deconvolving %s x pl_apparent",
-                             field_name(&opt, c, buf, sizeof buf));
-            goto cleanup;
-        }
+        const double shift = shifts[c];
         const double *restrict pl_rec = pl_true->data;
         double *restrict b = field_true[c]->data;
-        /* Floored division (eq. 4): the recovered PL never drops below pl_floor · max. */
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) {
             double num = b[i] - shift * pl_rec[i];
@@ -637,6 +700,8 @@ cleanup:
     svp_image_free(coverage);
     svp_image_free(pl_var);
     svp_image_free(num_var);
+    free(alphas);
+    free(counts);
     return st;
 }
 

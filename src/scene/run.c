@@ -950,6 +950,11 @@ static svp_status stage_correct(run_ctx *c, int k)
     o.deconv.progress = inner_progress;
     o.deconv.progress_user = c;
     o.pl_floor = cr->pl_floor;
+    /* a study compares corrections, doubtful ones included: kept (validity 0 where in doubt)
+     * and their doubts recorded */
+    svp_correct_summary summary;
+    o.keep_doubtful = 1;
+    o.summary = &summary;
     const svp_image *fa[SCENE_MAX_FIELDS];
     svp_image *fc[SCENE_MAX_FIELDS];
     svp_image *pl_c = NULL, *valid = NULL;
@@ -975,6 +980,8 @@ static svp_status stage_correct(run_ctx *c, int k)
     if (st != SVP_OK) return st;
     double low = 0;
     for (size_t p = 0; p < (size_t)w * h; p++) low += valid->data[p] < 1;
+    SVP_CHECK(value(c, (double)summary.doubts, "correct/%s/doubts", cr->name));
+    SVP_CHECK(value(c, (double)summary.n_implausible, "correct/%s/n_implausible", cr->name));
     return value(c, low / ((double)w * h), "correct/%s/low_validity_fraction", cr->name);
 }
 

@@ -29,14 +29,23 @@ static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound"
                                           "iterations_at_cap", "implausible_values",
                                           "regularised_away"};
 
-/* --margin auto: the radius holding 90 % of the PSF's light within the view (a kernel image:
- * its half-width), at most a quarter of the view's larger side. */
+/* --margin auto: the PSF's significant reach, the radius where the profile falls to 1 % of its
+ * peak along the major axis (Gaussian 1.29 FWHM; Moffat r0 √(100^(1/β) − 1): 4.3 FWHM at β 1.1;
+ * a kernel image: its half-width), at most a quarter of the view's larger side. */
 static int auto_margin(const cli_psf *psf, int w, int h)
 {
     const int cap = (w > h ? w : h) / 4;
     double r = 0;
     if (psf->is_model) {
-        if (svp_psf_encircled_radius(&psf->model, 0.9, 0.5 * hypot(w, h), &r) != SVP_OK) r = cap;
+        const svp_psf *p = &psf->model;
+        if (p->model == SVP_PSF_GAUSSIAN) {
+            r = p->fwhm / (2 * sqrt(2 * log(2))) * sqrt(2 * log(100.0));
+        } else {
+            const double beta = p->model == SVP_PSF_LORENTZIAN ? 1.0 : p->beta;
+            const double r0 = p->fwhm / (2 * sqrt(expm1(log(2) / beta)));
+            r = r0 * sqrt(expm1(log(100.0) / beta));
+        }
+        if (p->support > 0 && p->support < r) r = p->support;
     } else if (psf->kernel_raw) {
         const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
         r = 0.5 * (kw > kh ? kw : kh);
@@ -86,9 +95,10 @@ static void print_help(const cli_run *run, FILE *out)
           "  -o, --output DIR      output folder, created when missing (required)\n",
           out);
     fprintf(out,
-            "  --method rw|r|w|rl-signed  the deconvolutions (default rw):\n"
-            "                        rw: Richardson-Lucy on the PL, Wiener-Hunt on field x PL\n"
+            "  --method rw|r|w|rl-signed  the deconvolutions (default r: the most accurate on\n"
+            "                        measured-like data, docs/accuracy.md):\n"
             "                        r: Richardson-Lucy on both (signed data through a shift)\n"
+            "                        rw: Richardson-Lucy on the PL, Wiener-Hunt on field x PL\n"
             "                        w: Wiener-Hunt on both\n"
             "                        rl-signed: as r, named for what it does\n"
             "  --iterations N|auto   Richardson-Lucy iterations (default %d); auto: that many at\n"
@@ -100,8 +110,8 @@ static void print_help(const cli_run *run, FILE *out)
             "                        fewer iterations (docs/accuracy.md)\n"
             "  --margin auto|PX      estimate the object on the view plus PX pixels per side, the\n"
             "                        data term over the view only: light from outside the view\n"
-            "                        (zero boundary, one PSF; default 0; auto: the radius of 90 %%\n"
-            "                        of the PSF's light, at most a quarter of the view)\n"
+            "                        (zero boundary, one PSF; default 0; auto: where the PSF\n"
+            "                        falls to 1 %% of its peak, at most a quarter of the view)\n"
             "  --gain G              camera gain of the PL (counts per detected photon): the PL's\n"
             "                        shot noise var = G (PL - offset) for the automatic choices;\n"
             "                        default: estimated from the PL and reported\n"
@@ -131,7 +141,7 @@ static void print_help(const cli_run *run, FILE *out)
             "  --pl-floor F          the recovered PL is floored at F x max(PL) before dividing;\n"
             "                        pixels below it get validity < 1 (default %g)\n"
             "  --shift C             the constant c of the signed shift for r/rl-signed\n"
-            "                        (default: automatic, 0.1 range(Bt) - min(Bt) per map)\n"
+            "                        (default: automatic, 2 max|Bt| per map)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
             d.deconv.iterations, d.plausible_factor, d.deconv.balance, d.deconv.cg_max_steps,
@@ -184,6 +194,7 @@ int cmd_correct(int argc, char **argv)
     svp_correct_summary summary;
     svp_correct_options opt;
     svp_correct_defaults(&opt);
+    while (method_values[method] != opt.method) method++; /* the library's default */
     svp_blur *blur = NULL;
     svp_image *pl_true = NULL, *validity = NULL;
     svp_image *field_true[CLI_MAX_FIELDS] = {NULL};
