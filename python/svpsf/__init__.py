@@ -459,49 +459,55 @@ def _report(r):
             "stop": _STOPS.get(r.stop, r.stop)}
 
 
-def correct(pl, fields, psf, method="rw", iterations=75, balance=1e-3, noise=0.0,
-            pl_floor=1e-3, shift=0.0, cg_max_steps=400, precision="double",
-            acceleration="none", margin=0, gain=0.0, offset=0.0, field_sigma=None,
-            keep_doubtful=False, plausible_factor=10.0, boundary=None, nodes=(8, 8), rank=None,
+def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=None,
+            pl_floor=None, shift=None, cg_max_steps=None, precision="double",
+            acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
+            keep_doubtful=False, plausible_factor=None, boundary=None, nodes=(8, 8), rank=None,
             field_names=None):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
-    with the same option names (docs/cli.md): method 'rw' | 'r' | 'w' | 'rl-signed';
-    iterations N or 'auto'; balance λ or 'auto'; precision 'double' | 'single'; margin pixels
-    per side (one PSF, zero boundary). psf as for forward(). Returns (pl, fields, validity,
-    n_missing, summary, reports): the recovered maps (fields shaped as given), what T⁻¹ did
-    (svp_correct_summary as a dict) and one report per deconvolution ([0] the PL's, [1 + c]
-    field c's numerator). Raises DoubtfulError (the message says why) unless keep_doubtful."""
+    with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
+    iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
+    'double' | 'single'; acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
+    PSF, zero boundary); gain, offset of the PL's camera; field_sigma one σ map per field.
+    None = the library's default (svp_correct_defaults: the program's defaults). psf as for
+    forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
+    (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
+    deconvolution ([0] the PL's, [1 + c] field c's numerator). Raises DoubtfulError (the
+    message says why) unless keep_doubtful."""
     pl = _input(pl, "pl")
     fl, single = _fields(fields, "field")
     _same_shape([pl] + fl, ["pl"] + ["field[%d]" % i for i in range(len(fl))])
-    if method not in _METHODS:
+    if method is not None and method not in _METHODS:
         raise ValueError("method %r: one of %s" % (method, ", ".join(_METHODS)))
-    if acceleration not in _ACCELERATIONS:
+    if acceleration is not None and acceleration not in _ACCELERATIONS:
         raise ValueError("acceleration %r: none or biggs-andrews" % (acceleration,))
     if precision not in ("double", "single"):
         raise ValueError("precision %r: double or single" % (precision,))
     opt = ffi.new("svp_correct_options *")
     lib.svp_correct_defaults(opt)
-    opt.method = _METHODS[method]
+    if method is not None:
+        opt.method = _METHODS[method]
     if iterations == "auto":
         opt.auto_iterations = 1
-    else:
+    elif iterations is not None:
         opt.deconv.iterations = int(iterations)
     if balance == "auto":
         opt.balance_auto = 1
-    else:
+    elif balance is not None:
         opt.deconv.balance = float(balance)
-    opt.noise_sigma = noise
-    opt.pl_floor = pl_floor
-    opt.shift = shift
-    opt.deconv.cg_max_steps = int(cg_max_steps)
+    for name, value in (("noise_sigma", noise), ("pl_floor", pl_floor), ("shift", shift),
+                        ("pl_gain", gain), ("pl_offset", offset),
+                        ("plausible_factor", plausible_factor)):
+        if value is not None:
+            setattr(opt, name, float(value))
+    if cg_max_steps is not None:
+        opt.deconv.cg_max_steps = int(cg_max_steps)
     opt.deconv.single_precision = int(precision == "single")
-    opt.deconv.acceleration = _ACCELERATIONS[acceleration]
-    opt.margin = int(margin)
-    opt.pl_gain = gain
-    opt.pl_offset = offset
+    if acceleration is not None:
+        opt.deconv.acceleration = _ACCELERATIONS[acceleration]
+    if margin is not None:
+        opt.margin = int(margin)
     opt.keep_doubtful = int(bool(keep_doubtful))
-    opt.plausible_factor = plausible_factor
     imgs = _Images()
     if field_sigma is not None:
         sl, _ = _fields(field_sigma, "field_sigma")

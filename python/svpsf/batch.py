@@ -274,7 +274,9 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
 
 
 def _options_from_args(a):
-    opts = {"method": a.method}
+    opts = {}
+    if a.method:
+        opts["method"] = a.method
     if a.iterations is not None:
         opts["iterations"] = a.iterations if a.iterations == "auto" else int(a.iterations)
     if a.balance is not None:
@@ -300,7 +302,8 @@ def main(argv=None):
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--psf", help="PSF file, PSF-map file or kernel image for datasets without "
                    "their own psf.yaml")
-    p.add_argument("--method", default="rw", choices=("rw", "r", "w", "rl-signed"))
+    p.add_argument("--method", choices=("r", "rw", "w", "rl-signed"),
+                   help="as svpsf correct --method (default: the library's, r)")
     p.add_argument("--iterations", help="Richardson-Lucy iterations or auto (default 75)")
     p.add_argument("--balance", help="Wiener-Hunt lambda or auto (default 0.001)")
     p.add_argument("--pl-floor", type=float)

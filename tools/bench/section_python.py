@@ -92,13 +92,14 @@ def overhead(reps):
     copt = ffi.new("svp_correct_options *")
     lib.svp_correct_defaults(copt)
     copt.keep_doubtful = 1
+    copt.method = lib.SVP_METHOD_RW
     nmiss = ffi.new("size_t *")
     dopt = ffi.new("svp_deconv_options *")
     lib.svp_deconv_defaults(dopt)
 
     cases = [
         ("correct (R&W, 75 RL iterations)", "svp_inverse_transform",
-         lambda: svpsf.correct(pl, field, blur, keep_doubtful=True),
+         lambda: svpsf.correct(pl, field, blur, method="rw", keep_doubtful=True),
          lambda: lib.svp_inverse_transform(blur._ptr, ipl, fin, 1, copt, opl, fout, oval, nmiss)),
         ("forward (T)", "svp_forward_transform",
          lambda: svpsf.forward(pl, field, blur),
@@ -155,7 +156,7 @@ def batch_speedup(reps, size, count, iterations):
             np.save(os.path.join(d, "field.npy"), a.fields)
         with open(os.path.join(data, "psf.yaml"), "w") as f:
             f.write("pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.61, beta: 1.5}\n")
-        opts = {"iterations": iterations}
+        opts = {"method": "rw", "iterations": iterations}
         times = {1: [], 2: []}
         clusters = {}
         try:
