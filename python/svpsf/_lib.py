@@ -4,9 +4,9 @@ The declarations come from the library's own header, svpsf.h, cleaned of what cf
 does not take (preprocessor conditionals, the visibility macro); the shared library is
 dlopen()ed. Where they are found, first match wins:
 
-  header:  $SVPSF_HEADER; svpsf.h installed beside this file; ../../include/svpsf.h (a source
-           tree)
-  library: $SVPSF_LIBRARY; the path `meson install` wrote into _config.py; the system's search
+  header:  $SVPSF_HEADER (that file or an error); svpsf.h installed beside this file;
+           ../../include/svpsf.h (a source tree)
+  library: $SVPSF_LIBRARY (that library or an error); the path `meson install` wrote into _config.py; the system's search
            (libsvpsf.so.MAJOR, then libsvpsf.so)
 """
 import os
@@ -18,7 +18,12 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def _header_path():
-    candidates = [os.environ.get("SVPSF_HEADER"), os.path.join(_HERE, "svpsf.h"),
+    env = os.environ.get("SVPSF_HEADER")
+    if env:  # an explicit choice: that header or an error
+        if not os.path.isfile(env):
+            raise ImportError("svpsf: SVPSF_HEADER=%s: no such file" % env)
+        return env
+    candidates = [os.path.join(_HERE, "svpsf.h"),
                   os.path.join(_HERE, "..", "..", "include", "svpsf.h")]
     for path in candidates:
         if path and os.path.isfile(path):

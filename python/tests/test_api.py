@@ -276,3 +276,20 @@ def test_blur_adjoint_and_out(maps):
         b.apply(pl, out=np.empty(pl.shape, dtype=np.float32))
     with pytest.raises(ValueError, match="shape"):
         b.apply(pl[:-1])
+
+
+def test_library_lookup_errors(tmp_path):
+    import subprocess
+    import sys
+
+    env = dict(os.environ, SVPSF_LIBRARY=str(tmp_path / "nothere.so"))
+    p = subprocess.run([sys.executable, "-c", "import svpsf"], env=env, capture_output=True,
+                       text=True)
+    assert p.returncode != 0
+    assert "ImportError: svpsf: SVPSF_LIBRARY=%s cannot be loaded" % (tmp_path / "nothere.so") \
+        in p.stderr
+    env = dict(os.environ, SVPSF_HEADER=str(tmp_path / "none.h"))
+    p = subprocess.run([sys.executable, "-c", "import svpsf"], env=env, capture_output=True,
+                       text=True)
+    assert p.returncode != 0
+    assert "SVPSF_HEADER=%s: no such file" % (tmp_path / "none.h") in p.stderr
