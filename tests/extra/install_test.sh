@@ -101,6 +101,12 @@ case $PYDIR in
 "") ok "(no Python package installed: no Python 3 with cffi and numpy)" ;;
 *)
     P=$T/root${PYDIR%/}
+    case $PREFIX in
+    /usr | /usr/local)
+        /usr/bin/python3 -c 'import sys; sys.exit(sys.argv[1].rstrip("/") not in sys.path)' "$PYDIR" &&
+            ok "$PYDIR is on /usr/bin/python3's sys.path (import svpsf works once installed)" ||
+            bad "$PYDIR is not on /usr/bin/python3's sys.path" ;;
+    esac
     if [ -f "$P/svpsf/__init__.py" ] && [ -f "$P/svpsf/svpsf.h" ]; then
         ok "Python package installed in $PYDIR"
         grep -q "LIBRARY = \"$LIBDIR/$SONAME\"\|LIBRARY = \"$PREFIX/$LIBDIR/$SONAME\"" "$P/svpsf/_config.py" &&
