@@ -2,6 +2,7 @@
  * reconstructions, metrics, figures, report. The library does the work (svp_scene_*); this
  * command parses options, shows the plan and progress, and says where the results are. */
 #include "cli.h"
+#include "svpsf_version.h"
 
 #include "scene/scene_internal.h"
 
@@ -22,7 +23,8 @@ static void print_help(const cli_run *run, FILE *out)
           "the corrections (T^-1), source reconstructions, error metrics and figures it lists.\n"
           "The scene compiles to a plan of only the stages it needs: without `spectrum` the\n"
           "closed form (eq. 3) replaces the spectral cube, without `noise` no random number is\n"
-          "drawn. Scene keys: docs/scenes.md; shipped scenes: docs/scenes/*.yaml.\n"
+          "drawn. Scene keys: docs/scenes.md; shipped scenes: docs/scenes/*.yaml (an installed\n"
+          "copy keeps docs/ in " SVPSF_DOCDIR ").\n"
           "\n"
           "options:\n"
           "  -o, --output DIR      output folder, created when missing (required unless\n"

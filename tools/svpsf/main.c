@@ -1,6 +1,7 @@
 /* svpsf: the command-line program. `svpsf <command> [options]`, `svpsf --help`,
  * `svpsf --version`. Commands live in cmd_*.c; this file only dispatches. */
 #include "cli.h"
+#include "svpsf_version.h"
 
 #include <stdio.h>
 #include <string.h>
@@ -46,7 +47,8 @@ static void print_usage(FILE *out)
     fputs("\n"
           "exit status: 0 ok, 1 bad usage or bad input (the message names the file and the\n"
           "problem), 2 runtime failure.\n"
-          "Reference: docs/cli.md.\n",
+          "Reference: docs/cli.md, and `man svpsf`; an installed copy keeps docs/ in\n"
+          "  " SVPSF_DOCDIR "\n",
           out);
 }
 

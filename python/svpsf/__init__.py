@@ -1,0 +1,796 @@
+"""svpsf: space-variant PSF restoration for widefield spectral imaging, from Python.
+
+A thin layer over the C library libsvpsf (include/svpsf.h; docs/api.md), loaded with cffi in
+ABI mode. Images are 2-D numpy arrays of float64, row y = image row y (shape (height, width)),
+exactly the library's layout: a C-contiguous float64 array is handed to the library as it is
+(no copy); any other array is converted once (np.ascontiguousarray(..., float64)). Outputs are
+new numpy arrays the library writes into. Every failure raises svpsf.Error (DoubtfulError for
+a result the library cannot vouch for) carrying the library's own message (svp_last_error()).
+The calls release the GIL. The tutorial is docs/python.md.
+"""
+import os
+from collections import namedtuple
+
+import numpy as np
+
+from ._lib import HEADER, LIBRARY, ffi, lib
+
+__all__ = [
+    "Error", "DoubtfulError", "version", "fftw_version", "set_threads", "get_threads",
+    "set_fft_effort", "wisdom_load", "wisdom_save", "read_image", "write_image", "PSF", "PSFMap",
+    "read_psf", "Blur", "forward", "correct", "deconvolve", "fit_psf", "map_psf", "fit_odmr",
+    "SpotFit", "LIBRARY", "HEADER",
+]
+
+# ---- errors ---------------------------------------------------------------------------------
+
+
+class Error(Exception):
+    """A libsvpsf failure: .status (the svp_status code), .reason (its short text), .message
+    (svp_last_error(): names the input at fault)."""
+
+    def __init__(self, status, message):
+        self.status = int(status)
+        self.reason = ffi.string(lib.svp_status_string(status)).decode()
+        self.message = message
+        super().__init__(message or self.reason)
+
+
+class DoubtfulError(Error):
+    """SVP_ERR_DOUBTFUL: the computation ran but its result cannot be vouched for; the message
+    says what to change (docs/cli.md, exit status 3)."""
+
+
+def _check(status):
+    if status != lib.SVP_OK:
+        message = ffi.string(lib.svp_last_error()).decode("utf-8", "replace")
+        cls = DoubtfulError if status == lib.SVP_ERR_DOUBTFUL else Error
+        raise cls(status, message)
+
+
+def _text(p):
+    return ffi.string(p).decode("utf-8", "replace") if p != ffi.NULL else ""
+
+
+def _path(p):
+    return os.fsencode(os.fspath(p))
+
+
+# ---- versions, threads, FFT planning ----------------------------------------------------------
+
+
+def version():
+    """The library's version ("0.1.0")."""
+    return _text(lib.svp_version())
+
+
+def fftw_version():
+    return _text(lib.svp_fftw_version())
+
+
+def set_threads(n):
+    """Threads of the library's FFTs and loops (default: all cores OpenMP reports)."""
+    lib.svp_set_threads(int(n))
+
+
+def get_threads():
+    return lib.svp_get_threads()
+
+
+def set_fft_effort(effort):
+    """'measure' (the default: slower first plan per size, faster FFTs) or 'estimate' (no
+    timing: the same plan in every process, so results repeat bit for bit across runs)."""
+    values = {"estimate": lib.SVP_FFT_ESTIMATE, "measure": lib.SVP_FFT_MEASURE}
+    if effort not in values:
+        raise ValueError("fft effort %r: 'estimate' or 'measure'" % (effort,))
+    lib.svp_set_fft_effort(values[effort])
+
+
+def wisdom_load(path):
+    _check(lib.svp_fft_wisdom_load(_path(path)))
+
+
+def wisdom_save(path):
+    _check(lib.svp_fft_wisdom_save(_path(path)))
+
+
+# ---- images -----------------------------------------------------------------------------------
+
+
+def _input(array, name):
+    """A C-contiguous float64 2-D array: the array itself when it already is one."""
+    a = np.asarray(array, dtype=np.float64)
+    if a.ndim != 2:
+        raise ValueError("%s: a 2-D image is needed, got an array of shape %s" % (name, a.shape))
+    if a.shape[0] < 1 or a.shape[1] < 1:
+        raise ValueError("%s: the image is empty (shape %s)" % (name, a.shape))
+    if not a.flags.c_contiguous:
+        a = np.ascontiguousarray(a)
+    return a
+
+
+class _Images:
+    """svp_image structs viewing numpy arrays (no copy); keeps the arrays alive."""
+
+    def __init__(self):
+        self._keep = []
+
+    def view(self, a):
+        img = ffi.new("svp_image *")
+        img.height, img.width = a.shape
+        buf = ffi.from_buffer("double[]", a, require_writable=False)
+        img.data = buf
+        self._keep.append((a, buf, img))
+        return img
+
+    def out(self, shape):
+        a = np.empty(shape, dtype=np.float64)
+        return a, self.view(a)
+
+    def array(self, imgs):
+        arr = ffi.new("svp_image *[]", len(imgs))
+        for i, img in enumerate(imgs):
+            arr[i] = img
+        self._keep.append(arr)
+        return arr
+
+
+def _owned_array(img):
+    """A numpy array over an image the library allocated, freed with the array (no copy)."""
+    h, w = img.height, img.width
+    data = ffi.gc(ffi.cast("double *", img.data), lambda _p, img=img: lib.svp_image_free(img))
+    return np.frombuffer(ffi.buffer(data, 8 * w * h), dtype=np.float64).reshape(h, w)
+
+
+def read_image(path):
+    """Reads an image file as svpsf reads it (TIFF, PNG, .npy, numpy.savetxt text: the
+    extension decides; docs/cli.md §Input files)."""
+    out = ffi.new("svp_image **")
+    _check(lib.svp_image_read(_path(path), out))
+    return _owned_array(out[0])
+
+
+_FORMATS = {"auto": 0, "tif": 1, "tiff": 1, "npy": 2, "txt": 3, "png": 4}
+
+
+def write_image(path, image, format="auto", overwrite=False):
+    """Writes atomically; an existing file is an error unless overwrite. format: 'auto' (from
+    the extension), 'tif' (float32), 'npy' (float64), 'txt' (%.17g), 'png' (16-bit figure)."""
+    if format not in _FORMATS:
+        raise ValueError("format %r: one of %s" % (format, ", ".join(_FORMATS)))
+    imgs = _Images()
+    img = imgs.view(_input(image, "image"))
+    _check(lib.svp_image_write(_path(path), img, _FORMATS[format], int(bool(overwrite))))
+
+
+# ---- PSF models and files ---------------------------------------------------------------------
+
+_MODELS = {"gaussian": 0, "lorentzian": 1, "moffat": 2}
+_MODEL_NAMES = {v: k for k, v in _MODELS.items()}
+_BOUNDARIES = {"zero": 0, "mirror": 1, "periodic": 2}
+_BOUNDARY_NAMES = {v: k for k, v in _BOUNDARIES.items()}
+
+
+class PSF:
+    """A PSF model (lengths in pixels; docs/model.md §5): Gaussian, Lorentzian or Moffat, with
+    an optional ellipticity, halo fraction and support radius."""
+
+    _FIELDS = ("fwhm", "fwhm_minor", "angle", "beta", "halo", "support", "subsample")
+
+    def __init__(self, model="gaussian", fwhm=2.0, beta=None, fwhm_minor=0.0, angle=0.0,
+                 halo=0.0, support=0.0, subsample=0):
+        if model not in _MODELS:
+            raise ValueError("PSF model %r: one of %s" % (model, ", ".join(_MODELS)))
+        c = ffi.new("svp_psf *")
+        lib.svp_psf_defaults(c)
+        c.model = _MODELS[model]
+        c.fwhm, c.fwhm_minor, c.angle = fwhm, fwhm_minor, angle
+        if beta is not None:
+            c.beta = beta
+        elif model == "lorentzian":
+            c.beta = 1.0
+        c.halo, c.support, c.subsample = halo, support, subsample
+        _check(lib.svp_psf_validate(c))
+        self._c = c
+
+    @classmethod
+    def _wrap(cls, c):
+        self = cls.__new__(cls)
+        self._c = ffi.new("svp_psf *", c[0])  # c: an svp_psf * (copied)
+        return self
+
+    @property
+    def model(self):
+        return _MODEL_NAMES[self._c.model]
+
+    def __getattr__(self, name):
+        if name in PSF._FIELDS:
+            return getattr(self._c, name)
+        raise AttributeError(name)
+
+    def __repr__(self):
+        parts = ["model=%r" % self.model, "fwhm=%g" % self.fwhm]
+        if self.model == "moffat":
+            parts.append("beta=%g" % self.beta)
+        for k in ("fwhm_minor", "angle", "halo", "support", "subsample"):
+            if getattr(self, k):
+                parts.append("%s=%g" % (k, getattr(self, k)))
+        return "PSF(" + ", ".join(parts) + ")"
+
+    def render(self, rx, ry=None):
+        """The core kernel on a (2 ry + 1, 2 rx + 1) grid centred on its middle pixel,
+        normalised to unit sum (no halo): svp_psf_render."""
+        out = ffi.new("svp_image **")
+        _check(lib.svp_psf_render(self._c, int(rx), int(rx if ry is None else ry), out))
+        return _owned_array(out[0])
+
+    def profile(self, dx, dy):
+        """Un-normalised profile (peak 1) at offset (dx, dy) pixels."""
+        return lib.svp_psf_profile(self._c, dx, dy)
+
+    def encircled_energy(self, r, R=0.0):
+        return lib.svp_psf_encircled_energy(self._c, r, R)
+
+    def encircled_radius(self, fraction, R=0.0):
+        out = ffi.new("double *")
+        _check(lib.svp_psf_encircled_radius(self._c, fraction, R, out))
+        return out[0]
+
+
+class PSFMap:
+    """A space-variant PSF field (docs/cli.md §PSF-map files): read_psf() of a map file,
+    map_psf(), or PSFMap.uniform()."""
+
+    _KINDS = {0: "uniform", 1: "grid", 2: "poly", 3: "regions"}
+
+    def __init__(self, ptr):
+        self._ptr = ffi.gc(ptr, lib.svp_psf_field_free)
+
+    @classmethod
+    def uniform(cls, psf, width=0, height=0):
+        out = ffi.new("svp_psf_field **")
+        _check(lib.svp_psf_field_new_uniform(psf._c, width, height, out))
+        return cls(out[0])
+
+    @property
+    def kind(self):
+        return self._KINDS[lib.svp_psf_field_get_kind(self._ptr)]
+
+    @property
+    def shape(self):
+        """(height, width) of the image the map is for ((0, 0): any size)."""
+        return (lib.svp_psf_field_height(self._ptr), lib.svp_psf_field_width(self._ptr))
+
+    def at(self, x, y):
+        """The local PSF at pixel position (x, y)."""
+        c = ffi.new("svp_psf *")
+        _check(lib.svp_psf_field_at(self._ptr, x, y, c))
+        return PSF._wrap(c)
+
+    def params_at(self, x, y):
+        """The parameter vector (fwhm, e1, e2, beta, halo) at (x, y)."""
+        p = ffi.new("double[5]")
+        _check(lib.svp_psf_field_params_at(self._ptr, x, y, p))
+        return tuple(p)
+
+    def write(self, path, pixel_um, provenance=None, overwrite=False):
+        """Writes the map file (atomically; svp_psf_field_write)."""
+        prov = provenance.encode() if provenance is not None else ffi.NULL
+        _check(lib.svp_psf_field_write(_path(path), self._ptr, pixel_um, prov,
+                                       int(bool(overwrite))))
+
+    def __repr__(self):
+        return "PSFMap(kind=%r, shape=%s)" % (self.kind, self.shape)
+
+
+PSFFile = namedtuple("PSFFile", "psf pixel_um boundary")
+PSFFile.__doc__ = """read_psf()'s result: psf is a PSF, a PSFMap or a kernel image (ndarray);
+pixel_um the file's pixel size (None for a kernel image); boundary the file's boundary or
+None."""
+
+
+def read_psf(path):
+    """Reads what `svpsf forward/correct --psf FILE` reads, with the same rules: a YAML PSF
+    file (-> PSF, its pixel size and boundary), a PSF-map file (kind uniform -> PSF; grid,
+    poly, regions -> PSFMap) or a kernel image (-> ndarray, normalised by Blur)."""
+    p = os.fspath(path)
+    if not p.lower().endswith((".yaml", ".yml")):
+        return PSFFile(read_image(p), None, None)
+    field = ffi.new("svp_psf_field **")
+    pixel = ffi.new("double *")
+    _check(lib.svp_psf_field_read(_path(p), field, pixel))
+    fmap = PSFMap(field[0])
+    if fmap.kind != "uniform":
+        return PSFFile(fmap, pixel[0], None)
+    # one PSF: a plain PSF file (which may name a boundary) or a map of kind uniform
+    c = ffi.new("svp_psf *")
+    lib.svp_psf_defaults(c)
+    boundary = ffi.new("int *", -1)  # stays -1 when the file names no boundary
+    if lib.svp_psf_file_read(_path(p), c, pixel, ffi.cast("svp_boundary *", boundary)) == 0:
+        b = _BOUNDARY_NAMES.get(boundary[0])
+        return PSFFile(PSF._wrap(c), pixel[0], b)
+    return PSFFile(fmap.at(0, 0), pixel[0], None)
+
+
+# ---- blur operators ---------------------------------------------------------------------------
+
+
+def _boundary(name):
+    if name not in _BOUNDARIES:
+        raise ValueError("boundary %r: one of zero, mirror, periodic" % (name,))
+    return _BOUNDARIES[name]
+
+
+class Blur:
+    """The blur operator H for an image shape (height, width): svp_blur_new (a PSF),
+    svp_blur_new_kernel (a kernel image, normalised, centre at (w // 2, h // 2)) or
+    svp_blur_new_field (a PSFMap: tent nodes, or rank R eigen-PSFs on the nodes grid, as
+    `--nodes`/`--rank`). psf may also be a file name (read_psf); boundary None = the file's,
+    else 'zero'. Building it plans the FFTs once: reuse it for many images of one size. One
+    Blur must not be used from two threads at once."""
+
+    def __init__(self, psf, shape, boundary=None, nodes=(8, 8), rank=None):
+        if isinstance(psf, (str, bytes, os.PathLike)):
+            f = read_psf(psf)
+            psf = f.psf
+            if boundary is None:
+                boundary = f.boundary
+        boundary = boundary or "zero"
+        h, w = (int(shape[0]), int(shape[1]))
+        out = ffi.new("svp_blur **")
+        if isinstance(psf, PSF):
+            _check(lib.svp_blur_new(psf._c, w, h, _boundary(boundary), out))
+        elif isinstance(psf, PSFMap):
+            v = ffi.new("svp_variant_options *")
+            lib.svp_variant_defaults(v)
+            nx, ny = (nodes, nodes) if np.isscalar(nodes) else nodes
+            v.grid_x = v.samples_x = int(nx)
+            v.grid_y = v.samples_y = int(ny)
+            if rank is not None:
+                v.representation = lib.SVP_VARIANT_LOWRANK
+                v.rank = int(rank)
+            _check(lib.svp_blur_new_field(psf._ptr, w, h, _boundary(boundary), v, out))
+        else:
+            imgs = _Images()
+            k = imgs.view(_input(psf, "psf kernel"))
+            _check(lib.svp_blur_new_kernel(k, -1, -1, 1, w, h, _boundary(boundary), out))
+        self._ptr = ffi.gc(out[0], lib.svp_blur_free)
+        self.shape = (h, w)
+        self.boundary = boundary
+
+    @property
+    def memory(self):
+        return lib.svp_blur_memory(self._ptr)
+
+    @property
+    def is_variant(self):
+        return bool(lib.svp_blur_is_variant(self._ptr))
+
+    def _apply(self, fn, x, out):
+        imgs = _Images()
+        x = _input(x, "image")
+        if x.shape != self.shape:
+            raise ValueError("the Blur is for images of shape %s, the image is %s"
+                             % (self.shape, x.shape))
+        if out is None:
+            out, oi = imgs.out(self.shape)
+        else:
+            if not (isinstance(out, np.ndarray) and out.dtype == np.float64 and
+                    out.flags.c_contiguous and out.flags.writeable and out.shape == self.shape):
+                raise ValueError("out: a writable C-contiguous float64 array of shape %s is "
+                                 "needed" % (self.shape,))
+            if np.shares_memory(out, x):
+                raise ValueError("out must not share memory with the input")
+            oi = imgs.view(out)
+        _check(fn(self._ptr, imgs.view(x), oi))
+        return out
+
+    def apply(self, x, out=None):
+        """H x."""
+        return self._apply(lib.svp_blur_apply, x, out)
+
+    def adjoint(self, y, out=None):
+        """Hᵀ y."""
+        return self._apply(lib.svp_blur_adjoint, y, out)
+
+
+def _blur_for(psf, shape, boundary, nodes, rank):
+    if isinstance(psf, Blur):
+        if psf.shape != tuple(shape):
+            raise ValueError("the Blur is for images of shape %s, the inputs are %s"
+                             % (psf.shape, tuple(shape)))
+        return psf
+    return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank)
+
+
+def _fields(fields, name):
+    """A single 2-D map or a sequence of them -> (list of arrays, was a single map)."""
+    if isinstance(fields, np.ndarray) and fields.ndim == 2:
+        return [_input(fields, name)], True
+    out = [_input(f, "%s[%d]" % (name, i)) for i, f in enumerate(fields)]
+    if not out:
+        raise ValueError("%s: at least one field map is needed" % name)
+    return out, False
+
+
+def _same_shape(arrays, names):
+    shape = arrays[0].shape
+    for a, n in zip(arrays[1:], names[1:]):
+        if a.shape != shape:
+            raise ValueError("size mismatch: %s is %d x %d (width x height) but %s is %d x %d"
+                             % (n, a.shape[1], a.shape[0], names[0], shape[1], shape[0]))
+
+
+# ---- T and T⁻¹ -------------------------------------------------------------------------------
+
+ForwardResult = namedtuple("ForwardResult", "pl fields validity")
+
+
+def forward(pl, fields, psf, boundary=None, nodes=(8, 8), rank=None):
+    """The forward transform T (eq. 3 of docs/model.md): what a blurred measurement of the true
+    PL and field map(s) reports; `svpsf forward`. fields: one 2-D map or a list. psf: a PSF,
+    PSFMap, kernel image, file name or a Blur of the maps' shape. Returns (pl, fields,
+    validity), fields shaped as given (one map or a list)."""
+    pl = _input(pl, "pl")
+    fl, single = _fields(fields, "field")
+    _same_shape([pl] + fl, ["pl"] + ["field[%d]" % i for i in range(len(fl))])
+    blur = _blur_for(psf, pl.shape, boundary, nodes, rank)
+    imgs = _Images()
+    pl_out, pl_oi = imgs.out(pl.shape)
+    outs = [imgs.out(pl.shape) for _ in fl]
+    val, val_i = imgs.out(pl.shape)
+    _check(lib.svp_forward_transform(blur._ptr, imgs.view(pl), imgs.array([imgs.view(f) for f in fl]),
+                                     len(fl), pl_oi, imgs.array([o[1] for o in outs]), val_i))
+    f_out = [o[0] for o in outs]
+    return ForwardResult(pl_out, f_out[0] if single else f_out, val)
+
+
+CorrectResult = namedtuple("CorrectResult", "pl fields validity n_missing summary reports")
+
+_METHODS = {"rw": 0, "r": 1, "w": 2, "rl-signed": 3}
+_ACCELERATIONS = {"none": 0, "biggs-andrews": 1}
+_STOPS = {0: "count", 1: "discrepancy", 2: "stalled", 3: "cap"}
+
+
+def _report(r):
+    return {"wiener": bool(r.wiener), "balance": r.balance, "noise_sigma": r.noise_sigma,
+            "cg_steps": r.cg_steps, "cg_residual": r.cg_residual, "cg_capped": bool(r.cg_capped),
+            "balance_at_bound": r.balance_at_bound, "iterations": r.iterations, "chi2": r.chi2,
+            "stop": _STOPS.get(r.stop, r.stop)}
+
+
+def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=None,
+            pl_floor=None, shift=None, cg_max_steps=None, precision="double",
+            acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
+            keep_doubtful=False, plausible_factor=None, boundary=None, nodes=(8, 8), rank=None,
+            field_names=None):
+    """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
+    with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
+    iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
+    'double' | 'single'; acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
+    PSF, zero boundary); gain, offset of the PL's camera; field_sigma one σ map per field.
+    None = the library's default (svp_correct_defaults: the program's defaults). psf as for
+    forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
+    (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
+    deconvolution ([0] the PL's, [1 + c] field c's numerator). Raises DoubtfulError (the
+    message says why) unless keep_doubtful."""
+    pl = _input(pl, "pl")
+    fl, single = _fields(fields, "field")
+    _same_shape([pl] + fl, ["pl"] + ["field[%d]" % i for i in range(len(fl))])
+    if method is not None and method not in _METHODS:
+        raise ValueError("method %r: one of %s" % (method, ", ".join(_METHODS)))
+    if acceleration is not None and acceleration not in _ACCELERATIONS:
+        raise ValueError("acceleration %r: none or biggs-andrews" % (acceleration,))
+    if precision not in ("double", "single"):
+        raise ValueError("precision %r: double or single" % (precision,))
+    opt = ffi.new("svp_correct_options *")
+    lib.svp_correct_defaults(opt)
+    if method is not None:
+        opt.method = _METHODS[method]
+    if iterations == "auto":
+        opt.auto_iterations = 1
+    elif iterations is not None:
+        opt.deconv.iterations = int(iterations)
+    if balance == "auto":
+        opt.balance_auto = 1
+    elif balance is not None:
+        opt.deconv.balance = float(balance)
+    for name, value in (("noise_sigma", noise), ("pl_floor", pl_floor), ("shift", shift),
+                        ("pl_gain", gain), ("pl_offset", offset),
+                        ("plausible_factor", plausible_factor)):
+        if value is not None:
+            setattr(opt, name, float(value))
+    if cg_max_steps is not None:
+        opt.deconv.cg_max_steps = int(cg_max_steps)
+    opt.deconv.single_precision = int(precision == "single")
+    if acceleration is not None:
+        opt.deconv.acceleration = _ACCELERATIONS[acceleration]
+    if margin is not None:
+        opt.margin = int(margin)
+    opt.keep_doubtful = int(bool(keep_doubtful))
+    imgs = _Images()
+    if field_sigma is not None:
+        sl, _ = _fields(field_sigma, "field_sigma")
+        if len(sl) != len(fl):
+            raise ValueError("field_sigma: %d maps for %d field maps" % (len(sl), len(fl)))
+        _same_shape([pl] + sl, ["pl"] + ["field_sigma[%d]" % i for i in range(len(sl))])
+        opt.field_sigma = imgs.array([imgs.view(s) for s in sl])
+    if field_names is not None:
+        names = [ffi.new("char[]", os.fsencode(n)) for n in field_names]
+        if len(names) != len(fl):
+            raise ValueError("field_names: %d names for %d field maps" % (len(names), len(fl)))
+        name_array = ffi.new("char *[]", names)
+        imgs._keep += [names, name_array]
+        opt.field_names = name_array
+    summary = ffi.new("svp_correct_summary *")
+    reports = ffi.new("svp_deconv_report[]", len(fl) + 1)
+    opt.summary = summary
+    opt.reports = reports
+    h, w = pl.shape
+    blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank)
+    pl_out, pl_oi = imgs.out(pl.shape)
+    outs = [imgs.out(pl.shape) for _ in fl]
+    val, val_i = imgs.out(pl.shape)
+    n_missing = ffi.new("size_t *")
+    _check(lib.svp_inverse_transform(blur._ptr, imgs.view(pl),
+                                     imgs.array([imgs.view(f) for f in fl]), len(fl), opt,
+                                     pl_oi, imgs.array([o[1] for o in outs]), val_i, n_missing))
+    s = summary
+    summ = {"doubts": s.doubts, "n_implausible": s.n_implausible,
+            "spread_ratio": s.spread_ratio, "pl_gain": s.pl_gain,
+            "pl_gain_offset": s.pl_gain_offset, "shift": [s.shift[i] for i in range(min(16, len(fl)))],
+            "rl_iterations": s.rl_iterations, "rl_stop": _STOPS.get(s.rl_stop, s.rl_stop),
+            "rl_chi2": s.rl_chi2}
+    f_out = [o[0] for o in outs]
+    return CorrectResult(pl_out, f_out[0] if single else f_out, val, int(n_missing[0]), summ,
+                         [_report(reports[i]) for i in range(len(fl) + 1)])
+
+
+def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=50,
+               precision="double", cg_max_steps=400, boundary=None, nodes=(8, 8), rank=None):
+    """One image ⊘ one PSF: Wiener–Hunt ('wiener'; balance λ or 'auto' by the discrepancy
+    principle, noise σ or 0 = estimated) or Richardson–Lucy ('rl'); `svpsf deconvolve`.
+    Returns (x, report): the deconvolved image and a dict of what was done."""
+    y = _input(image, "image")
+    if method not in ("wiener", "rl"):
+        raise ValueError("method %r: wiener or rl" % (method,))
+    blur = _blur_for(psf, y.shape, boundary, nodes, rank)
+    opt = ffi.new("svp_deconv_options *")
+    lib.svp_deconv_defaults(opt)
+    opt.iterations = int(iterations)
+    opt.cg_max_steps = int(cg_max_steps)
+    opt.single_precision = int(precision == "single")
+    report = ffi.new("svp_deconv_report *")
+    opt.report = report
+    imgs = _Images()
+    yi = imgs.view(y)
+    x, xi = imgs.out(y.shape)
+    if method == "wiener":
+        if balance == "auto":
+            lam = ffi.new("double *")
+            used = ffi.new("double *")
+            _check(lib.svp_wiener_balance_discrepancy(blur._ptr, yi, noise, lam, used))
+            opt.balance = lam[0]
+        else:
+            opt.balance = float(balance)
+        _check(lib.svp_deconv_wiener(blur._ptr, yi, opt, xi))
+    else:
+        _check(lib.svp_deconv_rl(blur._ptr, yi, opt, xi))
+    rep = _report(report[0])
+    if method == "wiener":
+        rep["balance"] = opt.balance
+        if balance == "auto":
+            rep["noise_sigma"] = used[0]
+            # an automatic choice on an end of its search [1e-12, 1e2] cannot be vouched for
+            # (`svpsf deconvolve` exits 3 on it): -1 lower end, +1 upper end, else 0 (the
+            # bisection ends within a factor 1.002 of a crossing; 1.01 tells an end from it)
+            rep["balance_at_bound"] = -1 if opt.balance <= 1.01e-12 else (
+                1 if opt.balance >= 1e2 / 1.01 else 0)
+    return x, rep
+
+
+# ---- PSF fits and maps ------------------------------------------------------------------------
+
+
+class SpotFit:
+    """One spot fit (svp_spot_result): attributes amplitude, x0, y0, fwhm, fwhm_major,
+    fwhm_minor, angle, e1, e2, beta, r0, background (each with _err), ee50, ee80, ee95, chi2,
+    chi2_red, dof, iterations, n_used, flags; lengths in pixels. .psf() is the fitted PSF;
+    .flags_text the flags in words."""
+
+    def __init__(self, c):
+        self._c = c
+
+    def __getattr__(self, name):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        try:
+            v = getattr(self._c, name)
+        except AttributeError:
+            raise AttributeError(name) from None
+        if name == "model":
+            return _MODEL_NAMES[v]
+        if isinstance(v, ffi.CData):
+            return list(v)
+        return v
+
+    @property
+    def flags_text(self):
+        buf = ffi.new("char[512]")
+        lib.svp_spot_flags_describe(self._c.flags, buf, 512)
+        return _text(buf)
+
+    def psf(self):
+        c = ffi.new("svp_psf *")
+        lib.svp_spot_result_psf(self._c, c)
+        return PSF._wrap(c)
+
+    def as_dict(self):
+        names = [f for f, _ in ffi.typeof("svp_spot_result").fields if f != "covariance"]
+        return {n: getattr(self, n) for n in names}
+
+    def __repr__(self):
+        return "SpotFit(model=%r, fwhm=%.4g±%.2g px, beta=%.4g, flags=%r)" % (
+            self.model, self.fwhm, self.fwhm_err, self.beta, self.flags_text)
+
+
+PairFit = namedtuple("PairFit", "excitation direct deconvolved offset deconvolved_ok image")
+
+
+def _spot_options(o, model, elliptical, fix_beta, gain, sigma_bg, saturation, max_iterations,
+                  refuse_border):
+    if model not in _MODELS:
+        raise ValueError("model %r: one of %s" % (model, ", ".join(_MODELS)))
+    o.model = _MODELS[model]
+    o.elliptical = int(bool(elliptical))
+    if fix_beta is not None:
+        if model != "moffat":
+            raise ValueError("fix_beta applies to the moffat model only")
+        o.beta, o.fix_beta = fix_beta, 1
+    o.noise.gain = gain
+    o.noise.sigma_bg = sigma_bg
+    o.saturation = saturation
+    o.lm.max_iterations = int(max_iterations)
+    o.refuse_near_border = int(bool(refuse_border))
+
+
+def fit_psf(spot, model="moffat", elliptical=True, fix_beta=None, gain=1.0, sigma_bg=0.0,
+            saturation=0.0, max_iterations=200, refuse_border=False, excitation=None,
+            iterations=75):
+    """Fits a PSF to a spot image (svp_spot_fit; `svpsf fit-psf` with the same defaults:
+    photon counts, gain 1). With excitation (an image of the excitation spot, the same size)
+    the pair method (svp_psf_from_pair): returns PairFit(excitation, direct, deconvolved,
+    offset, deconvolved_ok, image). A fit that does not converge raises Error (status
+    numeric) with the library's message."""
+    s = _input(spot, "spot")
+    imgs = _Images()
+    if excitation is None:
+        o = ffi.new("svp_spot_options *")
+        lib.svp_spot_defaults(o)
+        _spot_options(o, model, elliptical, fix_beta, gain, sigma_bg, saturation,
+                      max_iterations, refuse_border)
+        r = ffi.new("svp_spot_result *")
+        _check(lib.svp_spot_fit(imgs.view(s), o, r, ffi.NULL, ffi.NULL))
+        return SpotFit(r)
+    e = _input(excitation, "excitation")
+    _same_shape([s, e], ["spot", "excitation"])
+    po = ffi.new("svp_pair_options *")
+    lib.svp_pair_defaults(po)
+    _spot_options(po.spot, model, elliptical, fix_beta, gain, sigma_bg, saturation,
+                  max_iterations, refuse_border)
+    po.iterations = int(iterations)
+    pr = ffi.new("svp_pair_result *")
+    dec, dec_i = imgs.out(s.shape)
+    _check(lib.svp_psf_from_pair(imgs.view(e), imgs.view(s), po, pr, dec_i))
+
+    def part(name):
+        c = ffi.new("svp_spot_result *")
+        c[0] = getattr(pr, name)
+        return SpotFit(c)
+
+    return PairFit(part("excitation"), part("direct"), part("deconvolved"),
+                   (pr.offset_x, pr.offset_y), bool(pr.deconvolved_ok), dec)
+
+
+_PARAMS = ("fwhm", "e1", "e2", "beta", "halo")
+_REJECT = {0: "kept", 1: "flags", 2: "invalid", 3: "outside", 4: "outlier"}
+
+
+def map_psf(samples, shape, labels=None, degree="auto", max_degree=3, folds=5,
+            clip_kappa=4.0, alpha=0.01, transition=0.0, halo=0.0, support=0.0):
+    """A PSF map from spot fits (`svpsf map-psf`): samples is a sequence of (x, y, SpotFit),
+    (x, y) the spot's centre in the field (pixels); shape (height, width) of the field.
+    Without labels: polynomial surfaces (degree 'auto' = cross-validated up to max_degree);
+    with labels (an integer image 0..L-1 of the field's shape): per-region means, regions that
+    do not differ merged (Welch tests at alpha), blended over `transition` pixels. Returns
+    (PSFMap, report dict)."""
+    samples = list(samples)
+    n = len(samples)
+    h, w = int(shape[0]), int(shape[1])
+    cs = ffi.new("svp_psf_sample[]", max(n, 1))
+    for i, (x, y, fit) in enumerate(samples):
+        cs[i].x, cs[i].y = x, y
+        cs[i].fit = fit._c[0]
+    mo = ffi.new("svp_map_options *")
+    lib.svp_map_defaults(mo)
+    mo.degree = -1 if degree == "auto" else int(degree)
+    mo.max_degree = int(max_degree)
+    mo.folds = int(folds)
+    mo.clip_kappa = clip_kappa
+    mo.alpha = alpha
+    mo.transition = transition
+    mo.halo = halo
+    mo.support = support
+    field = ffi.new("svp_psf_field **")
+    rep = ffi.new("svp_map_report **")
+    if labels is None:
+        _check(lib.svp_psf_map_poly(cs, n, w, h, mo, field, rep))
+    else:
+        lab = np.ascontiguousarray(labels, dtype=np.intc)
+        if lab.shape != (h, w):
+            raise ValueError("labels: shape %s, the field is %s" % (lab.shape, (h, w)))
+        n_labels = int(lab.max()) + 1 if lab.size else 0
+        _check(lib.svp_psf_map_regions(cs, n, ffi.from_buffer("int[]", lab), w, h, n_labels,
+                                       mo, field, rep))
+    fmap = PSFMap(field[0])
+    r = rep[0]
+    try:
+        report = {"n_samples": r.n_samples,
+                  "mapped": {p: bool(r.mapped[q]) for q, p in enumerate(_PARAMS)},
+                  "rejections": [{p: _REJECT.get(r.reject[i * 5 + q], r.reject[i * 5 + q])
+                                  for q, p in enumerate(_PARAMS)} for i in range(r.n_samples)]}
+        if labels is None:
+            report["degree"] = {p: r.degree[q] for q, p in enumerate(_PARAMS)}
+            report["rms"] = {p: r.rms[q] for q, p in enumerate(_PARAMS)}
+            report["n_used"] = {p: r.n_used[q] for q, p in enumerate(_PARAMS)}
+        else:
+            report["n_regions"] = r.n_regions
+            report["n_groups"] = r.n_groups
+            report["regions"] = [{"label": g.label, "count": g.count, "group": g.group,
+                                  "mean": dict(zip(_PARAMS, list(g.mean)))}
+                                 for g in (r.regions[i] for i in range(r.n_regions))]
+    finally:
+        lib.svp_map_report_free(r)
+    return fmap, report
+
+
+# ---- ODMR stacks ------------------------------------------------------------------------------
+
+OdmrFit = namedtuple("OdmrFit", "field contrast baseline linewidth n_failed")
+
+
+def fit_odmr(stack, frequencies, zero_field_hz=2.870e9, gamma_hz_per_t=28.033e9,
+             linewidth_hz=1e6, max_iterations=None):
+    """Per-pixel Lorentzian fits of an ODMR stack (svp_odmr_fit): stack of shape (n_freq,
+    height, width), one frame per frequency (Hz, strictly increasing). The frames are handed
+    to the library in place (a C-contiguous float64 stack is not copied). Returns (field |B|
+    in T, contrast, baseline, linewidth in Hz, n_failed)."""
+    st = np.asarray(stack, dtype=np.float64)
+    if st.ndim != 3:
+        raise ValueError("stack: shape (n_freq, height, width) needed, got %s" % (st.shape,))
+    if not st.flags.c_contiguous:
+        st = np.ascontiguousarray(st)
+    fr = np.ascontiguousarray(frequencies, dtype=np.float64)
+    nf, h, w = st.shape
+    if fr.shape != (nf,):
+        raise ValueError("frequencies: %d values for a stack of %d frames" % (fr.size, nf))
+    imgs = _Images()
+    frames = [imgs.view(st[i]) for i in range(nf)]
+    cube = ffi.new("svp_cube *")
+    cube.width, cube.height, cube.n_freq = w, h, nf
+    fbuf = ffi.from_buffer("double[]", fr)
+    cube.freq = fbuf
+    cube.frame = imgs.array(frames)
+    odmr = ffi.new("svp_odmr *")
+    lib.svp_odmr_defaults(odmr)
+    odmr.zero_field_hz, odmr.gamma_hz_per_t, odmr.linewidth_hz = (zero_field_hz, gamma_hz_per_t,
+                                                                    linewidth_hz)
+    opt = ffi.new("svp_odmr_fit_options *")
+    lib.svp_odmr_fit_defaults(opt)
+    if max_iterations is not None:
+        opt.lm.max_iterations = int(max_iterations)
+    outs = [imgs.out((h, w)) for _ in range(4)]
+    n_failed = ffi.new("size_t *")
+    _check(lib.svp_odmr_fit(odmr, cube, opt, outs[0][1], outs[1][1], outs[2][1], outs[3][1],
+                            n_failed))
+    return OdmrFit(outs[0][0], outs[1][0], outs[2][0], outs[3][0], int(n_failed[0]))

@@ -1,0 +1,295 @@
+"""The svpsf package against the svpsf program on the same inputs, its errors and its memory.
+
+Equality with the CLI is bit for bit (np.array_equal on float64 .npy outputs): the same library
+calls on the same data with the same (FFTW_ESTIMATE) plans and thread count."""
+import json
+import os
+import tracemalloc
+
+import numpy as np
+import pytest
+
+import svpsf
+from svpsf._lib import ffi
+
+MOFFAT = "pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.61, beta: 1.5, halo: 0.02}\n"
+GRID = ("pixel_um: 0.1\nimage: {width: 80, height: 96}\nmodel: moffat\nkind: grid\n"
+        "nodes: {nx: 2, ny: 2}\nnode_psfs:\n  - {fwhm_um: 0.5, beta: 3.0}\n"
+        "  - {fwhm_um: 0.8, beta: 1.5}\n  - {fwhm_um: 0.6, beta: 2.5}\n"
+        "  - {fwhm_um: 1.0, beta: 1.2, halo: 0.1}\n")
+
+COMMON = ["--fft", "estimate", "--threads", "2", "--format", "npy", "--quiet"]
+
+
+def write(tmp_path, name, content):
+    p = tmp_path / name
+    if isinstance(content, str):
+        p.write_text(content)
+    else:
+        np.save(p, content)
+    return str(p)
+
+
+def test_version_is_the_programs(cli):
+    first = cli("--version").stdout.splitlines()[0]
+    assert first == "svpsf " + svpsf.version()
+
+
+def test_psf_model_matches_cli_render(cli, tmp_path):
+    f = write(tmp_path, "psf.yaml", MOFFAT)
+    cli("psf", f, "--size", "41", "-o", tmp_path / "k.npy", "--quiet")
+    read = svpsf.read_psf(f)
+    assert isinstance(read.psf, svpsf.PSF) and read.pixel_um == 0.1 and read.boundary == "zero"
+    assert read.psf.model == "moffat" and read.psf.fwhm == pytest.approx(6.1)
+    assert np.array_equal(read.psf.render(20), np.load(tmp_path / "k.npy"))
+    # FWHM: the profile is half its peak at r = FWHM / 2
+    assert read.psf.profile(read.psf.fwhm / 2, 0) == pytest.approx(0.5, rel=1e-12)
+
+
+@pytest.mark.parametrize("psf_text, extra", [(MOFFAT, []), (GRID, ["--nodes", "2x2"]),
+                                             (MOFFAT + "boundary: mirror\n", [])])
+def test_forward_equals_cli(cli, tmp_path, maps, psf_text, extra):
+    pl, field = maps
+    pf = write(tmp_path, "psf.yaml", psf_text)
+    cli("forward", "--pl", write(tmp_path, "pl.npy", pl), "--field",
+        write(tmp_path, "B.npy", field), "--psf", pf, "-o", tmp_path / "out", *COMMON, *extra)
+    r = svpsf.forward(pl, field, pf, nodes=(2, 2))
+    assert np.array_equal(r.pl, np.load(tmp_path / "out" / "pl.npy"))
+    assert np.array_equal(r.fields, np.load(tmp_path / "out" / "field.npy"))
+    assert np.array_equal(r.validity, np.load(tmp_path / "out" / "validity.npy"))
+
+
+@pytest.mark.parametrize("args, kwargs", [
+    ([], {}),
+    (["--method", "w", "--balance", "1e-4"], dict(method="w", balance=1e-4)),
+    (["--method", "r", "--iterations", "40"], dict(method="r", iterations=40)),
+    (["--iterations", "auto", "--acceleration", "biggs-andrews", "--keep-doubtful"],
+     dict(iterations="auto", acceleration="biggs-andrews", keep_doubtful=True)),
+])
+def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
+    pl, field = maps
+    pf = write(tmp_path, "psf.yaml", MOFFAT)
+    apparent = svpsf.forward(pl, [field, -0.5 * field], pf)
+    plf = write(tmp_path, "pl_app.npy", apparent.pl)
+    b1 = write(tmp_path, "Bx.npy", apparent.fields[0])
+    b2 = write(tmp_path, "Bz.npy", apparent.fields[1])
+    cli("correct", "--pl", plf, "--field", b1, "--field", b2, "--psf", pf, "-o",
+        tmp_path / "out", *COMMON, *args)
+    r = svpsf.correct(apparent.pl, apparent.fields, pf, **kwargs)
+    out = tmp_path / "out"
+    assert np.array_equal(r.pl, np.load(out / "pl.npy"))
+    assert np.array_equal(r.fields[0], np.load(out / "field_Bx.npy"))
+    assert np.array_equal(r.fields[1], np.load(out / "field_Bz.npy"))
+    assert np.array_equal(r.validity, np.load(out / "validity.npy"))
+    results = json.load(open(out / "summary.json"))["results"]
+    assert r.n_missing == results["n_missing"] == 0
+    assert int(np.count_nonzero(r.validity < 1)) == results["n_flagged"]
+
+
+def test_correct_with_a_psf_map_and_missing_pixels_equals_cli(cli, tmp_path, maps):
+    pl, field = maps
+    pf = write(tmp_path, "map.yaml", GRID)
+    a = svpsf.forward(pl, field, pf, nodes=4)
+    measured = a.fields.copy()
+    measured[40:43, 10:12] = np.nan  # failed fits: missing data
+    cli("correct", "--pl", write(tmp_path, "pl.npy", a.pl), "--field",
+        write(tmp_path, "B.npy", measured), "--psf", pf, "--nodes", "4", "--method", "w",
+        "-o", tmp_path / "out", *COMMON)
+    r = svpsf.correct(a.pl, measured, pf, method="w", nodes=4)
+    assert r.n_missing == 6
+    assert np.array_equal(r.fields, np.load(tmp_path / "out" / "field.npy"))
+    assert np.all(np.isfinite(r.fields))
+
+
+@pytest.mark.parametrize("args, kwargs", [
+    (["--method", "wiener", "--balance", "auto"], dict(method="wiener", balance="auto")),
+    (["--method", "rl", "--iterations", "30"], dict(method="rl", iterations=30)),
+])
+def test_deconvolve_equals_cli(cli, tmp_path, maps, args, kwargs):
+    pl, _ = maps
+    # mirror boundary (the psf file's): with the zero boundary and this PSF the discrepancy
+    # balance ends on its lower bound, which the CLI refuses (exit 3) and Python reports
+    pf = write(tmp_path, "psf.yaml", MOFFAT + "boundary: mirror\n")
+    rng = np.random.default_rng(3)
+    y = svpsf.Blur(pf, pl.shape).apply(pl) + 1e-3 * rng.standard_normal(pl.shape)
+    cli("deconvolve", write(tmp_path, "y.npy", y), "--psf", pf, "-o", tmp_path / "x.npy",
+        *COMMON, *args)
+    x, report = svpsf.deconvolve(y, pf, **kwargs)
+    assert np.array_equal(x, np.load(tmp_path / "x.npy"))
+    if kwargs.get("balance") == "auto":
+        res = json.load(open(tmp_path / "x.summary.json"))["results"]
+        assert report["balance"] == res["balance"]
+        assert report["noise_sigma"] == res["noise_sigma"]
+        assert report["balance_at_bound"] == 0 and "balance_at_bound" not in res
+
+
+def spot_image(psf, shape=(48, 52), centre=(25.3, 22.8), amplitude=4000.0, background=20.0,
+               seed=0):
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.array([[psf.profile(xx - centre[0], yy - centre[1]) for xx in range(w)]
+                    for yy in range(h)]) * amplitude + background
+    return np.random.default_rng(seed).poisson(img).astype(float)
+
+
+def test_fit_psf_equals_cli(cli, tmp_path):
+    truth = svpsf.PSF("moffat", fwhm=6.0, beta=2.5, fwhm_minor=5.0, angle=0.4)
+    spot = spot_image(truth)
+    cli("fit-psf", write(tmp_path, "spot.npy", spot), "--pixel-um", "0.05", "-o",
+        tmp_path / "fit.yaml", "--no-figures", "--quiet")
+    fit = svpsf.fit_psf(spot)
+    res = json.load(open(tmp_path / "fit.summary.json"))["results"]
+    assert fit.fwhm * 0.05 == res["fwhm_um"]
+    assert fit.beta == res["beta"]
+    assert fit.beta_err == res["beta_err"]
+    assert fit.fwhm == pytest.approx(5.5, abs=0.3)  # the truth's mean FWHM, 5.5 px
+    assert fit.flags_text == "ok"
+
+
+def test_map_psf_equals_cli(cli, tmp_path):
+    lines = ["pixel_um: 0.05", "field: {width: 200, height: 160}", "spots:"]
+    samples = []
+    k = 0
+    for oy in (10, 60, 110):
+        for ox in (10, 75, 140):
+            fwhm = 4.5 + 0.01 * ox + 0.008 * oy  # the PSF widens across the field
+            p = svpsf.PSF("moffat", fwhm=fwhm, beta=2.5)
+            spot = spot_image(p, shape=(40, 40), centre=(19.6, 20.2), seed=k)
+            name = "s%02d.npy" % k
+            np.save(tmp_path / name, spot)
+            lines.append("  - {file: %s, origin: [%d, %d]}" % (name, ox, oy))
+            fit = svpsf.fit_psf(spot)
+            samples.append((ox + fit.x0, oy + fit.y0, fit))
+            k += 1
+    (tmp_path / "spots.yaml").write_text("\n".join(lines) + "\n")
+    cli("map-psf", tmp_path / "spots.yaml", "-o", tmp_path / "map.yaml", "--degree", "1",
+        "--quiet")
+    fmap, report = svpsf.map_psf(samples, (160, 200), degree=1)
+    assert fmap.kind == "poly" and report["degree"]["fwhm"] == 1
+    # the same map through the same file writer (lengths in um in the file: both sides read
+    # back through the same conversion)
+    fmap.write(tmp_path / "map_py.yaml", 0.05, provenance="python")
+    cli_map = svpsf.read_psf(tmp_path / "map.yaml").psf
+    py_map = svpsf.read_psf(tmp_path / "map_py.yaml").psf
+    for x, y in ((0, 0), (100, 80), (199, 159)):
+        assert cli_map.params_at(x, y) == py_map.params_at(x, y)
+        assert fmap.params_at(x, y) == pytest.approx(py_map.params_at(x, y), rel=1e-14)
+    # and the fitted surface follows the truth (fwhm 4.5 + 0.01 x + 0.008 y at the cut-out
+    # corner, the spot ~20 px further): within 0.15 px at the centre
+    assert fmap.params_at(95, 80)[0] == pytest.approx(4.5 + 0.01 * 75 + 0.008 * 60, abs=0.15)
+
+
+def test_fit_odmr_recovers_the_field():
+    h, w, nf = 12, 10, 61
+    D, gamma, lw = 2.870e9, 28.033e9, 6e6
+    freq = np.linspace(D - 20e6, D + 20e6, nf)
+    y, x = np.mgrid[0:h, 0:w]
+    b = 1e-4 + 2e-5 * x / w + 1e-5 * y / h  # tesla
+    pl = 1000.0 + 50 * x
+    c = 0.03
+
+    def lor(f0):
+        return (lw / 2) ** 2 / ((freq[:, None, None] - f0) ** 2 + (lw / 2) ** 2)
+
+    stack = pl * (1 - c * (lor(D + gamma * b) + lor(D - gamma * b)))
+    r = svpsf.fit_odmr(stack, freq, linewidth_hz=lw)
+    assert r.n_failed == 0
+    assert np.max(np.abs(r.field - b)) < 1e-9  # noiseless: to the fit's tolerance
+    assert np.max(np.abs(r.contrast - c)) < 1e-6
+    assert np.max(np.abs(r.baseline - pl) / pl) < 1e-6
+
+
+def test_errors_carry_the_library_message(cli, tmp_path, maps):
+    pl, field = maps
+    bad = write(tmp_path, "typo.yaml", "pixel_um: 0.1\npsf: {model: moffat, fwhm_umm: 0.6, "
+                "beta: 1.1}\n")
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.correct(pl, field, bad)
+    assert e.value.status == 3 and e.value.reason == "malformed file"
+    p = cli("correct", "--pl", write(tmp_path, "pl.npy", pl), "--field",
+            write(tmp_path, "B.npy", field), "--psf", bad, "-o", tmp_path / "o", ok=False)
+    assert p.returncode == 1
+    assert p.stderr.strip() == "svpsf correct: " + e.value.message
+    assert "typo.yaml:2:" in e.value.message and "fwhm_umm" in e.value.message
+
+    trunc = tmp_path / "trunc.npy"
+    trunc.write_bytes((tmp_path / "pl.npy").read_bytes()[:300])
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.read_image(trunc)
+    assert "trunc.npy" in e.value.message and "truncated" in e.value.message
+
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.PSF("moffat", fwhm=2, beta=-1)
+    assert e.value.status == 1 and "beta" in e.value.message.lower()
+
+    with pytest.raises(ValueError, match="size mismatch"):
+        svpsf.correct(pl, field[:, :-1], svpsf.PSF())
+
+
+def test_inputs_are_not_copied(maps):
+    pl, field = maps
+    imgs = svpsf._Images()
+    view = imgs.view(svpsf._input(pl, "pl"))
+    assert int(ffi.cast("uintptr_t", view.data)) == pl.ctypes.data  # the array's own memory
+    assert svpsf._input(pl, "pl") is pl
+    # a transposed (Fortran-order) or float32 array is converted once
+    assert svpsf._input(pl.T, "pl").flags.c_contiguous
+    psf = svpsf.PSF("gaussian", fwhm=3)
+    blur = svpsf.Blur(psf, pl.shape)
+    svpsf.correct(pl, field, blur)  # plans made
+    n = pl.nbytes
+    tracemalloc.start()
+    r = svpsf.correct(pl, field, blur)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    # numpy's allocations are traced: the three outputs, and no copy of the two inputs
+    assert 3 * n <= peak < 3 * n + n // 2, peak
+    assert r.pl.flags.owndata and r.fields.flags.c_contiguous
+
+
+def test_read_image_is_the_librarys_buffer(tmp_path, maps):
+    pl, _ = maps
+    np.save(tmp_path / "pl.npy", pl)
+    a = svpsf.read_image(tmp_path / "pl.npy")
+    assert not a.flags.owndata  # a view of the svp_image the library read (freed with it)
+    assert np.array_equal(a, pl)
+    svpsf.write_image(tmp_path / "back.npy", a)
+    assert np.array_equal(np.load(tmp_path / "back.npy"), pl)
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.write_image(tmp_path / "back.npy", a)
+    assert e.value.reason == "output exists"
+
+
+def test_blur_adjoint_and_out(maps):
+    pl, field = maps
+    for psf in (svpsf.PSF("moffat", fwhm=4.0, beta=1.2, halo=0.05),
+                svpsf.PSF("gaussian", fwhm=2.5)):
+        for boundary in ("zero", "mirror", "periodic"):
+            b = svpsf.Blur(psf, pl.shape, boundary=boundary)
+            # the exact adjoint: <H x, y> = <x, Hᵀ y>
+            lhs = np.vdot(b.apply(pl), field)
+            rhs = np.vdot(pl, b.adjoint(field))
+            assert lhs == pytest.approx(rhs, rel=1e-12)
+            out = np.empty_like(pl)
+            assert b.apply(pl, out=out) is out and np.array_equal(out, b.apply(pl))
+    with pytest.raises(ValueError, match="out"):
+        b.apply(pl, out=np.empty(pl.shape, dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        b.apply(pl[:-1])
+
+
+def test_library_lookup_errors(tmp_path):
+    import subprocess
+    import sys
+
+    env = dict(os.environ, SVPSF_LIBRARY=str(tmp_path / "nothere.so"))
+    p = subprocess.run([sys.executable, "-c", "import svpsf"], env=env, capture_output=True,
+                       text=True)
+    assert p.returncode != 0
+    assert "ImportError: svpsf: SVPSF_LIBRARY=%s cannot be loaded" % (tmp_path / "nothere.so") \
+        in p.stderr
+    env = dict(os.environ, SVPSF_HEADER=str(tmp_path / "none.h"))
+    p = subprocess.run([sys.executable, "-c", "import svpsf"], env=env, capture_output=True,
+                       text=True)
+    assert p.returncode != 0
+    assert "SVPSF_HEADER=%s: no such file" % (tmp_path / "none.h") in p.stderr

@@ -1,0 +1,95 @@
+"""svpsf.batch: serial and on a Dask LocalCluster of 2 workers, the same outputs; a dataset with
+a bad file fails alone, with the library's message in the summary; outputs are never
+overwritten without force."""
+import csv
+import json
+import os
+
+import numpy as np
+import pytest
+
+import svpsf
+from svpsf import batch
+from conftest import smooth_maps
+
+PSF = "pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.5, beta: 2.0}\nboundary: mirror\n"
+OPTIONS = {"method": "rw", "iterations": 20}
+
+
+def make_datasets(root, n=5):
+    """n datasets of measured maps (T of smooth truths); dataset 'd2' has a truncated field."""
+    root.mkdir()
+    psf = svpsf.PSF("moffat", fwhm=5.0, beta=2.0)
+    for i in range(n):
+        d = root / ("d%d" % i)
+        d.mkdir()
+        pl, field = smooth_maps(48, 40, seed=i)
+        a = svpsf.forward(pl, [field, 0.3 * field + 1e-5], psf, boundary="mirror")
+        np.save(d / "pl.npy", a.pl)
+        np.save(d / "field_x.npy", a.fields[0])
+        np.save(d / "field_z.npy", a.fields[1])
+    bad = root / "d2" / "field_z.npy"
+    bad.write_bytes(bad.read_bytes()[:200])
+    (root / "psf.yaml").write_text(PSF)
+    return root
+
+
+def read_summary(out):
+    with open(out / "summary.csv") as f:
+        return {r["dataset"]: r for r in csv.DictReader(f)}
+
+
+def check_outputs(out, root):
+    rows = read_summary(out)
+    assert [rows[k]["status"] for k in sorted(rows)] == ["ok", "ok", "failed", "ok", "ok"]
+    msg = rows["d2"]["message"]
+    assert "field_z.npy" in msg and "truncated" in msg, msg
+    assert not (out / "d2").exists()  # a failed dataset leaves no folder
+    assert not [p for p in os.listdir(out) if p.startswith(".")]  # no temporary left
+    summary = json.load(open(out / "summary.json"))
+    assert summary["n_ok"] == 4 and summary["n_failed"] == 1
+    # each dataset's outputs are svpsf.correct's on its files
+    pl = svpsf.read_image(root / "d0" / "pl.npy")
+    fields = [svpsf.read_image(root / "d0" / n) for n in ("field_x.npy", "field_z.npy")]
+    ref = svpsf.correct(pl, fields, str(root / "psf.yaml"), **OPTIONS)
+    assert np.array_equal(np.load(out / "d0" / "field_z.npy"), ref.fields[1])
+    return rows
+
+
+def test_serial_and_dask_give_the_same_outputs(tmp_path):
+    root = make_datasets(tmp_path / "data")
+    serial = tmp_path / "serial"
+    rows = batch.run([root], serial, psf=root / "psf.yaml", options=OPTIONS)
+    assert [r["dataset"] for r in rows] == ["d0", "d1", "d2", "d3", "d4"]
+    srows = check_outputs(serial, root)
+
+    pytest.importorskip("dask.distributed", reason="python3-distributed is not installed")
+    dist = tmp_path / "dask"
+    rows = batch.run([root], dist, psf=root / "psf.yaml", options=OPTIONS, dask="local:2")
+    drows = check_outputs(dist, root)
+    assert drows["d2"]["message"] == srows["d2"]["message"]
+    # the tasks ran on two worker processes, none in this one
+    workers = {r["worker"] for r in rows if r["status"] == "ok"}
+    assert len(workers) == 2 and all(not w.endswith(":%d" % os.getpid()) for w in workers)
+    for d in ("d0", "d1", "d3", "d4"):
+        for n in ("pl.npy", "field_x.npy", "field_z.npy", "validity.npy"):
+            assert np.array_equal(np.load(serial / d / n), np.load(dist / d / n)), (d, n)
+
+
+def test_command_line_and_no_overwrite(tmp_path, capsys):
+    root = make_datasets(tmp_path / "data")
+    lst = tmp_path / "list.txt"
+    lst.write_text("# two of them\ndata/d0\ndata/d1\n")
+    out = tmp_path / "out"
+    args = [str(lst), "-o", str(out), "--psf", str(root / "psf.yaml"), "--iterations", "20"]
+    assert batch.main(args) == 0
+    assert sorted(read_summary(out)) == ["d0", "d1"]
+    before = (out / "d0" / "pl.npy").read_bytes()
+    assert batch.main(args) == 1  # outputs exist: refused, nothing written
+    assert "exists" in capsys.readouterr().err
+    assert (out / "d0" / "pl.npy").read_bytes() == before
+    assert batch.main(args + ["--force"]) == 0
+    assert batch.main([str(root), "-o", str(tmp_path / "o2"), "--psf",
+                       str(root / "psf.yaml"), "--iterations", "20"]) == 1  # d2 fails
+    assert batch.main([str(tmp_path / "nothere"), "-o", str(tmp_path / "o3")]) == 1
+    assert "no such dataset" in capsys.readouterr().err
