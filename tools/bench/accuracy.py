@@ -156,7 +156,7 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
         w(f"- camera: PL written as {camera[0]:g} counts per photon + offset {camera[1]:g} + "
           f"read noise σ {camera[2]:g} counts (the program estimates the gain unless told)\n")
     if skipped:
-        w("Option sets this build does not have (skipped): " + ", ".join(skipped) + "\n")
+        w("Option sets this build does not have (skipped): " + "; ".join(skipped) + "\n")
     datasets = []
     for r in runs:
         key = (r["scene"], r["counts"], r["psf_err"])
@@ -223,6 +223,16 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
         cands.append((label, max(r["dark"] / r["uncorrected"]["dark"] for r in rs),
                       max(r["lit"] / r["uncorrected"]["lit"] for r in rs),
                       float(np.median([r["seconds"] for r in rs]))))
+    def is_default(label):
+        """label is the default row, or every one of its runs has the default's errors."""
+        if label.startswith("default"):
+            return True
+        d = {(r["scene"], r["counts"], r["psf_err"]): (r.get("dark"), r.get("lit"))
+             for r in runs if r["label"].startswith("default")}
+        mine = [r for r in runs if r["label"] == label]
+        return bool(d) and all(d.get((r["scene"], r["counts"], r["psf_err"])) == (
+            r.get("dark"), r.get("lit")) for r in mine)
+
     if cands:
         best_dark = min(c[1] for c in cands)
         near = [c for c in cands if c[1] <= best_dark + TIE]
@@ -232,8 +242,9 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
         w(f"**Winner** (never refused; the smallest worst dark ratio, then lit ratio, ratios "
           f"within {TIE} counted as ties and broken by the median time): **{best[0]}** — worst "
           f"dark ratio {best[1]:.2f}, worst lit ratio {best[2]:.2f}, median {best[3]:.2f} s. "
-          + ("`svpsf correct`'s defaults are this option set.\n" if best[0].startswith(
-              "default") else "`svpsf correct`'s defaults in the program measured are not.\n"))
+          + ("`svpsf correct`'s defaults are this option set (or give the same errors).\n"
+             if is_default(best[0]) else
+             "`svpsf correct`'s defaults in the program measured are not.\n"))
     return "\n".join(out) + "\n"
 
 
