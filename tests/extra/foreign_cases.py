@@ -9,9 +9,12 @@ usage: foreign_cases.py SVPSF
    method with an automatic balance) once wrote a field of ±1.7e6 µT with exit 0. It must now
    exit 2 or 3, or be sound. The same command without --method (now R, which has no balance)
    is a usage error naming the option.
-2. 384², light from a 6 µm margin, the PSF 5 % wider (and β 10 % larger) than the file says,
-   Poisson PL of ~1000 photons, fit noise, NaN pixels: the default correction must beat the
-   uncorrected map in dark and in lit regions.
+2. 384², light from a 6 µm margin, the PSF 5 % wider than the file says (the file's FWHM is
+   the true one / 1.05), Poisson PL of ~1000 photons, fit noise of 1 µT at the lit peak growing
+   as 1/√PL where dark, NaN pixels: the default correction must beat the uncorrected map in
+   dark and in lit regions. (With 0.3 µT, the benchmark's level, the former default R&W beat
+   the uncorrected map too, so the case would not tell the two apart; with 1 µT its dark error
+   is 0.87 against the uncorrected 0.83.)
 3. The same data with `--method w --balance auto` once returned ≈ 0 everywhere with exit 0: it
    must exit 2 or 3, or be sound.
 
@@ -98,8 +101,8 @@ def main():
         # case 2: the default on realistic foreign data
         d2 = os.path.join(tmp, "case2")
         foreign.main(["make", "-o", d2, "--scene", "wire", "--size", "384", "--counts", "1000",
-                      "--margin-um", "6", "--fwhm-err", "0.05", "--beta-err", "0.1",
-                      "--seed", "12"])
+                      "--margin-um", "6", "--fwhm-err", str(1 / 1.05 - 1),
+                      "--field-noise-ut", "1.0", "--seed", "12"])
         rc, msg = correct(svpsf, d2, os.path.join(tmp, "out2"), [])
         check(rc == 0, f"case 2: the default correction exits 0 ({msg[:160]})")
         if rc == 0:

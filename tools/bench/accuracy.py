@@ -2,7 +2,12 @@
 """What accuracy costs in time: `svpsf correct` on foreign data (tools/bench/foreign.py).
 
 usage: accuracy.py [--svpsf PATH] [--quick] [--output docs/accuracy.md] [--json FILE]
-                   [--threads T] [--work DIR]
+                   [--threads T] [--work DIR] [--commit LABEL] [--scenes S,S] [--counts C,C]
+                   [--camera G,O,R]
+
+--svpsf may be another commit's build (its commit named by --commit): option sets whose flags
+or keyword values (`--iterations auto`, `--margin auto`, ...) its `correct --help` lacks are
+skipped and listed, so the same table measures the program before and after a change.
 
 For every scene (wire, chessboard), photon level (100, 1000, 1e4 at the peak) and PSF file
 (right, or 5 % too wide with β 10 % too large — the misspecification of a PSF known to a few per
@@ -31,15 +36,18 @@ import foreign  # noqa: E402
 
 # (label, arguments of svpsf correct). A row whose flags the program lacks is skipped, said so.
 OPTION_SETS = [
-    ("default (r, 75 it)", []),
+    ("default", []),
+    ("r, 75 it", ["--method", "r"]),
     ("r, auto iterations", ["--method", "r", "--iterations", "300", "--iterations", "auto"]),
     ("r, 75 it, margin auto", ["--method", "r", "--margin", "auto"]),
     ("r, 30 it, Biggs–Andrews", ["--method", "r", "--iterations", "30",
                                  "--acceleration", "biggs-andrews"]),
     ("rw, balance 1e-3", ["--method", "rw"]),
     ("rw, balance auto", ["--method", "rw", "--balance", "auto", "--field-sigma", "{sigma}"]),
+    ("rw, balance auto, σ estimated", ["--method", "rw", "--balance", "auto"]),
     ("w, balance 1e-3", ["--method", "w"]),
     ("w, balance auto", ["--method", "w", "--balance", "auto", "--field-sigma", "{sigma}"]),
+    ("w, balance auto, σ estimated", ["--method", "w", "--balance", "auto"]),
 ]
 
 SCENES = ["wire", "chessboard"]
@@ -48,10 +56,28 @@ PSF_ERRORS = [(0.0, 0.0), (0.05, 0.10)]
 TIE = 0.05
 
 
-def supported(svpsf, args):
-    help_text = subprocess.run([svpsf, "correct", "--help"], capture_output=True,
-                               text=True).stdout
-    return all(a in help_text for a in args if a.startswith("--"))
+def correct_help(svpsf):
+    return subprocess.run([svpsf, "correct", "--help"], capture_output=True, text=True).stdout
+
+
+def supported(help_text, args):
+    """Every flag of args in the help, and every keyword value after a flag (not a number, not
+    a {placeholder}) on that flag's help line: `--iterations auto` needs `--iterations N|auto`."""
+    lines = help_text.splitlines()
+    for i, a in enumerate(args):
+        if not a.startswith("--"):
+            continue
+        own = [ln for ln in lines if ln.strip().startswith(a + " ") or ln.strip() == a]
+        if not own:
+            return False
+        v = args[i + 1] if i + 1 < len(args) else ""
+        if v and not v.startswith("-") and not v.startswith("{"):
+            try:
+                float(v)
+            except ValueError:
+                if not any(v in ln.split()[1] if len(ln.split()) > 1 else False for ln in own):
+                    return False
+    return True
 
 
 def one_run(svpsf, data, label, extra, threads, wisdom):
@@ -65,7 +91,8 @@ def one_run(svpsf, data, label, extra, threads, wisdom):
     p = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.time() - t0
     res = {"label": label, "exit": p.returncode, "seconds": wall,
-           "message": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""}
+           "message": (p.stderr.strip().splitlines()[-1] if p.stderr.strip() else "").replace(
+               data + os.sep, "")}
     if p.returncode != 0:
         return res
     b = np.load(os.path.join(out, "field.npy"))
@@ -76,6 +103,9 @@ def one_run(svpsf, data, label, extra, threads, wisdom):
     with open(os.path.join(out, "summary.json")) as f:
         s = json.load(f)
     r = s.get("results", {})
+    st = s.get("settings", {})
+    res["method"] = st.get("method")
+    res["iterations_setting"] = st.get("iterations", st.get("iteration_cap"))
     res["iterations"] = r.get("rl_iterations")
     res["rl_stop"] = r.get("rl_stop")
     res["balance"] = r.get("balance_field", r.get("balance_pl"))
@@ -95,10 +125,13 @@ def fmt(x, spec=".3f"):
     return "–" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, spec)
 
 
-def render(runs, skipped, quick, commit, size, threads):
+TITLE = "Accuracy on foreign data: what each correction costs and gains"
+
+
+def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE, extra=None):
     out = []
     w = out.append
-    w("# Accuracy on foreign data: what each correction costs and gains\n")
+    w(f"# {title}\n")
     w("Written by `tools/bench/accuracy.py` (part of `tools/run bench`); do not edit by "
              "hand. Every dataset is made by `tools/bench/foreign.py`, an independent numpy "
              "model (no svpsf code): the scene extends 6 µm beyond the view, so light enters "
@@ -106,9 +139,11 @@ def render(runs, skipped, quick, commit, size, threads):
              "σ_B = 0.3 µT · √(peak / photons) (ODMR fits: σ ∝ 1/√photons); 0.5 % NaN pixels "
              "and a 4 × 4 cluster; Moffat PSF 0.6 µm FWHM, β 1.1 on 0.1 µm pixels. `PSF off` "
              "means the PSF file the program is given is 5 % too wide with β 10 % too large.\n")
-    w(f"- commit {commit}, {size}² views, {threads} threads, FFTW wisdom kept across the "
+    w(f"- commit {commit} (the program measured), {size}² views, {threads} threads, FFTW wisdom kept across the "
              "runs (the time is the correction's, not the first run's planning)"
              f"{', **quick run**' if quick else ''}")
+    if extra:
+        w(f"- {extra}")
     w("- error: relative rms field error √(Σ(B − B_true)² / Σ B_true²) over the pixels "
              "where |B_true| > 10 % of its max, split into *dark* (true PL < 30 % of its max: "
              "the quenching wire, the dark squares) and *lit*; *uncorrected* is the measured "
@@ -117,13 +152,24 @@ def render(runs, skipped, quick, commit, size, threads):
     w("- exit 3: the program refused to vouch for the result (docs/cli.md); such a run "
              "writes nothing, which is the intended outcome for a correction that would have "
              "been garbage.\n")
+    if camera:
+        w(f"- camera: PL written as {camera[0]:g} counts per photon + offset {camera[1]:g} + "
+          f"read noise σ {camera[2]:g} counts (the program estimates the gain unless told)\n")
     if skipped:
-        w("Option sets this build does not have (skipped): " + ", ".join(skipped) + "\n")
+        w("Option sets this build does not have (skipped): " + "; ".join(skipped) + "\n")
     datasets = []
     for r in runs:
         key = (r["scene"], r["counts"], r["psf_err"])
         if key not in datasets:
             datasets.append(key)
+    # the default row names what the default was in the program measured
+    dflt = next((r for r in runs if r["label"] == "default" and r.get("method")), None)
+    if dflt:
+        name = f"default ({dflt['method']}, {dflt['iterations_setting']} it)" if dflt[
+            "method"] != "w" else "default (w)"
+        for r in runs:
+            if r["label"] == "default":
+                r["label"] = name
     labels = []
     for r in runs:
         if r["label"] not in labels:
@@ -177,6 +223,16 @@ def render(runs, skipped, quick, commit, size, threads):
         cands.append((label, max(r["dark"] / r["uncorrected"]["dark"] for r in rs),
                       max(r["lit"] / r["uncorrected"]["lit"] for r in rs),
                       float(np.median([r["seconds"] for r in rs]))))
+    def is_default(label):
+        """label is the default row, or every one of its runs has the default's errors."""
+        if label.startswith("default"):
+            return True
+        d = {(r["scene"], r["counts"], r["psf_err"]): (r.get("dark"), r.get("lit"))
+             for r in runs if r["label"].startswith("default")}
+        mine = [r for r in runs if r["label"] == label]
+        return bool(d) and all(d.get((r["scene"], r["counts"], r["psf_err"])) == (
+            r.get("dark"), r.get("lit")) for r in mine)
+
     if cands:
         best_dark = min(c[1] for c in cands)
         near = [c for c in cands if c[1] <= best_dark + TIE]
@@ -186,7 +242,9 @@ def render(runs, skipped, quick, commit, size, threads):
         w(f"**Winner** (never refused; the smallest worst dark ratio, then lit ratio, ratios "
           f"within {TIE} counted as ties and broken by the median time): **{best[0]}** — worst "
           f"dark ratio {best[1]:.2f}, worst lit ratio {best[2]:.2f}, median {best[3]:.2f} s. "
-          "`svpsf correct`'s defaults are this option set.\n")
+          + ("`svpsf correct`'s defaults are this option set (or give the same errors).\n"
+             if is_default(best[0]) else
+             "`svpsf correct`'s defaults in the program measured are not.\n"))
     return "\n".join(out) + "\n"
 
 
@@ -199,22 +257,62 @@ def main():
     ap.add_argument("--json", default=None)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--work", default=None)
+    ap.add_argument("--commit", default=None,
+                    help="the commit --svpsf was built from (default: this checkout's HEAD)")
+    ap.add_argument("--scenes", default=",".join(SCENES), help="wire,chessboard,oxide")
+    ap.add_argument("--counts", default=None, help="peak photon levels (default 100,1000,10000)")
+    ap.add_argument("--camera", default=None,
+                    help="G,O,R: PL as G counts per photon + offset O + read noise R")
+    ap.add_argument("--title", default=TITLE, help="the page's heading")
+    ap.add_argument("--field-noise-ut", type=float, default=None,
+                    help="σ_B at the peak PL for foreign.py (default its 0.3 µT)")
+    ap.add_argument("--fwhm-err", type=float, default=None,
+                    help="the 'PSF off' file's FWHM error (default +0.05: 5 %% too wide)")
+    ap.add_argument("--from-json", default=None,
+                    help="render the page from a --json file of an earlier run, running nothing")
     args = ap.parse_args()
+    if args.from_json:
+        with open(args.from_json) as f:
+            saved = json.load(f)
+        md = render(saved["runs"], saved["skipped"], saved["quick"], saved["commit"],
+                    saved["size"], saved["threads"], saved.get("camera"), args.title,
+                    saved.get("extra"))
+        with open(args.output, "w") as f:
+            f.write(md)
+        return 0
     size = 192 if args.quick else args.size
-    counts = [1000] if args.quick else COUNTS
-    skipped = [label for label, extra in OPTION_SETS if not supported(args.svpsf, extra)]
+    counts = [float(c) for c in args.counts.split(",")] if args.counts else (
+        [1000] if args.quick else COUNTS)
+    counts = [int(c) if c == int(c) else c for c in counts]
+    scenes = args.scenes.split(",")
+    camera = [float(v) for v in args.camera.split(",")] if args.camera else None
+    psf_errors = PSF_ERRORS if args.fwhm_err is None else [
+        (0.0, 0.0), (args.fwhm_err, 2 * args.fwhm_err)]
+    extra = ", ".join(x for x in (
+        f"fit noise σ_B = {args.field_noise_ut:g} µT at the peak PL (not 0.3)"
+        if args.field_noise_ut is not None else "",
+        f"`PSF off`: the file's FWHM {100 * args.fwhm_err:+g} %, β {200 * args.fwhm_err:+g} %"
+        f" (not +5 % / +10 %)" if args.fwhm_err is not None else "") if x) or None
+    help_text = correct_help(args.svpsf)
+    if "usage: svpsf correct" not in help_text:
+        sys.exit(f"accuracy.py: {args.svpsf} is not an svpsf program ('correct --help' failed)")
+    skipped = [label for label, extra in OPTION_SETS if not supported(help_text, extra)]
     sets = [(label, extra) for label, extra in OPTION_SETS if label not in skipped]
-    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
-                            capture_output=True, text=True).stdout.strip()
+    commit = args.commit or subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
+                                           capture_output=True, text=True).stdout.strip()
     runs = []
     with tempfile.TemporaryDirectory(dir=args.work) as tmp:
-        for scene in SCENES:
+        for scene in scenes:
             for c in counts:
-                for fe, be in PSF_ERRORS:
+                for fe, be in psf_errors:
                     data = os.path.join(tmp, f"{scene}_{c}_{fe}")
                     foreign.main(["make", "-o", data, "--scene", scene, "--size", str(size),
                                   "--counts", str(c), "--fwhm-err", str(fe), "--beta-err",
-                                  str(be), "--seed", str(7 + c % 97)])
+                                  str(be), "--seed", str(7 + int(c) % 97)]
+                                 + (["--gain", str(camera[0]), "--offset", str(camera[1]),
+                                     "--read-noise", str(camera[2])] if camera else [])
+                                 + (["--field-noise-ut", str(args.field_noise_ut)]
+                                    if args.field_noise_ut is not None else []))
                     u = uncorrected(data)
                     for label, extra in sets:
                         r = one_run(args.svpsf, data, label, extra, args.threads,
@@ -225,12 +323,15 @@ def main():
                               f"dark {fmt(r.get('dark'))} lit {fmt(r.get('lit'))} "
                               f"(uncorrected {fmt(u['dark'])} / {fmt(u['lit'])}) "
                               f"{r['seconds']:.2f} s", file=sys.stderr, flush=True)
-    md = render(runs, skipped, args.quick, commit, size, args.threads)
+    if args.json:  # first: a page that fails to render can be rendered again from it
+        with open(args.json, "w") as f:
+            json.dump(dict(runs=runs, skipped=skipped, quick=args.quick, commit=commit,
+                           size=size, threads=args.threads, camera=camera, extra=extra), f,
+                      indent=1)
+    md = render(runs, skipped, args.quick, commit, size, args.threads, camera, args.title,
+                extra)
     with open(args.output, "w") as f:
         f.write(md)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(runs, f, indent=1)
     return 0
 
 

@@ -1,8 +1,9 @@
 #!/usr/bin/python3
 """Foreign data for svpsf: measured-like field and PL maps made by an independent forward model.
 
-usage: foreign.py make -o DIR [--scene wire|chessboard] [--size N] [--counts C] [--pixel-um P]
-                       [--fwhm-um F] [--beta B] [--fwhm-err E] [--beta-err E] [--margin-um M]
+usage: foreign.py make -o DIR [--scene wire|chessboard|oxide] [--size N] [--counts C]
+                       [--pixel-um P] [--fwhm-um F] [--beta B] [--fwhm-err E] [--beta-err E]
+                       [--margin-um M] [--quench Q] [--gain G] [--offset O] [--read-noise R]
                        [--nan-fraction F] [--field-noise-ut S] [--seed S]
 
 Nothing here calls svpsf: the blur is numpy's FFT convolution of a scene that extends
@@ -11,8 +12,9 @@ with the model of docs/model.md §1-2 (PL-weighted averaging, eq. 2):
 
     Ĩ = (I ⊛ p)|view,    B̃ = ((B I) ⊛ p)|view / Ĩ
 
-Then what a measurement adds: Poisson PL at a peak of --counts detected photons (gain 1, no
-offset), the field's fit noise σ_B = S · √(C / photons) (an ODMR Lorentzian fit's uncertainty
+Then what a measurement adds: Poisson PL at a peak of --counts detected photons, written as a
+camera's counts = G · photons + O + N(0, R²) (--gain, --offset, --read-noise; default 1, 0, 0:
+the photons themselves), the field's fit noise σ_B = S · √(C / photons) (an ODMR Lorentzian fit's uncertainty
 scales as linewidth / (contrast √photons); S is σ_B at the peak), NaN pixels (failed fits: a
 random --nan-fraction and one 4 x 4 cluster). The PSF file written for the user may be wrong:
 FWHM × (1 + fwhm_err), β × (1 + beta_err).
@@ -20,10 +22,13 @@ FWHM × (1 + fwhm_err), β × (1 + beta_err).
 Scenes (0.1 µm pixels by default):
   wire        a 1 µm wide current strip (sheet current, Bz by Biot–Savart at 50 nm standoff,
               docs/model.md's sign conventions do not matter here: the field is what it is) whose
-              metal quenches the PL to 5 %, under a Gaussian illumination spot, plus a magnetic
-              dipole (a flake) beside it; peak |Bz| 40 µT.
+              metal quenches the PL to --quench (default 0.05: 20x darker), under a Gaussian
+              illumination spot, plus a magnetic dipole (a flake) beside it; peak |Bz| 40 µT.
   chessboard  the reference study's emission pattern (a Gaussian spot times a random chessboard
               of levels 0.1, 0.8, 1.0 on 1 µm squares) under the dipole and the strip's field.
+  oxide       the same field under the spot with an oxide ramp: the PL falls linearly from 1 to
+              --quench across a 4 µm wide band left of the view's centre line (lit to its left,
+              dark to its right).
 
 The folder gets field.npy (µT, measured), pl.npy (photons), field_sigma.npy (µT), psf.yaml (as
 the user believes it), truth_field.npy, truth_pl.npy (the view's true maps), masks.npz
@@ -73,7 +78,7 @@ def dipole_bz(x_um, y_um, x0, y0, depth_um):
     return (2 * depth_um ** 2 - rho2) / (rho2 + depth_um ** 2) ** 2.5
 
 
-def scene_maps(kind, n_canvas, pixel_um, rng):
+def scene_maps(kind, n_canvas, pixel_um, rng, quench=0.05):
     """True PL I and field B (µT) on the canvas (view in the middle)."""
     c = 0.5 * (n_canvas - 1)
     yy, xx = np.mgrid[0:n_canvas, 0:n_canvas].astype(float)
@@ -87,14 +92,17 @@ def scene_maps(kind, n_canvas, pixel_um, rng):
     bz = 30 * bz / np.abs(bz).max() + 25 * dip / np.abs(dip).max()
     bz *= 40 / np.abs(bz).max()
     if kind == "wire":
-        pl = spot * np.where(on_wire, 0.05, 1.0)
+        pl = spot * np.where(on_wire, quench, 1.0)
     elif kind == "chessboard":
         side = max(1, int(round(1.0 / pixel_um)))
         ns = n_canvas // side + 1
         levels = rng.choice([0.1, 0.8, 1.0], size=(ns, ns))
         pl = spot * levels[(yy // side).astype(int), (xx // side).astype(int)]
+    elif kind == "oxide":
+        t = np.clip((x_um + 0.3 * half) / 4.0 + 0.5, 0.0, 1.0)  # 0 left of the ramp, 1 right
+        pl = spot * (1.0 - (1.0 - quench) * t)
     else:
-        raise SystemExit(f"foreign.py: unknown scene '{kind}' (wire, chessboard)")
+        raise SystemExit(f"foreign.py: unknown scene '{kind}' (wire, chessboard, oxide)")
     return pl, bz
 
 
@@ -103,7 +111,7 @@ def make(args):
     n = args.size
     m = int(round(args.margin_um / args.pixel_um))
     nc = n + 2 * m
-    pl_true_c, b_true_c = scene_maps(args.scene, nc, args.pixel_um, rng)
+    pl_true_c, b_true_c = scene_maps(args.scene, nc, args.pixel_um, rng, args.quench)
     frame = (2 * nc, 2 * nc)
     kernel = np.fft.rfft2(moffat_kernel(frame, args.pixel_um, args.fwhm_um, args.beta))
     pl_blur = convolve(pl_true_c, kernel, frame)[m:m + n, m:m + n]
@@ -119,9 +127,14 @@ def make(args):
     field[nan] = np.nan
     pl_true = pl_true_c[m:m + n, m:m + n] * scale
     b_true = b_true_c[m:m + n, m:m + n]
+    # the camera: counts = G · photons + O + read noise (drawn last: the defaults leave every
+    # other draw, and so the datasets, as they were without a camera)
+    counts = args.gain * photons + args.offset
+    if args.read_noise > 0:
+        counts = counts + args.read_noise * rng.standard_normal(counts.shape)
     os.makedirs(args.output, exist_ok=True)
     np.save(os.path.join(args.output, "field.npy"), field)
-    np.save(os.path.join(args.output, "pl.npy"), photons)
+    np.save(os.path.join(args.output, "pl.npy"), counts)
     np.save(os.path.join(args.output, "field_sigma.npy"), sigma)
     np.save(os.path.join(args.output, "truth_field.npy"), b_true)
     np.save(os.path.join(args.output, "truth_pl.npy"), pl_true)
@@ -168,6 +181,11 @@ def parser():
     mk.add_argument("--fwhm-err", type=float, default=0.0)
     mk.add_argument("--beta-err", type=float, default=0.0)
     mk.add_argument("--margin-um", type=float, default=6.0)
+    mk.add_argument("--quench", type=float, default=0.05,
+                    help="PL of the wire's metal / the oxide ramp's dark end, relative to lit")
+    mk.add_argument("--gain", type=float, default=1.0, help="camera counts per photon")
+    mk.add_argument("--offset", type=float, default=0.0, help="camera offset (counts)")
+    mk.add_argument("--read-noise", type=float, default=0.0, help="read noise σ (counts)")
     mk.add_argument("--nan-fraction", type=float, default=0.005)
     mk.add_argument("--field-noise-ut", type=float, default=0.3)
     mk.add_argument("--seed", type=int, default=1)
