@@ -285,8 +285,9 @@ SVP_API svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
  * skipped). Images of at least 3 x 3. */
 SVP_API svp_status svp_noise_sigma_estimate(const svp_image *y, double *sigma);
 /* A Wiener–Hunt balance for noisy data by the discrepancy principle: the λ in [1e-12, 1e2]
- * whose solution leaves the residual ‖M(H x_λ − y)‖² = n_finite σ² (bisection on log λ,
- * 16 Wiener solves). sigma <= 0: estimated by svp_noise_sigma_estimate; the σ used is returned
+ * whose solution leaves the residual ‖M(H x_λ − y)‖² = n_finite σ² (down from 1e2 a decade at
+ * a time, then 8 bisections within the decade; a search whose solves stop converging ends
+ * there, on its lower bound). sigma <= 0: estimated by svp_noise_sigma_estimate; the σ used is returned
  * in *sigma_used (may be NULL). */
 SVP_API svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y,
                                                   double sigma, double *balance,

@@ -623,12 +623,15 @@ svp_status svp_noise_sigma_estimate(const svp_image *y, double *sigma)
 
 #define DISCREPANCY_LOG_MIN (-12.0)
 #define DISCREPANCY_LOG_MAX 2.0
-#define DISCREPANCY_STEPS 14
+#define DISCREPANCY_BISECTIONS 8 /* within a decade: λ to a factor 1.005 */
+/* a search solve stopped at its CG cap above this relative residual has not converged */
+#define DISCREPANCY_CG_RESIDUAL 1e-4
 
 /* Morozov's discrepancy principle: the λ whose Wiener–Hunt solution x_λ leaves a residual
  * ‖M (H x_λ − y)‖² equal to what the noise alone explains, n_finite σ². The residual grows
- * with λ, so bisection on log10 λ over [1e-12, 1e2] finds it (14 halvings: λ to within a
- * factor 1.002); when even an end fits (or misses), that end is returned. */
+ * with λ, so a walk down from 1e2 by decades finds the decade of the crossing and 8
+ * bisections narrow it (λ to within a factor 1.005); when even an end fits (or misses), or
+ * the solves stop converging, that end is returned and reported. */
 svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, double sigma,
                                           double *balance, double *sigma_used)
 {
@@ -667,42 +670,67 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
     /* Σ r² / var = n_finite; a constant variance folds into the target */
     const double target = variance ? (double)n_finite : (double)n_finite * sigma * sigma;
     const double var_floor = variance ? 1e-300 : 1.0;
-    double lo = DISCREPANCY_LOG_MIN, hi = DISCREPANCY_LOG_MAX;
     int bound = 0;
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.cg_max_steps = cg_max_steps;
-    /* residual at log10 λ = t, compared with the target: > 0 when λ is too large */
-    for (int step = 0; st == SVP_OK && step < DISCREPANCY_STEPS + 2; step++) {
-        double t = step == 0 ? hi : step == 1 ? lo : 0.5 * (lo + hi);
-        o.balance = pow(10.0, t);
-        if ((st = svp_deconv_wiener(blur, y, &o, x)) != SVP_OK) break;
-        if ((st = svp_blur_apply(blur, x, hx)) != SVP_OK) break;
-#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
-        for (size_t i = 0; i < n; i++) {
-            double r = isfinite(y->data[i]) ? hx->data[i] - y->data[i] : 0.0;
-            double v = variance ? variance->data[i] : 1.0;
-            prod[i] = r * r / (v > var_floor ? v : var_floor);
+    svp_deconv_report rep;
+    o.report = &rep;
+    /* the residual's excess over the target at log10 λ = t (> 0: λ too large); *unsolved = 1
+     * when the solve stopped at its step cap short of convergence (its residual says nothing) */
+#define EXCESS(t, unsolved)                                                                    \
+    do {                                                                                       \
+        o.balance = pow(10.0, (t));                                                            \
+        if ((st = svp_deconv_wiener(blur, y, &o, x)) != SVP_OK) break;                        \
+        if ((st = svp_blur_apply(blur, x, hx)) != SVP_OK) break;                              \
+        for (size_t i = 0; i < n; i++) {                                                       \
+            double r = isfinite(y->data[i]) ? hx->data[i] - y->data[i] : 0.0;                  \
+            double v = variance ? variance->data[i] : 1.0;                                     \
+            prod[i] = r * r / (v > var_floor ? v : var_floor);                                 \
+        }                                                                                      \
+        excess = svp_sum(prod, n) - target;                                                    \
+        unsolved = rep.cg_capped && rep.cg_residual > DISCREPANCY_CG_RESIDUAL;                 \
+    } while (0)
+    /* Down from the largest λ a decade at a time until the residual fits the noise (the
+     * crossing lies in the last decade: bisected there) or the solves stop converging (the
+     * lower bound of what can be searched: the choice ends there, in doubt) — so a search
+     * whose small λ cannot be solved costs a few solves, not sixteen capped ones. */
+    double lo = DISCREPANCY_LOG_MAX, hi = DISCREPANCY_LOG_MAX, excess = 0;
+    int unsolved = 0;
+    if (st == SVP_OK) EXCESS(hi, unsolved);
+    if (st == SVP_OK && !(excess > 0)) { /* even the largest λ fits: take it */
+        bound = 1;
+    } else if (st == SVP_OK) {
+        for (double t = DISCREPANCY_LOG_MAX - 1; t >= DISCREPANCY_LOG_MIN - 1e-9; t -= 1.0) {
+            EXCESS(t, unsolved);
+            if (st != SVP_OK) break;
+            if (unsolved) { /* below here nothing converges: the search ends on its bound */
+                lo = hi;
+                bound = -1;
+                break;
+            }
+            if (!(excess > 0)) {
+                lo = t;
+                break;
+            }
+            hi = t;
+            lo = t;
+            if (t - 1.0 < DISCREPANCY_LOG_MIN - 1e-9) bound = -1; /* even 1e-12 misses */
         }
-        const double too_large = svp_sum(prod, n) - target;
-        if (step == 0 && !(too_large > 0)) { /* even the largest λ fits: take it */
-            lo = hi;
-            bound = 1;
-            break;
-        }
-        if (step == 1 && too_large >= 0) { /* even the smallest λ misses: take it */
-            hi = lo;
-            bound = -1;
-            break;
-        }
-        if (step >= 2) {
-            if (too_large > 0)
+        /* bisect the decade [lo, hi] (lo fits, hi misses) */
+        for (int step = 0; st == SVP_OK && !bound && step < DISCREPANCY_BISECTIONS; step++) {
+            const double t = 0.5 * (lo + hi);
+            EXCESS(t, unsolved);
+            if (st != SVP_OK) break;
+            if (unsolved || excess > 0)
                 hi = t;
             else
                 lo = t;
         }
     }
-    if (st == SVP_OK) *balance = pow(10.0, 0.5 * (lo + hi));
+#undef EXCESS
+    if (bound == 1) lo = hi;
+    if (st == SVP_OK) *balance = pow(10.0, bound ? (bound < 0 ? hi : lo) : 0.5 * (lo + hi));
     if (at_bound) *at_bound = bound;
     svp_image_free(x);
     svp_image_free(hx);
