@@ -258,6 +258,59 @@ cleanup:
     return st;
 }
 
+/* YAML admits only printable Unicode in UTF-8 (YAML 1.2 §5.1: tab, LF, CR, U+0020..U+007E,
+ * U+0085, U+00A0..U+D7FF, U+E000..U+FFFD, U+10000..U+10FFFF). Checking this before libfyaml
+ * sees the text is what keeps Debian 12's libfyaml 0.7.12 from looping forever on some invalid
+ * bytes (for example "%\xe8": its directive scanner never advances past them; docs/reliability.md).
+ * Returns the offset of the first byte that starts an invalid or unprintable character, or len
+ * when the whole text is fine. */
+static size_t first_non_text(const unsigned char *s, size_t len)
+{
+    size_t i = 0;
+    while (i < len) {
+        unsigned c = s[i];
+        if (c < 0x80) {
+            if (c == '\t' || c == '\n' || c == '\r' || (c >= 0x20 && c <= 0x7e)) {
+                i++;
+                continue;
+            }
+            return i;
+        }
+        size_t n;
+        unsigned long cp, min;
+        if ((c & 0xe0) == 0xc0) n = 2, cp = c & 0x1f, min = 0x80;
+        else if ((c & 0xf0) == 0xe0) n = 3, cp = c & 0x0f, min = 0x800;
+        else if ((c & 0xf8) == 0xf0) n = 4, cp = c & 0x07, min = 0x10000;
+        else return i;
+        if (len - i < n) return i;
+        for (size_t k = 1; k < n; k++) {
+            if ((s[i + k] & 0xc0) != 0x80) return i;
+            cp = (cp << 6) | (s[i + k] & 0x3f);
+        }
+        if (cp < min || cp > 0x10ffff) return i; /* overlong or beyond Unicode */
+        int printable = cp == 0x85 || (cp >= 0xa0 && cp <= 0xd7ff) ||
+                        (cp >= 0xe000 && cp <= 0xfffd) || cp >= 0x10000;
+        if (!printable) return i;
+        i += n;
+    }
+    return len;
+}
+
+/* Refuses what is not YAML text before the parser sees it: larger than SVP_YAML_MAX_BYTES, or
+ * a byte that is not printable UTF-8 (a PDF, an image or a binary given by mistake). */
+static svp_status check_text(const char *name, const char *text, size_t len)
+{
+    if (len > SVP_YAML_MAX_BYTES)
+        return svp_fail(SVP_ERR_FORMAT, "%s: %zu bytes, larger than the %d MiB a YAML file may have",
+                        name, len, SVP_YAML_MAX_BYTES >> 20);
+    size_t bad = first_non_text((const unsigned char *)text, len);
+    if (bad < len)
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: not a text file (byte offset %zu: 0x%02x is not printable UTF-8 text)",
+                        name, bad, (unsigned)(unsigned char)text[bad]);
+    return SVP_OK;
+}
+
 static svp_status doc_new(const char *name, svp_yaml_doc **out)
 {
     *out = NULL;
@@ -277,6 +330,7 @@ svp_status svp_yaml_load_string(const char *name, const char *text, size_t len, 
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_yaml_load_string: out is NULL");
     *out = NULL;
     if (!text) return svp_fail(SVP_ERR_INVALID, "svp_yaml_load_string: text is NULL");
+    SVP_CHECK(check_text(name ? name : "(yaml)", text, len));
     svp_yaml_doc *doc = NULL;
     SVP_CHECK(doc_new(name, &doc));
     svp_status st = parse_text(doc, text, len);
@@ -299,13 +353,17 @@ svp_status svp_yaml_load_file(const char *path, svp_yaml_doc **out)
         return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
     }
     if (S_ISDIR(sb.st_mode)) return svp_fail(SVP_ERR_IO, "%s: is a directory", path);
+    if (S_ISREG(sb.st_mode) && (unsigned long long)sb.st_size > SVP_YAML_MAX_BYTES)
+        return svp_fail(SVP_ERR_FORMAT, "%s: %lld bytes, larger than the %d MiB a YAML file may have",
+                        path, (long long)sb.st_size, SVP_YAML_MAX_BYTES >> 20);
     FILE *f = fopen(path, "rb");
     if (!f) return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
     svp_strbuf text;
     svp_strbuf_init(&text);
     char chunk[8192];
     size_t got;
-    while ((got = fread(chunk, 1, sizeof chunk, f)) > 0) svp_strbuf_append(&text, chunk, got);
+    while ((got = fread(chunk, 1, sizeof chunk, f)) > 0 && text.len <= SVP_YAML_MAX_BYTES)
+        svp_strbuf_append(&text, chunk, got);
     int read_error = ferror(f);
     fclose(f);
     svp_status st = SVP_OK;

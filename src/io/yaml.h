@@ -18,7 +18,10 @@
  *
  * Status codes and messages (all start with "file:line:col: "):
  *   SVP_ERR_IO      "x.yaml: no such file", "x.yaml: cannot open (Permission denied)"
- *   SVP_ERR_FORMAT  malformed YAML:   "x.yaml:3:4: <libfyaml's message>"
+ *   SVP_ERR_FORMAT  not text:         "x.yaml: not a text file (byte offset 1: 0xe8 is not
+ *                                      printable UTF-8 text)" (checked before parsing)
+ *                   too large:        "x.yaml: ... bytes, larger than the 16 MiB a YAML file ..."
+ *                   malformed YAML:   "x.yaml:3:4: <libfyaml's message>"
  *                   duplicate key:    "x.yaml:5:1: duplicate key 'halo' (first at line 2)"
  *                   unknown key:      "x.yaml:4:3: unknown key 'fwhm_nm' in psf (expected one
  *                                      of: model, fwhm_um, ...; did you mean 'fwhm_um'?)"
@@ -60,6 +63,9 @@ typedef enum svp_yaml_type {
 
 typedef struct svp_yaml_doc svp_yaml_doc;
 typedef struct svp_yaml_node svp_yaml_node;
+
+/* The largest YAML file read (docs/reliability.md). */
+#define SVP_YAML_MAX_BYTES (16 << 20)
 
 /* Parses one YAML document (a second "---" document is an error). An empty file gives a NULL
  * root node at 1:1. Aliases (*name) point at their anchored node. */
