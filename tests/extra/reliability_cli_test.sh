@@ -1,0 +1,127 @@
+#!/bin/sh
+# Inputs that once hung or crashed a reader (docs/reliability.md): every one must end, within a
+# time limit, with exit 1 and a message naming the file and the fault. A hang fails the check
+# (timeout) instead of blocking the suite. Also replays the regression inputs kept beside the
+# fuzz targets (tests/fuzz/regressions/<target>/*) through the CLI command that reads them.
+#   usage: reliability_cli_test.sh /path/to/svpsf /path/to/tests/fuzz/regressions
+# POSIX sh; prints one line per check and "N passed, M failed"; exits nonzero on any failure.
+set -u
+
+S=${1:?usage: reliability_cli_test.sh /path/to/svpsf REGRESSIONS_DIR}
+REG=${2:-}
+case $S in /*) ;; *) S=$PWD/$S ;; esac
+case $REG in /* | '') ;; *) REG=$PWD/$REG ;; esac
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/svpsf-rel.XXXXXX")
+trap 'rm -rf "$WORK"' EXIT
+cd "$WORK" || exit 1
+export OMP_NUM_THREADS=1
+LIMIT=20 # seconds: every case below takes milliseconds; a hang is stopped here
+
+n_pass=0
+n_fail=0
+pass() { n_pass=$((n_pass + 1)); echo "ok    $1"; }
+fail() { n_fail=$((n_fail + 1)); echo "FAIL  $1: $2"; }
+
+# expect_refused NAME "TEXT|TEXT..." CMD...: exits 1 within LIMIT s, stderr has every TEXT
+expect_refused() {
+    name=$1 texts=$2
+    shift 2
+    timeout -s KILL "$LIMIT" "$S" "$@" >out.txt 2>err.txt
+    rc=$?
+    if [ "$rc" = 137 ] || [ "$rc" = 124 ]; then
+        fail "$name" "still running after $LIMIT s (a hang)"
+        return
+    fi
+    if [ "$rc" != 1 ]; then
+        fail "$name" "exit $rc (expected 1): $(head -c 300 err.txt)"
+        return
+    fi
+    old_ifs=$IFS
+    IFS='|'
+    for t in $texts; do
+        if ! grep -qF -- "$t" err.txt; then
+            IFS=$old_ifs
+            fail "$name" "message lacks '$t': $(head -c 300 err.txt)"
+            return
+        fi
+    done
+    IFS=$old_ifs
+    pass "$name"
+}
+
+# expect_ends NAME CMD...: ends within LIMIT s with exit 0 or 1 (a clean refusal), never a
+# crash (signal), an internal error (4) or a hang
+expect_ends() {
+    name=$1
+    shift
+    timeout -s KILL "$LIMIT" "$S" "$@" >out.txt 2>err.txt
+    rc=$?
+    case $rc in
+    0 | 1) pass "$name" ;;
+    137 | 124) fail "$name" "still running after $LIMIT s (a hang)" ;;
+    *) fail "$name" "exit $rc: $(head -c 300 err.txt)" ;;
+    esac
+}
+
+printf '1 2\n3 4\n' >f.txt
+printf '1 1\n1 1\n' >pl.txt
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >good.yaml
+
+# the 2-byte files libfyaml 0.7.12 loops on, and a PDF given by mistake
+printf '%%\350' >dir1.yaml
+printf '%%\377\377m' >dir2.yaml
+printf '%%PDF-1.4\n%%\342\343\317\323\n1 0 obj\n<< /Type /Catalog >>\nendobj\n' >doc.pdf
+cp doc.pdf pdf.yaml # a PDF saved under a YAML name
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3\001}\n' >ctrl.yaml
+
+for f in dir1.yaml dir2.yaml pdf.yaml ctrl.yaml; do
+    case $f in dir1.yaml) off=1 ;; dir2.yaml) off=1 ;; pdf.yaml) off=10 ;; ctrl.yaml) off=49 ;; esac
+    expect_refused "psf $f" "$f: not a text file|byte offset $off" psf "$f" -o k.npy
+    expect_refused "correct --psf $f" "$f: not a text file|byte offset $off" \
+        correct --field f.txt --pl pl.txt --psf "$f" -o corr --fft estimate
+    expect_refused "forward --psf $f" "$f: not a text file|byte offset $off" \
+        forward --field f.txt --pl pl.txt --psf "$f" -o fwd --fft estimate
+    expect_refused "simulate $f" "$f: not a text file|byte offset $off" simulate "$f" -o sim
+    expect_refused "map-psf $f" "$f: not a text file|byte offset $off" map-psf "$f" -o map.yaml
+done
+# a PDF under its own name: the PSF readers pick by extension and refuse it
+expect_refused "correct --psf doc.pdf" "doc.pdf|unknown image format" \
+    correct --field f.txt --pl pl.txt --psf doc.pdf -o corr --fft estimate
+expect_refused "simulate doc.pdf" "doc.pdf: not a text file|byte offset 10" simulate doc.pdf -o sim
+for d in k.npy corr fwd sim map.yaml; do
+    if [ -e "$d" ]; then fail "no output after a refusal" "$d exists"; fi
+done
+
+# a file over the 16 MiB limit is refused before it is parsed
+awk 'BEGIN { for (i = 0; i < 600000; i++) printf "# a comment line of thirty bytes\n" }' >big.yaml
+expect_refused "psf: over 16 MiB" "big.yaml|larger than the 16 MiB" psf big.yaml -o k.npy
+
+# the good file still reads (the check does not refuse YAML text, UTF-8 included)
+printf '# \303\251t\303\251 \342\200\224 caf\303\251\npixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >utf8.yaml
+timeout -s KILL "$LIMIT" "$S" psf utf8.yaml -o k_utf8.npy >/dev/null 2>err.txt &&
+    pass "UTF-8 comments are text" || fail "UTF-8 comments are text" "$(cat err.txt)"
+
+# inputs the fuzzers found (tests/fuzz/regressions/<target>/), through the CLI
+if [ -n "$REG" ] && [ -d "$REG" ]; then
+    for f in "$REG"/*/*; do
+        [ -f "$f" ] || continue
+        t=$(basename "$(dirname "$f")")
+        b=$(basename "$f")
+        case $t in
+        psf) cp "$f" in.yaml && expect_ends "fuzz psf $b" psf in.yaml -o "k_$b.npy" ;;
+        psf_map) cp "$f" in.yaml && expect_ends "fuzz psf_map $b" \
+            correct --field f.txt --pl pl.txt --psf in.yaml -o "c_$b" --fft estimate ;;
+        scene) cp "$f" in.yaml && expect_ends "fuzz scene $b" simulate in.yaml --dry-run ;;
+        spots) cp "$f" in.yaml && expect_ends "fuzz spots $b" map-psf in.yaml -o "m_$b.yaml" ;;
+        npy) cp "$f" in.npy && expect_ends "fuzz npy $b" deconvolve in.npy --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        txt) cp "$f" in.txt && expect_ends "fuzz txt $b" deconvolve in.txt --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        tiff) cp "$f" in.tif && expect_ends "fuzz tiff $b" deconvolve in.tif --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        png) cp "$f" in.png && expect_ends "fuzz png $b" deconvolve in.png --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        wisdom) cp "$f" in.wisdom && expect_ends "fuzz wisdom $b" \
+            forward --field f.txt --pl pl.txt --psf good.yaml -o "w_$b" --wisdom in.wisdom ;;
+        esac
+    done
+fi
+
+echo "$n_pass passed, $n_fail failed"
+[ "$n_fail" = 0 ]
