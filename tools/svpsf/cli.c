@@ -6,7 +6,7 @@
 #include "io/yaml.h"
 
 #include <errno.h>
-#include <libfyaml.h>
+#include <yaml.h>
 #include <limits.h>
 #include <math.h>
 #include <stdarg.h>
@@ -103,7 +103,7 @@ void cli_get_versions(cli_versions *v)
     v->svpsf = svp_version();
     v->fftw = svp_fftw_version();
     v->opencv = svp_io_opencv_version();
-    v->libfyaml = fy_library_version();
+    v->libyaml = yaml_get_version_string();
 }
 
 /* ---- the run -------------------------------------------------------------------------------- */
