@@ -223,7 +223,7 @@ static svp_status parse_grid(struct svp_scene *s, const svp_yaml_node *root)
     const svp_yaml_node *g = NULL;
     SVP_CHECK(svp_yaml_require(root, "grid", NULL, &g));
     SVP_CHECK(check_keys(g, "grid", keys));
-    SVP_CHECK(get_num(g, "grid", "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &s->pixel_um, 1));
+    SVP_CHECK(get_num(g, "grid", "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0, &s->pixel_um, 1));
     SVP_CHECK(get_pair(g, "grid", "size_um", s->size_um, 1));
     const svp_yaml_node *sz = svp_yaml_get(g, "size_um");
     for (int a = 0; a < 2; a++) {

@@ -101,6 +101,75 @@ printf '# \303\251t\303\251 \342\200\224 caf\303\251\npixel_um: 0.1\npsf: {model
 timeout -s KILL "$LIMIT" "$S" psf utf8.yaml -o k_utf8.npy >/dev/null 2>err.txt &&
     pass "UTF-8 comments are text" || fail "UTF-8 comments are text" "$(cat err.txt)"
 
+# impossible parameters are exit 1 naming the key; options that would be ignored are refused
+printf 'pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.3, beta: 1e-9}\n' >beta.yaml
+expect_refused "Moffat beta 1e-9" "beta.yaml:2:|beta must be >= 0.5" psf beta.yaml -o k.npy
+printf 'pixel_um: 1e-300\npsf: {model: gaussian, fwhm_um: 0.3}\n' >px.yaml
+expect_refused "pixel_um 1e-300" "px.yaml:1:11|pixel_um must be >= 1e-06" psf px.yaml -o k.npy
+printf 'pixel_um: 0.1\nmodel: moffat\nkind: uniform\npsf: {fwhm_um: 0.6, beta: 0.01}\n' >mapbeta.yaml
+expect_refused "PSF map: Moffat beta 0.01" "mapbeta.yaml:4:|beta must be >= 0.5" \
+    correct --field f.txt --pl pl.txt --psf mapbeta.yaml -o corr --fft estimate
+expect_refused "correct --method r --balance" "--balance|--method r" \
+    correct --field f.txt --pl pl.txt --psf good.yaml -o corr --method r --balance 0.1 --fft estimate
+expect_refused "deconvolve --method rl --balance" "--balance|--method rl" \
+    deconvolve f.txt --psf good.yaml -o d.npy --method rl --balance 0.1 --fft estimate
+printf '0.1 0.2\n0.3 0.4\n' >even.txt
+timeout -s KILL "$LIMIT" "$S" deconvolve f.txt --psf even.txt -o d_even.npy --method wiener \
+    --fft estimate >/dev/null 2>err.txt
+if [ $? = 0 ] && grep -qF "even.txt: the kernel is 2 x 2: an even side has no middle pixel" err.txt; then
+    pass "an even-sized kernel is named in a warning"
+else
+    fail "an even-sized kernel is named in a warning" "$(cat err.txt)"
+fi
+
+# a run killed (SIGTERM, SIGKILL) at several points, writing over the outputs of an earlier run
+# with --force: every file under a final name is whole (the earlier one or the new one, byte for
+# byte), and no earlier output is removed (outputs are written to a hidden temporary name and
+# renamed; docs/reliability.md)
+awk 'BEGIN { for (y = 0; y < 384; y++) { l = ""; for (x = 0; x < 384; x++)
+    l = l sprintf("%.3f ", sin(x * 0.05) * cos(y * 0.07)); print l } }' >big_f.txt
+awk 'BEGIN { for (y = 0; y < 384; y++) { l = ""; for (x = 0; x < 384; x++) l = l "1 "; print l } }' >big_pl.txt
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.8}\n' >wide.yaml
+KILLRUN="correct --field big_f.txt --pl big_pl.txt --format npy --method r --iterations 30 --fft estimate --quiet"
+"$S" $KILLRUN --psf wide.yaml -o old >/dev/null 2>&1 && "$S" $KILLRUN --psf good.yaml -o new >/dev/null 2>&1
+if [ $? != 0 ] || [ ! -f old/field.npy ] || [ ! -f new/field.npy ]; then
+    fail "killed runs" "the reference runs failed"
+else
+    for sig in TERM KILL; do
+        for delay in 0.1 0.4 0.7 0.9 1.0 1.2; do
+            rm -rf k
+            cp -r old k
+            "$S" $KILLRUN --psf good.yaml -o k --force >/dev/null 2>&1 &
+            pid=$!
+            sleep "$delay"
+            kill -s "$sig" "$pid" 2>/dev/null
+            wait "$pid" 2>/dev/null
+            bad=""
+            # summary.json records times: whole means one JSON object, closed
+            whole() { if [ "$1" = summary.json ]; then
+                [ "$(head -c 1 "k/$1")" = "{" ] && [ "$(tail -c 2 "k/$1")" = "}" ]
+            else cmp -s "k/$1" "old/$1" || cmp -s "k/$1" "new/$1"; fi; }
+            for f in old/*; do
+                b=$(basename "$f")
+                if [ ! -f "k/$b" ]; then bad="$bad $b removed;"; continue; fi
+                whole "$b" || bad="$bad $b partial;"
+            done
+            for f in k/*; do
+                b=$(basename "$f")
+                [ -f "new/$b" ] || [ -f "old/$b" ] || bad="$bad $b unexpected;"
+                if [ -f "new/$b" ] && [ ! -f "old/$b" ]; then
+                    whole "$b" || bad="$bad $b partial;"
+                fi
+            done
+            if [ -z "$bad" ]; then
+                pass "SIG$sig after $delay s: every output whole, none removed"
+            else
+                fail "SIG$sig after $delay s" "$bad"
+            fi
+        done
+    done
+fi
+
 # inputs the fuzzers found (tests/fuzz/regressions/<target>/), through the CLI
 if [ -n "$REG" ] && [ -d "$REG" ]; then
     for f in "$REG"/*/*; do

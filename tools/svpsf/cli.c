@@ -615,6 +615,12 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
                          "sum",
                          path, sum);
     psf->kernel_sum = sum;
+    if (k->width % 2 == 0 || k->height % 2 == 0)
+        cli_warn(run,
+                 "%s: the kernel is %d x %d: an even side has no middle pixel, so its centre is "
+                 "taken as pixel (%d, %d), half a pixel from its geometric centre (odd sizes are "
+                 "symmetric; docs/cli.md)",
+                 path, k->width, k->height, k->width / 2, k->height / 2);
     return 0;
 }
 
