@@ -772,7 +772,7 @@ static void test_psf_file_errors(void **state)
         {"pixel_um: 0.1\npsf:\n  model: gaussian\n  fwhm_um: 0\n", SVP_ERR_INVALID,
          "4:12: fwhm_um must be > 0, got 0"},
         {"pixel_um: 0.1\npsf:\n  model: moffat\n  fwhm_um: 0.5\n  beta: 0\n", SVP_ERR_INVALID,
-         "5:9: beta must be > 0, got 0"},
+         "5:9: beta must be >= 0.5, got 0"},
         {"pixel_um: 0.1\npsf:\n  model: moffat\n  fwhm_um: 0.5\n  beta: -1.5\n", SVP_ERR_INVALID,
          "5:9: beta must be > 0, got -1.5"},
         {"pixel_um: 0\npsf: {model: gaussian, fwhm_um: 0.5}\n", SVP_ERR_INVALID,

@@ -1,10 +1,10 @@
 /* PSF files (YAML), the uniform case of the PSF description:
  *
- *   pixel_um: 0.1                 # required, > 0: the camera pixel in the sample plane
+ *   pixel_um: 0.1                 # required, >= 1e-6: the camera pixel in the sample plane
  *   psf:                          # required
  *     model: moffat               # required: gaussian | lorentzian | moffat
  *     fwhm_um: 0.61               # required, > 0 (major axis when elliptical)
- *     beta: 1.1                   # > 0; required for moffat, 1 (or absent) for lorentzian,
+ *     beta: 1.1                   # >= 0.5; required for moffat, 1 (or absent) for lorentzian,
  *                                 #   absent for gaussian
  *     halo: 0.0                   # alpha_b in [0, 1), default 0
  *     fwhm_minor_um: 0.5          # > 0 and <= fwhm_um; absent = circular

@@ -17,7 +17,7 @@
 
 #define FWHM_MIN 0.05
 #define ELLIPTICITY_MAX 0.95
-#define BETA_MIN 0.05
+#define BETA_MIN SVP_PSF_BETA_MIN /* the smallest beta a PSF may have (core/internal.h) */
 #define HALO_MAX 0.999
 
 svp_status svp_psf_to_params(const svp_psf *psf, double p[SVP_FIELD_NPARAM])
