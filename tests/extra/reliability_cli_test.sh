@@ -106,6 +106,8 @@ printf 'pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.3, beta: 1e-9}\n' >beta.y
 expect_refused "Moffat beta 1e-9" "beta.yaml:2:|beta must be >= 0.5" psf beta.yaml -o k.npy
 printf 'pixel_um: 1e-300\npsf: {model: gaussian, fwhm_um: 0.3}\n' >px.yaml
 expect_refused "pixel_um 1e-300" "px.yaml:1:11|pixel_um must be >= 1e-06" psf px.yaml -o k.npy
+expect_refused "fit-psf --pixel-um 1e-300" "--pixel-um 1e-300|must be >= 1e-06" \
+    fit-psf f.txt --pixel-um 1e-300 -o fit.yaml
 printf 'pixel_um: 0.1\nmodel: moffat\nkind: uniform\npsf: {fwhm_um: 0.6, beta: 0.01}\n' >mapbeta.yaml
 expect_refused "PSF map: Moffat beta 0.01" "mapbeta.yaml:4:|beta must be >= 0.5" \
     correct --field f.txt --pl pl.txt --psf mapbeta.yaml -o corr --fft estimate
