@@ -138,7 +138,7 @@ typedef struct svp_psf {
     double fwhm;         /* FWHM along the major axis, pixels (> 0); default 2 */
     double fwhm_minor;   /* FWHM along the minor axis, pixels; 0 (default) = circular */
     double angle;        /* major-axis angle from +x towards +y (row index), radians; default 0 */
-    double beta;         /* Moffat index (> 0); ignored for Gaussian, forced 1 for Lorentzian;
+    double beta;         /* Moffat index (>= 0.5); ignored for Gaussian, forced 1 for Lorentzian;
                             default 2.5 */
     double halo;         /* alpha_b in [0, 1): fraction of the light spread evenly over the
                             field of view (a separate term, never folded into the kernel);
@@ -150,7 +150,7 @@ typedef struct svp_psf {
 } svp_psf;
 
 SVP_API void svp_psf_defaults(svp_psf *psf);
-/* SVP_ERR_INVALID with a message for FWHM <= 0, beta <= 0, halo outside [0, 1), ... */
+/* SVP_ERR_INVALID with a message for FWHM <= 0, Moffat beta < 0.5, halo outside [0, 1), ... */
 SVP_API svp_status svp_psf_validate(const svp_psf *psf);
 /* Moffat r0 from FWHM: r0 = FWHM / (2 sqrt(2^(1/beta) - 1)); Gaussian: sigma. */
 SVP_API double svp_psf_fwhm_to_r0(double fwhm, double beta);

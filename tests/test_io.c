@@ -772,11 +772,11 @@ static void test_psf_file_errors(void **state)
         {"pixel_um: 0.1\npsf:\n  model: gaussian\n  fwhm_um: 0\n", SVP_ERR_INVALID,
          "4:12: fwhm_um must be > 0, got 0"},
         {"pixel_um: 0.1\npsf:\n  model: moffat\n  fwhm_um: 0.5\n  beta: 0\n", SVP_ERR_INVALID,
-         "5:9: beta must be > 0, got 0"},
+         "5:9: beta must be >= 0.5, got 0"},
         {"pixel_um: 0.1\npsf:\n  model: moffat\n  fwhm_um: 0.5\n  beta: -1.5\n", SVP_ERR_INVALID,
-         "5:9: beta must be > 0, got -1.5"},
+         "5:9: beta must be >= 0.5, got -1.5"},
         {"pixel_um: 0\npsf: {model: gaussian, fwhm_um: 0.5}\n", SVP_ERR_INVALID,
-         "1:11: pixel_um must be > 0, got 0"},
+         "1:11: pixel_um must be >= 1e-06, got 0"},
         {"pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.5, halo: 1}\n", SVP_ERR_INVALID,
          "2:44: halo must be in [0, 1), got 1"},
         {"pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.5, fwhm_minor_um: 0.7}\n",
@@ -839,6 +839,59 @@ static void test_psf_file_errors(void **state)
 }
 
 /* ---- YAML helpers and writer ------------------------------------------------------------------- */
+
+/* What is not YAML text, or too large or deep for the bounds, is refused before or while
+ * parsing with the exact message (docs/reliability.md). */
+static void expect_yaml_error(const char *text, size_t len, svp_status status, const char *msg)
+{
+    svp_yaml_doc *doc = NULL;
+    svp_status st = svp_yaml_load_string("t.yaml", text, len, &doc);
+    if (st != status || !strstr(svp_last_error(), msg))
+        fail_msg("status %d (expected %d), message '%s' lacks '%s'", (int)st, (int)status,
+                 svp_last_error(), msg);
+    assert_null(doc);
+}
+
+static void test_yaml_limits(void **state)
+{
+    (void)state;
+    /* the 2-byte files libfyaml 0.7.12 looped on, a PDF's binary line, a control byte, a
+     * truncated UTF-8 sequence, an overlong encoding, a UTF-16 surrogate, U+FFFE */
+    expect_yaml_error("%\xe8", 2, SVP_ERR_FORMAT,
+                      "t.yaml: not a text file (byte offset 1: 0xe8 is not printable UTF-8 text)");
+    expect_yaml_error("%\xff\xffm", 4, SVP_ERR_FORMAT, "t.yaml: not a text file (byte offset 1:");
+    expect_yaml_error("%PDF-1.4\n%\xe2\xe3\xcf\xd3\n", 15, SVP_ERR_FORMAT, "byte offset 10: 0xe2");
+    expect_yaml_error("a: 1\x01\n", 6, SVP_ERR_FORMAT, "byte offset 4: 0x01");
+    expect_yaml_error("a: \xc3", 4, SVP_ERR_FORMAT, "byte offset 3: 0xc3");
+    expect_yaml_error("a: \xc0\xaf", 5, SVP_ERR_FORMAT, "byte offset 3: 0xc0");
+    expect_yaml_error("a: \xed\xa0\x80", 6, SVP_ERR_FORMAT, "byte offset 3: 0xed");
+    expect_yaml_error("a: \xef\xbf\xbe", 6, SVP_ERR_FORMAT, "byte offset 3: 0xef");
+    expect_yaml_error("a: 1\0", 5, SVP_ERR_FORMAT, "byte offset 4: 0x00");
+    /* printable UTF-8 (2, 3 and 4 bytes, NEL, a BOM) reads */
+    const char *ok = "\xef\xbb\xbf# caf\xc3\xa9 \xe2\x80\x94 \xf0\x9f\x94\xac\xc2\x85\na: 1\n";
+    svp_yaml_doc *doc = NULL;
+    assert_int_equal(svp_yaml_load_string("t.yaml", ok, strlen(ok), &doc), SVP_OK);
+    assert_string_equal(svp_yaml_text(svp_yaml_get(svp_yaml_root(doc), "a")), "1");
+    svp_yaml_free(doc);
+
+    /* bounds: nesting, keys per mapping, aliases */
+    char *big = malloc(200000);
+    assert_non_null(big);
+    size_t n = 0;
+    for (int i = 0; i < 300; i++) big[n++] = '[';
+    for (int i = 0; i < 300; i++) big[n++] = ']';
+    expect_yaml_error(big, n, SVP_ERR_FORMAT, "t.yaml:1:257: nesting deeper than 256 levels");
+    n = 0;
+    for (int i = 0; i < 4097; i++) n += (size_t)sprintf(big + n, "k%d: 1\n", i);
+    expect_yaml_error(big, n, SVP_ERR_FORMAT, "t.yaml:4097:1: a mapping of more than 4096 keys");
+    n = (size_t)sprintf(big, "a: &x 1\nb: [");
+    for (int i = 0; i < 1025; i++) n += (size_t)sprintf(big + n, "*x, ");
+    n += (size_t)sprintf(big + n, "1]\n");
+    expect_yaml_error(big, n, SVP_ERR_FORMAT, "more than 1024 aliases");
+    free(big);
+    /* a NUL written as an escape in a quoted string */
+    expect_yaml_error("a: \"x\\0y\"\n", 10, SVP_ERR_FORMAT, "t.yaml:1:4: a text value holds a NUL");
+}
 
 static void test_yaml_helpers(void **state)
 {
@@ -1063,6 +1116,7 @@ int main(void)
         cmocka_unit_test(test_no_overwrite),
         cmocka_unit_test(test_psf_file_valid),
         cmocka_unit_test(test_psf_file_errors),
+        cmocka_unit_test(test_yaml_limits),
         cmocka_unit_test(test_yaml_helpers),
         cmocka_unit_test(test_yaml_writer_round_trip),
         cmocka_unit_test(test_json_writer),

@@ -166,7 +166,7 @@ static void test_bad_scenes(void **state)
          "bad.yaml:1:32:", "size_um must be a list of 2 numbers"},
         /* impossible values */
         {"grid: {pixel_um: -0.1, size_um: [6.4, 6.4]}\n", SVP_ERR_INVALID,
-         "bad.yaml:1:18:", "must be > 0"},
+         "bad.yaml:1:18:", "must be >= 1e-06"},
         {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: -1}\n", SVP_ERR_INVALID,
          "bad.yaml:5:33:", "psf.fwhm_um must be > 0"},
         {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"

@@ -1,6 +1,7 @@
 /* FFT engine: cached FFTW plans per size, wisdom, threads, smooth sizes. */
 #include "internal.h"
 
+#include <ctype.h>
 #include <errno.h>
 #include <omp.h>
 #include <pthread.h>
@@ -63,6 +64,83 @@ svp_fft_effort svp_get_fft_effort(void)
     return e;
 }
 
+/* FFTW trusts the numbers of a wisdom record: fftw_import_wisdom_from_string aborts the
+ * process (an assertion, FFTW 3.3.10) when a record's flag words do not fit the planner's bit
+ * fields (l and u 20 bits, the time-limit field 9 bits). A file is therefore checked first:
+ * whitespace-separated blocks "(fftw-<version> fftw[f]_wisdom #x.. #x.. #x.. #x.." of records
+ * "(<name> <int> #x<l> #x<u> #x<t> #x.. #x.. #x.. #x..)" closed by ")", numbers of at most 8
+ * hex digits, l, u, t in range. Returns the offset of the first fault, or -1 when well-formed. */
+#define SVP_WISDOM_MAX_BYTES (16 << 20) /* docs/reliability.md */
+
+static const char *wisdom_space(const char *p)
+{
+    while (*p == ' ' || *p == '\t' || *p == '\n' || *p == '\r') p++;
+    return p;
+}
+
+/* a token of 1..63 characters other than space, parentheses and NUL */
+static const char *wisdom_token(const char *p)
+{
+    const char *q = p;
+    while (*q && !strchr(" \t\n\r()", *q)) q++;
+    return q > p && q - p < 64 ? q : NULL;
+}
+
+/* whitespace, "#x", 1..8 hex digits; *v = the value */
+static const char *wisdom_hex(const char *p, unsigned long *v)
+{
+    p = wisdom_space(p);
+    if (p[0] != '#' || p[1] != 'x') return NULL;
+    p += 2;
+    int n = 0;
+    *v = 0;
+    while (isxdigit((unsigned char)*p)) {
+        if (++n > 8) return NULL;
+        *v = *v * 16 + (unsigned long)(isdigit((unsigned char)*p) ? *p - '0'
+                                                                     : (*p | 0x20) - 'a' + 10);
+        p++;
+    }
+    return n ? p : NULL;
+}
+
+static long wisdom_check(const char *text)
+{
+    const char *p = wisdom_space(text);
+    int blocks = 0;
+    unsigned long v;
+    while (*p) {
+        if (*p != '(' || ++blocks > 2) return p - text;
+        const char *q = wisdom_token(p + 1); /* fftw-3.3.10 */
+        if (!q || strncmp(p + 1, "fftw", 4)) return p - text;
+        p = wisdom_space(q);
+        q = wisdom_token(p); /* fftw_wisdom | fftwf_wisdom */
+        if (!q || (strncmp(p, "fftw_wisdom", 11) && strncmp(p, "fftwf_wisdom", 12)))
+            return p - text;
+        p = q;
+        for (int i = 0; i < 4; i++)
+            if (!(p = wisdom_hex(q = p, &v))) return q - text;
+        for (;;) {
+            p = wisdom_space(p);
+            if (*p == ')') break;
+            if (*p != '(' || !(q = wisdom_token(p + 1))) return p - text;
+            p = wisdom_space(q);
+            if (*p == '-') p++;
+            int digits = 0;
+            while (isdigit((unsigned char)*p) && digits < 10) p++, digits++;
+            if (!digits || isdigit((unsigned char)*p)) return p - text;
+            for (int i = 0; i < 7; i++) {
+                if (!(p = wisdom_hex(q = p, &v))) return q - text;
+                if ((i < 2 && v >= 1ul << 20) || (i == 2 && v >= 1ul << 9)) return q - text;
+            }
+            p = wisdom_space(p);
+            if (*p != ')') return p - text;
+            p++;
+        }
+        p = wisdom_space(p + 1);
+    }
+    return blocks ? -1 : 0;
+}
+
 /* A wisdom file holds FFTW's double-precision wisdom and, after it, the single-precision one
  * (each an s-expression starting "(fftw-<version> fftw_wisdom" / "fftwf_wisdom"); files with
  * the double part only (older ones) load as before. */
@@ -74,6 +152,11 @@ svp_status svp_fft_wisdom_load(const char *path)
     char *text = NULL;
     long size = -1;
     if (fseek(fp, 0, SEEK_END) == 0) size = ftell(fp);
+    if (size > SVP_WISDOM_MAX_BYTES) {
+        fclose(fp);
+        return svp_fail(SVP_ERR_IO, "%s: %ld bytes, larger than the %d MiB an FFTW wisdom file may have",
+                        path, size, SVP_WISDOM_MAX_BYTES >> 20);
+    }
     if (size >= 0 && fseek(fp, 0, SEEK_SET) == 0) text = malloc((size_t)size + 1);
     size_t got = text ? fread(text, 1, (size_t)size, fp) : 0;
     fclose(fp);
@@ -82,6 +165,13 @@ svp_status svp_fft_wisdom_load(const char *path)
         return svp_fail(SVP_ERR_IO, "%s: cannot read FFTW wisdom", path);
     }
     text[got] = '\0';
+    long bad = memchr(text, '\0', got) ? (long)((char *)memchr(text, '\0', got) - text)
+                                       : wisdom_check(text);
+    if (bad >= 0) {
+        free(text);
+        return svp_fail(SVP_ERR_IO, "%s: not an FFTW wisdom file (malformed at byte offset %ld)",
+                        path, bad);
+    }
     /* the single-precision part starts at the "(" before " fftwf_wisdom" */
     char *single = strstr(text, " fftwf_wisdom");
     while (single && single > text && *single != '(') single--;

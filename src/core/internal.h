@@ -11,6 +11,11 @@
 #define SVP_ALIGN 64
 /* Loops and FFTs over fewer values than this run on one thread. */
 #define SVP_PARALLEL_MIN 65536
+/* The smallest Moffat beta accepted (the range fit-psf searches; docs/reliability.md): below it
+ * the profile falls slower than 1/r and the FWHM conversion underflows as beta -> 0. */
+#define SVP_PSF_BETA_MIN 0.5
+/* The smallest pixel size in µm accepted by the readers (1 pm, docs/reliability.md). */
+#define SVP_PIXEL_UM_MIN 1e-6
 
 #if defined(__GNUC__)
 #define SVP_PRINTF(a, b) __attribute__((format(printf, a, b)))

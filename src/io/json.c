@@ -411,7 +411,7 @@ svp_status svp_json_key_versions(svp_json *j)
     SVP_CHECK(svp_json_key_string(j, "svpsf", svp_version()));
     SVP_CHECK(svp_json_key_string(j, "fftw", svp_fftw_version()));
     SVP_CHECK(svp_json_key_string(j, "opencv", svp_io_opencv_version()));
-    SVP_CHECK(svp_json_key_string(j, "libfyaml", svp_yaml_library_version()));
+    SVP_CHECK(svp_json_key_string(j, "libyaml", svp_yaml_library_version()));
     return svp_json_end_object(j);
 }
 

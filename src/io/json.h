@@ -81,7 +81,7 @@ svp_status svp_json_number_array(svp_json *j, const double *v, size_t n);
 
 /* The run's context that every summary.json carries (svpsf simulate's, written by the library,
  * and every other command's, written by the CLI), one key each: "working_directory";
- * "started_utc" (now − elapsed_s, ISO 8601); "versions" {svpsf, fftw, opencv, libfyaml};
+ * "started_utc" (now − elapsed_s, ISO 8601); "versions" {svpsf, fftw, opencv, libyaml};
  * "peak_memory_bytes" (this process's maximum resident set). */
 svp_status svp_json_key_working_directory(svp_json *j);
 svp_status svp_json_key_started_utc(svp_json *j, double elapsed_s);

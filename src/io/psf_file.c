@@ -1,10 +1,10 @@
 /* PSF files (YAML), the uniform case of the PSF description:
  *
- *   pixel_um: 0.1                 # required, > 0: the camera pixel in the sample plane
+ *   pixel_um: 0.1                 # required, >= 1e-6: the camera pixel in the sample plane
  *   psf:                          # required
  *     model: moffat               # required: gaussian | lorentzian | moffat
  *     fwhm_um: 0.61               # required, > 0 (major axis when elliptical)
- *     beta: 1.1                   # > 0; required for moffat, 1 (or absent) for lorentzian,
+ *     beta: 1.1                   # >= 0.5; required for moffat, 1 (or absent) for lorentzian,
  *                                 #   absent for gaussian
  *     halo: 0.0                   # alpha_b in [0, 1), default 0
  *     fwhm_minor_um: 0.5          # > 0 and <= fwhm_um; absent = circular
@@ -44,7 +44,7 @@ static svp_status read_psf(const svp_yaml_doc *doc, svp_psf *psf, double *pixel_
                              svp_yaml_text(kind));
     SVP_CHECK(svp_yaml_check_keys(root, NULL, top_keys));
     SVP_CHECK(svp_yaml_require(root, "pixel_um", NULL, &node));
-    SVP_CHECK(svp_yaml_number_in(node, "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &pixel_um));
+    SVP_CHECK(svp_yaml_number_in(node, "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0, &pixel_um));
     int boundary = SVP_BOUNDARY_ZERO;
     SVP_CHECK(svp_yaml_get_choice(root, "boundary", boundary_names, &boundary, NULL));
 
@@ -64,7 +64,9 @@ static svp_status read_psf(const svp_yaml_doc *doc, svp_psf *psf, double *pixel_
 
     const svp_yaml_node *beta_node = svp_yaml_get(psf_node, "beta");
     if (beta_node) {
-        SVP_CHECK(svp_yaml_number_in(beta_node, "beta", 0, INFINITY, SVP_YAML_OPEN_LO, &p.beta));
+        SVP_CHECK(svp_yaml_number_in(beta_node, "beta", p.model == SVP_PSF_MOFFAT ? SVP_PSF_BETA_MIN : 0,
+                                     INFINITY, p.model == SVP_PSF_MOFFAT ? 0 : SVP_YAML_OPEN_LO,
+                                     &p.beta));
         if (p.model == SVP_PSF_GAUSSIAN)
             return svp_yaml_fail(beta_node, SVP_ERR_INVALID,
                                  "beta does not apply to a gaussian PSF (use model: moffat for "

@@ -1,4 +1,4 @@
-/* YAML reading (a marked node tree built from libfyaml's events), typed getters with
+/* YAML reading (a marked node tree built from libyaml's events), typed getters with
  * file:line:col messages, and a small block-style writer. See yaml.h. */
 #include "yaml.h"
 
@@ -8,13 +8,14 @@
 
 #include <ctype.h>
 #include <errno.h>
-#include <libfyaml.h>
+#include <limits.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <strings.h>
+#include <yaml.h>
 #include <sys/stat.h>
 
 /* ---- the tree -------------------------------------------------------------------------------- */
@@ -39,27 +40,32 @@ struct svp_yaml_doc {
 };
 
 #define YAML_MAX_DEPTH 256
+/* bounds that keep the quadratic checks (duplicate keys, alias look-up) quick on any input
+ * (docs/reliability.md): svpsf's files have tens of keys per mapping and few aliases */
+#define YAML_MAX_PAIRS 4096
+#define YAML_MAX_ALIASES 1024
 
 typedef struct builder {
     svp_yaml_doc *doc;
     svp_yaml_node *stack[YAML_MAX_DEPTH];
     int depth;
     int documents;
+    int aliases;
     int last_line, last_column; /* end of the previous event (1-based), for empty values */
 } builder;
 
-const char *svp_yaml_library_version(void) { return fy_library_version(); }
+const char *svp_yaml_library_version(void) { return yaml_get_version_string(); }
 
-static svp_yaml_node *node_new(builder *b, svp_yaml_type type, const struct fy_mark *mark)
+static svp_yaml_node *node_new(builder *b, svp_yaml_type type, const yaml_mark_t *mark)
 {
     svp_yaml_node *n = calloc(1, sizeof *n);
     if (!n) return NULL;
     n->type = type;
     n->file = b->doc->file;
-    if (mark) {
-        n->line = mark->line + 1;
-        n->column = mark->column + 1;
-    } else { /* the empty value of "key:" has no mark: point just after the key */
+    if (mark) { /* libyaml's marks are 0-based */
+        n->line = mark->line + 1 > INT_MAX ? INT_MAX : (int)mark->line + 1;
+        n->column = mark->column + 1 > INT_MAX ? INT_MAX : (int)mark->column + 1;
+    } else {
         n->line = b->last_line;
         n->column = b->last_column;
     }
@@ -68,10 +74,8 @@ static svp_yaml_node *node_new(builder *b, svp_yaml_type type, const struct fy_m
     return n;
 }
 
-static char *token_text(struct fy_token *t)
+static char *text_copy(const unsigned char *s, size_t len)
 {
-    size_t len = 0;
-    const char *s = t ? fy_token_get_text(t, &len) : NULL;
     char *copy = malloc(len + 1);
     if (!copy) return NULL;
     if (len) memcpy(copy, s, len);
@@ -79,10 +83,10 @@ static char *token_text(struct fy_token *t)
     return copy;
 }
 
-static svp_status set_anchor(svp_yaml_node *n, struct fy_token *anchor)
+static svp_status set_anchor(svp_yaml_node *n, const yaml_char_t *anchor)
 {
     if (!anchor) return SVP_OK;
-    n->anchor = token_text(anchor);
+    n->anchor = text_copy(anchor, strlen((const char *)anchor));
     return n->anchor ? SVP_OK : svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
 }
 
@@ -106,6 +110,8 @@ static svp_status attach(builder *b, svp_yaml_node *n)
                 return svp_yaml_fail(n, SVP_ERR_FORMAT, "duplicate key '%s' (first at line %d)",
                                      n->text, parent->items[i]->line);
     }
+    if (parent->type == SVP_YAML_MAPPING && parent->nitems >= 2 * YAML_MAX_PAIRS)
+        return svp_yaml_fail(n, SVP_ERR_FORMAT, "a mapping of more than %d keys", YAML_MAX_PAIRS);
     if (parent->nitems == parent->cap) {
         size_t cap = parent->cap ? 2 * parent->cap : 8;
         svp_yaml_node **items = realloc(parent->items, cap * sizeof *items);
@@ -122,64 +128,69 @@ static int is_null_text(const char *s)
     return !*s || !strcmp(s, "~") || !strcmp(s, "null") || !strcmp(s, "Null") || !strcmp(s, "NULL");
 }
 
-static svp_status handle_event(builder *b, struct fy_event *ev)
+static svp_status handle_event(builder *b, yaml_event_t *ev)
 {
-    const struct fy_mark *mark = fy_event_start_mark(ev);
+    const yaml_mark_t *mark = &ev->start_mark;
     svp_yaml_node *n = NULL;
     switch (ev->type) {
-    case FYET_DOCUMENT_START:
+    case YAML_DOCUMENT_START_EVENT:
         if (++b->documents > 1) {
             svp_yaml_node where = {.file = b->doc->file,
-                                   .line = mark ? mark->line + 1 : b->last_line,
-                                   .column = mark ? mark->column + 1 : b->last_column};
+                                   .line = (int)mark->line + 1,
+                                   .column = (int)mark->column + 1};
             return svp_yaml_fail(&where, SVP_ERR_FORMAT,
                                  "a second YAML document ('---'): one document per file");
         }
         return SVP_OK;
-    case FYET_MAPPING_START:
-    case FYET_SEQUENCE_START:
-        n = node_new(b, ev->type == FYET_MAPPING_START ? SVP_YAML_MAPPING : SVP_YAML_SEQUENCE,
-                     mark);
+    case YAML_MAPPING_START_EVENT:
+    case YAML_SEQUENCE_START_EVENT: {
+        const int is_map = ev->type == YAML_MAPPING_START_EVENT;
+        n = node_new(b, is_map ? SVP_YAML_MAPPING : SVP_YAML_SEQUENCE, mark);
         if (!n) return svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
-        SVP_CHECK(set_anchor(n, fy_event_get_anchor_token(ev)));
+        SVP_CHECK(set_anchor(n, is_map ? ev->data.mapping_start.anchor
+                                       : ev->data.sequence_start.anchor));
         SVP_CHECK(attach(b, n));
         if (b->depth == YAML_MAX_DEPTH)
             return svp_yaml_fail(n, SVP_ERR_FORMAT, "nesting deeper than %d levels",
                                  YAML_MAX_DEPTH);
         b->stack[b->depth++] = n;
         return SVP_OK;
-    case FYET_MAPPING_END:
-    case FYET_SEQUENCE_END:
+    }
+    case YAML_MAPPING_END_EVENT:
+    case YAML_SEQUENCE_END_EVENT:
         if (b->depth > 0) b->depth--;
         return SVP_OK;
-    case FYET_SCALAR: {
-        struct fy_token *value = ev->scalar.value;
-        n = node_new(b, SVP_YAML_SCALAR, mark);
+    case YAML_SCALAR_EVENT: {
+        /* the empty value of "key:" is reported just after its key (the previous event) */
+        const int empty = ev->data.scalar.length == 0 &&
+                          ev->data.scalar.style == YAML_PLAIN_SCALAR_STYLE &&
+                          ev->start_mark.index == ev->end_mark.index;
+        n = node_new(b, SVP_YAML_SCALAR, empty ? NULL : mark);
         if (!n) return svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
-        n->text = token_text(value);
+        n->text = text_copy(ev->data.scalar.value, ev->data.scalar.length);
         if (!n->text) return svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
-        n->quoted = fy_token_scalar_style(value) == FYSS_SINGLE_QUOTED ||
-                    fy_token_scalar_style(value) == FYSS_DOUBLE_QUOTED;
-        if (!n->quoted && !ev->scalar.tag && is_null_text(n->text)) n->type = SVP_YAML_NULL;
-        SVP_CHECK(set_anchor(n, ev->scalar.anchor));
+        if (strlen(n->text) != ev->data.scalar.length) /* "\0" escapes in a quoted string */
+            return svp_yaml_fail(n, SVP_ERR_FORMAT, "a text value holds a NUL character");
+        n->quoted = ev->data.scalar.style == YAML_SINGLE_QUOTED_SCALAR_STYLE ||
+                    ev->data.scalar.style == YAML_DOUBLE_QUOTED_SCALAR_STYLE;
+        if (!n->quoted && !ev->data.scalar.tag && is_null_text(n->text)) n->type = SVP_YAML_NULL;
+        SVP_CHECK(set_anchor(n, ev->data.scalar.anchor));
         return attach(b, n);
     }
-    case FYET_ALIAS: {
-        char *name = token_text(ev->alias.anchor);
-        if (!name) return svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
+    case YAML_ALIAS_EVENT: {
+        const char *name = (const char *)ev->data.alias.anchor;
+        svp_yaml_node where = {.file = b->doc->file,
+                               .line = (int)mark->line + 1,
+                               .column = (int)mark->column + 1};
+        if (++b->aliases > YAML_MAX_ALIASES)
+            return svp_yaml_fail(&where, SVP_ERR_FORMAT, "more than %d aliases", YAML_MAX_ALIASES);
         svp_yaml_node *target = NULL;
         for (svp_yaml_node *m = b->doc->all; m && !target; m = m->next_alloc)
             if (m->anchor && !strcmp(m->anchor, name)) target = m; /* newest definition */
-        svp_yaml_node where = {.file = b->doc->file,
-                               .line = mark ? mark->line + 1 : b->last_line,
-                               .column = mark ? mark->column + 1 : b->last_column};
-        svp_status st = SVP_OK;
-        if (!target) st = svp_yaml_fail(&where, SVP_ERR_FORMAT, "unknown alias '*%s'", name);
-        for (int d = 0; st == SVP_OK && d < b->depth; d++)
+        if (!target) return svp_yaml_fail(&where, SVP_ERR_FORMAT, "unknown alias '*%s'", name);
+        for (int d = 0; d < b->depth; d++)
             if (b->stack[d] == target)
-                st = svp_yaml_fail(&where, SVP_ERR_FORMAT, "alias '*%s' refers to itself", name);
-        free(name);
-        SVP_CHECK(st);
+                return svp_yaml_fail(&where, SVP_ERR_FORMAT, "alias '*%s' refers to itself", name);
         return attach(b, target);
     }
     default: return SVP_OK;
@@ -189,73 +200,112 @@ static svp_status handle_event(builder *b, struct fy_event *ev)
 static svp_status parse_text(svp_yaml_doc *doc, const char *text, size_t len)
 {
     svp_status st = SVP_OK;
-    struct fy_diag *diag = NULL;
-    struct fy_parser *parser = NULL;
     builder *b = calloc(1, sizeof *b);
     if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
     b->doc = doc;
     b->last_line = b->last_column = 1;
-
-    /* collect libfyaml's diagnostics instead of letting it print them */
-    struct fy_diag_cfg dcfg;
-    fy_diag_cfg_default(&dcfg);
-    dcfg.fp = NULL;
-    dcfg.output_fn = NULL;
-    dcfg.colorize = false;
-    dcfg.level = FYET_ERROR;
-    diag = fy_diag_create(&dcfg);
-    if (!diag) {
-        st = svp_fail(SVP_ERR_NOMEM, "%s: cannot create a YAML parser", doc->file);
-        goto cleanup;
+    yaml_parser_t parser;
+    if (!yaml_parser_initialize(&parser)) {
+        free(b);
+        return svp_fail(SVP_ERR_NOMEM, "%s: cannot create a YAML parser", doc->file);
     }
-    fy_diag_set_collect_errors(diag, true);
-    struct fy_parse_cfg pcfg = {.search_path = NULL,
-                                .flags = FYPCF_QUIET | FYPCF_COLLECT_DIAG,
-                                .userdata = NULL,
-                                .diag = diag};
-    parser = fy_parser_create(&pcfg);
-    if (!parser || fy_parser_set_string(parser, text, len) != 0) {
-        st = svp_fail(SVP_ERR_NOMEM, "%s: cannot create a YAML parser", doc->file);
-        goto cleanup;
-    }
-    struct fy_event *ev;
-    while ((ev = fy_parser_parse(parser)) != NULL) {
-        st = handle_event(b, ev);
-        const struct fy_mark *end = fy_event_end_mark(ev);
-        if (end) {
-            b->last_line = end->line + 1;
-            b->last_column = end->column + 1;
+    yaml_parser_set_input_string(&parser, (const unsigned char *)text, len);
+    yaml_parser_set_encoding(&parser, YAML_UTF8_ENCODING);
+    for (;;) {
+        yaml_event_t ev;
+        if (!yaml_parser_parse(&parser, &ev)) {
+            if (parser.error == YAML_MEMORY_ERROR) {
+                st = svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
+            } else if (parser.error == YAML_READER_ERROR) {
+                st = svp_fail(SVP_ERR_FORMAT, "%s: %s at byte offset %zu", doc->file,
+                              parser.problem ? parser.problem : "unreadable text",
+                              parser.problem_offset);
+            } else {
+                const yaml_mark_t *m = &parser.problem_mark;
+                char context[160] = "";
+                if (parser.context)
+                    snprintf(context, sizeof context, " (%s at line %zu)", parser.context,
+                             parser.context_mark.line + 1);
+                st = svp_fail(SVP_ERR_FORMAT, "%s:%zu:%zu: %s%s", doc->file, m->line + 1,
+                              m->column + 1, parser.problem ? parser.problem : "malformed YAML",
+                              context);
+            }
+            break;
         }
-        fy_parser_event_free(parser, ev);
-        if (st != SVP_OK) goto cleanup;
+        const int end = ev.type == YAML_STREAM_END_EVENT;
+        st = handle_event(b, &ev);
+        b->last_line = (int)ev.end_mark.line + 1;
+        b->last_column = (int)ev.end_mark.column + 1;
+        yaml_event_delete(&ev);
+        if (st != SVP_OK || end) break;
     }
-    if (fy_parser_get_stream_error(parser)) {
-        void *iter = NULL;
-        struct fy_diag_error *e;
-        while ((e = fy_diag_errors_iterate(diag, &iter)) != NULL)
-            if (e->type >= FYET_ERROR) break;
-        if (e) /* libfyaml's collected positions are already 1-based */
-            st = svp_fail(SVP_ERR_FORMAT, "%s:%d:%d: %s", doc->file, e->line, e->column,
-                          e->msg ? e->msg : "malformed YAML");
-        else
-            st = svp_fail(SVP_ERR_FORMAT, "%s: malformed YAML", doc->file);
-        goto cleanup;
-    }
-    if (!doc->root) { /* an empty file: a null root at 1:1 */
+    yaml_parser_delete(&parser);
+    if (st == SVP_OK && !doc->root) { /* an empty file: a null root at 1:1 */
         doc->root = node_new(b, SVP_YAML_NULL, NULL);
         if (!doc->root) {
             st = svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
-            goto cleanup;
+        } else {
+            doc->root->line = doc->root->column = 1;
+            doc->root->text = calloc(1, 1);
+            if (!doc->root->text) st = svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
         }
-        doc->root->line = doc->root->column = 1;
-        doc->root->text = calloc(1, 1);
-        if (!doc->root->text) st = svp_fail(SVP_ERR_NOMEM, "out of memory reading YAML");
     }
-cleanup:
-    if (parser) fy_parser_destroy(parser);
-    if (diag) fy_diag_destroy(diag);
     free(b);
     return st;
+}
+
+/* YAML admits only printable Unicode in UTF-8 (YAML 1.2 §5.1: tab, LF, CR, U+0020..U+007E,
+ * U+0085, U+00A0..U+D7FF, U+E000..U+FFFD, U+10000..U+10FFFF). Checking this before parsing
+ * gives one clear message for binary files (a PDF, an image) and is what kept Debian 12's
+ * libfyaml 0.7.12, the parser before libyaml, from looping forever on some invalid bytes (for
+ * example "%\xe8"; docs/reliability.md).
+ * Returns the offset of the first byte that starts an invalid or unprintable character, or len
+ * when the whole text is fine. */
+static size_t first_non_text(const unsigned char *s, size_t len)
+{
+    size_t i = 0;
+    while (i < len) {
+        unsigned c = s[i];
+        if (c < 0x80) {
+            if (c == '\t' || c == '\n' || c == '\r' || (c >= 0x20 && c <= 0x7e)) {
+                i++;
+                continue;
+            }
+            return i;
+        }
+        size_t n;
+        unsigned long cp, min;
+        if ((c & 0xe0) == 0xc0) n = 2, cp = c & 0x1f, min = 0x80;
+        else if ((c & 0xf0) == 0xe0) n = 3, cp = c & 0x0f, min = 0x800;
+        else if ((c & 0xf8) == 0xf0) n = 4, cp = c & 0x07, min = 0x10000;
+        else return i;
+        if (len - i < n) return i;
+        for (size_t k = 1; k < n; k++) {
+            if ((s[i + k] & 0xc0) != 0x80) return i;
+            cp = (cp << 6) | (s[i + k] & 0x3f);
+        }
+        if (cp < min || cp > 0x10ffff) return i; /* overlong or beyond Unicode */
+        int printable = cp == 0x85 || (cp >= 0xa0 && cp <= 0xd7ff) ||
+                        (cp >= 0xe000 && cp <= 0xfffd) || cp >= 0x10000;
+        if (!printable) return i;
+        i += n;
+    }
+    return len;
+}
+
+/* Refuses what is not YAML text before the parser sees it: larger than SVP_YAML_MAX_BYTES, or
+ * a byte that is not printable UTF-8 (a PDF, an image or a binary given by mistake). */
+static svp_status check_text(const char *name, const char *text, size_t len)
+{
+    if (len > SVP_YAML_MAX_BYTES)
+        return svp_fail(SVP_ERR_FORMAT, "%s: %zu bytes, larger than the %d MiB a YAML file may have",
+                        name, len, SVP_YAML_MAX_BYTES >> 20);
+    size_t bad = first_non_text((const unsigned char *)text, len);
+    if (bad < len)
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: not a text file (byte offset %zu: 0x%02x is not printable UTF-8 text)",
+                        name, bad, (unsigned)(unsigned char)text[bad]);
+    return SVP_OK;
 }
 
 static svp_status doc_new(const char *name, svp_yaml_doc **out)
@@ -277,6 +327,7 @@ svp_status svp_yaml_load_string(const char *name, const char *text, size_t len, 
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_yaml_load_string: out is NULL");
     *out = NULL;
     if (!text) return svp_fail(SVP_ERR_INVALID, "svp_yaml_load_string: text is NULL");
+    SVP_CHECK(check_text(name ? name : "(yaml)", text, len));
     svp_yaml_doc *doc = NULL;
     SVP_CHECK(doc_new(name, &doc));
     svp_status st = parse_text(doc, text, len);
@@ -299,13 +350,17 @@ svp_status svp_yaml_load_file(const char *path, svp_yaml_doc **out)
         return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
     }
     if (S_ISDIR(sb.st_mode)) return svp_fail(SVP_ERR_IO, "%s: is a directory", path);
+    if (S_ISREG(sb.st_mode) && (unsigned long long)sb.st_size > SVP_YAML_MAX_BYTES)
+        return svp_fail(SVP_ERR_FORMAT, "%s: %lld bytes, larger than the %d MiB a YAML file may have",
+                        path, (long long)sb.st_size, SVP_YAML_MAX_BYTES >> 20);
     FILE *f = fopen(path, "rb");
     if (!f) return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
     svp_strbuf text;
     svp_strbuf_init(&text);
     char chunk[8192];
     size_t got;
-    while ((got = fread(chunk, 1, sizeof chunk, f)) > 0) svp_strbuf_append(&text, chunk, got);
+    while ((got = fread(chunk, 1, sizeof chunk, f)) > 0 && text.len <= SVP_YAML_MAX_BYTES)
+        svp_strbuf_append(&text, chunk, got);
     int read_error = ferror(f);
     fclose(f);
     svp_status st = SVP_OK;

@@ -1,9 +1,9 @@
 /* YAML for svpsf's own files (PSF files, PSF-map files, scenes). Library-internal.
  *
- * Reading: libfyaml's event parser builds a small read-only tree in which EVERY node (scalar,
+ * Reading: libyaml's event parser builds a small read-only tree in which EVERY node (scalar,
  * list, mapping, and the empty value of "key:") knows its file, line and column, so callers can
  * report "file:line:col: ..." for any fault. Lines and columns are 1-based, as editors show
- * them (libfyaml's fy_mark is 0-based; the conversion happens here once).
+ * them (libyaml's marks are 0-based; the conversion happens here once).
  *
  *     svp_yaml_doc *doc = NULL;
  *     SVP_CHECK(svp_yaml_load_file(path, &doc));
@@ -18,7 +18,10 @@
  *
  * Status codes and messages (all start with "file:line:col: "):
  *   SVP_ERR_IO      "x.yaml: no such file", "x.yaml: cannot open (Permission denied)"
- *   SVP_ERR_FORMAT  malformed YAML:   "x.yaml:3:4: <libfyaml's message>"
+ *   SVP_ERR_FORMAT  not text:         "x.yaml: not a text file (byte offset 1: 0xe8 is not
+ *                                      printable UTF-8 text)" (checked before parsing)
+ *                   too large:        "x.yaml: ... bytes, larger than the 16 MiB a YAML file ..."
+ *                   malformed YAML:   "x.yaml:3:4: <libyaml's message>"
  *                   duplicate key:    "x.yaml:5:1: duplicate key 'halo' (first at line 2)"
  *                   unknown key:      "x.yaml:4:3: unknown key 'fwhm_nm' in psf (expected one
  *                                      of: model, fwhm_um, ...; did you mean 'fwhm_um'?)"
@@ -61,6 +64,9 @@ typedef enum svp_yaml_type {
 typedef struct svp_yaml_doc svp_yaml_doc;
 typedef struct svp_yaml_node svp_yaml_node;
 
+/* The largest YAML file read (docs/reliability.md). */
+#define SVP_YAML_MAX_BYTES (16 << 20)
+
 /* Parses one YAML document (a second "---" document is an error). An empty file gives a NULL
  * root node at 1:1. Aliases (*name) point at their anchored node. */
 svp_status svp_yaml_load_file(const char *path, svp_yaml_doc **out);
@@ -68,7 +74,7 @@ svp_status svp_yaml_load_file(const char *path, svp_yaml_doc **out);
 svp_status svp_yaml_load_string(const char *name, const char *text, size_t len, svp_yaml_doc **out);
 void svp_yaml_free(svp_yaml_doc *doc);
 const svp_yaml_node *svp_yaml_root(const svp_yaml_doc *doc);
-/* libfyaml's version string (for --version and summary.json). */
+/* libyaml's version string (for --version and summary.json). */
 const char *svp_yaml_library_version(void);
 
 /* ---- nodes (all accept NULL and then return 0 / NULL / SVP_YAML_NULL) ---------------------- */

@@ -17,7 +17,7 @@
 
 #define FWHM_MIN 0.05
 #define ELLIPTICITY_MAX 0.95
-#define BETA_MIN 0.05
+#define BETA_MIN SVP_PSF_BETA_MIN /* the smallest beta a PSF may have (core/internal.h) */
 #define HALO_MAX 0.999
 
 svp_status svp_psf_to_params(const svp_psf *psf, double p[SVP_FIELD_NPARAM])
@@ -542,7 +542,7 @@ static svp_status read_psf_entry(const svp_yaml_node *n, const char *what, const
     SVP_CHECK(svp_yaml_get_number(n, "fwhm_minor_um", 0, INFINITY, 0, &minor, NULL));
     SVP_CHECK(svp_yaml_get_number(n, "angle_deg", -INFINITY, INFINITY, 0, &angle, NULL));
     int has_beta = 0;
-    SVP_CHECK(svp_yaml_get_number(n, "beta", 0, INFINITY, SVP_YAML_OPEN_LO, &beta, &has_beta));
+    SVP_CHECK(svp_yaml_get_number(n, "beta", SVP_PSF_BETA_MIN, INFINITY, 0, &beta, &has_beta));
     if (!has_beta && base->model == SVP_PSF_MOFFAT)
         return svp_yaml_fail(n, SVP_ERR_FORMAT,
                              "missing required key 'beta' in %s (a Moffat "
@@ -633,7 +633,7 @@ static svp_status read_map(const char *path, const svp_yaml_node *root, svp_psf_
     SVP_CHECK(svp_yaml_check_keys(root, NULL, map_keys));
     SVP_CHECK(svp_yaml_get_int(root, "version", 1, 1, &version, NULL));
     SVP_CHECK(svp_yaml_require(root, "pixel_um", NULL, &v));
-    SVP_CHECK(svp_yaml_number_in(v, "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &pixel_um));
+    SVP_CHECK(svp_yaml_number_in(v, "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0, &pixel_um));
     SVP_CHECK(svp_yaml_require(root, "kind", NULL, &v));
     SVP_CHECK(svp_yaml_choice(v, "kind", kind_names, &kind));
     SVP_CHECK(svp_yaml_require(root, "model", NULL, &v));

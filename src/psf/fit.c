@@ -905,12 +905,15 @@ static svp_status check_spot_options(const svp_spot_options *o)
         return svp_fail(SVP_ERR_INVALID, "spot fit: model %d is not gaussian, lorentzian or "
                         "moffat", (int)o->model);
     if (o->model == SVP_PSF_MOFFAT) {
-        if (!(o->beta_min > 0) || !(o->beta_max > o->beta_min) || !isfinite(o->beta_max))
-            return svp_fail(SVP_ERR_INVALID, "spot fit: beta bounds [%g, %g] must satisfy 0 < "
-                            "beta_min < beta_max < inf", o->beta_min, o->beta_max);
-        if (!(o->beta > 0) || !isfinite(o->beta) ||
+        if (!(o->beta_min >= SVP_PSF_BETA_MIN) || !(o->beta_max > o->beta_min) ||
+            !isfinite(o->beta_max))
+            return svp_fail(SVP_ERR_INVALID, "spot fit: beta bounds [%g, %g] must satisfy %g <= "
+                            "beta_min < beta_max < inf", o->beta_min, o->beta_max,
+                            SVP_PSF_BETA_MIN);
+        if (!(o->beta >= SVP_PSF_BETA_MIN) || !isfinite(o->beta) ||
             (!o->fix_beta && (o->beta < o->beta_min || o->beta > o->beta_max)))
-            return svp_fail(SVP_ERR_INVALID, "spot fit: beta %g must be positive%s", o->beta,
+            return svp_fail(SVP_ERR_INVALID, "spot fit: beta %g must be >= %g%s", o->beta,
+                            SVP_PSF_BETA_MIN,
                             o->fix_beta ? "" : " and within [beta_min, beta_max]");
     }
     if (!(o->hot_ratio > 1) || !(o->hot_sigma > 0) || !(o->clip_kappa >= 0) ||

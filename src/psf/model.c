@@ -39,9 +39,9 @@ svp_status svp_psf_validate(const svp_psf *psf)
     if (psf->fwhm_minor < 0 || !isfinite(psf->fwhm_minor))
         return svp_fail(SVP_ERR_INVALID, "PSF minor-axis FWHM must be >= 0, got %g",
                         psf->fwhm_minor);
-    if (psf->model == SVP_PSF_MOFFAT && (!(psf->beta > 0) || !isfinite(psf->beta)))
-        return svp_fail(SVP_ERR_INVALID, "Moffat beta must be positive and finite, got %g",
-                        psf->beta);
+    if (psf->model == SVP_PSF_MOFFAT && (!(psf->beta >= SVP_PSF_BETA_MIN) || !isfinite(psf->beta)))
+        return svp_fail(SVP_ERR_INVALID, "Moffat beta must be >= %g and finite, got %g",
+                        SVP_PSF_BETA_MIN, psf->beta);
     if (!(psf->halo >= 0 && psf->halo < 1))
         return svp_fail(SVP_ERR_INVALID, "halo fraction must be in [0, 1), got %g", psf->halo);
     if (psf->support < 0 || !isfinite(psf->support))

@@ -223,7 +223,7 @@ static svp_status parse_grid(struct svp_scene *s, const svp_yaml_node *root)
     const svp_yaml_node *g = NULL;
     SVP_CHECK(svp_yaml_require(root, "grid", NULL, &g));
     SVP_CHECK(check_keys(g, "grid", keys));
-    SVP_CHECK(get_num(g, "grid", "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &s->pixel_um, 1));
+    SVP_CHECK(get_num(g, "grid", "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0, &s->pixel_um, 1));
     SVP_CHECK(get_pair(g, "grid", "size_um", s->size_um, 1));
     const svp_yaml_node *sz = svp_yaml_get(g, "size_um");
     for (int a = 0; a < 2; a++) {
@@ -240,7 +240,14 @@ static svp_status parse_grid(struct svp_scene *s, const svp_yaml_node *root)
     s->view_w = (int)lround(s->size_um[0] / s->pixel_um);
     s->view_h = (int)lround(s->size_um[1] / s->pixel_um);
     SVP_CHECK(get_num(g, "grid", "margin_um", 0, INFINITY, 0, &s->margin_um, 0));
-    s->margin_px = (int)lround(s->margin_um / s->pixel_um);
+    /* checked in pixels before any integer conversion (a huge margin overflowed an int) */
+    const double margin_px = s->margin_um / s->pixel_um;
+    if (!(margin_px <= SCENE_MAX_SIDE))
+        return svp_yaml_fail(svp_yaml_get(g, "margin_um"), SVP_ERR_INVALID,
+                             "grid.margin_um = %g um is %.4g pixels: the canvas may be at most %d "
+                             "pixels across",
+                             s->margin_um, margin_px, SCENE_MAX_SIDE);
+    s->margin_px = (int)lround(margin_px);
     s->canvas_w = s->view_w + 2 * s->margin_px;
     s->canvas_h = s->view_h + 2 * s->margin_px;
     if (s->canvas_w > SCENE_MAX_SIDE || s->canvas_h > SCENE_MAX_SIDE)

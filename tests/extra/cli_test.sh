@@ -110,8 +110,8 @@ printf 'pixel_um: 1\npsf:\n  model: gaussian\n  fwhm_um: 2\n  fwhm_umm: 3\n' >ty
 run version --version
 if [ "$(cat rc.version)" = 0 ] && grep -qE '^svpsf [0-9]+\.[0-9]+' out.version &&
     grep -qE '^FFTW .*[0-9]' out.version && grep -qE '^OpenCV [0-9]' out.version &&
-    grep -qE '^libfyaml [0-9]' out.version; then
-    pass "--version prints svpsf, FFTW, OpenCV, libfyaml: $(tr '\n' ';' <out.version)"
+    grep -qE '^libyaml [0-9]' out.version; then
+    pass "--version prints svpsf, FFTW, OpenCV, libyaml: $(tr '\n' ';' <out.version)"
 else
     fail "--version" "$(cat out.version err.version)"
 fi
@@ -276,7 +276,7 @@ fi
 s=corr_w/summary.json
 ok=1
 for key in '"command": "correct"' '"command_line"' '"inputs"' '"width": 32' '"bytes"' '"settings"' \
-    '"method": "w"' '"versions"' '"fftw"' '"opencv"' '"libfyaml"' '"timings_s"' '"transform"' \
+    '"method": "w"' '"versions"' '"fftw"' '"opencv"' '"libyaml"' '"timings_s"' '"transform"' \
     '"total"' '"peak_memory_bytes"' '"n_missing"' '"flagged_fraction"'; do
     grep -qF -- "$key" "$s" || { ok=0; fail "summary.json" "lacks $key"; break; }
 done

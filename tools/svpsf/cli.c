@@ -6,7 +6,7 @@
 #include "io/yaml.h"
 
 #include <errno.h>
-#include <libfyaml.h>
+#include <yaml.h>
 #include <limits.h>
 #include <math.h>
 #include <stdarg.h>
@@ -103,7 +103,7 @@ void cli_get_versions(cli_versions *v)
     v->svpsf = svp_version();
     v->fftw = svp_fftw_version();
     v->opencv = svp_io_opencv_version();
-    v->libfyaml = fy_library_version();
+    v->libyaml = yaml_get_version_string();
 }
 
 /* ---- the run -------------------------------------------------------------------------------- */
@@ -615,6 +615,12 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
                          "sum",
                          path, sum);
     psf->kernel_sum = sum;
+    if (k->width % 2 == 0 || k->height % 2 == 0)
+        cli_warn(run,
+                 "%s: the kernel is %d x %d: an even side has no middle pixel, so its centre is "
+                 "taken as pixel (%d, %d), half a pixel from its geometric centre (odd sizes are "
+                 "symmetric; docs/cli.md)",
+                 path, k->width, k->height, k->width / 2, k->height / 2);
     return 0;
 }
 

@@ -85,7 +85,7 @@ int cli_exit_code(svp_status status);
 /* ---- versions ------------------------------------------------------------------------------ */
 
 typedef struct cli_versions {
-    const char *svpsf, *fftw, *opencv, *libfyaml;
+    const char *svpsf, *fftw, *opencv, *libyaml;
 } cli_versions;
 void cli_get_versions(cli_versions *v);
 

@@ -189,6 +189,7 @@ int cmd_correct(int argc, char **argv)
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
     int method = 0, precision = 0, acceleration = 0, margin_auto = 0, n_sigma = 0;
+    int balance_given = 0;
     const char *sigma_paths[CLI_MAX_FIELDS] = {NULL};
     svp_image *field_sigma[CLI_MAX_FIELDS] = {NULL};
     svp_correct_summary summary;
@@ -246,6 +247,7 @@ int cmd_correct(int argc, char **argv)
             break;
         case OPT_BALANCE:
             bad = cli_parse_balance(&run, optarg, &opt.deconv.balance, &opt.balance_auto);
+            balance_given = 1;
             break;
         case OPT_NOISE:
             bad = cli_parse_double_in(&run, "--noise", optarg, 0, 0, INFINITY, 0, &opt.noise_sigma);
@@ -268,6 +270,10 @@ int cmd_correct(int argc, char **argv)
         if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
     }
     const int has_wiener = opt.method == SVP_METHOD_RW || opt.method == SVP_METHOD_W;
+    if (balance_given && !opt.balance_auto && !has_wiener)
+        return cli_run_finish(&run, cli_error(&run, "--balance is used only by the methods with a "
+                                                    "Wiener deconvolution (--method rw or w), "
+                                                    "not --method %s", method_names[method]));
     if (opt.balance_auto && !has_wiener)
         return cli_run_finish(&run, cli_error(&run, "--balance auto needs a method with a Wiener "
                                                     "deconvolution (--method rw or w)"));

@@ -111,6 +111,7 @@ int cmd_deconvolve(int argc, char **argv)
     memset(&psf, 0, sizeof psf);
     const char *psf_path = NULL;
     int method = -1, compat = -1, boundary_given = 0, balance_auto = 0, acceleration = 0;
+    int balance_given = 0;
     int keep_doubtful = 0;
     char doubt[600] = "";
     svp_deconv_report report;
@@ -148,7 +149,10 @@ int cmd_deconvolve(int argc, char **argv)
             opt.acceleration = (svp_rl_acceleration)acceleration;
             break;
         case OPT_KEEP_DOUBTFUL: keep_doubtful = 1; break;
-        case OPT_BALANCE: bad = cli_parse_balance(&run, optarg, &opt.balance, &balance_auto); break;
+        case OPT_BALANCE:
+            bad = cli_parse_balance(&run, optarg, &opt.balance, &balance_auto);
+            balance_given = 1;
+            break;
         case OPT_CG_MAX_STEPS:
             bad = cli_parse_int(&run, "--cg-max-steps", optarg, 1, 100000, &opt.cg_max_steps);
             break;
@@ -175,6 +179,9 @@ int cmd_deconvolve(int argc, char **argv)
     if (!psf_path) return cli_run_finish(&run, cli_error(&run, "--psf is required"));
     if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o OUT is required"));
     if (method < 0) return cli_run_finish(&run, cli_error(&run, "--method wiener|rl is required"));
+    if (balance_given && !balance_auto && method == 1)
+        return cli_run_finish(&run, cli_error(&run, "--balance is used only by --method wiener, "
+                                                    "not --method rl"));
     if (balance_auto && (method != 0 || compat >= 0))
         return cli_run_finish(&run, cli_error(&run, "--balance auto needs --method wiener "
                                                     "without --compat"));

@@ -351,7 +351,8 @@ int cmd_fit_psf(int argc, char **argv)
         case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
         case OPT_EXCITATION: exc_path = optarg; break;
         case OPT_PIXEL_UM:
-            bad = cli_parse_double_in(&run, "--pixel-um", optarg, 0, 0, INFINITY, 0, &pixel_um);
+            bad = cli_parse_double_in(&run, "--pixel-um", optarg, SVP_PIXEL_UM_MIN, 1, INFINITY,
+                                      0, &pixel_um);
             break;
         case OPT_MODEL:
             bad = cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model);

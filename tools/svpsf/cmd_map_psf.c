@@ -328,7 +328,7 @@ int cmd_map_psf(int argc, char **argv)
         if ((st = svp_yaml_expect_mapping(root, NULL)) != SVP_OK ||
             (st = svp_yaml_check_keys(root, NULL, keys)) != SVP_OK ||
             (st = svp_yaml_require(root, "pixel_um", NULL, &node)) != SVP_OK ||
-            (st = svp_yaml_number_in(node, "pixel_um", 0, INFINITY, SVP_YAML_OPEN_LO, &pixel_um)) !=
+            (st = svp_yaml_number_in(node, "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0, &pixel_um)) !=
                 SVP_OK)
             goto yaml_fail;
         const svp_yaml_node *list = svp_yaml_get(root, "spots"),

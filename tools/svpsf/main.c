@@ -59,7 +59,7 @@ static void print_version(void)
     printf("svpsf %s\n", v.svpsf);
     printf("FFTW %s\n", v.fftw);
     printf("OpenCV %s\n", v.opencv);
-    printf("libfyaml %s\n", v.libfyaml);
+    printf("libyaml %s\n", v.libyaml);
 }
 
 int main(int argc, char **argv)

@@ -1,0 +1,198 @@
+#!/bin/sh
+# Inputs that once hung or crashed a reader (docs/reliability.md): every one must end, within a
+# time limit, with exit 1 and a message naming the file and the fault. A hang fails the check
+# (timeout) instead of blocking the suite. Also replays the regression inputs kept beside the
+# fuzz targets (tests/fuzz/regressions/<target>/*) through the CLI command that reads them.
+#   usage: reliability_cli_test.sh /path/to/svpsf /path/to/tests/fuzz/regressions
+# POSIX sh; prints one line per check and "N passed, M failed"; exits nonzero on any failure.
+set -u
+
+S=${1:?usage: reliability_cli_test.sh /path/to/svpsf REGRESSIONS_DIR}
+REG=${2:-}
+case $S in /*) ;; *) S=$PWD/$S ;; esac
+case $REG in /* | '') ;; *) REG=$PWD/$REG ;; esac
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/svpsf-rel.XXXXXX")
+trap 'rm -rf "$WORK"' EXIT
+cd "$WORK" || exit 1
+export OMP_NUM_THREADS=1
+LIMIT=20 # seconds: every case below takes milliseconds; a hang is stopped here
+
+n_pass=0
+n_fail=0
+pass() { n_pass=$((n_pass + 1)); echo "ok    $1"; }
+fail() { n_fail=$((n_fail + 1)); echo "FAIL  $1: $2"; }
+
+# expect_refused NAME "TEXT|TEXT..." CMD...: exits 1 within LIMIT s, stderr has every TEXT
+expect_refused() {
+    name=$1 texts=$2
+    shift 2
+    timeout -s KILL "$LIMIT" "$S" "$@" >out.txt 2>err.txt
+    rc=$?
+    if [ "$rc" = 137 ] || [ "$rc" = 124 ]; then
+        fail "$name" "still running after $LIMIT s (a hang)"
+        return
+    fi
+    if [ "$rc" != 1 ]; then
+        fail "$name" "exit $rc (expected 1): $(head -c 300 err.txt)"
+        return
+    fi
+    old_ifs=$IFS
+    IFS='|'
+    for t in $texts; do
+        if ! grep -qF -- "$t" err.txt; then
+            IFS=$old_ifs
+            fail "$name" "message lacks '$t': $(head -c 300 err.txt)"
+            return
+        fi
+    done
+    IFS=$old_ifs
+    pass "$name"
+}
+
+# expect_ends NAME CMD...: ends within LIMIT s with exit 0 or 1 (a clean refusal), never a
+# crash (signal), an internal error (4) or a hang
+expect_ends() {
+    name=$1
+    shift
+    timeout -s KILL "$LIMIT" "$S" "$@" >out.txt 2>err.txt
+    rc=$?
+    case $rc in
+    0 | 1) pass "$name" ;;
+    137 | 124) fail "$name" "still running after $LIMIT s (a hang)" ;;
+    *) fail "$name" "exit $rc: $(head -c 300 err.txt)" ;;
+    esac
+}
+
+printf '1 2\n3 4\n' >f.txt
+printf '1 1\n1 1\n' >pl.txt
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >good.yaml
+
+# the 2-byte files libfyaml 0.7.12 loops on, and a PDF given by mistake
+printf '%%\350' >dir1.yaml
+printf '%%\377\377m' >dir2.yaml
+printf '%%PDF-1.4\n%%\342\343\317\323\n1 0 obj\n<< /Type /Catalog >>\nendobj\n' >doc.pdf
+cp doc.pdf pdf.yaml # a PDF saved under a YAML name
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3\001}\n' >ctrl.yaml
+
+for f in dir1.yaml dir2.yaml pdf.yaml ctrl.yaml; do
+    case $f in dir1.yaml) off=1 ;; dir2.yaml) off=1 ;; pdf.yaml) off=10 ;; ctrl.yaml) off=49 ;; esac
+    expect_refused "psf $f" "$f: not a text file|byte offset $off" psf "$f" -o k.npy
+    expect_refused "correct --psf $f" "$f: not a text file|byte offset $off" \
+        correct --field f.txt --pl pl.txt --psf "$f" -o corr --fft estimate
+    expect_refused "forward --psf $f" "$f: not a text file|byte offset $off" \
+        forward --field f.txt --pl pl.txt --psf "$f" -o fwd --fft estimate
+    expect_refused "simulate $f" "$f: not a text file|byte offset $off" simulate "$f" -o sim
+    expect_refused "map-psf $f" "$f: not a text file|byte offset $off" map-psf "$f" -o map.yaml
+done
+# a PDF under its own name: the PSF readers pick by extension and refuse it
+expect_refused "correct --psf doc.pdf" "doc.pdf|unknown image format" \
+    correct --field f.txt --pl pl.txt --psf doc.pdf -o corr --fft estimate
+expect_refused "simulate doc.pdf" "doc.pdf: not a text file|byte offset 10" simulate doc.pdf -o sim
+for d in k.npy corr fwd sim map.yaml; do
+    if [ -e "$d" ]; then fail "no output after a refusal" "$d exists"; fi
+done
+
+# a file over the 16 MiB limit is refused before it is parsed
+awk 'BEGIN { for (i = 0; i < 600000; i++) printf "# a comment line of thirty bytes\n" }' >big.yaml
+expect_refused "psf: over 16 MiB" "big.yaml|larger than the 16 MiB" psf big.yaml -o k.npy
+
+# the good file still reads (the check does not refuse YAML text, UTF-8 included)
+printf '# \303\251t\303\251 \342\200\224 caf\303\251\npixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >utf8.yaml
+timeout -s KILL "$LIMIT" "$S" psf utf8.yaml -o k_utf8.npy >/dev/null 2>err.txt &&
+    pass "UTF-8 comments are text" || fail "UTF-8 comments are text" "$(cat err.txt)"
+
+# impossible parameters are exit 1 naming the key; options that would be ignored are refused
+printf 'pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.3, beta: 1e-9}\n' >beta.yaml
+expect_refused "Moffat beta 1e-9" "beta.yaml:2:|beta must be >= 0.5" psf beta.yaml -o k.npy
+printf 'pixel_um: 1e-300\npsf: {model: gaussian, fwhm_um: 0.3}\n' >px.yaml
+expect_refused "pixel_um 1e-300" "px.yaml:1:11|pixel_um must be >= 1e-06" psf px.yaml -o k.npy
+expect_refused "fit-psf --pixel-um 1e-300" "--pixel-um 1e-300|must be >= 1e-06" \
+    fit-psf f.txt --pixel-um 1e-300 -o fit.yaml
+printf 'pixel_um: 0.1\nmodel: moffat\nkind: uniform\npsf: {fwhm_um: 0.6, beta: 0.01}\n' >mapbeta.yaml
+expect_refused "PSF map: Moffat beta 0.01" "mapbeta.yaml:4:|beta must be >= 0.5" \
+    correct --field f.txt --pl pl.txt --psf mapbeta.yaml -o corr --fft estimate
+expect_refused "correct --method r --balance" "--balance|--method r" \
+    correct --field f.txt --pl pl.txt --psf good.yaml -o corr --method r --balance 0.1 --fft estimate
+expect_refused "deconvolve --method rl --balance" "--balance|--method rl" \
+    deconvolve f.txt --psf good.yaml -o d.npy --method rl --balance 0.1 --fft estimate
+printf '0.1 0.2\n0.3 0.4\n' >even.txt
+timeout -s KILL "$LIMIT" "$S" deconvolve f.txt --psf even.txt -o d_even.npy --method wiener \
+    --fft estimate >/dev/null 2>err.txt
+if [ $? = 0 ] && grep -qF "even.txt: the kernel is 2 x 2: an even side has no middle pixel" err.txt; then
+    pass "an even-sized kernel is named in a warning"
+else
+    fail "an even-sized kernel is named in a warning" "$(cat err.txt)"
+fi
+
+# a run killed (SIGTERM, SIGKILL) at several points, writing over the outputs of an earlier run
+# with --force: every file under a final name is whole (the earlier one or the new one, byte for
+# byte), and no earlier output is removed (outputs are written to a hidden temporary name and
+# renamed; docs/reliability.md)
+awk 'BEGIN { for (y = 0; y < 384; y++) { l = ""; for (x = 0; x < 384; x++)
+    l = l sprintf("%.3f ", sin(x * 0.05) * cos(y * 0.07)); print l } }' >big_f.txt
+awk 'BEGIN { for (y = 0; y < 384; y++) { l = ""; for (x = 0; x < 384; x++) l = l "1 "; print l } }' >big_pl.txt
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.8}\n' >wide.yaml
+KILLRUN="correct --field big_f.txt --pl big_pl.txt --format npy --method r --iterations 30 --fft estimate --quiet"
+"$S" $KILLRUN --psf wide.yaml -o old >/dev/null 2>&1 && "$S" $KILLRUN --psf good.yaml -o new >/dev/null 2>&1
+if [ $? != 0 ] || [ ! -f old/field.npy ] || [ ! -f new/field.npy ]; then
+    fail "killed runs" "the reference runs failed"
+else
+    for sig in TERM KILL; do
+        for delay in 0.1 0.4 0.7 0.9 1.0 1.2; do
+            rm -rf k
+            cp -r old k
+            "$S" $KILLRUN --psf good.yaml -o k --force >/dev/null 2>&1 &
+            pid=$!
+            sleep "$delay"
+            kill -s "$sig" "$pid" 2>/dev/null
+            wait "$pid" 2>/dev/null
+            bad=""
+            # summary.json records times: whole means one JSON object, closed
+            whole() { if [ "$1" = summary.json ]; then
+                [ "$(head -c 1 "k/$1")" = "{" ] && [ "$(tail -c 2 "k/$1")" = "}" ]
+            else cmp -s "k/$1" "old/$1" || cmp -s "k/$1" "new/$1"; fi; }
+            for f in old/*; do
+                b=$(basename "$f")
+                if [ ! -f "k/$b" ]; then bad="$bad $b removed;"; continue; fi
+                whole "$b" || bad="$bad $b partial;"
+            done
+            for f in k/*; do
+                b=$(basename "$f")
+                [ -f "new/$b" ] || [ -f "old/$b" ] || bad="$bad $b unexpected;"
+                if [ -f "new/$b" ] && [ ! -f "old/$b" ]; then
+                    whole "$b" || bad="$bad $b partial;"
+                fi
+            done
+            if [ -z "$bad" ]; then
+                pass "SIG$sig after $delay s: every output whole, none removed"
+            else
+                fail "SIG$sig after $delay s" "$bad"
+            fi
+        done
+    done
+fi
+
+# inputs the fuzzers found (tests/fuzz/regressions/<target>/), through the CLI
+if [ -n "$REG" ] && [ -d "$REG" ]; then
+    for f in "$REG"/*/*; do
+        [ -f "$f" ] || continue
+        t=$(basename "$(dirname "$f")")
+        b=$(basename "$f")
+        case $t in
+        psf) cp "$f" in.yaml && expect_ends "fuzz psf $b" psf in.yaml -o "k_$b.npy" ;;
+        psf_map) cp "$f" in.yaml && expect_ends "fuzz psf_map $b" \
+            correct --field f.txt --pl pl.txt --psf in.yaml -o "c_$b" --fft estimate ;;
+        scene) cp "$f" in.yaml && expect_ends "fuzz scene $b" simulate in.yaml --dry-run ;;
+        spots) cp "$f" in.yaml && expect_ends "fuzz spots $b" map-psf in.yaml -o "m_$b.yaml" ;;
+        npy) cp "$f" in.npy && expect_ends "fuzz npy $b" deconvolve in.npy --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        txt) cp "$f" in.txt && expect_ends "fuzz txt $b" deconvolve in.txt --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        tiff) cp "$f" in.tif && expect_ends "fuzz tiff $b" deconvolve in.tif --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        png) cp "$f" in.png && expect_ends "fuzz png $b" deconvolve in.png --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        wisdom) cp "$f" in.wisdom && expect_ends "fuzz wisdom $b" \
+            forward --field f.txt --pl pl.txt --psf good.yaml -o "w_$b" --wisdom in.wisdom ;;
+        esac
+    done
+fi
+
+echo "$n_pass passed, $n_fail failed"
+[ "$n_fail" = 0 ]
