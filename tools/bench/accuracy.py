@@ -297,7 +297,7 @@ def main():
     if "usage: svpsf correct" not in help_text:
         sys.exit(f"accuracy.py: {args.svpsf} is not an svpsf program ('correct --help' failed)")
     skipped = [label for label, extra in OPTION_SETS if not supported(help_text, extra)]
-    sets = [(label, extra) for label, extra in OPTION_SETS if label not in skipped]
+    sets = [(label, args_) for label, args_ in OPTION_SETS if label not in skipped]
     commit = args.commit or subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"],
                                            capture_output=True, text=True).stdout.strip()
     runs = []
@@ -314,8 +314,8 @@ def main():
                                  + (["--field-noise-ut", str(args.field_noise_ut)]
                                     if args.field_noise_ut is not None else []))
                     u = uncorrected(data)
-                    for label, extra in sets:
-                        r = one_run(args.svpsf, data, label, extra, args.threads,
+                    for label, args_ in sets:
+                        r = one_run(args.svpsf, data, label, args_, args.threads,
                                     os.path.join(tmp, "fftw.wisdom"))
                         r.update(scene=scene, counts=c, psf_err=fe, uncorrected=u)
                         runs.append(r)
