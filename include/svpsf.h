@@ -110,6 +110,25 @@ SVP_API size_t svp_image_count_nonfinite(const svp_image *image);
  * order, 2-D), .txt/.csv/.dat (numbers as numpy.savetxt writes them, whitespace or comma
  * separated, '#' comments). Errors name the file and the fault. */
 SVP_API svp_status svp_image_read(const char *path, svp_image **out);
+/* A stack where one image is expected is refused (SVP_ERR_FORMAT) naming its page count:
+ *   "<path>: multi-page TIFF of 5 pages: expected one image (a stack is read as an ODMR stack
+ *    by svp_stack_read / svpsf fit-odmr)"
+ *   "<path>: a stack of 5 frames (3-D array of shape (5, 32, 48)): expected one image (...)" */
+
+/* An image stack: n_frames images of one size (one per page of a multi-page TIFF, one per
+ * leading index of a 3-D .npy array). */
+typedef struct svp_stack {
+    int width, height, n_frames;
+    svp_image **frame; /* n_frames images */
+} svp_stack;
+
+/* Reads a stack: a multi-page TIFF (every page one channel of a type svp_image_read accepts,
+ * all of the first page's size; pages decoded by OpenCV's imreadmulti), a .npy of shape
+ * (n_frames, height, width) (C or Fortran order), or any single image (a stack of one frame).
+ * Errors name the file and, for a bad page, the page: "<path>: page 3 of 5 is 64 x 32 but
+ * page 1 is 32 x 32". */
+SVP_API svp_status svp_stack_read(const char *path, svp_stack **out);
+SVP_API void svp_stack_free(svp_stack *stack);
 
 typedef enum svp_file_format {
     SVP_FORMAT_AUTO = 0,  /* from the extension; unknown extension → error */

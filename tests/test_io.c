@@ -316,7 +316,7 @@ static void test_npy_bad_files(void **state)
     write_npy_fixture(path, 1, "{'descr': '<f8', 'fortran_order': False, 'shape': (2, 2, 3), }",
                       data, 96);
     snprintf(expect, sizeof expect,
-             "%s: 3-D array of shape (2, 2, 3): expected a 2-D image (height, width)", path);
+             "%s: a stack of 2 frames (3-D array of shape (2, 2, 3)): expected one image", path);
     ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_FORMAT, expect);
 
     path = tmp_path("vector.npy");
@@ -584,6 +584,200 @@ static void test_tiff_integer_and_truncated(void **state)
     write_string(path, "this is not a TIFF at all");
     snprintf(expect, sizeof expect, "%s: not a TIFF file (bad magic bytes)", path);
     ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_FORMAT, expect);
+}
+
+/* ---- stacks ---------------------------------------------------------------------------------- */
+
+/* A multi-page 16-bit TIFF written by hand (classic, little-endian, one strip per page, each
+ * page's directory after its strip; page p holds pixel(p, i)). big_endian: "MM" byte order.
+ * Returns the size; buf must hold n_pages * (2 w h + 200) + 8 bytes. */
+static uint16_t stack_pixel(int page, int i) { return (uint16_t)((page * 7919 + i * 31 + 5) & 0xffff); }
+
+static void put_tiff(unsigned char *p, uint64_t v, int size, int big_endian)
+{
+    if (big_endian)
+        put_be(p, v, size);
+    else
+        put_le(p, v, size);
+}
+
+static size_t hand_tiff_stack(unsigned char *buf, int w, int h, int n_pages, int big_endian)
+{
+    memcpy(buf, big_endian ? "MM\0*" : "II*\0", 4);
+    size_t pos = 8, link = 4; /* where the offset of the next directory goes */
+    for (int p = 0; p < n_pages; p++) {
+        size_t data = pos;
+        for (int i = 0; i < w * h; i++) put_tiff(buf + data + 2 * i, stack_pixel(p, i), 2, big_endian);
+        size_t ifd = data + 2 * (size_t)w * h;
+        ifd += ifd & 1; /* word boundary */
+        put_tiff(buf + link, ifd, 4, big_endian);
+        const uint32_t entries[10][3] = {{256, 3, (uint32_t)w},   {257, 3, (uint32_t)h},
+                                         {258, 3, 16},            {259, 3, 1},
+                                         {262, 3, 1},             {273, 4, (uint32_t)data},
+                                         {277, 3, 1},             {278, 3, (uint32_t)h},
+                                         {279, 4, (uint32_t)(2 * w * h)}, {339, 3, 1}};
+        put_tiff(buf + ifd, 10, 2, big_endian);
+        for (int e = 0; e < 10; e++) {
+            unsigned char *q = buf + ifd + 2 + 12 * e;
+            put_tiff(q, entries[e][0], 2, big_endian);
+            put_tiff(q + 2, entries[e][1], 2, big_endian);
+            put_tiff(q + 4, 1, 4, big_endian);
+            memset(q + 8, 0, 4);
+            put_tiff(q + 8, entries[e][2], entries[e][1] == 3 ? 2 : 4, big_endian);
+        }
+        link = ifd + 2 + 12 * 10;
+        put_tiff(buf + link, 0, 4, big_endian);
+        pos = link + 4;
+    }
+    return pos;
+}
+
+static void test_tiff_stacks(void **state)
+{
+    (void)state;
+    enum { W = 24, H = 10 };
+    const int counts[] = {1, 5, 100};
+    unsigned char *buf = malloc(100 * (2 * W * H + 200) + 8);
+    char expect[600], name[64];
+    for (int c = 0; c < 3; c++) {
+        const int n = counts[c];
+        for (int big = 0; big <= 1; big++) {
+            snprintf(name, sizeof name, "stack%d%s.tif", n, big ? "_be" : "");
+            const char *path = tmp_path(name);
+            write_bytes(path, buf, hand_tiff_stack(buf, W, H, n, big));
+            svp_stack *s = NULL;
+            ASSERT_OK(svp_stack_read(path, &s));
+            assert_int_equal(s->n_frames, n);
+            assert_int_equal(s->width, W);
+            assert_int_equal(s->height, H);
+            for (int p = 0; p < n; p++) {
+                assert_int_equal(s->frame[p]->width, W);
+                assert_int_equal(s->frame[p]->height, H);
+                for (int i = 0; i < W * H; i++)
+                    if (s->frame[p]->data[i] != stack_pixel(p, i))
+                        fail_msg("%s page %d pixel %d: %g, expected %d", name, p, i,
+                                 s->frame[p]->data[i], stack_pixel(p, i));
+            }
+            svp_stack_free(s);
+            /* one image expected: a one-page file is that image, more pages are refused */
+            svp_image *img = NULL;
+            if (n == 1) {
+                ASSERT_OK(svp_image_read(path, &img));
+                assert_int_equal(img->data[7], stack_pixel(0, 7));
+                svp_image_free(img);
+            } else {
+                snprintf(expect, sizeof expect,
+                         "%s: multi-page TIFF of %d pages: expected one image", path, n);
+                ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_FORMAT, expect);
+                assert_null(img);
+            }
+        }
+    }
+    /* a directory chain that loops back on itself, and one pointing beyond the file */
+    size_t size = hand_tiff_stack(buf, W, H, 5, 0);
+    size_t last_link = size - 4;
+    put_le(buf + last_link, 8 + 2 * W * H, 4); /* the last page links back to the first */
+    const char *path = tmp_path("loop.tif");
+    write_bytes(path, buf, size);
+    svp_stack *s = NULL;
+    snprintf(expect, sizeof expect, "%s: cannot decode TIFF (truncated or corrupt)", path);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
+    svp_image *img = NULL;
+    ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_FORMAT, expect);
+    put_le(buf + last_link, (uint64_t)size + 1000, 4);
+    path = tmp_path("beyond.tif");
+    write_bytes(path, buf, size);
+    snprintf(expect, sizeof expect, "%s: cannot decode TIFF (truncated or corrupt)", path);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
+    assert_null(s);
+    /* pages of different sizes: the second page's directory says 12 rows instead of 10 (its
+     * strip is then short, so OpenCV may refuse the page itself: either message names page 2) */
+    size = hand_tiff_stack(buf, W, H, 3, 0);
+    path = tmp_path("mixed.tif");
+    {
+        size_t ifd2 = 8 + 2 * W * H + (10 * 12 + 6); /* after page 1's directory */
+        ifd2 += 2 * W * H;
+        ifd2 += ifd2 & 1;
+        assert_int_equal(buf[ifd2 + 2 + 12], 1); /* tag 257 (rows), low byte */
+        put_le(buf + ifd2 + 2 + 12 + 8, 5, 2);   /* 5 rows: the strip is long enough */
+        put_le(buf + ifd2 + 2 + 7 * 12 + 8, 5, 2); /* rows per strip */
+    }
+    write_bytes(path, buf, size);
+    snprintf(expect, sizeof expect, "%s: page 2 of 3 is 24 x 5 but page 1 is 24 x 10", path);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
+    free(buf);
+}
+
+static void test_npy_stacks(void **state)
+{
+    (void)state;
+    enum { F = 5, H = 3, W = 4 };
+    double data[F * H * W];
+    /* C order: element (f, y, x) at (f H + y) W + x */
+    for (int k = 0; k < F * H * W; k++) data[k] = 1000.0 * (k / (H * W)) + 10.0 * (k / W % H) + k % W;
+    const char *path = tmp_path("stack_c.npy");
+    write_npy_fixture(path, 1, "{'descr': '<f8', 'fortran_order': False, 'shape': (5, 3, 4), }",
+                      data, sizeof data);
+    svp_stack *s = NULL;
+    ASSERT_OK(svp_stack_read(path, &s));
+    assert_int_equal(s->n_frames, F);
+    assert_int_equal(s->width, W);
+    assert_int_equal(s->height, H);
+    for (int f = 0; f < F; f++)
+        for (int y = 0; y < H; y++)
+            for (int x = 0; x < W; x++)
+                assert_true(s->frame[f]->data[y * W + x] == 1000.0 * f + 10.0 * y + x);
+    svp_stack_free(s);
+    svp_image *img = NULL;
+    char expect[600];
+    snprintf(expect, sizeof expect,
+             "%s: a stack of 5 frames (3-D array of shape (5, 3, 4)): expected one image", path);
+    ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_FORMAT, expect);
+    /* Fortran order: element (f, y, x) at f + y F + x F H */
+    float fdata[F * H * W];
+    for (int f = 0; f < F; f++)
+        for (int y = 0; y < H; y++)
+            for (int x = 0; x < W; x++)
+                fdata[f + y * F + x * F * H] = (float)(1000.0 * f + 10.0 * y + x);
+    path = tmp_path("stack_f.npy");
+    write_npy_fixture(path, 1, "{'descr': '<f4', 'fortran_order': True, 'shape': (5, 3, 4), }",
+                      fdata, sizeof fdata);
+    ASSERT_OK(svp_stack_read(path, &s));
+    assert_int_equal(s->n_frames, F);
+    for (int f = 0; f < F; f++)
+        for (int y = 0; y < H; y++)
+            for (int x = 0; x < W; x++)
+                assert_true(s->frame[f]->data[y * W + x] == 1000.0 * f + 10.0 * y + x);
+    svp_stack_free(s);
+    /* a 2-D image is a stack of one frame, in any format */
+    path = tmp_path("one.npy");
+    write_npy_fixture(path, 1, "{'descr': '<f8', 'fortran_order': False, 'shape': (3, 4), }",
+                      data, 12 * 8);
+    ASSERT_OK(svp_stack_read(path, &s));
+    assert_int_equal(s->n_frames, 1);
+    assert_true(s->frame[0]->data[11] == data[11]);
+    svp_stack_free(s);
+    path = tmp_path("one.txt");
+    write_string(path, "1 2 3\n4 5 6\n");
+    ASSERT_OK(svp_stack_read(path, &s));
+    assert_int_equal(s->n_frames, 1);
+    assert_int_equal(s->width, 3);
+    assert_true(s->frame[0]->data[5] == 6);
+    svp_stack_free(s);
+    /* errors: truncated data, 4-D */
+    path = tmp_path("stack_cut.npy");
+    write_npy_fixture(path, 1, "{'descr': '<f8', 'fortran_order': False, 'shape': (5, 3, 4), }",
+                      data, sizeof data - 8);
+    snprintf(expect, sizeof expect, "%s: truncated: expected 480 bytes of data, found 472", path);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
+    assert_null(s);
+    path = tmp_path("stack4.npy");
+    write_npy_fixture(path, 1, "{'descr': '<f8', 'fortran_order': False, 'shape': (1, 5, 3, 4), }",
+                      data, sizeof data);
+    snprintf(expect, sizeof expect,
+             "%s: 4-D array of shape (1, 5, 3, 4): expected a 2-D image (height, width) or a 3-D "
+             "stack (frames, height, width)", path);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
 }
 
 static void test_colour_png_and_channels(void **state)
@@ -1111,6 +1305,8 @@ int main(void)
         cmocka_unit_test(test_tiff_round_trip),
         cmocka_unit_test(test_png16_round_trip),
         cmocka_unit_test(test_tiff_integer_and_truncated),
+        cmocka_unit_test(test_tiff_stacks),
+        cmocka_unit_test(test_npy_stacks),
         cmocka_unit_test(test_colour_png_and_channels),
         cmocka_unit_test(test_missing_and_unknown),
         cmocka_unit_test(test_no_overwrite),

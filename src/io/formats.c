@@ -395,9 +395,16 @@ static double npy_element(const unsigned char *p, char kind, int size, int swap)
     return size == 1 ? u.u1 : size == 2 ? u.u2 : size == 4 ? u.u4 : (double)u.u8;
 }
 
-static svp_status read_npy(const char *path, const unsigned char *bytes, size_t size,
-                           svp_image **out)
+/* What a stack met where one image is expected is pointed to. */
+#define STACK_HINT "a stack is read as an ODMR stack by svp_stack_read / svpsf fit-odmr"
+
+/* The frames of a .npy: a 2-D array is one frame; a 3-D array (frames, height, width) is a
+ * stack when `stack` is nonzero, else refused naming its frame count. */
+static svp_status read_npy_frames(const char *path, const unsigned char *bytes, size_t size,
+                                  int stack, svp_image ***out, int *n_frames)
 {
+    *out = NULL;
+    *n_frames = 0;
     static const unsigned char magic[6] = {0x93, 'N', 'U', 'M', 'P', 'Y'};
     if (size < 6 || memcmp(bytes, magic, 6) != 0) {
         if (size < 6 && memcmp(bytes, magic, size) == 0)
@@ -458,17 +465,33 @@ static svp_status read_npy(const char *path, const unsigned char *bytes, size_t 
     char shape[128];
     shape_text(&h, shape, sizeof shape);
     if (h.ndim == 3 && h.shape[2] == 1) h.ndim = 2; /* (h, w, 1): one channel */
-    if (h.ndim != 2)
+    long long frames = 1, rows, cols;
+    if (h.ndim == 3) {
+        if (!stack)
+            return svp_fail(SVP_ERR_FORMAT,
+                            "%s: a stack of %lld frames (3-D array of shape %s): expected one "
+                            "image (" STACK_HINT ")",
+                            path, h.shape[0], shape);
+        frames = h.shape[0];
+        rows = h.shape[1];
+        cols = h.shape[2];
+    } else if (h.ndim == 2) {
+        rows = h.shape[0];
+        cols = h.shape[1];
+    } else {
         return svp_fail(SVP_ERR_FORMAT,
-                        "%s: %d-D array of shape %s: expected a 2-D image (height, width)", path,
-                        h.ndim, shape);
-    long long rows = h.shape[0], cols = h.shape[1];
-    if (rows == 0 || cols == 0)
+                        stack ? "%s: %d-D array of shape %s: expected a 2-D image (height, width) "
+                                "or a 3-D stack (frames, height, width)"
+                              : "%s: %d-D array of shape %s: expected a 2-D image (height, width)",
+                        path, h.ndim, shape);
+    }
+    if (rows == 0 || cols == 0 || frames == 0)
         return svp_fail(SVP_ERR_FORMAT, "%s: empty array of shape %s", path, shape);
-    if (rows > INT_MAX || cols > INT_MAX ||
-        (unsigned long long)rows > SIZE_MAX / (size_t)cols / (size_t)item)
+    if (rows > INT_MAX || cols > INT_MAX || frames > INT_MAX ||
+        (unsigned long long)rows > SIZE_MAX / (size_t)cols / (size_t)item ||
+        (unsigned long long)frames > SIZE_MAX / ((size_t)rows * (size_t)cols * (size_t)item))
         return svp_fail(SVP_ERR_FORMAT, "%s: array of shape %s is too large", path, shape);
-    size_t count = (size_t)rows * (size_t)cols;
+    const size_t plane = (size_t)rows * (size_t)cols, count = plane * (size_t)frames;
     size_t expected = count * (size_t)item;
     size_t data_start = header_start + header_len;
     size_t found = size - data_start;
@@ -477,17 +500,46 @@ static svp_status read_npy(const char *path, const unsigned char *bytes, size_t 
                         path, expected, found);
     /* trailing bytes are ignored, as numpy.load does */
 
-    svp_image *img = NULL;
-    SVP_CHECK(svp_image_new((int)cols, (int)rows, &img));
+    svp_image **img = calloc((size_t)frames, sizeof *img);
+    if (!img) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory for %lld frames", path, frames);
+    svp_status st = SVP_OK;
+    for (long long f = 0; f < frames && st == SVP_OK; f++)
+        st = svp_image_new((int)cols, (int)rows, &img[f]);
+    if (st != SVP_OK) {
+        for (long long f = 0; f < frames; f++) svp_image_free(img[f]);
+        free(img);
+        return st;
+    }
     const unsigned char *data = bytes + data_start;
-    size_t w = (size_t)cols, hgt = (size_t)rows;
+    const size_t w = (size_t)cols, hgt = (size_t)rows, nf = (size_t)frames;
     for (size_t k = 0; k < count; k++) {
-        /* file order: C → row-major; Fortran → column-major (element (y, x) at y + x h) */
-        size_t y = h.fortran_order ? k % hgt : k / w;
-        size_t x = h.fortran_order ? k / hgt : k % w;
-        img->data[y * w + x] = npy_element(data + k * (size_t)item, kind, (int)item, swap);
+        /* file order: C → (frame, y, x) row-major; Fortran → column-major (element (f, y, x)
+         * at f + y F + x F h) */
+        size_t f, y, x;
+        if (h.fortran_order) {
+            f = k % nf;
+            y = k / nf % hgt;
+            x = k / nf / hgt;
+        } else {
+            f = k / plane;
+            y = k % plane / w;
+            x = k % w;
+        }
+        img[f]->data[y * w + x] = npy_element(data + k * (size_t)item, kind, (int)item, swap);
     }
     *out = img;
+    *n_frames = (int)frames;
+    return SVP_OK;
+}
+
+static svp_status read_npy(const char *path, const unsigned char *bytes, size_t size,
+                           svp_image **out)
+{
+    svp_image **frames = NULL;
+    int n = 0;
+    SVP_CHECK(read_npy_frames(path, bytes, size, 0, &frames, &n));
+    *out = frames[0];
+    free(frames);
     return SVP_OK;
 }
 
@@ -704,6 +756,56 @@ static svp_status png_critical_chunks(const char *path, const unsigned char *byt
     return SVP_OK;
 }
 
+/* ---- TIFF directory chain ------------------------------------------------------------------------ */
+
+static uint64_t tiff_get(const unsigned char *p, int bytes, int little)
+{
+    uint64_t v = 0;
+    for (int k = 0; k < bytes; k++) v |= (uint64_t)p[little ? k : bytes - 1 - k] << (8 * k);
+    return v;
+}
+
+/* The number of pages (image file directories) of a TIFF held in memory, classic or BigTIFF;
+ * 0 when the chain is broken (a directory beyond the end of the file, or a loop). The magic
+ * bytes were checked by the caller. */
+static long long tiff_page_count(const unsigned char *b, size_t size)
+{
+    const int little = b[0] == 'I', big = tiff_get(b + 2, 2, little) == 43;
+    const int off_bytes = big ? 8 : 4, count_bytes = big ? 8 : 2, entry_bytes = big ? 20 : 12;
+    if (size < (size_t)(big ? 16 : 8)) return 0;
+    uint64_t ifd = tiff_get(b + (big ? 8 : 4), off_bytes, little);
+    long long pages = 0;
+    /* every directory takes at least count + next-offset bytes: more pages than fit means a loop */
+    const long long max_pages = (long long)(size / (size_t)(count_bytes + off_bytes)) + 1;
+    while (ifd != 0) {
+        if (ifd > size - (size_t)count_bytes || ++pages > max_pages) return 0;
+        uint64_t n = tiff_get(b + ifd, count_bytes, little);
+        uint64_t next_at = ifd + (uint64_t)count_bytes + n * (uint64_t)entry_bytes;
+        if (n > size || next_at > size - (size_t)off_bytes) return 0;
+        ifd = tiff_get(b + next_at, off_bytes, little);
+    }
+    return pages;
+}
+
+/* Checks a TIFF's magic bytes and counts its pages (>= 1), else a format error. */
+static svp_status tiff_check(const char *path, const unsigned char *bytes, size_t size,
+                             long long *pages)
+{
+    static const unsigned char le[4] = {'I', 'I', 42, 0}, be[4] = {'M', 'M', 0, 42},
+                               le_big[4] = {'I', 'I', 43, 0}, be_big[4] = {'M', 'M', 0, 43};
+    if (size < 8)
+        return svp_fail(SVP_ERR_FORMAT, "%s: cannot decode TIFF (truncated or corrupt)", path);
+    if (memcmp(bytes, le, 4) && memcmp(bytes, be, 4) && memcmp(bytes, le_big, 4) &&
+        memcmp(bytes, be_big, 4))
+        return svp_fail(SVP_ERR_FORMAT, "%s: not a TIFF file (bad magic bytes)", path);
+    *pages = tiff_page_count(bytes, size);
+    if (*pages < 1)
+        return svp_fail(SVP_ERR_FORMAT, "%s: cannot decode TIFF (truncated or corrupt)", path);
+    if (*pages > INT_MAX)
+        return svp_fail(SVP_ERR_FORMAT, "%s: a TIFF of %lld pages is too large", path, *pages);
+    return SVP_OK;
+}
+
 /* ---- dispatch ------------------------------------------------------------------------------------ */
 
 typedef enum file_kind { KIND_UNKNOWN, KIND_TIFF, KIND_PNG, KIND_NPY, KIND_TXT } file_kind;
@@ -766,15 +868,13 @@ svp_status svp_image_read(const char *path, svp_image **out)
     case KIND_NPY: st = read_npy(path, bytes, size, out); break;
     case KIND_TXT: st = read_text(path, (char *)bytes, size, out); break;
     case KIND_TIFF: {
-        static const unsigned char le[4] = {'I', 'I', 42, 0}, be[4] = {'M', 'M', 0, 42},
-                                   le_big[4] = {'I', 'I', 43, 0}, be_big[4] = {'M', 'M', 0, 43};
-        if (size < 8)
-            st = svp_fail(SVP_ERR_FORMAT, "%s: cannot decode TIFF (truncated or corrupt)", path);
-        else if (memcmp(bytes, le, 4) && memcmp(bytes, be, 4) && memcmp(bytes, le_big, 4) &&
-                 memcmp(bytes, be_big, 4))
-            st = svp_fail(SVP_ERR_FORMAT, "%s: not a TIFF file (bad magic bytes)", path);
-        else
-            st = svp_io_decode_cv(path, bytes, size, 1, out);
+        long long pages = 0;
+        st = tiff_check(path, bytes, size, &pages);
+        if (st == SVP_OK && pages > 1)
+            st = svp_fail(SVP_ERR_FORMAT,
+                          "%s: multi-page TIFF of %lld pages: expected one image (" STACK_HINT ")",
+                          path, pages);
+        if (st == SVP_OK) st = svp_io_decode_cv(path, bytes, size, 1, out);
         break;
     }
     case KIND_PNG: {
@@ -799,6 +899,68 @@ svp_status svp_image_read(const char *path, svp_image **out)
     }
     free(bytes);
     return st;
+}
+
+void svp_stack_free(svp_stack *stack)
+{
+    if (!stack) return;
+    if (stack->frame)
+        for (int i = 0; i < stack->n_frames; i++) svp_image_free(stack->frame[i]);
+    free(stack->frame);
+    free(stack);
+}
+
+svp_status svp_stack_read(const char *path, svp_stack **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_stack_read: out is NULL");
+    *out = NULL;
+    if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "svp_stack_read: no path given");
+    char ext[16];
+    extension(path, ext, sizeof ext);
+    file_kind kind = kind_of(ext);
+    struct stat sb;
+    SVP_CHECK(check_input(path, &sb));
+    if (kind == KIND_UNKNOWN) return unknown_extension(path, ext);
+    svp_stack *s = calloc(1, sizeof *s);
+    if (!s) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+    svp_status st = SVP_OK;
+    if (kind == KIND_TIFF || kind == KIND_NPY) {
+        unsigned char *bytes = NULL;
+        size_t size = 0;
+        st = read_file(path, &bytes, &size);
+        long long pages = 1;
+        if (st == SVP_OK && kind == KIND_NPY)
+            st = read_npy_frames(path, bytes, size, 1, &s->frame, &s->n_frames);
+        else if (st == SVP_OK && (st = tiff_check(path, bytes, size, &pages)) == SVP_OK) {
+            if (pages == 1) { /* the in-memory decoder of one image */
+                s->frame = calloc(1, sizeof *s->frame);
+                if (!s->frame)
+                    st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+                else if ((st = svp_io_decode_cv(path, bytes, size, 1, &s->frame[0])) == SVP_OK)
+                    s->n_frames = 1;
+            } else {
+                free(bytes); /* imreadmulti reads the file itself */
+                bytes = NULL;
+                if ((st = svp_io_read_tiff_pages(path, (int)pages, &s->frame)) == SVP_OK)
+                    s->n_frames = (int)pages;
+            }
+        }
+        free(bytes);
+    } else {
+        s->frame = calloc(1, sizeof *s->frame);
+        if (!s->frame)
+            st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
+        else if ((st = svp_image_read(path, &s->frame[0])) == SVP_OK)
+            s->n_frames = 1;
+    }
+    if (st != SVP_OK) {
+        svp_stack_free(s);
+        return st;
+    }
+    s->width = s->frame[0]->width;
+    s->height = s->frame[0]->height;
+    *out = s;
+    return SVP_OK;
 }
 
 svp_status svp_image_write(const char *path, const svp_image *image, svp_file_format format,

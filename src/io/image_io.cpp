@@ -9,6 +9,7 @@
 
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <cstdlib>
 #include <exception>
 #include <mutex>
@@ -77,6 +78,38 @@ template <typename T> void copy_rows(const cv::Mat &m, svp_image *img)
         double *dst = img->data + (size_t)y * img->width;
         for (int x = 0; x < m.cols; x++) dst[x] = (double)row[x];
     }
+}
+
+// One decoded page → a new image; `where` prefixes the fault ("page 3 of 5: " or "").
+svp_status mat_to_image(const char *path, const char *where, const cv::Mat &m, svp_image **out)
+{
+    if (m.channels() != 1)
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: %s%d-channel image: expected a single-channel (grayscale) image",
+                        path, where, m.channels());
+    if (m.dims != 2)
+        return svp_fail(SVP_ERR_FORMAT, "%s: %s%d-dimensional image: expected 2-D", path, where,
+                        m.dims);
+    svp_image *img = nullptr;
+    svp_status st = svp_image_new(m.cols, m.rows, &img);
+    if (st != SVP_OK) return st;
+    switch (m.depth()) {
+    case CV_8U: copy_rows<uint8_t>(m, img); break;
+    case CV_8S: copy_rows<int8_t>(m, img); break;
+    case CV_16U: copy_rows<uint16_t>(m, img); break;
+    case CV_16S: copy_rows<int16_t>(m, img); break;
+    case CV_32S: copy_rows<int32_t>(m, img); break;
+    case CV_32F: copy_rows<float>(m, img); break;
+    case CV_64F: copy_rows<double>(m, img); break;
+    default:
+        svp_image_free(img);
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: %sunsupported pixel type %s (expected 8/16-bit integer, 32-bit "
+                        "integer, float32 or float64)",
+                        path, where, depth_name(m.depth()));
+    }
+    *out = img;
+    return SVP_OK;
 }
 
 // Writes an encoded image atomically; ext is ".tiff" or ".png".
@@ -158,31 +191,56 @@ svp_status svp_io_decode_cv(const char *path, const unsigned char *bytes, size_t
     }
     if (m.empty())
         return svp_fail(SVP_ERR_FORMAT, "%s: cannot decode %s (truncated or corrupt)", path, kind);
-    if (m.channels() != 1)
-        return svp_fail(SVP_ERR_FORMAT,
-                        "%s: %d-channel image: expected a single-channel (grayscale) image", path,
-                        m.channels());
-    if (m.dims != 2)
-        return svp_fail(SVP_ERR_FORMAT, "%s: %d-dimensional image: expected 2-D", path, m.dims);
-    svp_image *img = nullptr;
-    svp_status st = svp_image_new(m.cols, m.rows, &img);
-    if (st != SVP_OK) return st;
-    switch (m.depth()) {
-    case CV_8U: copy_rows<uint8_t>(m, img); break;
-    case CV_8S: copy_rows<int8_t>(m, img); break;
-    case CV_16U: copy_rows<uint16_t>(m, img); break;
-    case CV_16S: copy_rows<int16_t>(m, img); break;
-    case CV_32S: copy_rows<int32_t>(m, img); break;
-    case CV_32F: copy_rows<float>(m, img); break;
-    case CV_64F: copy_rows<double>(m, img); break;
-    default:
-        svp_image_free(img);
-        return svp_fail(SVP_ERR_FORMAT,
-                        "%s: unsupported pixel type %s (expected 8/16-bit integer, 32-bit "
-                        "integer, float32 or float64)",
-                        path, depth_name(m.depth()));
+    return mat_to_image(path, "", m, out);
+}
+
+svp_status svp_io_read_tiff_pages(const char *path, int n_pages, svp_image ***pages)
+{
+    *pages = nullptr;
+    if (n_pages < 1) return svp_fail(SVP_ERR_INVALID, "%s: no page to read", path);
+    std::vector<cv::Mat> mats;
+    try {
+        quiet_opencv_log();
+        SilenceCerr quiet;
+        if (!cv::imreadmulti(path, mats, cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH))
+            mats.clear();
+    } catch (const cv::Exception &e) {
+        return svp_fail(SVP_ERR_FORMAT, "%s: cannot decode TIFF stack (%s)", path, e.what());
+    } catch (const std::bad_alloc &) {
+        return svp_fail(SVP_ERR_NOMEM, "%s: out of memory while decoding %d pages", path,
+                        n_pages);
+    } catch (const std::exception &e) {
+        return svp_fail(SVP_ERR_FORMAT, "%s: cannot decode TIFF stack (%s)", path, e.what());
     }
-    *out = img;
+    if (mats.size() != (size_t)n_pages)
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: cannot decode TIFF stack (truncated or corrupt: %zu of %d pages "
+                        "decoded)",
+                        path, mats.size(), n_pages);
+    svp_image **out = (svp_image **)calloc((size_t)n_pages, sizeof(svp_image *));
+    if (!out) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory for %d pages", path, n_pages);
+    svp_status st = SVP_OK;
+    const int cols0 = mats[0].cols, rows0 = mats[0].rows;
+    for (int i = 0; i < n_pages && st == SVP_OK; i++) {
+        char where[64];
+        snprintf(where, sizeof where, "page %d of %d: ", i + 1, n_pages);
+        const cv::Mat &m = mats[(size_t)i];
+        if (m.empty())
+            st = svp_fail(SVP_ERR_FORMAT, "%s: %scannot decode TIFF (truncated or corrupt)", path,
+                          where);
+        else if (i > 0 && (m.cols != cols0 || m.rows != rows0))
+            st = svp_fail(SVP_ERR_FORMAT, "%s: page %d of %d is %d x %d but page 1 is %d x %d",
+                          path, i + 1, n_pages, m.cols, m.rows, cols0, rows0);
+        else
+            st = mat_to_image(path, where, m, &out[i]);
+        mats[(size_t)i].release(); // peak memory: the decoded pages go as they are copied
+    }
+    if (st != SVP_OK) {
+        for (int i = 0; i < n_pages; i++) svp_image_free(out[i]);
+        free(out);
+        return st;
+    }
+    *pages = out;
     return SVP_OK;
 }
 

@@ -37,6 +37,14 @@ svp_status svp_io_atomic_write_text(const char *path, const char *text, int over
  *   "<path>: unsupported pixel type <depth>" */
 svp_status svp_io_decode_cv(const char *path, const unsigned char *bytes, size_t size, int is_tiff,
                             svp_image **out);
+/* Every page of a multi-page TIFF file through cv::imreadmulti (the caller counted `n_pages`
+ * >= 1 in the file's directory chain; the file is read again by path). Each page must be one
+ * channel of a type svp_io_decode_cv accepts, and all pages the first one's size. *pages gets
+ * n_pages new images (free each, then the array with free()). Errors (SVP_ERR_FORMAT):
+ *   "<path>: cannot decode TIFF stack (truncated or corrupt)"
+ *   "<path>: page 3 of 5: 3-channel image: expected a single-channel (grayscale) image"
+ *   "<path>: page 3 of 5 is 64 x 32 but page 1 is 32 x 32" */
+svp_status svp_io_read_tiff_pages(const char *path, int n_pages, svp_image ***pages);
 /* float32 TIFF (uncompressed; values beyond the float32 range become ±Inf, NaN is kept). */
 svp_status svp_io_write_tiff(const char *path, const svp_image *img, int overwrite);
 /* 16-bit PNG, v = round(65535 (x − min) / (max − min)) over the finite pixels; NaN/Inf → 0; a
