@@ -1536,23 +1536,72 @@ SVP_API svp_status svp_odmr_centroid(const svp_odmr *odmr, const svp_cube *cube,
                                      const svp_image *baseline, double window_lo_hz,
                                      double window_hi_hz, svp_image *field, svp_image *weight);
 
+/* Which resonances a spectrum holds (docs/model.md §10). The model of svp_odmr_simulate puts
+ * the two resonances of an NV axis at D ± γ B_NV (B_NV signed, the upper line at D + γ B_NV). */
+typedef enum svp_odmr_lines {
+    SVP_ODMR_LINES_PAIR = 0, /* both lines at D ± γB about the given D, sharing C and Γ:
+                                θ = (b, C, B, Γ); field = |B_NV| (default; what svpsf simulate
+                                fits) */
+    SVP_ODMR_LINES_TWO = 1,  /* two dips at free frequencies f₋ < f₊ sharing C and Γ:
+                                θ = (b, C, f₋, f₊, Γ); field = (f₊ − f₋) / (2γ), which a shift
+                                of D (temperature, strain) leaves alone; per resonance
+                                field_lower = (D − f₋) / γ, field_upper = (f₊ − D) / γ */
+    SVP_ODMR_LINES_ONE = 2   /* one dip at a free f₀ (the sweep holds one line):
+                                θ = (b, C, f₀, Γ); field = line_sign · (f₀ − D) / γ (signed) */
+} svp_odmr_lines;
+
 typedef struct svp_odmr_fit_options {
     svp_lm_options lm;   /* Levenberg–Marquardt settings (svp_lm_defaults) */
     int baseline_frames; /* frames at each end of the sweep averaged for the starting baseline;
                             default 3 */
+    svp_odmr_lines lines; /* default SVP_ODMR_LINES_PAIR */
+    int line_sign;       /* SVP_ODMR_LINES_ONE: +1 (default) the dip is the upper line
+                            (m_s = +1, at D + γ B_NV), −1 the lower (at D − γ B_NV) */
+    svp_progress_fn progress; /* optional: fraction of the pixels done (in blocks of rows,
+                                 from one thread); nonzero cancels (SVP_ERR_CANCELLED) */
+    void *progress_user;
 } svp_odmr_fit_options;
 
 SVP_API void svp_odmr_fit_defaults(svp_odmr_fit_options *options);
-/* The per-pixel Lorentzian fit: least squares (unit weights; a dedicated 4-parameter
- * Levenberg–Marquardt with an analytic Jacobian and a 4 x 4 Cholesky, stopping on
- * options->lm's xtol / ftol / gtol / max_iterations; where it does not converge, svp_lm_solve
- * from the same start) of I(ω) = b [1 − C (L(ω; D + γB, Γ) + L(ω; D − γB, Γ))] over θ = (b, C,
- * B, Γ), D and γ fixed from odmr, C in [0, 1], Γ > 0; started at the end-frames baseline, the
- * deepest point of the spectrum smoothed over ~Γ, odmr->linewidth_hz and the contrast from the
- * dip area. field = |B| (T);
- * contrast, baseline (intensity) and linewidth (Hz, FWHM) may be NULL. Pixels whose fit does not
- * converge keep the last parameters and are counted in n_failed (may be NULL). options NULL =
- * defaults. One LM workspace per thread; pixels in parallel. */
+
+/* The maps svp_odmr_fit_maps fills: caller-allocated images of the cube's size, each optional
+ * (NULL = not wanted) except field. σ is the 1σ uncertainty of the least-squares estimate,
+ * sqrt(diag((JᵀJ)⁻¹) · χ² / (n_freq − n_params)) at the solution (unit weights, scaled by the
+ * residual: scipy curve_fit's absolute_sigma=False), propagated to the field; INFINITY where
+ * JᵀJ is singular or a parameter ended on its bound (C = 0 or 1). */
+typedef struct svp_odmr_maps {
+    svp_image *field, *field_sigma;             /* T, per options->lines */
+    svp_image *field_lower, *field_lower_sigma; /* SVP_ODMR_LINES_TWO only (else must be NULL):
+                                                   B from the lower resonance, (D − f₋) / γ */
+    svp_image *field_upper, *field_upper_sigma; /* ... from the upper one, (f₊ − D) / γ */
+    svp_image *baseline, *baseline_sigma;       /* b: the off-resonance PL (intensity) */
+    svp_image *contrast, *contrast_sigma;       /* C (per line; 0..1) */
+    svp_image *linewidth, *linewidth_sigma;     /* Γ, Hz (FWHM of each dip) */
+    svp_image *quality;   /* R² = 1 − χ² / Σ_f (y_f − ȳ)² of the fit (1 = perfect; near 0 or
+                             below: no dip found in the noise); 0 for a flat spectrum */
+    svp_image *converged; /* 1 where the fit converged, 0 where not (the parameters are the
+                             last ones; counted in *n_failed) */
+} svp_odmr_maps;
+
+/* The per-pixel Lorentzian fit: least squares (unit weights) of
+ *   PAIR: I(ω) = b [1 − C (L(ω; D + γB, Γ) + L(ω; D − γB, Γ))]
+ *   TWO:  I(ω) = b [1 − C (L(ω; f₋, Γ) + L(ω; f₊, Γ))]
+ *   ONE:  I(ω) = b [1 − C L(ω; f₀, Γ)]
+ * with L of svp_odmr_simulate, D = odmr->zero_field_hz and γ = odmr->gamma_hz_per_t fixed,
+ * C in [0, 1], Γ > 0: a dedicated Levenberg–Marquardt (parameters scaled to order one, analytic
+ * Jacobian, Cholesky of the damped normal equations) stopping on options->lm's xtol / ftol /
+ * gtol / max_iterations; where it does not converge, svp_lm_solve from the same start. Start:
+ * b from the end frames (options->baseline_frames at each end), the line(s) at the deepest
+ * point(s) of the spectrum smoothed over about half a linewidth (TWO: the deepest point at
+ * least 1.5 Γ from the first when it is at least 30 % as deep, else its mirror about D),
+ * Γ = odmr->linewidth_hz, C from the area of the dips. n_freq >= 5 (and > the parameter
+ * count). Pixels run in parallel (one LM workspace per thread); each pixel's result does not
+ * depend on the thread count. *n_failed (may be NULL): pixels whose fit did not converge. */
+SVP_API svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
+                                     const svp_odmr_fit_options *options,
+                                     const svp_odmr_maps *maps, size_t *n_failed);
+
+/* svp_odmr_fit_maps with field, contrast, baseline and linewidth (each but field may be NULL). */
 SVP_API svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
                                 const svp_odmr_fit_options *options, svp_image *field,
                                 svp_image *contrast, svp_image *baseline, svp_image *linewidth,

@@ -3,6 +3,8 @@
  * eq. (3). Frame: x along columns, y along rows (down), z = x × y; sensor on +z for side +1. */
 #include "test_helpers.h"
 
+#include <omp.h>
+
 #include <stdio.h>
 
 #include "core/internal.h" /* svp_fft_cleanup */
@@ -963,6 +965,252 @@ static void test_fit_noisy(void **state)
     svp_image_free(fit);
 }
 
+/* ---- svp_odmr_fit_maps: free lines, uncertainties, progress -------------------------------- */
+
+/* Spectra written here, not by svp_odmr_simulate: dips at f_lo, f_hi (either may be NAN = absent)
+ * with FWHM gamma_w and depth C, on the baseline b, plus Gaussian noise of σ = noise. */
+static double test_gauss(uint64_t *seed)
+{
+    double u1 = test_rand(seed), u2 = test_rand(seed);
+    if (u1 < 1e-300) u1 = 1e-300;
+    return sqrt(-2 * log(u1)) * cos(2 * M_PI * u2);
+}
+
+static double own_spectrum(double w, double b, double C, double f_lo, double f_hi, double fwhm)
+{
+    double h2 = 0.25 * fwhm * fwhm, s = 0;
+    if (!isnan(f_lo)) s += h2 / ((w - f_lo) * (w - f_lo) + h2);
+    if (!isnan(f_hi)) s += h2 / ((w - f_hi) * (w - f_hi) + h2);
+    return b * (1 - C * s);
+}
+
+typedef struct fit_maps_set {
+    svp_image *field, *field_sigma, *lo, *lo_sigma, *hi, *hi_sigma, *b, *b_sigma, *c, *c_sigma,
+        *g, *g_sigma, *quality, *conv;
+} fit_maps_set;
+
+static svp_odmr_maps maps_of(fit_maps_set *m, int w, int h, int two)
+{
+    svp_image **all[] = {&m->field, &m->field_sigma, &m->lo, &m->lo_sigma, &m->hi, &m->hi_sigma,
+                         &m->b,     &m->b_sigma,     &m->c,  &m->c_sigma,  &m->g,  &m->g_sigma,
+                         &m->quality, &m->conv};
+    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++)
+        *all[k] = (k >= 2 && k < 6 && !two) ? NULL : test_image(w, h);
+    svp_odmr_maps maps = {.field = m->field, .field_sigma = m->field_sigma,
+                          .field_lower = m->lo, .field_lower_sigma = m->lo_sigma,
+                          .field_upper = m->hi, .field_upper_sigma = m->hi_sigma,
+                          .baseline = m->b, .baseline_sigma = m->b_sigma, .contrast = m->c,
+                          .contrast_sigma = m->c_sigma, .linewidth = m->g,
+                          .linewidth_sigma = m->g_sigma, .quality = m->quality,
+                          .converged = m->conv};
+    return maps;
+}
+
+static void maps_free(fit_maps_set *m)
+{
+    svp_image *all[] = {m->field, m->field_sigma, m->lo, m->lo_sigma, m->hi, m->hi_sigma, m->b,
+                        m->b_sigma, m->c, m->c_sigma, m->g, m->g_sigma, m->quality, m->conv};
+    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++) svp_image_free(all[k]);
+}
+
+/* rms of (estimate − truth) / σ over the pixels: 1 when σ is the true scatter */
+static double pull_rms(const svp_image *est, const double *truth, const svp_image *sigma)
+{
+    double s = 0;
+    size_t n = (size_t)est->width * est->height;
+    for (size_t p = 0; p < n; p++) {
+        double z = (est->data[p] - truth[p]) / sigma->data[p];
+        s += z * z;
+    }
+    return sqrt(s / (double)n);
+}
+
+typedef struct progress_log {
+    int calls, cancel_at;
+    double last;
+    int monotone;
+} progress_log;
+
+static int log_progress(void *user, double fraction)
+{
+    progress_log *l = user;
+    l->calls++;
+    if (fraction < l->last) l->monotone = 0;
+    l->last = fraction;
+    return l->cancel_at > 0 && l->calls >= l->cancel_at;
+}
+
+static void test_fit_maps_lines(void **state)
+{
+    (void)state;
+    const int w = 40, h = 30, nf = 100;
+    const size_t n = (size_t)w * h;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    od.linewidth_hz = 4e6;
+    const double D = od.zero_field_hz, g = od.gamma_hz_per_t, fwhm = 5e6, C = 0.025, b = 1000;
+    const double noise = 2.0, shift = 0.7e6; /* D shifted by 0.7 MHz (temperature) */
+    double *truth = malloc(n * sizeof(double));
+    for (size_t p = 0; p < n; p++) truth[p] = 1.5e-3 + 1e-3 * (double)(p % w) / w;
+    double freq[100];
+    for (int f = 0; f < nf; f++) freq[f] = D - 110e6 + 220e6 * f / (nf - 1);
+    svp_cube *cube = NULL;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &cube));
+    uint64_t seed = 7;
+    for (int f = 0; f < nf; f++)
+        for (size_t p = 0; p < n; p++)
+            cube->frame[f]->data[p] =
+                own_spectrum(freq[f], b, C, D + shift - g * truth[p], D + shift + g * truth[p],
+                             fwhm) +
+                noise * test_gauss(&seed);
+
+    /* TWO: the projected field ignores the shift of D; per resonance B ∓ shift / γ */
+    svp_odmr_fit_options opt;
+    svp_odmr_fit_defaults(&opt);
+    assert_int_equal(opt.lines, SVP_ODMR_LINES_PAIR);
+    assert_int_equal(opt.line_sign, 1);
+    opt.lines = SVP_ODMR_LINES_TWO;
+    progress_log log = {.monotone = 1};
+    opt.progress = log_progress;
+    opt.progress_user = &log;
+    fit_maps_set m;
+    svp_odmr_maps maps = maps_of(&m, w, h, 1);
+    size_t failed = 99;
+    ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps, &failed));
+    assert_int_equal(failed, 0);
+    assert_true(log.calls >= 2 && log.monotone && log.last == 1.0);
+    double err = 0, worst = 0, *t_lo = malloc(n * sizeof(double)), *t_hi = malloc(n * sizeof(double));
+    double *t_b = malloc(n * sizeof(double)), *t_c = malloc(n * sizeof(double)),
+           *t_g = malloc(n * sizeof(double));
+    for (size_t p = 0; p < n; p++) {
+        double d = fabs(m.field->data[p] - truth[p]);
+        err += d / (double)n;
+        worst = fmax(worst, d);
+        t_lo[p] = truth[p] - shift / g;
+        t_hi[p] = truth[p] + shift / g;
+        t_b[p] = b;
+        t_c[p] = C;
+        t_g[p] = fwhm;
+        assert_true(m.conv->data[p] == 1);
+        assert_true(m.quality->data[p] > 0.5 && m.quality->data[p] <= 1);
+    }
+    const double pulls[5] = {pull_rms(m.field, truth, m.field_sigma),
+                             pull_rms(m.lo, t_lo, m.lo_sigma), pull_rms(m.hi, t_hi, m.hi_sigma),
+                             pull_rms(m.c, t_c, m.c_sigma), pull_rms(m.g, t_g, m.g_sigma)};
+    print_message("two free lines (D shifted 0.7 MHz, noise %.0f on a %.0f-count dip): mean "
+                  "|dB| %.2f uT, max %.2f uT; rms (est - truth) / sigma: B %.3f, B- %.3f, "
+                  "B+ %.3f, C %.3f, G %.3f\n",
+                  noise, b * C, err * 1e6, worst * 1e6, pulls[0], pulls[1], pulls[2], pulls[3],
+                  pulls[4]);
+    /* statistical error: σ_B ~ 3 uT here; the stated tolerance: mean 6 uT, max 30 uT */
+    if (!(err < 6e-6 && worst < 30e-6)) fail_msg("TWO: mean %g T, max %g T", err, worst);
+    /* σ is the scatter: 1200 pulls give the rms to ~2 %; allow 0.85 .. 1.2 */
+    for (int k = 0; k < 5; k++)
+        if (!(pulls[k] > 0.85 && pulls[k] < 1.2)) fail_msg("TWO: pull rms %d = %g", k, pulls[k]);
+    assert_true(fabs(pull_rms(m.b, t_b, m.b_sigma) - 1) < 0.2);
+
+    /* the same maps whatever the thread count (each pixel is fitted alone) */
+    {
+        fit_maps_set m1;
+        svp_odmr_maps maps1 = maps_of(&m1, w, h, 1);
+        opt.progress = NULL;
+        int threads = omp_get_max_threads();
+        omp_set_num_threads(1);
+        ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps1, NULL));
+        omp_set_num_threads(threads);
+        assert_memory_equal(m1.field->data, m.field->data, n * sizeof(double));
+        assert_memory_equal(m1.field_sigma->data, m.field_sigma->data, n * sizeof(double));
+        assert_memory_equal(m1.quality->data, m.quality->data, n * sizeof(double));
+        maps_free(&m1);
+    }
+    /* cancelled at the third report */
+    log = (progress_log){.cancel_at = 3, .monotone = 1};
+    opt.progress = log_progress;
+    assert_int_equal(svp_odmr_fit_maps(&od, cube, &opt, &maps, NULL), SVP_ERR_CANCELLED);
+    assert_int_equal(log.calls, 3);
+    opt.progress = NULL;
+
+    /* PAIR about the nominal D on the same cube: it cannot follow the shift (a worse fit), and
+     * field_lower is refused */
+    opt.lines = SVP_ODMR_LINES_PAIR;
+    assert_int_equal(svp_odmr_fit_maps(&od, cube, &opt, &maps, NULL), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "ODMR fit: field_lower / field_upper are given by two "
+                                          "free resonances only (SVP_ODMR_LINES_TWO)");
+    svp_image *two_quality = m.quality;
+    fit_maps_set mp;
+    svp_odmr_maps mapsp = maps_of(&mp, w, h, 0);
+    ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &mapsp, NULL));
+    double q_two = test_sum(two_quality) / (double)n, q_pair = test_sum(mp.quality) / (double)n;
+    print_message("mean R^2: two free lines %.4f, pair about the nominal D %.4f\n", q_two, q_pair);
+    assert_true(q_pair < q_two);
+    maps_free(&mp);
+
+    /* PAIR on a cube without the shift: its σ is the scatter too, and svp_odmr_fit returns the
+     * same field */
+    seed = 8;
+    for (int f = 0; f < nf; f++)
+        for (size_t p = 0; p < n; p++)
+            cube->frame[f]->data[p] =
+                own_spectrum(freq[f], b, C, D - g * truth[p], D + g * truth[p], fwhm) +
+                noise * test_gauss(&seed);
+    mapsp = maps_of(&mp, w, h, 0);
+    ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &mapsp, &failed));
+    assert_int_equal(failed, 0);
+    double pull_pair = pull_rms(mp.field, truth, mp.field_sigma);
+    svp_image *plain = test_image(w, h);
+    ASSERT_OK(svp_odmr_fit(&od, cube, &opt, plain, NULL, NULL, NULL, NULL));
+    assert_memory_equal(plain->data, mp.field->data, n * sizeof(double));
+    print_message("pair about D: rms (est - truth) / sigma of B %.3f\n", pull_pair);
+    if (!(pull_pair > 0.85 && pull_pair < 1.2)) fail_msg("PAIR: pull rms %g", pull_pair);
+    maps_free(&mp);
+    svp_image_free(plain);
+
+    /* ONE: a sweep over one line only; the upper line gives +B, the lower one (line_sign −1)
+     * gives +B too */
+    opt.lines = SVP_ODMR_LINES_ONE;
+    for (int sign = 1; sign >= -1; sign -= 2) {
+        double fr[100];
+        for (int f = 0; f < nf; f++) fr[f] = D + sign * (g * 2e-3) - 40e6 + 80e6 * f / (nf - 1);
+        svp_cube *one = NULL;
+        ASSERT_OK(svp_cube_new(w, h, nf, fr, &one));
+        for (int f = 0; f < nf; f++)
+            for (size_t p = 0; p < n; p++)
+                one->frame[f]->data[p] =
+                    own_spectrum(fr[f], b, C, sign < 0 ? D - g * truth[p] : NAN,
+                                 sign > 0 ? D + g * truth[p] : NAN, fwhm) +
+                    noise * test_gauss(&seed);
+        opt.line_sign = sign;
+        fit_maps_set mo;
+        svp_odmr_maps mapso = maps_of(&mo, w, h, 0);
+        ASSERT_OK(svp_odmr_fit_maps(&od, one, &opt, &mapso, &failed));
+        assert_int_equal(failed, 0);
+        double e1 = 0;
+        for (size_t p = 0; p < n; p++) e1 += fabs(mo.field->data[p] - truth[p]) / (double)n;
+        double pull1 = pull_rms(mo.field, truth, mo.field_sigma);
+        print_message("one line (sign %+d): mean |dB| %.2f uT, rms pull %.3f\n", sign, e1 * 1e6,
+                      pull1);
+        if (!(e1 < 8e-6)) fail_msg("ONE sign %d: mean error %g T", sign, e1);
+        if (!(pull1 > 0.85 && pull1 < 1.2)) fail_msg("ONE sign %d: pull rms %g", sign, pull1);
+        /* the wrong sign gives −B */
+        opt.line_sign = -sign;
+        ASSERT_OK(svp_odmr_fit_maps(&od, one, &opt, &mapso, NULL));
+        for (size_t p = 0; p < n; p += 97) assert_true(mo.field->data[p] < 0);
+        maps_free(&mo);
+        svp_cube_free(one);
+    }
+    opt.line_sign = 0;
+    assert_int_equal(svp_odmr_fit_maps(&od, cube, &opt, &maps, NULL), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "ODMR fit: line_sign 0 must be +1 or -1");
+    maps_free(&m);
+    svp_cube_free(cube);
+    free(truth);
+    free(t_lo);
+    free(t_hi);
+    free(t_b);
+    free(t_c);
+    free(t_g);
+}
+
 /* ---- bad input -------------------------------------------------------------------------- */
 
 static void test_bad_input(void **state)
@@ -1051,6 +1299,7 @@ int main(void)
         cmocka_unit_test(test_centroid_exact_symmetric),
         cmocka_unit_test(test_fit_vs_centroid),
         cmocka_unit_test(test_fit_noisy),
+        cmocka_unit_test(test_fit_maps_lines),
         cmocka_unit_test(test_projection),
         cmocka_unit_test(test_bad_input),
     };

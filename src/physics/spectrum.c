@@ -222,6 +222,8 @@ void svp_odmr_fit_defaults(svp_odmr_fit_options *options)
     memset(options, 0, sizeof *options);
     svp_lm_defaults(&options->lm);
     options->baseline_frames = 3;
+    options->lines = SVP_ODMR_LINES_PAIR;
+    options->line_sign = 1;
 }
 
 typedef struct odmr_pixel {
@@ -364,8 +366,10 @@ static int odmr_fast_solve(const double A[10], const double v[4], double lambda,
     return 0;
 }
 
-/* th (b, C, B, Γ) in/out; 0 on convergence */
-static int odmr_fast_fit(const odmr_fast *o, const svp_lm_options *opt, double th[4])
+/* th (b, C, B, Γ) in/out; 0 on convergence. A_out (JᵀJ in the scaled parameters, 10 values)
+ * and chi2_out: at the final point. */
+static int odmr_fast_fit(const odmr_fast *o, const svp_lm_options *opt, double th[4],
+                         double A_out[10], double *chi2_out)
 {
     double q[4] = {th[0] / o->b0, th[1], o->gamma * th[2] / o->g0, th[3] / o->g0};
     double chi2, A[10], v[4];
@@ -425,7 +429,510 @@ static int odmr_fast_fit(const odmr_fast *o, const svp_lm_options *opt, double t
     th[1] = q[1];
     th[2] = q[2] * o->g0 / o->gamma;
     th[3] = q[3] * o->g0;
+    memcpy(A_out, A, sizeof A);
+    *chi2_out = chi2;
     return !converged;
+}
+
+
+/* ---- free lines: one dip, or two dips at independent frequencies ----------------------------
+ * Parameters scaled to order one, frequencies measured from D in units of the nominal Γ0:
+ *   ONE: q = (b / b0, C, u₀, w),      TWO: q = (b / b0, C, u₋, u₊, w),
+ * with u = (f − D) / Γ0 and w = Γ / Γ0, at the points x_f = (ω_f − D) / Γ0. The same
+ * Levenberg–Marquardt as odmr_fast_fit on an n x n (n = 4 or 5) system. */
+#define GEN_MAX 5
+
+typedef struct odmr_gen {
+    const double *x, *y; /* n points */
+    int n, np, two;      /* np = 4 (ONE) or 5 (TWO) */
+    double b0;
+} odmr_gen;
+
+/* the model at x and its derivatives with respect to q */
+static inline double gen_point(const odmr_gen *o, const double *q, double x, double *j)
+{
+    const double b = q[0] * o->b0, C = q[1], h = 0.5 * q[o->np - 1], h2 = h * h;
+    const int nl = o->two ? 2 : 1;
+    double S = 0, dw = 0;
+    for (int l = 0; l < nl; l++) {
+        const double u = x - q[2 + l], ip = 1 / (u * u + h2), L = h2 * ip;
+        S += L;
+        /* ∂L/∂u₀ = 2 u h² ip², ∂L/∂w = (1/2) ∂L/∂h = h u² ip² */
+        j[2 + l] = -b * C * (2 * u * L * ip);
+        dw += h * u * u * ip * ip;
+    }
+    j[0] = o->b0 * (1 - C * S);
+    j[1] = -b * S;
+    j[o->np - 1] = -b * C * dw;
+    return b * (1 - C * S);
+}
+
+static int gen_eval(const odmr_gen *o, const double *q, double *chi2, double A[GEN_MAX][GEN_MAX],
+                    double *v)
+{
+    const int np = o->np;
+    if (!(q[np - 1] > 0)) return 1;
+    double c2 = 0;
+    memset(A, 0, GEN_MAX * sizeof A[0]);
+    for (int a = 0; a < np; a++) v[a] = 0;
+    for (int i = 0; i < o->n; i++) {
+        double j[GEN_MAX];
+        const double r = o->y[i] - gen_point(o, q, o->x[i], j);
+        c2 += r * r;
+        for (int a = 0; a < np; a++) {
+            v[a] += j[a] * r;
+            for (int b = a; b < np; b++) A[a][b] += j[a] * j[b];
+        }
+    }
+    for (int a = 0; a < np; a++)
+        for (int b = 0; b < a; b++) A[a][b] = A[b][a];
+    *chi2 = c2;
+    return !isfinite(c2);
+}
+
+/* Cholesky of the n x n symmetric M in place (lower); 1 when not positive definite */
+static int chol(int n, double M[GEN_MAX][GEN_MAX])
+{
+    for (int j = 0; j < n; j++) {
+        double dsum = M[j][j];
+        for (int k = 0; k < j; k++) dsum -= M[j][k] * M[j][k];
+        if (!(dsum > 1e-300)) return 1;
+        M[j][j] = sqrt(dsum);
+        for (int i = j + 1; i < n; i++) {
+            double t = M[i][j];
+            for (int k = 0; k < j; k++) t -= M[i][k] * M[j][k];
+            M[i][j] = t / M[j][j];
+        }
+    }
+    return 0;
+}
+
+static void chol_solve(int n, double L[GEN_MAX][GEN_MAX], const double *b, double *x)
+{
+    double z[GEN_MAX];
+    for (int i = 0; i < n; i++) {
+        double t = b[i];
+        for (int k = 0; k < i; k++) t -= L[i][k] * z[k];
+        z[i] = t / L[i][i];
+    }
+    for (int i = n - 1; i >= 0; i--) {
+        double t = z[i];
+        for (int k = i + 1; k < n; k++) t -= L[k][i] * x[k];
+        x[i] = t / L[i][i];
+    }
+}
+
+/* (A + λ diag A) d = v in Jacobi-scaled form; 1 when not positive definite */
+static int gen_solve(int n, double A[GEN_MAX][GEN_MAX], const double *v, double lambda, double *d)
+{
+    double sc[GEN_MAX], M[GEN_MAX][GEN_MAX], rhs[GEN_MAX], z[GEN_MAX];
+    for (int i = 0; i < n; i++) sc[i] = A[i][i] > 0 ? 1 / sqrt(A[i][i]) : 0;
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j < n; j++) M[i][j] = A[i][j] * sc[i] * sc[j];
+    for (int i = 0; i < n; i++) M[i][i] = sc[i] > 0 ? 1 + lambda : 1;
+    if (chol(n, M)) return 1;
+    for (int i = 0; i < n; i++) rhs[i] = v[i] * sc[i];
+    chol_solve(n, M, rhs, z);
+    for (int i = 0; i < n; i++) d[i] = z[i] * sc[i];
+    return 0;
+}
+
+/* q in/out; 0 on convergence; A and chi2 at the final point */
+static int gen_fit(const odmr_gen *o, const svp_lm_options *opt, double *q,
+                   double A[GEN_MAX][GEN_MAX], double *chi2_out)
+{
+    const int np = o->np;
+    double chi2, v[GEN_MAX];
+    if (gen_eval(o, q, &chi2, A, v)) return 1;
+    double sy = 0;
+    for (int i = 0; i < o->n; i++) sy += o->y[i] * o->y[i];
+    double lambda = opt->lambda_init > 0 ? opt->lambda_init : 1e-3;
+    int accepted = 0, converged = 0;
+    while (accepted < opt->max_iterations && !converged) {
+        if (chi2 <= 1e-28 * sy) {
+            converged = 1;
+            break;
+        }
+        double d[GEN_MAX], qt[GEN_MAX], chi2t, At[GEN_MAX][GEN_MAX], vt[GEN_MAX];
+        if (gen_solve(np, A, v, lambda, d)) {
+            lambda *= 10;
+            if (lambda > 1e16) break;
+            continue;
+        }
+        for (int j = 0; j < np; j++) qt[j] = q[j] + d[j];
+        qt[1] = fmin(fmax(qt[1], 0), 1);
+        if (gen_eval(o, qt, &chi2t, At, vt) || !(chi2t < chi2)) {
+            lambda *= 10;
+            if (lambda > 1e16) {
+                double gmax = 0;
+                for (int j = 0; j < np; j++)
+                    if (A[j][j] > 0 && chi2 > 0) gmax = fmax(gmax, fabs(v[j]) / sqrt(A[j][j] * chi2));
+                converged = gmax <= opt->gtol;
+                break;
+            }
+            continue;
+        }
+        double pred = 0, step = 0;
+        for (int i = 0; i < np; i++) {
+            double di = qt[i] - q[i], Ad = 0;
+            for (int j = 0; j < np; j++) Ad += A[i][j] * (qt[j] - q[j]);
+            pred += 2 * di * v[i] - di * Ad;
+            step = fmax(step, fabs(di) / (fabs(qt[i]) + 1e-3));
+        }
+        const double actual = (chi2 - chi2t) / chi2;
+        pred /= chi2;
+        memcpy(q, qt, (size_t)np * sizeof(double));
+        memcpy(A, At, sizeof At);
+        memcpy(v, vt, (size_t)np * sizeof(double));
+        chi2 = chi2t;
+        accepted++;
+        lambda = fmax(lambda * 0.1, 1e-12);
+        if (step <= opt->xtol || (actual <= opt->ftol && fabs(pred) <= opt->ftol)) converged = 1;
+    }
+    *chi2_out = chi2;
+    return !converged;
+}
+
+/* svp_lm_solve's model over the same q (the fallback) */
+static int gen_model(void *user, const double *q, int n_params, int n_points, double *model,
+                     double *jac)
+{
+    const odmr_gen *o = user;
+    if (!(q[n_params - 1] > 0)) return 1;
+    for (int i = 0; i < n_points; i++) {
+        double j[GEN_MAX];
+        model[i] = gen_point(o, q, o->x[i], j);
+        if (jac) memcpy(jac + (size_t)i * n_params, j, (size_t)n_params * sizeof(double));
+    }
+    return 0;
+}
+
+/* Covariance of q from A = JᵀJ at the solution: A⁻¹ χ² / dof (INFINITY diagonal when singular) */
+static void covariance_from(int n, double A[GEN_MAX][GEN_MAX], double chi2, int dof,
+                            double cov[GEN_MAX][GEN_MAX])
+{
+    double L[GEN_MAX][GEN_MAX], sc[GEN_MAX];
+    for (int i = 0; i < n; i++) sc[i] = A[i][i] > 0 ? 1 / sqrt(A[i][i]) : 0;
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j < n; j++) L[i][j] = A[i][j] * sc[i] * sc[j];
+    int singular = 0;
+    for (int i = 0; i < n; i++) singular |= !(sc[i] > 0);
+    if (!singular) singular = chol(n, L);
+    const double s2 = dof > 0 ? chi2 / dof : 0;
+    for (int c = 0; c < n; c++) {
+        double e[GEN_MAX] = {0}, x[GEN_MAX];
+        e[c] = 1;
+        if (!singular) chol_solve(n, L, e, x);
+        for (int r = 0; r < n; r++)
+            cov[r][c] = singular ? (r == c ? INFINITY : 0) : x[r] * sc[r] * sc[c] * s2;
+    }
+}
+
+/* The deepest point of y smoothed over [f − half_box, f + half_box], excluding frames within
+ * `exclude` of frame `avoid` (avoid < 0: none); -1 when none is left. *value: its smoothed value */
+static int deepest(const double *y, int nf, int half_box, int avoid, int exclude, double *value)
+{
+    int best = -1;
+    double best_v = INFINITY;
+    for (int f = 0; f < nf; f++) {
+        if (avoid >= 0 && abs(f - avoid) < exclude) continue;
+        double v = 0;
+        int cnt = 0;
+        for (int g = f - half_box; g <= f + half_box; g++) {
+            if (g < 0 || g >= nf) continue;
+            v += y[g];
+            cnt++;
+        }
+        v /= cnt;
+        if (v < best_v) {
+            best_v = v;
+            best = f;
+        }
+    }
+    *value = best_v;
+    return best;
+}
+
+static svp_status maps_check(const svp_cube *cube, const svp_odmr_maps *m, svp_odmr_lines lines)
+{
+    if (!m) return svp_fail(SVP_ERR_INVALID, "ODMR fit: maps is NULL");
+    SVP_CHECK(map_check(cube, m->field, "field"));
+    const svp_image *opt[] = {m->field_sigma,     m->field_lower,    m->field_lower_sigma,
+                              m->field_upper,     m->field_upper_sigma, m->baseline,
+                              m->baseline_sigma,  m->contrast,       m->contrast_sigma,
+                              m->linewidth,       m->linewidth_sigma, m->quality,
+                              m->converged};
+    static const char *const names[] = {
+        "field_sigma", "field_lower",     "field_lower_sigma", "field_upper",     "field_upper_sigma",
+        "baseline",    "baseline_sigma",  "contrast",          "contrast_sigma",  "linewidth",
+        "linewidth_sigma", "quality",     "converged"};
+    for (size_t i = 0; i < sizeof opt / sizeof opt[0]; i++)
+        if (opt[i]) SVP_CHECK(map_check(cube, opt[i], names[i]));
+    if (lines != SVP_ODMR_LINES_TWO &&
+        (m->field_lower || m->field_lower_sigma || m->field_upper || m->field_upper_sigma))
+        return svp_fail(SVP_ERR_INVALID, "ODMR fit: field_lower / field_upper are given by two "
+                                         "free resonances only (SVP_ODMR_LINES_TWO)");
+    return SVP_OK;
+}
+
+static void put(svp_image *img, size_t p, double v)
+{
+    if (img) img->data[p] = v;
+}
+
+svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
+                             const svp_odmr_fit_options *options, const svp_odmr_maps *maps,
+                             size_t *n_failed)
+{
+    SVP_CHECK(odmr_validate(odmr));
+    SVP_CHECK(cube_check(cube));
+    svp_odmr_fit_options defaults;
+    if (!options) {
+        svp_odmr_fit_defaults(&defaults);
+        options = &defaults;
+    }
+    const svp_odmr_lines lines = options->lines;
+    if (lines != SVP_ODMR_LINES_PAIR && lines != SVP_ODMR_LINES_TWO && lines != SVP_ODMR_LINES_ONE)
+        return svp_fail(SVP_ERR_INVALID, "ODMR fit: lines %d is not PAIR (0), TWO (1) or ONE (2)",
+                        (int)lines);
+    if (lines == SVP_ODMR_LINES_ONE && options->line_sign != 1 && options->line_sign != -1)
+        return svp_fail(SVP_ERR_INVALID, "ODMR fit: line_sign %d must be +1 or -1",
+                        options->line_sign);
+    SVP_CHECK(maps_check(cube, maps, lines));
+    const int nf = cube->n_freq, np = lines == SVP_ODMR_LINES_TWO ? 5 : 4;
+    if (nf < 5 || nf <= np)
+        return svp_fail(SVP_ERR_INVALID, "Lorentzian fit: %d frequencies, >= %d needed", nf,
+                        np + 1 > 5 ? np + 1 : 5);
+    if (options->baseline_frames < 1 || 2 * options->baseline_frames > nf)
+        return svp_fail(SVP_ERR_INVALID, "Lorentzian fit: baseline_frames %d must be in [1, %d]",
+                        options->baseline_frames, nf / 2);
+    if (options->lm.max_iterations < 1)
+        return svp_fail(SVP_ERR_INVALID, "Lorentzian fit: lm.max_iterations %d must be >= 1",
+                        options->lm.max_iterations);
+    const size_t n = (size_t)cube->width * cube->height;
+    const double D = odmr->zero_field_hz, gamma = odmr->gamma_hz_per_t, G0 = odmr->linewidth_hz;
+    const int nb = options->baseline_frames;
+    /* trapezoid weights (the dip area for the starting contrast) and scaled frequencies */
+    double *q = malloc((size_t)nf * sizeof(double)), *xs = malloc((size_t)nf * sizeof(double));
+    if (!q || !xs) {
+        free(q);
+        free(xs);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for the fit");
+    }
+    for (int f = 0; f < nf; f++) {
+        q[f] = 0.5 * (cube->freq[f < nf - 1 ? f + 1 : f] - cube->freq[f > 0 ? f - 1 : f]);
+        xs[f] = (cube->freq[f] - D) / G0;
+    }
+    /* smoothing half-width for the starting point: about half a linewidth of frames */
+    const double spacing = (cube->freq[nf - 1] - cube->freq[0]) / (nf - 1);
+    const int half_box = (int)fmin(nf / 4, floor(0.5 * G0 / spacing));
+    const int exclude = (int)ceil(1.5 * G0 / spacing);
+    size_t failed = 0;
+    int alloc_failed = 0, cancelled = 0;
+    svp_status first_error = SVP_OK;
+    const double lower4[4] = {-INFINITY, 0, -INFINITY, 0}, upper4[4] = {INFINITY, 1, INFINITY,
+                                                                          INFINITY};
+    const double lowerg[GEN_MAX] = {-INFINITY, 0, -INFINITY, -INFINITY, 0};
+    const double upperg[GEN_MAX] = {INFINITY, 1, INFINITY, INFINITY, INFINITY};
+    double lowerone[4] = {-INFINITY, 0, -INFINITY, 0};
+    /* blocks of rows between progress reports: about 1 % of the image, at least one row */
+    const int rows_per_block = cube->height / 100 > 0 ? cube->height / 100 : 1;
+#pragma omp parallel reduction(+ : failed)
+    {
+        svp_lm_workspace *ws = NULL;
+        double *y = malloc((size_t)nf * sizeof(double));
+        if (svp_lm_workspace_new(np, nf, &ws) != SVP_OK || !y) {
+#pragma omp atomic write
+            alloc_failed = 1;
+        }
+        odmr_pixel px = {.freq = cube->freq, .D = D, .gamma = gamma};
+        svp_lm_problem prob = {.n_params = 4, .n_points = nf, .model = odmr_model, .user = &px,
+                               .analytic_jacobian = 1, .data = y, .lower = lower4,
+                               .upper = upper4};
+        odmr_gen go = {.x = xs, .y = y, .n = nf, .np = np, .two = lines == SVP_ODMR_LINES_TWO};
+        svp_lm_problem gprob = {.n_params = np, .n_points = nf, .model = gen_model, .user = &go,
+                                .analytic_jacobian = 1, .data = y,
+                                .lower = np == 5 ? lowerg : lowerone,
+                                .upper = upperg};
+        for (int row0 = 0; row0 < cube->height; row0 += rows_per_block) {
+            const size_t p0 = (size_t)row0 * cube->width;
+            const size_t p1 = (size_t)(row0 + rows_per_block < cube->height ? row0 + rows_per_block
+                                                                            : cube->height) *
+                              cube->width;
+#pragma omp for schedule(dynamic, 64)
+            for (size_t p = p0; p < p1; p++) {
+                if (!ws || !y) continue;
+                double b0 = 0, den = 0, mean = 0;
+                for (int f = 0; f < nf; f++) y[f] = cube->frame[f]->data[p];
+                for (int f = 0; f < nb; f++) b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
+                for (int f = 0; f < nf; f++) {
+                    den += q[f] * (b0 - y[f]);
+                    mean += y[f];
+                }
+                mean /= nf;
+                double v_best;
+                const int best = deepest(y, nf, half_box, -1, 0, &v_best);
+                /* θ in physical units: PAIR (b, C, B, Γ); ONE (b, C, f₀, Γ); TWO (b, C, f₋, f₊, Γ) */
+                double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], A[GEN_MAX][GEN_MAX], chi2 = NAN;
+                const double bs = b0 > 0 ? b0 : 1;
+                int fail = 0;
+                svp_status st = SVP_OK;
+                if (lines == SVP_ODMR_LINES_PAIR) {
+                    th[0] = b0;
+                    th[2] = fabs(cube->freq[best] - D) / gamma;
+                    th[3] = G0;
+                    /* at B = 0 exactly the model is flat in B (the dips are symmetric) */
+                    th[2] = fmax(th[2], 0.25 * G0 / gamma);
+                    th[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * th[3])) : 0.01;
+                    if (!(th[1] > 1e-6)) th[1] = 1e-6;
+                    double th0[4] = {th[0], th[1], th[2], th[3]}, Ap[10];
+                    const odmr_fast fo = {.freq = cube->freq, .y = y, .n = nf, .D = D,
+                                          .gamma = gamma, .b0 = bs, .g0 = G0};
+                    if (b0 > 0 && !odmr_fast_fit(&fo, &options->lm, th, Ap, &chi2)) {
+                        for (int a = 0; a < 4; a++)
+                            for (int c = 0; c < 4; c++) A[a][c] = Ap[sym4[a][c]];
+                        covariance_from(4, A, chi2, nf - 4, cov);
+                        /* q = (b / b0, C, γB / Γ0, Γ / Γ0) → θ */
+                        const double s[4] = {bs, 1, G0 / gamma, G0};
+                        for (int a = 0; a < 4; a++)
+                            for (int c = 0; c < 4; c++) cov[a][c] *= s[a] * s[c];
+                    } else {
+                        svp_lm_result res;
+                        double covl[16];
+                        memcpy(th, th0, sizeof th0);
+                        st = svp_lm_solve(ws, &prob, &options->lm, th, &res, covl);
+                        fail = st != SVP_OK;
+                        chi2 = res.chi2;
+                        for (int a = 0; a < 4; a++)
+                            for (int c = 0; c < 4; c++) cov[a][c] = covl[a * 4 + c];
+                    }
+                } else {
+                    /* scaled start q = (b / b0, C, u..., w) */
+                    double qs[GEN_MAX], q0[GEN_MAX];
+                    const double area_lines = lines == SVP_ODMR_LINES_TWO ? 1.0 : 0.5;
+                    qs[0] = b0 / bs;
+                    qs[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * G0 * area_lines))
+                                                : 0.01;
+                    if (!(qs[1] > 1e-6)) qs[1] = 1e-6;
+                    if (lines == SVP_ODMR_LINES_ONE) {
+                        qs[2] = xs[best];
+                        qs[3] = 1;
+                    } else {
+                        double v2;
+                        int second = deepest(y, nf, half_box, best, exclude, &v2);
+                        double u1 = xs[best], u2;
+                        if (second >= 0 && b0 - v2 >= 0.3 * (b0 - v_best))
+                            u2 = xs[second];
+                        else if (fabs(u1) > 0.25)
+                            u2 = -u1; /* its mirror about D */
+                        else {
+                            u1 = -0.25; /* overlapping lines: split about the dip */
+                            u2 = 0.25;
+                            u1 += xs[best];
+                            u2 += xs[best];
+                        }
+                        qs[2] = fmin(u1, u2);
+                        qs[3] = fmax(u1, u2);
+                        qs[4] = 1;
+                    }
+                    memcpy(q0, qs, sizeof qs);
+                    go.b0 = bs;
+                    if (!(b0 > 0) || gen_fit(&go, &options->lm, qs, A, &chi2)) {
+                        svp_lm_result res;
+                        double covl[GEN_MAX * GEN_MAX];
+                        memcpy(qs, q0, sizeof q0);
+                        st = svp_lm_solve(ws, &gprob, &options->lm, qs, &res, covl);
+                        fail = st != SVP_OK;
+                        chi2 = res.chi2;
+                        for (int a = 0; a < np; a++)
+                            for (int c = 0; c < np; c++) cov[a][c] = covl[a * np + c];
+                    } else {
+                        covariance_from(np, A, chi2, nf - np, cov);
+                    }
+                    /* q → θ: b = b0 q0, C, f = D + Γ0 u, Γ = Γ0 w */
+                    double s[GEN_MAX];
+                    s[0] = bs;
+                    s[1] = 1;
+                    for (int a = 2; a < np; a++) s[a] = G0;
+                    th[0] = qs[0] * bs;
+                    th[1] = qs[1];
+                    for (int a = 2; a < np - 1; a++) th[a] = D + G0 * qs[a];
+                    th[np - 1] = G0 * qs[np - 1];
+                    for (int a = 0; a < np; a++)
+                        for (int c = 0; c < np; c++) cov[a][c] *= s[a] * s[c];
+                    if (lines == SVP_ODMR_LINES_TWO && th[2] > th[3]) { /* f₋ < f₊ */
+                        double t = th[2];
+                        th[2] = th[3];
+                        th[3] = t;
+                        for (int a = 0; a < np; a++) {
+                            t = cov[a][2], cov[a][2] = cov[a][3], cov[a][3] = t;
+                        }
+                        for (int c = 0; c < np; c++) {
+                            t = cov[2][c], cov[2][c] = cov[3][c], cov[3][c] = t;
+                        }
+                    }
+                }
+                if (fail) {
+                    failed++;
+                    if (st != SVP_ERR_NUMERIC) {
+#pragma omp critical(svp_odmr_fit_error)
+                        if (first_error == SVP_OK) first_error = st;
+                    }
+                }
+                const double sd_b = sqrt(cov[0][0]), sd_c = sqrt(cov[1][1]);
+                const double sd_w = sqrt(cov[np - 1][np - 1]);
+                double B, sd_B;
+                if (lines == SVP_ODMR_LINES_PAIR) {
+                    B = fabs(th[2]);
+                    sd_B = sqrt(cov[2][2]);
+                } else if (lines == SVP_ODMR_LINES_ONE) {
+                    B = options->line_sign * (th[2] - D) / gamma;
+                    sd_B = sqrt(cov[2][2]) / gamma;
+                } else {
+                    B = (th[3] - th[2]) / (2 * gamma);
+                    double var = cov[2][2] + cov[3][3] - 2 * cov[2][3];
+                    sd_B = isfinite(var) ? sqrt(fmax(var, 0)) / (2 * gamma) : INFINITY;
+                    put(maps->field_lower, p, (D - th[2]) / gamma);
+                    put(maps->field_lower_sigma, p, sqrt(cov[2][2]) / gamma);
+                    put(maps->field_upper, p, (th[3] - D) / gamma);
+                    put(maps->field_upper_sigma, p, sqrt(cov[3][3]) / gamma);
+                }
+                maps->field->data[p] = B;
+                put(maps->field_sigma, p, sd_B);
+                put(maps->baseline, p, th[0]);
+                put(maps->baseline_sigma, p, sd_b);
+                put(maps->contrast, p, th[1]);
+                put(maps->contrast_sigma, p, sd_c);
+                put(maps->linewidth, p, th[np - 1]);
+                put(maps->linewidth_sigma, p, sd_w);
+                put(maps->converged, p, fail ? 0.0 : 1.0);
+                if (maps->quality) {
+                    double ss = 0;
+                    for (int f = 0; f < nf; f++) ss += (y[f] - mean) * (y[f] - mean);
+                    maps->quality->data[p] = ss > 0 ? 1 - chi2 / ss : 0.0;
+                }
+            }
+            /* the implicit barrier of the loop above: every pixel so far is done */
+#pragma omp single
+            {
+                if (options->progress &&
+                    options->progress(options->progress_user, (double)p1 / (double)n))
+                    cancelled = 1;
+            }
+            if (cancelled) break; /* read by every thread after the single's barrier */
+        }
+        svp_lm_workspace_free(ws);
+        free(y);
+    }
+    free(q);
+    free(xs);
+    if (alloc_failed) return svp_fail(SVP_ERR_NOMEM, "out of memory for the fit workspaces");
+    if (cancelled) return svp_fail(SVP_ERR_CANCELLED, "Lorentzian fit cancelled");
+    if (first_error != SVP_OK)
+        return svp_fail(first_error, "Lorentzian fit: a pixel fit failed (%s)",
+                        svp_status_string(first_error));
+    if (n_failed) *n_failed = failed;
+    return SVP_OK;
 }
 
 svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
@@ -433,116 +940,7 @@ svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,
                         svp_image *contrast, svp_image *baseline, svp_image *linewidth,
                         size_t *n_failed)
 {
-    SVP_CHECK(odmr_validate(odmr));
-    SVP_CHECK(cube_check(cube));
-    SVP_CHECK(map_check(cube, field, "field"));
-    if (contrast) SVP_CHECK(map_check(cube, contrast, "contrast"));
-    if (baseline) SVP_CHECK(map_check(cube, baseline, "baseline"));
-    if (linewidth) SVP_CHECK(map_check(cube, linewidth, "linewidth"));
-    svp_odmr_fit_options defaults;
-    if (!options) {
-        svp_odmr_fit_defaults(&defaults);
-        options = &defaults;
-    }
-    const int nf = cube->n_freq;
-    if (nf < 5) return svp_fail(SVP_ERR_INVALID, "Lorentzian fit: %d frequencies, >= 5 needed", nf);
-    if (options->baseline_frames < 1 || 2 * options->baseline_frames > nf)
-        return svp_fail(SVP_ERR_INVALID, "Lorentzian fit: baseline_frames %d must be in [1, %d]",
-                        options->baseline_frames, nf / 2);
-    const size_t n = (size_t)cube->width * cube->height;
-    const double D = odmr->zero_field_hz, gamma = odmr->gamma_hz_per_t;
-    const int nb = options->baseline_frames;
-    /* trapezoid weights for the starting point (the centroid of the depth) */
-    double *q = malloc((size_t)nf * sizeof(double));
-    if (!q) return svp_fail(SVP_ERR_NOMEM, "out of memory for the fit");
-    for (int f = 0; f < nf; f++)
-        q[f] = nf == 1 ? 1.0
-                       : 0.5 * (cube->freq[f < nf - 1 ? f + 1 : f] - cube->freq[f > 0 ? f - 1 : f]);
-    /* smoothing half-width for the starting point: about half a linewidth of frames */
-    const double spacing = (cube->freq[nf - 1] - cube->freq[0]) / (nf - 1);
-    const int half_box = (int)fmin(nf / 4, floor(0.5 * odmr->linewidth_hz / spacing));
-    size_t failed = 0;
-    int alloc_failed = 0;
-    svp_status first_error = SVP_OK;
-    const double lower[4] = {-INFINITY, 0, -INFINITY, 0};
-    const double upper[4] = {INFINITY, 1, INFINITY, INFINITY};
-#pragma omp parallel reduction(+ : failed)
-    {
-        svp_lm_workspace *ws = NULL;
-        double *y = malloc((size_t)nf * sizeof(double));
-        if (svp_lm_workspace_new(4, nf, &ws) != SVP_OK || !y) {
-#pragma omp atomic write
-            alloc_failed = 1;
-        }
-        odmr_pixel px = {.freq = cube->freq, .D = D, .gamma = gamma};
-        svp_lm_problem prob = {.n_params = 4, .n_points = nf, .model = odmr_model, .user = &px,
-                               .analytic_jacobian = 1, .data = y, .lower = lower,
-                               .upper = upper};
-#pragma omp for schedule(dynamic, 64)
-        for (size_t p = 0; p < n; p++) {
-            if (!ws || !y) continue;
-            double b0 = 0, den = 0;
-            for (int f = 0; f < nf; f++) y[f] = cube->frame[f]->data[p];
-            for (int f = 0; f < nb; f++) b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
-            for (int f = 0; f < nf; f++) den += q[f] * (b0 - y[f]);
-            /* start at the deepest point of the spectrum smoothed over about one linewidth (the
-             * centroid is too noisy a start: far-off frames enter it weighted by |ω − D|) */
-            int best = 0;
-            double best_v = INFINITY;
-            for (int f = 0; f < nf; f++) {
-                double v = 0;
-                int cnt = 0;
-                for (int g = f - half_box; g <= f + half_box; g++) {
-                    if (g < 0 || g >= nf) continue;
-                    v += y[g];
-                    cnt++;
-                }
-                v /= cnt;
-                if (v < best_v) {
-                    best_v = v;
-                    best = f;
-                }
-            }
-            double th[4] = {b0, 0, fabs(cube->freq[best] - D) / gamma, odmr->linewidth_hz};
-            /* at B = 0 exactly the model is flat in B (the dips are symmetric): start off it */
-            th[2] = fmax(th[2], 0.25 * odmr->linewidth_hz / gamma);
-            th[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * th[3])) : 0.01;
-            if (!(th[1] > 1e-6)) th[1] = 1e-6;
-            svp_status st = SVP_OK;
-            double th0[4] = {th[0], th[1], th[2], th[3]};
-            const odmr_fast fo = {.freq = cube->freq,
-                                  .y = y,
-                                  .n = nf,
-                                  .D = D,
-                                  .gamma = gamma,
-                                  .b0 = b0 > 0 ? b0 : 1,
-                                  .g0 = odmr->linewidth_hz};
-            if (!(b0 > 0) || odmr_fast_fit(&fo, &options->lm, th)) {
-                /* the generic solver from the same start (LAPACKE; its failure is counted) */
-                svp_lm_result res;
-                memcpy(th, th0, sizeof th0);
-                st = svp_lm_solve(ws, &prob, &options->lm, th, &res, NULL);
-            }
-            if (st != SVP_OK) {
-                failed++;
-                if (st != SVP_ERR_NUMERIC) {
-#pragma omp critical(svp_odmr_fit_error)
-                    if (first_error == SVP_OK) first_error = st;
-                }
-            }
-            field->data[p] = fabs(th[2]);
-            if (contrast) contrast->data[p] = th[1];
-            if (baseline) baseline->data[p] = th[0];
-            if (linewidth) linewidth->data[p] = th[3];
-        }
-        svp_lm_workspace_free(ws);
-        free(y);
-    }
-    free(q);
-    if (alloc_failed) return svp_fail(SVP_ERR_NOMEM, "out of memory for the fit workspaces");
-    if (first_error != SVP_OK)
-        return svp_fail(first_error, "Lorentzian fit: a pixel fit failed (%s)",
-                        svp_status_string(first_error));
-    if (n_failed) *n_failed = failed;
-    return SVP_OK;
+    svp_odmr_maps maps = {.field = field, .contrast = contrast, .baseline = baseline,
+                          .linewidth = linewidth};
+    return svp_odmr_fit_maps(odmr, cube, options, &maps, n_failed);
 }
