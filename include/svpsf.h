@@ -1596,7 +1596,9 @@ typedef struct svp_odmr_maps {
  * least 1.5 Γ from the first when it is at least 30 % as deep, else its mirror about D),
  * Γ = odmr->linewidth_hz, C from the area of the dips. n_freq >= 5 (and > the parameter
  * count). Pixels run in parallel (one LM workspace per thread); each pixel's result does not
- * depend on the thread count. *n_failed (may be NULL): pixels whose fit did not converge. */
+ * depend on the thread count. A pixel with NaN/Inf in any frame (missing data) gets NaN in
+ * every map but converged (0). *n_failed (may be NULL): pixels whose fit did not converge or
+ * was missing. */
 SVP_API svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                                      const svp_odmr_fit_options *options,
                                      const svp_odmr_maps *maps, size_t *n_failed);

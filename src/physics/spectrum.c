@@ -763,7 +763,23 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
             for (size_t p = p0; p < p1; p++) {
                 if (!ws || !y) continue;
                 double b0 = 0, den = 0, mean = 0;
-                for (int f = 0; f < nf; f++) y[f] = cube->frame[f]->data[p];
+                int finite = 1;
+                for (int f = 0; f < nf; f++) {
+                    y[f] = cube->frame[f]->data[p];
+                    finite &= isfinite(y[f]) != 0;
+                }
+                if (!finite) { /* a missing pixel (NaN/Inf in some frame): NaN maps */
+                    svp_image *const all[] = {
+                        maps->field,         maps->field_sigma,   maps->field_lower,
+                        maps->field_lower_sigma, maps->field_upper, maps->field_upper_sigma,
+                        maps->baseline,      maps->baseline_sigma, maps->contrast,
+                        maps->contrast_sigma, maps->linewidth,   maps->linewidth_sigma,
+                        maps->quality};
+                    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++) put(all[k], p, NAN);
+                    put(maps->converged, p, 0.0);
+                    failed++;
+                    continue;
+                }
                 for (int f = 0; f < nb; f++) b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
                 for (int f = 0; f < nf; f++) {
                     den += q[f] * (b0 - y[f]);

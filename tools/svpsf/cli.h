@@ -69,6 +69,7 @@ int cmd_map_psf(int argc, char **argv);
 int cmd_psf_compare(int argc, char **argv);
 int cmd_reconstruct(int argc, char **argv);
 int cmd_register(int argc, char **argv);
+int cmd_fit_odmr(int argc, char **argv);
 
 /* ---- exit codes ---------------------------------------------------------------------------- */
 

@@ -26,6 +26,8 @@ static const cli_command commands[] = {
      cmd_map_psf},
     {"psf-compare", "compare two PSF maps: parameter differences, effect on a corrected field",
      cmd_psf_compare},
+    {"fit-odmr", "fit an ODMR stack per pixel: field, its sigma, PL, contrast, width maps",
+     cmd_fit_odmr},
 };
 
 static const int n_commands = (int)(sizeof commands / sizeof commands[0]);

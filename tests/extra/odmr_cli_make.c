@@ -1,0 +1,163 @@
+/* Inputs and checks for odmr_cli_test.sh (svpsf fit-odmr):
+ *   odmr_cli_make stack OUT.tif FREQ.txt TRUTH.npy PL.npy W H NF SEED
+ *       an ODMR stack written here: per pixel two Lorentzian dips at D' ∓ γ B (D' = D + 0.5 MHz,
+ *       B known, between 1 and 3 mT), FWHM 5 MHz, contrast 3 %, PL 800..1200 counts, Gaussian
+ *       noise σ = 3 counts; as a multi-page float32 TIFF built byte by byte (not by OpenCV),
+ *       the frequencies (Hz, one per line), the true field (T) and PL as .npy
+ *   odmr_cli_make pages OUT.tif N          a 16-bit TIFF of N 8 x 6 pages
+ *   odmr_cli_make compare EST.npy TRUTH.npy SCALE MEAN_TOL MAX_TOL [SIGMA.npy]
+ *       EST / SCALE against TRUTH: mean and max |difference| within the tolerances (NaN pixels
+ *       fail), and with SIGMA (same unit as EST) the rms of (EST − TRUTH) / SIGMA in [0.8, 1.25]
+ * Exit 0 when the files were written / the check passed; the numbers go to stdout. */
+#include "svpsf.h"
+
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static uint64_t rng = 1;
+static double uniform(void)
+{
+    rng = rng * 6364136223846793005ULL + 1442695040888963407ULL;
+    return ((rng >> 11) + 0.5) / 9007199254740992.0;
+}
+static double gauss(void)
+{
+    return sqrt(-2 * log(uniform())) * cos(2 * M_PI * uniform());
+}
+
+static void le(unsigned char *p, uint32_t v, int n)
+{
+    for (int k = 0; k < n; k++) p[k] = (unsigned char)(v >> (8 * k));
+}
+
+/* A classic little-endian TIFF: every page's strip, then its directory (bits 16 or 32, sample
+ * format 1 = unsigned or 3 = float). pixels[p] holds page p's w * h values (as float or
+ * uint16 by bits). */
+static int write_tiff(const char *path, int w, int h, int n, int bits, const void *pixels)
+{
+    const size_t bytes = (size_t)w * h * (size_t)(bits / 8);
+    const size_t page = bytes + 2 + 12 * 10 + 4 + 1;
+    unsigned char *buf = calloc(1, 8 + (size_t)n * page);
+    if (!buf) return 1;
+    memcpy(buf, "II*\0", 4);
+    size_t pos = 8, link = 4;
+    for (int p = 0; p < n; p++) {
+        memcpy(buf + pos, (const unsigned char *)pixels + (size_t)p * bytes, bytes);
+        size_t data = pos, ifd = pos + bytes;
+        ifd += ifd & 1;
+        le(buf + link, (uint32_t)ifd, 4);
+        const uint32_t e[10][3] = {{256, 3, (uint32_t)w}, {257, 3, (uint32_t)h},
+                                   {258, 3, (uint32_t)bits}, {259, 3, 1},
+                                   {262, 3, 1}, {273, 4, (uint32_t)data},
+                                   {277, 3, 1}, {278, 3, (uint32_t)h},
+                                   {279, 4, (uint32_t)bytes}, {339, 3, bits == 32 ? 3u : 1u}};
+        le(buf + ifd, 10, 2);
+        for (int k = 0; k < 10; k++) {
+            unsigned char *q = buf + ifd + 2 + 12 * k;
+            le(q, e[k][0], 2);
+            le(q + 2, e[k][1], 2);
+            le(q + 4, 1, 4);
+            le(q + 8, e[k][2], e[k][1] == 3 ? 2 : 4);
+        }
+        link = ifd + 2 + 12 * 10;
+        le(buf + link, 0, 4);
+        pos = link + 4;
+    }
+    FILE *f = fopen(path, "wb");
+    int bad = !f || fwrite(buf, 1, pos, f) != pos;
+    if (f) bad |= fclose(f) != 0;
+    free(buf);
+    if (bad) fprintf(stderr, "cannot write %s\n", path);
+    return bad;
+}
+
+static int make_stack(char **a)
+{
+    const char *out = a[0], *freq_path = a[1], *truth_path = a[2], *pl_path = a[3];
+    const int w = atoi(a[4]), h = atoi(a[5]), nf = atoi(a[6]);
+    rng = strtoull(a[7], NULL, 10);
+    const double D = 2.870e9 + 0.5e6, g = 28.033e9, fwhm = 5e6, C = 0.03, noise = 3;
+    const size_t n = (size_t)w * h;
+    svp_image *truth = NULL, *pl = NULL;
+    if (svp_image_new(w, h, &truth) || svp_image_new(w, h, &pl)) return 1;
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            truth->data[y * w + x] = 1e-3 + 2e-3 * (0.5 + 0.5 * sin(0.3 * x) * cos(0.2 * y));
+            pl->data[y * w + x] = 1000 + 200 * cos(0.15 * (x + y));
+        }
+    float *pix = malloc(n * (size_t)nf * sizeof(float));
+    FILE *ff = fopen(freq_path, "w");
+    if (!pix || !ff) return 1;
+    for (int f = 0; f < nf; f++) {
+        const double wf = 2.870e9 - 120e6 + 240e6 * f / (nf - 1);
+        fprintf(ff, "%.17g\n", wf);
+        for (size_t p = 0; p < n; p++) {
+            const double h2 = 0.25 * fwhm * fwhm, s = g * truth->data[p];
+            const double lo = wf - (D - s), hi = wf - (D + s);
+            const double dip = h2 / (lo * lo + h2) + h2 / (hi * hi + h2);
+            pix[(size_t)f * n + p] = (float)(pl->data[p] * (1 - C * dip) + noise * gauss());
+        }
+    }
+    if (fclose(ff)) return 1;
+    int bad = write_tiff(out, w, h, nf, 32, pix);
+    bad |= svp_image_write(truth_path, truth, SVP_FORMAT_NPY, 1) != SVP_OK;
+    bad |= svp_image_write(pl_path, pl, SVP_FORMAT_NPY, 1) != SVP_OK;
+    free(pix);
+    svp_image_free(truth);
+    svp_image_free(pl);
+    return bad;
+}
+
+static int make_pages(char **a)
+{
+    const int n = atoi(a[1]);
+    uint16_t *pix = malloc((size_t)n * 48 * sizeof(uint16_t));
+    for (int k = 0; k < n * 48; k++) pix[k] = (uint16_t)(100 + k % 977);
+    int bad = write_tiff(a[0], 8, 6, n, 16, pix);
+    free(pix);
+    return bad;
+}
+
+static int compare(int argc, char **a)
+{
+    svp_image *est = NULL, *truth = NULL, *sigma = NULL;
+    if (svp_image_read(a[0], &est) || svp_image_read(a[1], &truth) ||
+        (argc > 5 && svp_image_read(a[5], &sigma))) {
+        fprintf(stderr, "%s\n", svp_last_error());
+        return 1;
+    }
+    const double scale = atof(a[2]), mean_tol = atof(a[3]), max_tol = atof(a[4]);
+    const size_t n = (size_t)est->width * est->height;
+    if (truth->width != est->width || truth->height != est->height) {
+        fprintf(stderr, "size mismatch\n");
+        return 1;
+    }
+    double mean = 0, worst = 0, pull = 0;
+    for (size_t p = 0; p < n; p++) {
+        double d = est->data[p] / scale - truth->data[p];
+        if (!isfinite(d)) {
+            printf("pixel %zu is not finite\n", p);
+            return 1;
+        }
+        mean += fabs(d) / (double)n;
+        worst = fmax(worst, fabs(d));
+        if (sigma) pull += pow((est->data[p] - scale * truth->data[p]) / sigma->data[p], 2) / (double)n;
+    }
+    pull = sqrt(pull);
+    printf("mean |error| %.4g, max %.4g (tolerances %g, %g)", mean, worst, mean_tol, max_tol);
+    if (sigma) printf(", rms (est - truth) / sigma %.3f", pull);
+    printf("\n");
+    return !(mean <= mean_tol && worst <= max_tol && (!sigma || (pull > 0.8 && pull < 1.25)));
+}
+
+int main(int argc, char **argv)
+{
+    if (argc == 10 && !strcmp(argv[1], "stack")) return make_stack(argv + 2);
+    if (argc == 4 && !strcmp(argv[1], "pages")) return make_pages(argv + 2);
+    if ((argc == 7 || argc == 8) && !strcmp(argv[1], "compare")) return compare(argc - 2, argv + 2);
+    fprintf(stderr, "usage: see the comment at the top of odmr_cli_make.c\n");
+    return 2;
+}

@@ -1,0 +1,101 @@
+#!/bin/sh
+# svpsf fit-odmr from the command line, and stacks where one image is expected: a 5-page TIFF
+# given as --pl is refused naming its page count; a 100-frame float32 TIFF stack simulated by
+# odmr_cli_make's own lines (with noise) is fitted back to the known field within a stated
+# tolerance (and σ matches the scatter); its maps feed `svpsf correct` directly, --field-sigma
+# included; bad frequencies and no overwrite without --force.
+# Usage: odmr_cli_test.sh SVPSF ODMR_CLI_MAKE
+set -u
+svpsf=$1
+make=$2
+dir=$(mktemp -d "${TMPDIR:-/tmp}/svpsf-odmr.XXXXXX") || exit 1
+trap 'rm -rf "$dir"' EXIT
+export XDG_CACHE_HOME="$dir/cache"
+failures=0
+fail() { echo "FAIL: $*"; failures=$((failures + 1)); }
+
+# run EXPECTED_EXIT ARGS...: runs svpsf with ARGS, output in $dir/out and $dir/err
+run() {
+    expect=$1
+    shift
+    "$svpsf" "$@" >"$dir/out" 2>"$dir/err"
+    code=$?
+    if [ "$code" -ne "$expect" ]; then
+        fail "svpsf $* exited $code, expected $expect"
+        sed 's/^/  stdout: /' "$dir/out"
+        sed 's/^/  stderr: /' "$dir/err"
+    fi
+}
+expect_in() { # FILE TEXT
+    grep -q -- "$2" "$1" || { fail "'$2' not in $1:"; sed 's/^/  /' "$1"; }
+}
+cd "$dir" || exit 1
+
+# 1. one image expected: a 5-page TIFF is refused naming the file and the page count; a 1-page
+#    TIFF is that image
+"$make" pages pages5.tif 5 && "$make" pages pages1.tif 1 || { echo "FAIL: cannot write TIFFs"; exit 1; }
+printf '0 0 0\n0 1 0\n0 0 0\n' >delta.txt
+awk 'BEGIN {for (y = 0; y < 6; y++) {for (x = 0; x < 8; x++) printf "%s%g", x ? " " : "", 1e-6 * x; print ""}}' >f.txt
+run 1 correct --pl pages5.tif --field f.txt --psf delta.txt -o out5
+expect_in err "pages5.tif: multi-page TIFF of 5 pages: expected one image"
+[ -e out5 ] && fail "out5 was created by a refused run"
+run 0 correct --pl pages1.tif --field f.txt --psf delta.txt -o out1 --fft estimate
+run 1 deconvolve pages5.tif --method wiener --psf delta.txt -o d5.tif
+expect_in err "pages5.tif: multi-page TIFF of 5 pages"
+
+# 2. fit-odmr round trip: 100 frames, 48 x 40 pixels, lines shifted by 0.5 MHz from D
+"$make" stack stack.tif freq.txt truth.npy pl_true.npy 48 40 100 1 || { echo "FAIL: cannot write the stack"; exit 1; }
+run 0 fit-odmr stack.tif --frequencies freq.txt --lines two --linewidth 4e6 -o fit --format npy --quiet
+for m in field field_sigma field_lower field_lower_sigma field_upper field_upper_sigma pl \
+         pl_sigma contrast contrast_sigma linewidth linewidth_sigma quality; do
+    [ -s "fit/$m.npy" ] || fail "fit/$m.npy not written"
+done
+[ -s fit/summary.json ] || fail "fit/summary.json not written"
+expect_in fit/summary.json '"n_failed": 0'
+expect_in fit/summary.json '"lines": "two"'
+# σ_B is about 4 uT here: stated tolerance mean 10 uT, max 50 uT; σ within 0.8..1.25 of the scatter
+echo "fit-odmr --lines two, field:"
+"$make" compare fit/field.npy truth.npy 1 10e-6 50e-6 fit/field_sigma.npy || fail "fit-odmr --lines two: field off"
+echo "fit-odmr --lines two, PL:"
+"$make" compare fit/pl.npy pl_true.npy 1 1.5 8 fit/pl_sigma.npy || fail "fit-odmr --lines two: PL off"
+
+# the frequencies as START:STOP:N in MHz, the pair model about the shifted D, field in uT:
+# the same field within the noise
+run 0 fit-odmr stack.tif --frequencies 2750:2990:100 --frequency-unit MHz --zero-field 2.8705e9 \
+    --linewidth 4e6 --unit uT -o fit_pair --format npy
+expect_in out "fits converged"
+echo "fit-odmr --lines pair (uT):"
+"$make" compare fit_pair/field.npy truth.npy 1e6 10e-6 50e-6 fit_pair/field_sigma.npy || fail "fit-odmr pair: field off"
+[ -e fit_pair/field_lower.npy ] && fail "field_lower written without --lines two"
+
+# 3. its outputs feed correct, --field-sigma included
+run 0 correct --pl fit/pl.npy --field fit/field.npy --field-sigma fit/field_sigma.npy \
+    --psf delta.txt -o corr --format npy --fft estimate --quiet
+[ -s corr/field.npy ] || fail "correct on fit-odmr's maps wrote no field"
+
+# 4. bad input and no overwrite
+run 1 fit-odmr stack.tif --frequencies 2750:2990:99 --frequency-unit MHz -o bad1
+expect_in err "2750:2990:99: 99 frequencies for a stack of 100 frames (stack.tif)"
+head -n 99 freq.txt >freq99.txt
+run 1 fit-odmr stack.tif --frequencies freq99.txt -o bad2
+expect_in err "freq99.txt: 99 frequencies for a stack of 100 frames (stack.tif)"
+run 1 fit-odmr pages5.tif --frequencies 1:5:5 -o bad3 --lines two
+expect_in err "pages5.tif: 5 frames: a Lorentzian fit (--lines two) needs at least 6"
+run 1 fit-odmr stack.tif --frequencies freq.txt --line lower -o bad4
+expect_in err "--line lower needs --lines one"
+run 1 fit-odmr stack.tif -o bad5
+expect_in err "--frequencies is required"
+awk 'NR == 50 {print 2.9e9; next} {print}' freq.txt >freq_bad.txt
+run 1 fit-odmr stack.tif --frequencies freq_bad.txt -o bad6
+expect_in err "freq_bad.txt: not monotonic"
+for d in bad1 bad2 bad3 bad4 bad5 bad6; do [ -e "$d" ] && fail "$d was created by a refused run"; done
+cp fit/field.npy field.before
+run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
+expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"
+cmp -s fit/field.npy field.before || fail "fit/field.npy changed without --force"
+
+if [ "$failures" -ne 0 ]; then
+    echo "$failures failure(s)"
+    exit 1
+fi
+echo "all fit-odmr checks passed"

@@ -1,0 +1,380 @@
+/* svpsf fit-odmr: per-pixel Lorentzian fits of a measured ODMR stack (svp_odmr_fit_maps) into
+ * the maps `svpsf correct` takes: field (+ its σ for --field-sigma) and the PL. */
+#include "cli.h"
+
+#include <errno.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+enum {
+    OPT_FREQUENCIES = CLI_OPTION_FIRST,
+    OPT_FREQ_UNIT,
+    OPT_LINES,
+    OPT_LINE,
+    OPT_ZERO_FIELD,
+    OPT_GAMMA,
+    OPT_LINEWIDTH,
+    OPT_BASELINE_FRAMES,
+    OPT_MAX_ITERATIONS,
+    OPT_UNIT,
+    OPT_FAILED
+};
+
+static const char *const lines_names[] = {"pair", "two", "one", NULL};
+static const char *const line_names[] = {"upper", "lower", NULL};
+static const char *const unit_names[] = {"T", "mT", "uT", "nT", NULL};
+static const double unit_scale[] = {1, 1e3, 1e6, 1e9}; /* file value = tesla × scale */
+static const char *const freq_unit_names[] = {"Hz", "kHz", "MHz", "GHz", NULL};
+static const double freq_unit_hz[] = {1, 1e3, 1e6, 1e9};
+static const char *const failed_names[] = {"nan", "keep", NULL};
+
+static void print_help(const cli_run *run, FILE *out)
+{
+    fputs("usage: svpsf fit-odmr STACK --frequencies F.txt|START:STOP:N -o DIR [options]\n"
+          "\n"
+          "Fits every pixel's ODMR spectrum of a measured stack (one camera frame per microwave\n"
+          "frequency) with Lorentzian dips (docs/model.md section 10) and writes the maps that\n"
+          "`svpsf correct` takes: the field, its 1-sigma uncertainty (for --field-sigma) and the\n"
+          "PL (the off-resonance baseline), with the contrast, the linewidth, their\n"
+          "uncertainties and a fit-quality map.\n"
+          "\n"
+          "inputs:\n"
+          "  STACK                 a multi-page TIFF (one page per frequency; 8/16/32-bit\n"
+          "                        integer or float pages), or a .npy of shape (frames, height,\n"
+          "                        width)\n"
+          "  --frequencies F|START:STOP:N  the frame frequencies: a text file (.txt/.csv/.dat,\n"
+          "                        one value per frame, in order, as numpy.savetxt writes\n"
+          "                        them) or N equally spaced values from START to STOP; a\n"
+          "                        decreasing sweep is put in increasing order\n"
+          "  --frequency-unit Hz|kHz|MHz|GHz  unit of --frequencies (default Hz)\n"
+          "model (the sign conventions of docs/model.md section 10):\n"
+          "  --lines pair|two|one  pair (default): both lines of one NV axis at D +/- gamma B\n"
+          "                        about the given D, sharing contrast and width: field = |B|;\n"
+          "                        two: two dips at free frequencies f- < f+: field =\n"
+          "                        (f+ - f-) / (2 gamma), independent of shifts of D, and\n"
+          "                        field_lower = (D - f-) / gamma, field_upper =\n"
+          "                        (f+ - D) / gamma per resonance;\n"
+          "                        one: the sweep holds one line: field = s (f0 - D) / gamma\n"
+          "  --line upper|lower    with --lines one: the line swept, s = +1 (upper, at\n"
+          "                        D + gamma B, default) or -1 (lower)\n"
+          "  --zero-field HZ       D (default 2.870e9)\n"
+          "  --gamma HZ_PER_T      gamma_NV / 2 pi (default 28.033e9)\n"
+          "  --linewidth HZ        starting FWHM of a dip (default 1e6); the fit frees it\n"
+          "  --baseline-frames N   frames at each end averaged for the starting baseline\n"
+          "                        (default 3)\n"
+          "  --max-iterations N    Levenberg-Marquardt steps per pixel (default 200)\n"
+          "outputs:\n"
+          "  -o, --output DIR      output folder, created when missing (required)\n"
+          "  --unit T|mT|uT|nT     unit of the field maps written (default T)\n"
+          "  --failed nan|keep     pixels whose fit did not converge: NaN in the field maps\n"
+          "                        (default; `correct` treats them as missing data) or the\n"
+          "                        last parameters\n",
+          out);
+    cli_print_common_help(run, out);
+    fputs("\n"
+          "outputs in DIR: field.EXT, field_sigma.EXT (and with --lines two field_lower,\n"
+          "field_lower_sigma, field_upper, field_upper_sigma), pl.EXT, pl_sigma.EXT,\n"
+          "contrast.EXT, contrast_sigma.EXT, linewidth.EXT (Hz), linewidth_sigma.EXT,\n"
+          "quality.EXT (R^2 of each fit: 1 perfect, near 0 no dip), summary.json. Then:\n"
+          "  svpsf correct --pl DIR/pl.tif --field DIR/field.tif \\\n"
+          "                --field-sigma DIR/field_sigma.tif --psf PSF -o OUT\n"
+          "exit status: 0 ok, 1 bad usage or bad input, 2 runtime failure.\n",
+          out);
+}
+
+/* START:STOP:N → 1 with the values, 0 when text is not of that form. */
+static int parse_range(const char *text, double *start, double *stop, long *count)
+{
+    char *end;
+    errno = 0;
+    *start = strtod(text, &end);
+    if (end == text || *end != ':') return 0;
+    const char *p = end + 1;
+    *stop = strtod(p, &end);
+    if (end == p || *end != ':') return 0;
+    p = end + 1;
+    *count = strtol(p, &end, 10);
+    if (end == p || *end) return 0;
+    return 1;
+}
+
+static int read_frequencies(cli_run *run, const char *arg, double unit, int n_frames,
+                            const char *stack_path, double *freq)
+{
+    double start, stop;
+    long count;
+    struct stat sb;
+    if (stat(arg, &sb) != 0 && parse_range(arg, &start, &stop, &count)) {
+        if (!isfinite(start) || !isfinite(stop) || start == stop)
+            return cli_error(run, "--frequencies %s: START and STOP must be finite and differ",
+                             arg);
+        if (count != n_frames)
+            return cli_error(run, "--frequencies %s: %ld frequencies for a stack of %d frames "
+                             "(%s)",
+                             arg, count, n_frames, stack_path);
+        for (int f = 0; f < n_frames; f++)
+            freq[f] = unit * (start + (stop - start) * f / (double)(n_frames - 1));
+        return 0;
+    }
+    svp_image *values = NULL;
+    int code = cli_read_image(run, "frequencies", arg, &values);
+    if (code) return code;
+    const size_t n = (size_t)values->width * values->height;
+    if (values->width != 1 && values->height != 1) {
+        code = cli_error(run, "%s: %d x %d values: the frequencies must be one row or one "
+                         "column",
+                         arg, values->width, values->height);
+    } else if (n != (size_t)n_frames) {
+        code = cli_error(run, "%s: %zu frequencies for a stack of %d frames (%s)", arg, n,
+                         n_frames, stack_path);
+    } else {
+        for (size_t f = 0; f < n && !code; f++) {
+            freq[f] = unit * values->data[f];
+            if (!isfinite(freq[f]))
+                code = cli_error(run, "%s: frequency %zu is not a finite number", arg, f + 1);
+        }
+    }
+    svp_image_free(values);
+    return code;
+}
+
+int cmd_fit_odmr(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "fit-odmr", argc, argv, CLI_COMMON_OUTPUT | CLI_COMMON_FORMAT);
+    static const struct option own[] = {
+        {"frequencies", required_argument, NULL, OPT_FREQUENCIES},
+        {"frequency-unit", required_argument, NULL, OPT_FREQ_UNIT},
+        {"lines", required_argument, NULL, OPT_LINES},
+        {"line", required_argument, NULL, OPT_LINE},
+        {"zero-field", required_argument, NULL, OPT_ZERO_FIELD},
+        {"gamma", required_argument, NULL, OPT_GAMMA},
+        {"linewidth", required_argument, NULL, OPT_LINEWIDTH},
+        {"baseline-frames", required_argument, NULL, OPT_BASELINE_FRAMES},
+        {"max-iterations", required_argument, NULL, OPT_MAX_ITERATIONS},
+        {"unit", required_argument, NULL, OPT_UNIT},
+        {"failed", required_argument, NULL, OPT_FAILED},
+        {NULL, 0, NULL, 0},
+    };
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    svp_odmr_fit_options opt;
+    svp_odmr_fit_defaults(&opt);
+    const char *freq_arg = NULL;
+    int freq_unit = 0, lines = 0, line = 0, line_given = 0, unit = 0, failed_mode = 0;
+    svp_stack *stack = NULL;
+    double *freq = NULL;
+    svp_image **frames = NULL;
+    enum { N_MAPS = 15 };
+    svp_image *img[N_MAPS] = {NULL};
+    int code = 0;
+
+    int c;
+    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+        int bad = 0;
+        switch (c) {
+        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
+        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+        case OPT_FREQUENCIES: freq_arg = optarg; break;
+        case OPT_FREQ_UNIT:
+            bad = cli_parse_choice(&run, "--frequency-unit", optarg, freq_unit_names, &freq_unit);
+            break;
+        case OPT_LINES: bad = cli_parse_choice(&run, "--lines", optarg, lines_names, &lines); break;
+        case OPT_LINE:
+            line_given = 1;
+            bad = cli_parse_choice(&run, "--line", optarg, line_names, &line);
+            break;
+        case OPT_ZERO_FIELD:
+            bad = cli_parse_double_in(&run, "--zero-field", optarg, 0, 0, INFINITY, 0,
+                                      &od.zero_field_hz);
+            break;
+        case OPT_GAMMA:
+            bad = cli_parse_double_in(&run, "--gamma", optarg, 0, 0, INFINITY, 0,
+                                      &od.gamma_hz_per_t);
+            break;
+        case OPT_LINEWIDTH:
+            bad = cli_parse_double_in(&run, "--linewidth", optarg, 0, 0, INFINITY, 0,
+                                      &od.linewidth_hz);
+            break;
+        case OPT_BASELINE_FRAMES:
+            bad = cli_parse_int(&run, "--baseline-frames", optarg, 1, 1000000,
+                                &opt.baseline_frames);
+            break;
+        case OPT_MAX_ITERATIONS:
+            bad = cli_parse_int(&run, "--max-iterations", optarg, 1, 1000000,
+                                &opt.lm.max_iterations);
+            break;
+        case OPT_UNIT: bad = cli_parse_choice(&run, "--unit", optarg, unit_names, &unit); break;
+        case OPT_FAILED:
+            bad = cli_parse_choice(&run, "--failed", optarg, failed_names, &failed_mode);
+            break;
+        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+        }
+        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+    }
+    if (argc - optind < 1)
+        return cli_run_finish(&run, cli_error(&run, "STACK is required (see --help)"));
+    if (argc - optind > 1)
+        return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s' (one STACK)",
+                                              argv[optind + 1]));
+    if (!freq_arg)
+        return cli_run_finish(&run, cli_error(&run, "--frequencies is required (a file or "
+                                              "START:STOP:N)"));
+    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
+    if (line_given && lines != 2)
+        return cli_run_finish(&run, cli_error(&run, "--line %s needs --lines one",
+                                              line_names[line]));
+    const char *stack_path = argv[optind];
+    opt.lines = lines == 1 ? SVP_ODMR_LINES_TWO : lines == 2 ? SVP_ODMR_LINES_ONE
+                                                             : SVP_ODMR_LINES_PAIR;
+    opt.line_sign = line == 1 ? -1 : 1;
+
+    cli_stage_begin(&run, "read");
+    svp_status st = svp_stack_read(stack_path, &stack);
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, stack_path);
+        goto cleanup;
+    }
+    cli_record_input(&run, "stack", stack_path, stack->width, stack->height);
+    const int nf = stack->n_frames, w = stack->width, h = stack->height;
+    const int np = opt.lines == SVP_ODMR_LINES_TWO ? 5 : 4;
+    if (nf < 5 || nf <= np) {
+        code = cli_error(&run, "%s: %d frame%s: a Lorentzian fit (--lines %s) needs at least %d",
+                         stack_path, nf, nf == 1 ? "" : "s", lines_names[lines],
+                         np + 1 > 5 ? np + 1 : 5);
+        goto cleanup;
+    }
+    if (2 * opt.baseline_frames > nf) {
+        code = cli_error(&run, "--baseline-frames %d: at most %d for a stack of %d frames",
+                         opt.baseline_frames, nf / 2, nf);
+        goto cleanup;
+    }
+    freq = malloc((size_t)nf * sizeof(double));
+    frames = malloc((size_t)nf * sizeof *frames);
+    if (!freq || !frames) {
+        code = cli_error(&run, "out of memory");
+        goto cleanup;
+    }
+    if ((code = read_frequencies(&run, freq_arg, freq_unit_hz[freq_unit], nf, stack_path, freq)))
+        goto cleanup;
+    /* a decreasing sweep: frames and frequencies in increasing order */
+    int decreasing = freq[nf - 1] < freq[0];
+    for (int f = 0; f < nf; f++) {
+        frames[f] = stack->frame[decreasing ? nf - 1 - f : f];
+        if (decreasing && f < nf / 2) {
+            double t = freq[f];
+            freq[f] = freq[nf - 1 - f];
+            freq[nf - 1 - f] = t;
+        }
+    }
+    for (int f = 1; f < nf; f++)
+        if (!(freq[f] > freq[f - 1])) {
+            code = cli_error(&run, "--frequencies %s: not monotonic: frame %d at %.9g Hz after "
+                             "%.9g Hz",
+                             freq_arg, decreasing ? nf - f : f + 1, freq[f], freq[f - 1]);
+            goto cleanup;
+        }
+
+    /* outputs */
+    static const char *const names[N_MAPS] = {
+        "field",    "field_sigma",    "field_lower", "field_lower_sigma", "field_upper",
+        "field_upper_sigma", "pl",    "pl_sigma",    "contrast",          "contrast_sigma",
+        "linewidth", "linewidth_sigma", "quality",   "converged",         NULL};
+    const char *paths[N_MAPS] = {NULL};
+    for (int k = 0; k < 13; k++) {
+        if (opt.lines != SVP_ODMR_LINES_TWO && k >= 2 && k < 6) continue;
+        paths[k] = cli_output_in_dir(&run, names[k], names[k], 1);
+    }
+    const char *summary_path = cli_output_in_dir(&run, "summary", "summary.json", 0);
+    if ((code = cli_outputs_check(&run))) goto cleanup;
+    for (int k = 0; k < 14 && st == SVP_OK; k++)
+        if (paths[k] || k == 13) st = svp_image_new(w, h, &img[k]);
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, NULL);
+        goto cleanup;
+    }
+
+    cli_setting_int(&run, "n_frames", nf);
+    cli_setting_num(&run, "frequency_first_hz", freq[0]);
+    cli_setting_num(&run, "frequency_last_hz", freq[nf - 1]);
+    cli_setting_str(&run, "lines", lines_names[lines]);
+    if (opt.lines == SVP_ODMR_LINES_ONE) cli_setting_str(&run, "line", line_names[line]);
+    cli_setting_num(&run, "zero_field_hz", od.zero_field_hz);
+    cli_setting_num(&run, "gamma_hz_per_t", od.gamma_hz_per_t);
+    cli_setting_num(&run, "linewidth_start_hz", od.linewidth_hz);
+    cli_setting_int(&run, "baseline_frames", opt.baseline_frames);
+    cli_setting_int(&run, "max_iterations", opt.lm.max_iterations);
+    cli_setting_str(&run, "unit", unit_names[unit]);
+    cli_setting_str(&run, "failed", failed_names[failed_mode]);
+
+    cli_stage_begin(&run, "fit");
+    svp_cube cube = {.width = w, .height = h, .n_freq = nf, .freq = freq, .frame = frames};
+    svp_odmr_maps maps = {.field = img[0], .field_sigma = img[1], .field_lower = img[2],
+                          .field_lower_sigma = img[3], .field_upper = img[4],
+                          .field_upper_sigma = img[5], .baseline = img[6],
+                          .baseline_sigma = img[7], .contrast = img[8],
+                          .contrast_sigma = img[9], .linewidth = img[10],
+                          .linewidth_sigma = img[11], .quality = img[12], .converged = img[13]};
+    opt.progress = cli_progress;
+    opt.progress_user = &run;
+    cli_progress_start(&run, "fitting");
+    size_t n_failed = 0;
+    const double t_fit = cli_now();
+    st = svp_odmr_fit_maps(&od, &cube, &opt, &maps, &n_failed);
+    const double fit_seconds = cli_now() - t_fit;
+    cli_progress_done(&run);
+    if (st != SVP_OK) {
+        code = cli_fail(&run, st, stack_path);
+        goto cleanup;
+    }
+    const size_t n = (size_t)w * h;
+    /* units and failed pixels; statistics over the converged pixels */
+    double sum_q = 0, sum_sigma = 0;
+    size_t n_ok = 0;
+    for (size_t p = 0; p < n; p++) {
+        const int ok = img[13]->data[p] == 1;
+        for (int k = 0; k < 6; k++) {
+            if (!img[k]) continue;
+            img[k]->data[p] *= unit_scale[unit];
+            if (!ok && failed_mode == 0) img[k]->data[p] = NAN;
+        }
+        if (ok) {
+            n_ok++;
+            sum_q += img[12]->data[p];
+            sum_sigma += img[1]->data[p];
+        }
+    }
+    cli_result_int(&run, "n_pixels", (long long)n);
+    cli_result_int(&run, "n_failed", (long long)n_failed);
+    cli_result_num(&run, "failed_fraction", (double)n_failed / (double)n);
+    if (n_ok) {
+        cli_result_num(&run, "mean_quality", sum_q / (double)n_ok);
+        char key[64];
+        snprintf(key, sizeof key, "mean_field_sigma_%s", unit_names[unit]);
+        cli_result_num(&run, key, sum_sigma / (double)n_ok);
+    }
+    cli_result_num(&run, "fits_per_second", fit_seconds > 0 ? (double)n / fit_seconds : 0);
+    if (n_failed)
+        cli_note(&run, "%zu of %zu pixel fits did not converge (%s in the field maps)", n_failed,
+                 n, failed_mode == 0 ? "NaN" : "kept");
+
+    cli_stage_begin(&run, "write");
+    for (int k = 0; k < 13 && !code; k++)
+        if (paths[k]) code = cli_write_image(&run, paths[k], img[k]);
+    if (!code) code = cli_summary_write(&run, summary_path);
+    if (code) goto cleanup;
+    cli_stage_end(&run);
+    printf("svpsf fit-odmr: %d x %d, %d frequencies (%.6g to %.6g GHz), lines %s: %zu of %zu "
+           "fits converged (%.3g fits/s); maps written to %s in %.2f s\n",
+           w, h, nf, freq[0] * 1e-9, freq[nf - 1] * 1e-9, lines_names[lines], n - n_failed, n,
+           fit_seconds > 0 ? (double)n / fit_seconds : 0, run.output, cli_now() - run.t_start);
+
+cleanup:
+    for (int k = 0; k < N_MAPS; k++) svp_image_free(img[k]);
+    free(frames);
+    free(freq);
+    svp_stack_free(stack);
+    return cli_run_finish(&run, code);
+}
