@@ -167,6 +167,19 @@ size_t svp_exact_memory(const svp_blur *b);
 svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
                              svp_boundary boundary, double support, svp_blur_kind kind,
                              svp_blur **out, int *rx, int *ry, double *support_used);
+/* svp_blur_new_field with the low-rank terms from the dense SVD of the whole sampled-kernel
+ * matrix (dense_svd 1, LAPACKE_dgesdd; at most 2^27 values) or from its Gram matrix (0, the
+ * default build, variant.c). Tests compare both. */
+svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int height,
+                                    svp_boundary boundary, const svp_variant_options *options,
+                                    int dense_svd, svp_blur **out);
+/* Term r of a tent / low-rank operator: its spectrum (ny x ncx, scaled by 1 / (nx ny)) in *re
+ * when stored real, else in *c, and for low rank its coefficients at the samples; returns the
+ * number of terms (0 when r is out of range or the operator is not tent / low rank). */
+int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
+                     const double **coef);
+/* Bytes the Gram low-rank build holds while it runs (besides the operator itself). */
+size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threads);
 /* svp_blur_new_exact with the kernel table forced on (1), off (0) or automatic (-1: on when
  * N · kernel area <= 2^23 values). Tests compare both paths. */
 svp_status svp_blur_new_exact_tab(const svp_psf_field *field, int width, int height,

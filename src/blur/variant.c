@@ -43,6 +43,11 @@ struct svp_variant_data {
     int *ix0, *iy0;
     double *fx, *fy;
     double *coef; /* low rank: coef[(r gy + j) gx + i], the coefficient of e_r at sample (i, j) */
+    /* low rank: the eigenvalues σ² of the (deviations') Gram matrix, descending (n_eig of them),
+     * and the sum of the sampled kernels' squared norms, for the error estimate */
+    double *eig;
+    int n_eig;
+    double kernel_norm2;
     /* Row-pruned tent path: node k's weighted input is non-zero only in the frame rows
      * start[k] .. start[k] + rows − 1 (cyclically); its spectrum is that of the same rows moved
      * to the top times e^{−2πi ky start / ny}, a phase folded into otf[k] at build time, so
@@ -613,6 +618,7 @@ void svp_variant_release(svp_blur *b)
         free(v->fx);
         free(v->fy);
         free(v->coef);
+        free(v->eig);
         free(v->start);
         svp_free(v->ext);
         svp_free(v->spec2);
@@ -662,6 +668,20 @@ size_t svp_variant_memory(const svp_blur *b)
             bytes += (size_t)v->blk_threads * 3 * SVP_FFT_BLOCK * v->block->bx * sizeof(double);
     }
     return bytes;
+}
+
+int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
+                     const double **coef)
+{
+    *re = NULL;
+    *c = NULL;
+    *coef = NULL;
+    if (!b || !b->variant || r < 0 || r >= b->variant->n_terms) return 0;
+    const svp_variant_data *v = b->variant;
+    if (v->otf_re) *re = v->otf_re[r];
+    if (v->otf) *c = v->otf[r];
+    if (v->coef) *coef = v->coef + (size_t)r * v->gx * v->gy;
+    return v->n_terms;
 }
 
 int svp_variant_real_spectra(const svp_blur *b)
@@ -977,6 +997,63 @@ static svp_status build_tent(svp_blur *b, const svp_variant_options *o, double s
     return SVP_OK;
 }
 
+/* Renormalised low rank: the expansion's flux for a point source at each pixel, Σ_r c_r(x)
+ * sum(e_r) (flux[r]), bilinear in the samples like c_r; dividing by it gives every source unit
+ * flux. */
+static svp_status lowrank_renormalise(svp_blur *b, int R, const double *flux)
+{
+    svp_variant_data *v = b->variant;
+    const int S = v->gx * v->gy;
+    svp_status st = SVP_OK;
+        /* flux of the expansion for a point source at each pixel: Σ_r c_r(x) sum(e_r), bilinear
+         * in the samples like c_r; dividing by it gives every source unit flux. */
+        const size_t n = (size_t)b->width * b->height;
+        double *fs = malloc((size_t)S * sizeof(double));
+        if (!v->scale) v->scale = svp_alloc(n * sizeof(double));
+        if (!fs || !v->scale) {
+            free(fs);
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the flux map");
+            return st;
+        }
+        for (int j = 0; j < S; j++) {
+            double acc = 0;
+            for (int r = 0; r < R; r++) acc += v->coef[(size_t)r * S + j] * flux[r];
+            fs[j] = acc;
+        }
+        for (int y = 0; y < b->height && st == SVP_OK; y++) {
+            const int j0 = v->iy0[y], j1 = j0 + 1 < v->gy ? j0 + 1 : j0;
+            const double ty = v->fy[y];
+            for (int x = 0; x < b->width; x++) {
+                const int i0 = v->ix0[x], i1 = i0 + 1 < v->gx ? i0 + 1 : i0;
+                const double tx = v->fx[x];
+                double F = (1 - ty) * ((1 - tx) * fs[j0 * v->gx + i0] + tx * fs[j0 * v->gx + i1]) +
+                           ty * ((1 - tx) * fs[j1 * v->gx + i0] + tx * fs[j1 * v->gx + i1]);
+                if (!(F > 1e-3)) {
+                    st = svp_fail(SVP_ERR_NUMERIC,
+                                  "low rank %d: the expansion's flux at pixel (%d, %d) is %g; "
+                                  "raise the rank",
+                                  R, x, y, F);
+                    break;
+                }
+                const size_t i = (size_t)y * b->width + x;
+                v->scale[i] = (v->alpha ? 1.0 - v->alpha[i] : 1.0) / F;
+            }
+        }
+        free(fs);
+        /* Mean-centred: the eigen-PSFs after the mean sum to zero, so the flux is 1 up to
+         * round-off; without a halo the scale is then 1 to round-off and is dropped (it would
+         * cost a pass over the image in every application and adjoint). */
+        if (st == SVP_OK && !v->alpha) {
+            double dev = 0;
+            for (size_t i = 0; i < n; i++) dev = fmax(dev, fabs(v->scale[i] - 1.0));
+            if (dev <= 1e-13) {
+                svp_free(v->scale);
+                v->scale = NULL;
+            }
+        }
+    return st;
+}
+
 /* Low rank. Plain: a = [K_1 .. K_S] = U Σ Vᵀ, e_r = u_r, c_r(j) = σ_r v_jr. Mean-centred (the
  * default): e_0 = K̄ (the mean kernel, c_0 = 1) and the SVD of the deviations K_j − K̄ gives
  * e_1 .. e_{R−1}; the deviations sum to zero, so every e_r (r >= 1) does too and each source
@@ -1081,54 +1158,7 @@ static svp_status build_lowrank(svp_blur *b, const svp_variant_options *o, doubl
             st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / R);
     }
     if (st != SVP_OK) goto cleanup;
-    if (o->renormalise) {
-        /* flux of the expansion for a point source at each pixel: Σ_r c_r(x) sum(e_r), bilinear
-         * in the samples like c_r; dividing by it gives every source unit flux. */
-        const size_t n = (size_t)b->width * b->height;
-        double *fs = malloc((size_t)S * sizeof(double));
-        if (!v->scale) v->scale = svp_alloc(n * sizeof(double));
-        if (!fs || !v->scale) {
-            free(fs);
-            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the flux map");
-            goto cleanup;
-        }
-        for (int j = 0; j < S; j++) {
-            double acc = 0;
-            for (int r = 0; r < R; r++) acc += v->coef[(size_t)r * S + j] * flux[r];
-            fs[j] = acc;
-        }
-        for (int y = 0; y < b->height && st == SVP_OK; y++) {
-            const int j0 = v->iy0[y], j1 = j0 + 1 < v->gy ? j0 + 1 : j0;
-            const double ty = v->fy[y];
-            for (int x = 0; x < b->width; x++) {
-                const int i0 = v->ix0[x], i1 = i0 + 1 < v->gx ? i0 + 1 : i0;
-                const double tx = v->fx[x];
-                double F = (1 - ty) * ((1 - tx) * fs[j0 * v->gx + i0] + tx * fs[j0 * v->gx + i1]) +
-                           ty * ((1 - tx) * fs[j1 * v->gx + i0] + tx * fs[j1 * v->gx + i1]);
-                if (!(F > 1e-3)) {
-                    st = svp_fail(SVP_ERR_NUMERIC,
-                                  "low rank %d: the expansion's flux at pixel (%d, %d) is %g; "
-                                  "raise the rank",
-                                  R, x, y, F);
-                    break;
-                }
-                const size_t i = (size_t)y * b->width + x;
-                v->scale[i] = (v->alpha ? 1.0 - v->alpha[i] : 1.0) / F;
-            }
-        }
-        free(fs);
-        /* Mean-centred: the eigen-PSFs after the mean sum to zero, so the flux is 1 up to
-         * round-off; without a halo the scale is then 1 to round-off and is dropped (it would
-         * cost a pass over the image in every application and adjoint). */
-        if (st == SVP_OK && !v->alpha) {
-            double dev = 0;
-            for (size_t i = 0; i < n; i++) dev = fmax(dev, fabs(v->scale[i] - 1.0));
-            if (dev <= 1e-13) {
-                svp_free(v->scale);
-                v->scale = NULL;
-            }
-        }
-    }
+    if (o->renormalise) st = lowrank_renormalise(b, R, flux);
 cleanup:
     free(a);
     free(mean);
@@ -1136,6 +1166,298 @@ cleanup:
     free(sv);
     free(vt);
     free(flux);
+    return st;
+}
+
+/* The sampled PSFs of the low-rank build: sample j at node (j mod gx, j / gx), support set. */
+static svp_status sample_psfs(const svp_blur *b, double support, svp_psf *psf)
+{
+    const svp_variant_data *v = b->variant;
+    for (int j = 0; j < v->gx * v->gy; j++) {
+        const double x = node_pos(j % v->gx, v->gx, b->width);
+        const double y = node_pos(j / v->gx, v->gy, b->height);
+        SVP_CHECK(svp_psf_field_at(b->field, x, y, &psf[j]));
+        psf[j].support = support;
+        svp_status st = svp_psf_validate(&psf[j]);
+        if (st != SVP_OK)
+            return svp_fail_context(st, "PSF of the field at (%g, %g) (fwhm %g, beta %g)", x, y,
+                                    psf[j].fwhm, psf[j].beta);
+    }
+    return SVP_OK;
+}
+
+/* Rows of the Gram build's row blocks, and at most this many bytes of per-chunk partial Gram
+ * matrices. */
+enum { GRAM_ROWS = 8 };
+#define GRAM_PARTIAL_BYTES ((size_t)1 << 26)
+
+size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threads)
+{
+    const size_t kw = 2 * (size_t)rx + 1, kh = 2 * (size_t)ry + 1;
+    const size_t half = ((size_t)ry + 1) * kw, S = (size_t)samples;
+    size_t chunks = GRAM_PARTIAL_BYTES / (S * S * sizeof(double) + 1);
+    if (chunks < 1) chunks = 1;
+    if (chunks > 16) chunks = 16;
+    return (size_t)threads * S * GRAM_ROWS * kw * sizeof(double) /* row blocks */
+           + (chunks + 2) * S * S * sizeof(double)                /* Gram, partials, vectors */
+           + (size_t)rank * half * sizeof(double)                 /* eigen-PSF halves */
+           + kw * kh * sizeof(double);                            /* one whole eigen-PSF */
+}
+
+/* g (S x S, column-major, lower triangle and diagonal) += Σ_p a_i[p] a_j[p] over the n pixels
+ * of the S rows a_i (a[i] points at sample i's pixels; S a multiple of 4, rows beyond the
+ * samples point at zeros). Tiles of 4 x 2 rows, pixels in chunks that stay in cache, four
+ * pixels per vector lane set; the lanes are summed in a fixed order (deterministic). On x86-64
+ * with GCC an AVX2 clone is chosen at run time when the CPU has it. */
+typedef double svp_v4d __attribute__((vector_size(32)));
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+__attribute__((target_clones("avx2", "default")))
+#endif
+static void gram_accumulate(const double *const *a, int S, size_t n, double *restrict g)
+{
+    enum { CHUNK = 512 };
+    for (size_t p0 = 0; p0 < n; p0 += CHUNK) {
+        const size_t pn = n - p0 < CHUNK ? n - p0 : CHUNK, pv = pn & ~(size_t)3;
+        for (int i = 0; i < S; i += 4)
+            for (int j = 0; j <= i + 2; j += 2) {
+                svp_v4d acc[4][2];
+                memset(acc, 0, sizeof acc);
+                const double *ai[4] = {a[i] + p0, a[i + 1] + p0, a[i + 2] + p0, a[i + 3] + p0};
+                const double *aj[2] = {a[j] + p0, a[j + 1] + p0};
+                for (size_t p = 0; p < pv; p += 4) {
+                    svp_v4d x[4], y[2];
+                    for (int u = 0; u < 4; u++) memcpy(&x[u], ai[u] + p, sizeof x[u]);
+                    for (int u = 0; u < 2; u++) memcpy(&y[u], aj[u] + p, sizeof y[u]);
+                    for (int u = 0; u < 4; u++)
+                        for (int w = 0; w < 2; w++) acc[u][w] += x[u] * y[w];
+                }
+                for (int u = 0; u < 4; u++)
+                    for (int w = 0; w < 2; w++) {
+                        if (j + w > i + u) continue; /* above the diagonal */
+                        double t = (acc[u][w][0] + acc[u][w][1]) + (acc[u][w][2] + acc[u][w][3]);
+                        for (size_t p = pv; p < pn; p++) t += ai[u][p] * aj[w][p];
+                        g[(size_t)(j + w) * S + (i + u)] += t;
+                    }
+            }
+    }
+}
+
+/* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
+ * kernel matrix A: G = Aᵀ A = V Λ Vᵀ (LAPACKE_dsyevr), then the left singular vectors
+ * u_r = A v_r / σ_r, σ_r = √λ_r (the same eigen-PSFs and coefficients σ_r v_r as the SVD, up to
+ * sign). The kernels are point-symmetric (every PSF model is), so only their rows 0 .. ry are
+ * rendered (row ry's centre counted once, every other pixel twice); both passes stream them
+ * in blocks of GRAM_ROWS rows for all samples at once (gram_accumulate into the Gram matrix,
+ * then the eigen-PSFs' halves as combinations of the samples): no kernel matrix is held whole,
+ * and the cost is O(S² · kernel pixels / 2) in cache-blocked vector loops. The first pass
+ * renders the kernels unnormalised (their sums are not known yet): G of the normalised,
+ * mean-centred kernels K_j / s_j − K̄ follows from the raw Gram and the sums exactly, C D G D C
+ * (D = diag(1/s), C = I − 11ᵀ/S), which costs about log10(|K|² / |K − K̄|²) digits. The
+ * blocks' partial Gram matrices are summed in a fixed order (deterministic for any thread
+ * count). A term with λ <= 0 keeps e = A v, coefficient v (its product, the one that
+ * matters, is the same). */
+static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, double support,
+                                     int rx, int ry)
+{
+    svp_variant_data *v = b->variant;
+    const int S = v->gx * v->gy, R = o->rank, centred = o->lowrank_mean != 0, Q = R - centred;
+    const int kw = 2 * rx + 1, kh = 2 * ry + 1, hr = ry + 1; /* rows rendered */
+    const size_t m = (size_t)kw * kh, half = (size_t)hr * kw;
+    const int nblk = (hr + GRAM_ROWS - 1) / GRAM_ROWS;
+    const size_t bp = (size_t)GRAM_ROWS * kw; /* pixels per block */
+    const int threads = omp_get_max_threads();
+    int chunks = (int)(GRAM_PARTIAL_BYTES / ((size_t)S * S * sizeof(double) + 1));
+    if (chunks < 1) chunks = 1;
+    if (chunks > 16) chunks = 16;
+    if (chunks > nblk) chunks = nblk;
+    if (Q > S) return svp_fail(SVP_ERR_INVALID, "low rank %d exceeds the %d samples", R, S);
+    svp_status st = SVP_OK;
+    svp_psf *psf = malloc((size_t)S * sizeof *psf);
+    double *blk = malloc((size_t)threads * S * bp * sizeof(double));
+    const int Sp = (S + 3) & ~3; /* padded to the Gram kernel's tiles */
+    double *part = calloc((size_t)chunks * Sp * Sp, sizeof(double));
+    const double **rowp = malloc((size_t)threads * Sp * sizeof *rowp);
+    double *zeros = calloc(bp, sizeof(double)), *cval = calloc((size_t)S, sizeof(double));
+    double *psum = calloc((size_t)nblk * S, sizeof(double));
+    double *g = malloc((size_t)S * S * sizeof(double)), *z = malloc((size_t)S * S * sizeof(double));
+    double *lam = malloc((size_t)S * sizeof(double)), *sum = calloc((size_t)S, sizeof(double));
+    double *zx = malloc((size_t)S * (R + 1) * sizeof(double));
+    double *eh = malloc((size_t)(R > 0 ? R : 1) * half * sizeof(double));
+    double *flux = calloc((size_t)R, sizeof(double));
+    lapack_int *isuppz = malloc(2 * (size_t)S * sizeof(lapack_int));
+    svp_image *whole = NULL;
+    if (!psf || !blk || !part || !rowp || !zeros || !cval || !psum || !g || !z || !lam || !sum || !zx || !eh || !flux ||
+        !isuppz) {
+        st = svp_fail(SVP_ERR_NOMEM,
+                      "out of memory for the low-rank build (%d samples of %d x %d pixels)", S,
+                      kw, kh);
+        goto cleanup;
+    }
+    st = sample_psfs(b, support, psf);
+    if (st == SVP_OK) st = svp_image_new(kw, kh, &whole);
+    if (st != SVP_OK) goto cleanup;
+    /* Pass 1: raw Gram and sums. Weight 2 on rows < ry and on row ry left of the centre
+     * (a contiguous prefix of the rendered pixels), 1 at the centre, 0 right of it: the
+     * chunks' partials hold the prefix's unweighted sums, the centre is added at the end. */
+    const size_t p2 = (size_t)ry * kw + rx; /* pixels of weight 2 */
+#pragma omp parallel for schedule(static, 1)
+    for (int c = 0; c < chunks; c++) {
+        double *a = blk + (size_t)omp_get_thread_num() * S * bp;
+        const double **rows = rowp + (size_t)omp_get_thread_num() * Sp;
+        double *gc = part + (size_t)c * Sp * Sp;
+        for (int ib = c; ib < nblk; ib += chunks) {
+            const int y0 = ib * GRAM_ROWS, nr = hr - y0 < GRAM_ROWS ? hr - y0 : GRAM_ROWS;
+            const size_t np = (size_t)nr * kw, p0 = (size_t)y0 * kw;
+            const size_t n2 = p2 > p0 ? (p2 - p0 < np ? p2 - p0 : np) : 0;
+            const int centre = n2 < np && p0 + n2 == p2;
+            for (int j = 0; j < Sp; j++) rows[j] = j < S ? a + (size_t)j * np : zeros;
+            for (int j = 0; j < S; j++) {
+                double *aj = a + (size_t)j * np;
+                svp_psf_render_rows(&psf[j], rx, ry, y0, nr, aj);
+                double acc = 0;
+                for (size_t i = 0; i < n2; i++) acc += aj[i];
+                acc *= 2;
+                if (centre) {
+                    acc += aj[n2];
+                    cval[j] = aj[n2];
+                }
+                psum[(size_t)ib * S + j] = acc;
+            }
+            if (n2 > 0) gram_accumulate(rows, Sp, n2, gc);
+        }
+    }
+    memset(g, 0, (size_t)S * S * sizeof(double));
+    for (int c = 0; c < chunks; c++)
+        for (int j = 0; j < S; j++)
+            for (int i = j; i < S; i++) g[(size_t)j * S + i] += part[((size_t)c * Sp + j) * Sp + i];
+    for (int j = 0; j < S; j++)
+        for (int i = j; i < S; i++)
+            g[(size_t)j * S + i] = 2 * g[(size_t)j * S + i] + cval[i] * cval[j];
+    for (int ib = 0; ib < nblk; ib++)
+        for (int j = 0; j < S; j++) sum[j] += psum[(size_t)ib * S + j];
+    for (int j = 0; j < S; j++)
+        if (!(sum[j] > 0) || !isfinite(sum[j])) {
+            st = svp_fail(SVP_ERR_NUMERIC, "PSF kernel has no flux on its %d x %d support", kw,
+                          kh);
+            goto cleanup;
+        }
+    /* normalise (D G D) and fill the upper triangle */
+    for (int j = 0; j < S; j++)
+        for (int i = j; i < S; i++) {
+            const double x = g[(size_t)j * S + i] / (sum[i] * sum[j]);
+            g[(size_t)j * S + i] = g[(size_t)i * S + j] = x;
+        }
+    v->kernel_norm2 = 0;
+    for (int j = 0; j < S; j++) v->kernel_norm2 += g[(size_t)j * S + j];
+    if (centred) { /* C G C */
+        double tot = 0;
+        for (int i = 0; i < S; i++) {
+            double r = 0;
+            for (int j = 0; j < S; j++) r += g[(size_t)j * S + i];
+            lam[i] = r / S; /* row means (scratch) */
+            tot += r;
+        }
+        tot /= (double)S * S;
+        for (int j = 0; j < S; j++)
+            for (int i = 0; i < S; i++) g[(size_t)j * S + i] += tot - lam[i] - lam[j];
+    }
+    lapack_int found = 0;
+    lapack_int info = LAPACKE_dsyevr(LAPACK_COL_MAJOR, 'V', 'A', 'L', S, g, S, 0, 0, 0, 0, 0.0,
+                                     &found, lam, z, S, isuppz);
+    if (info != 0 || found != S) {
+        st = svp_fail(SVP_ERR_NUMERIC,
+                      "low rank: the eigen-decomposition of the sampled PSFs' Gram matrix failed "
+                      "(LAPACK dsyevr info %d)",
+                      (int)info);
+        goto cleanup;
+    }
+    /* descending eigenvalues for the error estimate */
+    v->eig = malloc((size_t)S * sizeof(double));
+    v->coef = malloc((size_t)R * S * sizeof(double));
+    v->otf = calloc((size_t)R, sizeof *v->otf);
+    if (!v->eig || !v->coef || !v->otf) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for %d eigen-PSFs", R);
+        goto cleanup;
+    }
+    v->n_eig = S;
+    for (int q = 0; q < S; q++) v->eig[q] = lam[S - 1 - q];
+    /* Pass 2: eigen-PSF halves E = A_raw zx (then minus the mean times Σ z for centred terms):
+     * column 0 of zx gives the mean (1 / (S s_j)), column 1 + q the q-th vector / (s_j σ_q). */
+    double *zsum = lam; /* reuse: Σ_j z_jq / σ_q per term */
+    for (int j = 0; j < S; j++) zx[j] = 1.0 / ((double)S * sum[j]);
+    for (int q = 0; q < Q; q++) {
+        const double *zq = z + (size_t)(S - 1 - q) * S;
+        const double l = v->eig[q], sg = l > 0 ? sqrt(l) : 1.0;
+        double zs = 0;
+        for (int j = 0; j < S; j++) {
+            zx[(size_t)(1 + q) * S + j] = zq[j] / (sum[j] * sg);
+            v->coef[(size_t)(q + centred) * S + j] = l > 0 ? sg * zq[j] : zq[j];
+            zs += zq[j] / sg;
+        }
+        zsum[q] = zs;
+    }
+    if (centred)
+        for (int j = 0; j < S; j++) v->coef[j] = 1.0;
+    v->n_terms = R;
+    /* eh: term r's half at eh + r half; the mean (centred) is term 0 */
+    const int cols = Q + 1;
+    const int skip = centred ? 0 : 1; /* plain: the mean column is not stored */
+#pragma omp parallel for schedule(static)
+    for (int ib = 0; ib < nblk; ib++) {
+        double *a = blk + (size_t)omp_get_thread_num() * S * bp;
+        const int y0 = ib * GRAM_ROWS, nr = hr - y0 < GRAM_ROWS ? hr - y0 : GRAM_ROWS;
+        const size_t np = (size_t)nr * kw, p0 = (size_t)y0 * kw;
+        for (int j = 0; j < S; j++) svp_psf_render_rows(&psf[j], rx, ry, y0, nr, a + (size_t)j * np);
+        /* e_q = Σ_j zx_jq a_j over pixel chunks that stay in cache */
+        enum { CH = 512 };
+        for (size_t c0 = 0; c0 < np; c0 += CH) {
+            const size_t cn = np - c0 < CH ? np - c0 : CH;
+            for (int q = skip; q < cols; q++) {
+                double *restrict e = eh + (size_t)(q - skip) * half + p0 + c0;
+                const double *zq = zx + (size_t)q * S;
+                memset(e, 0, cn * sizeof(double));
+                for (int j = 0; j < S; j++) {
+                    const double zj = zq[j];
+                    const double *restrict aj = a + (size_t)j * np + c0;
+                    for (size_t i = 0; i < cn; i++) e[i] += zj * aj[i];
+                }
+                if (centred && q > 0) {
+                    const double *restrict mean = eh + p0 + c0;
+                    const double zs = zsum[q - 1];
+                    for (size_t i = 0; i < cn; i++) e[i] -= zs * mean[i];
+                }
+            }
+        }
+    }
+    /* whole eigen-PSFs (point-symmetric: k[i] = k[m − 1 − i]) and their spectra */
+    for (int r = 0; r < R && st == SVP_OK; r++) {
+        const double *e = eh + (size_t)r * half;
+        double *k = whole->data;
+        memcpy(k, e, ((size_t)ry * kw + rx + 1) * sizeof(double));
+        for (size_t i = (size_t)ry * kw + rx + 1; i < m; i++) k[i] = k[m - 1 - i];
+        flux[r] = svp_sum(k, m);
+        st = term_otf(b, whole, rx, ry, &v->otf[r]);
+        if (st == SVP_OK)
+            st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / R);
+    }
+    if (st == SVP_OK && o->renormalise) st = lowrank_renormalise(b, R, flux);
+cleanup:
+    free(psf);
+    free(blk);
+    free(part);
+    free(rowp);
+    free(zeros);
+    free(cval);
+    free(psum);
+    free(g);
+    free(z);
+    free(lam);
+    free(sum);
+    free(zx);
+    free(eh);
+    free(flux);
+    free(isuppz);
+    svp_image_free(whole);
     return st;
 }
 
@@ -1163,6 +1485,13 @@ static svp_status keep_real_spectra(svp_variant_data *v, size_t ns)
 svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
                               svp_boundary boundary, const svp_variant_options *options,
                               svp_blur **out)
+{
+    return svp_blur_new_field_build(field, width, height, boundary, options, 0, out);
+}
+
+svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int height,
+                                    svp_boundary boundary, const svp_variant_options *options,
+                                    int dense_svd, svp_blur **out)
 {
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new_field: out is NULL");
     *out = NULL;
@@ -1209,7 +1538,9 @@ svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
             for (size_t i = 0; i < n; i++) v->scale[i] = 1.0 - v->alpha[i];
     }
     if (st == SVP_OK)
-        st = lowrank ? build_lowrank(b, &o, support, rx, ry) : build_tent(b, &o, support, rx, ry);
+        st = !lowrank    ? build_tent(b, &o, support, rx, ry)
+             : dense_svd ? build_lowrank(b, &o, support, rx, ry)
+                         : build_lowrank_gram(b, &o, support, rx, ry);
     if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
     if (st != SVP_OK) {

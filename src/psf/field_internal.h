@@ -31,4 +31,10 @@ struct svp_psf_field {
 /* The field's common model / support / subsample. */
 const svp_psf *svp_psf_field_base(const svp_psf_field *field);
 
+/* Rows y0 .. y0 + rows − 1 of svp_psf_render's (2 rx + 1) x (2 ry + 1) kernel before its
+ * normalisation (the same values), rows 2 rx + 1 apart in out; the PSF must be valid
+ * (svp_psf_validate). Serial: callers render blocks of rows in parallel (model.c). */
+svp_status svp_psf_render_rows(const svp_psf *psf, int rx, int ry, int y0, int rows,
+                               double *out);
+
 #endif

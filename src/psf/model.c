@@ -184,6 +184,47 @@ static int auto_subsample(const svp_psf *psf)
     return fmin < 2.0 ? 9 : 1;
 }
 
+/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out). */
+static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry, int y,
+                       double *restrict out)
+{
+    const int ns = auto_subsample(psf);
+    /* Pixel integration only where the profile curves within a pixel. */
+    const double fwhm_max = psf->fwhm_minor > psf->fwhm ? psf->fwhm_minor : psf->fwhm;
+    const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
+    const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
+    const int w = 2 * rx + 1;
+    double dy = y - ry;
+    for (int x = 0; x < w; x++) {
+        double dx = x - rx;
+        double r2 = dx * dx + dy * dy;
+        double v = 0;
+        if (r2 <= support2) {
+            if (ns > 1 && r2 <= sub_radius2) {
+                double acc = 0;
+                for (int j = 0; j < ns; j++) {
+                    double sy = dy - 0.5 + (j + 0.5) / ns;
+                    for (int i = 0; i < ns; i++) acc += profile_at(e, dx - 0.5 + (i + 0.5) / ns, sy);
+                }
+                v = acc / (ns * ns);
+            } else {
+                v = profile_at(e, dx, dy);
+            }
+        }
+        out[x] = v;
+    }
+}
+
+svp_status svp_psf_render_rows(const svp_psf *psf, int rx, int ry, int y0, int rows,
+                               double *out)
+{
+    profile_eval e;
+    profile_setup(psf, &e);
+    for (int t = 0; t < rows; t++)
+        render_row(psf, &e, rx, ry, y0 + t, out + (size_t)t * (2 * rx + 1));
+    return SVP_OK;
+}
+
 svp_status svp_psf_render(const svp_psf *psf, int rx, int ry, svp_image **kernel)
 {
     if (!kernel) return svp_fail(SVP_ERR_INVALID, "svp_psf_render: kernel is NULL");
@@ -195,35 +236,9 @@ svp_status svp_psf_render(const svp_psf *psf, int rx, int ry, svp_image **kernel
     SVP_CHECK(svp_image_new(2 * rx + 1, 2 * ry + 1, &k));
     profile_eval e;
     profile_setup(psf, &e);
-    const int ns = auto_subsample(psf);
-    /* Pixel integration only where the profile curves within a pixel. */
-    const double fwhm_max = psf->fwhm_minor > psf->fwhm ? psf->fwhm_minor : psf->fwhm;
-    const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
-    const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
     const int w = k->width;
 #pragma omp parallel for schedule(static)
-    for (int y = 0; y < k->height; y++) {
-        double dy = y - ry;
-        for (int x = 0; x < w; x++) {
-            double dx = x - rx;
-            double r2 = dx * dx + dy * dy;
-            double v = 0;
-            if (r2 <= support2) {
-                if (ns > 1 && r2 <= sub_radius2) {
-                    double acc = 0;
-                    for (int j = 0; j < ns; j++) {
-                        double sy = dy - 0.5 + (j + 0.5) / ns;
-                        for (int i = 0; i < ns; i++)
-                            acc += profile_at(&e, dx - 0.5 + (i + 0.5) / ns, sy);
-                    }
-                    v = acc / (ns * ns);
-                } else {
-                    v = profile_at(&e, dx, dy);
-                }
-            }
-            k->data[(size_t)y * w + x] = v;
-        }
-    }
+    for (int y = 0; y < k->height; y++) render_row(psf, &e, rx, ry, y, k->data + (size_t)y * w);
     size_t n = (size_t)k->width * k->height;
     double sum = svp_sum(k->data, n);
     if (!(sum > 0) || !isfinite(sum)) {
