@@ -632,12 +632,16 @@ SVP_API svp_status svp_psf_field_write(const char *path, const svp_psf_field *fi
  * PSFs (every Moffat and Gaussian) unless the tent's node transforms are row-pruned, complex
  * otherwise. */
 typedef enum svp_variant_repr {
-    SVP_VARIANT_TENT = 0,   /* default */
-    SVP_VARIANT_LOWRANK = 1
+    SVP_VARIANT_TENT = 0,
+    SVP_VARIANT_LOWRANK = 1,
+    /* default: the cheapest tent grid or low rank whose estimated relative operator error
+     * (docs/model.md §6, "Choosing the representation") is at most `tolerance`, by a cost model
+     * of `applications` applications plus the build; grid_x / samples_x etc. are ignored */
+    SVP_VARIANT_AUTO = 2
 } svp_variant_repr;
 
 typedef struct svp_variant_options {
-    svp_variant_repr representation; /* default SVP_VARIANT_TENT */
+    svp_variant_repr representation; /* default SVP_VARIANT_AUTO */
     int grid_x, grid_y;    /* tent nodes per axis, 1 .. 64 each; default 8 x 8 (clamped to
                               the image size) */
     int rank;              /* low rank: terms kept (the mean counts as one), 1 .. sx sy;
@@ -648,7 +652,37 @@ typedef struct svp_variant_options {
     double support;        /* kernel radius in pixels; 0 (default) = as described above */
     svp_progress_fn progress; /* optional, during construction */
     void *progress_user;
+    double tolerance;      /* SVP_VARIANT_AUTO: relative operator error budget (default 1e-3) */
+    int applications;      /* SVP_VARIANT_AUTO cost model: H + Hᵀ pairs expected (default 50) */
+    double max_memory;     /* bytes the operator may hold, its build included; 0 (default) = the
+                              machine's physical memory. Checked before anything large is
+                              allocated: SVP_ERR_INVALID naming the bytes needed */
 } svp_variant_options;
+
+/* What svp_blur_new_field built (svp_blur_variant_info). estimated_error: the relative
+ * operator error ‖H − H_exact‖_F / ‖H_exact‖_F estimated at probe sources (docs/model.md §6),
+ * NaN when not estimated (a forced representation estimates only through
+ * svp_variant_estimate). */
+typedef struct svp_variant_info {
+    svp_variant_repr representation; /* SVP_VARIANT_TENT or SVP_VARIANT_LOWRANK */
+    int grid_x, grid_y;              /* tent nodes, or low-rank samples */
+    int rank;                        /* low rank: terms; tent: 0 */
+    double estimated_error;
+    double tolerance;                /* the budget (auto), else 0 */
+    int tolerance_met;               /* auto: 1 when the choice meets the budget */
+    int candidates;                  /* auto: representations compared */
+    double estimate_seconds;         /* auto: time of the estimates */
+    double build_seconds;            /* the operator's build */
+    size_t memory_bytes;             /* svp_blur_memory after the build */
+    size_t peak_bytes;               /* the estimate checked against max_memory */
+} svp_variant_info;
+
+SVP_API svp_status svp_blur_variant_info(const svp_blur *blur, svp_variant_info *info);
+/* Estimated relative operator error (as svp_variant_info.estimated_error) of the tent grid or
+ * low rank that options force (representation TENT or LOWRANK). */
+SVP_API svp_status svp_variant_estimate(const svp_psf_field *field, int width, int height,
+                                        svp_boundary boundary,
+                                        const svp_variant_options *options, double *error);
 
 SVP_API void svp_variant_defaults(svp_variant_options *options);
 /* Builds H for a field (options NULL = defaults). A field with a size must match width x

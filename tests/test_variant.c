@@ -56,6 +56,7 @@ static svp_variant_options tent_options(int g)
 {
     svp_variant_options o;
     svp_variant_defaults(&o);
+    o.representation = SVP_VARIANT_TENT;
     o.grid_x = o.grid_y = g;
     return o;
 }
@@ -593,6 +594,115 @@ static void test_lowrank_gram(void **state)
     print_message("low rank, Gram vs dense SVD build: operator %.1e, eigen-PSFs / coefficients "
                   "%.1e (relative, up to sign)\n",
                   worst_op, worst_term);
+}
+
+/* Measured relative operator error ‖H − H_exact‖_F / ‖H_exact‖_F of b at probe sources: with a
+ * compact support r the exact columns (the normalised kernel at the source, cropped by the zero
+ * boundary) of sources more than 2 r + 1 apart do not overlap, so one application of H to a
+ * lattice of points gives many columns; lattices at several offsets. */
+static double measured_operator_error(svp_blur *b, const svp_psf_field *f, int w, int h, int r)
+{
+    const int L = 2 * r + 2;
+    svp_image *x = test_image(w, h), *y = test_image(w, h), *ye = test_image(w, h);
+    double e2 = 0, n2 = 0;
+    for (int o = 0; o < 6; o++) {
+        const int ox = (o * 7 + 3) % L, oy = (o * 11 + 5) % L;
+        memset(x->data, 0, (size_t)w * h * sizeof(double));
+        memset(ye->data, 0, (size_t)w * h * sizeof(double));
+        for (int sy = oy; sy < h; sy += L)
+            for (int sx = ox; sx < w; sx += L) {
+                x->data[(size_t)sy * w + sx] = 1;
+                svp_psf p;
+                svp_image *k = NULL;
+                ASSERT_OK(svp_psf_field_at(f, sx, sy, &p));
+                p.support = r;
+                ASSERT_OK(svp_psf_render(&p, r, r, &k));
+                for (int dy = -r; dy <= r; dy++)
+                    for (int dx = -r; dx <= r; dx++) {
+                        const int X = sx + dx, Y = sy + dy;
+                        if (X < 0 || Y < 0 || X >= w || Y >= h) continue;
+                        ye->data[(size_t)Y * w + X] += k->data[(size_t)(dy + r) * (2 * r + 1) + dx + r];
+                    }
+                svp_image_free(k);
+            }
+        ASSERT_OK(svp_blur_apply(b, x, y));
+        for (size_t i = 0; i < (size_t)w * h; i++) {
+            e2 += pow(y->data[i] - ye->data[i], 2);
+            n2 += ye->data[i] * ye->data[i];
+        }
+    }
+    svp_image_free(x);
+    svp_image_free(y);
+    svp_image_free(ye);
+    return sqrt(e2 / n2);
+}
+
+/* The representation chosen by an error budget (docs/model.md §6): on a smooth polynomial map
+ * and a two-region map (sharp and blended boundary), 128 x 128 and 160 x 144, the estimated
+ * error of tent grids and low ranks is within a factor 2 of the error measured against the
+ * exact per-source operator, and the automatic choice meets its budget (smooth: 1e-2 and 2e-3;
+ * regions: budgets their boundary allows, which no interpolation of kernels makes small). */
+static void test_operator_tolerance(void **state)
+{
+    (void)state;
+    const int r = 12;
+    double worst = 1;
+    for (int c = 0; c < 3; c++) {
+        const int w = c ? 160 : 128, h = c ? 144 : 128;
+        svp_psf_field *f = NULL;
+        if (c == 0) {
+            f = poly_field(w, h, r, 1.0, 0);
+        } else {
+            int *labels = malloc((size_t)w * h * sizeof(int));
+            for (int y = 0; y < h; y++)
+                for (int x = 0; x < w; x++)
+                    labels[(size_t)y * w + x] = hypot(x - 0.4 * w, y - 0.5 * h) < 0.3 * w;
+            svp_psf rp[2] = {moffat(3.0, 2.2, 0), moffat(4.2, 1.6, 0)};
+            rp[0].support = rp[1].support = r;
+            ASSERT_OK(svp_psf_field_new_regions(w, h, labels, 2, rp, c == 1 ? 0.0 : 12.0, &f));
+            free(labels);
+        }
+        svp_variant_options forced[4] = {tent_options(4), tent_options(8),
+                                         lowrank_options(8, 3, 1), lowrank_options(8, 6, 1)};
+        for (int k = 0; k < 4; k++) {
+            svp_blur *b = NULL;
+            double est;
+            ASSERT_OK(svp_variant_estimate(f, w, h, SVP_BOUNDARY_ZERO, &forced[k], &est));
+            ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_ZERO, &forced[k], &b));
+            const double meas = measured_operator_error(b, f, w, h, r);
+            print_message("map %d, %s %d: estimated %.3e, measured %.3e\n", c,
+                          k < 2 ? "tent" : "low rank", k < 2 ? forced[k].grid_x : forced[k].rank,
+                          est, meas);
+            if (!(est <= 2 * meas && meas <= 2 * est))
+                fail_msg("map %d candidate %d: estimate %g vs measured %g", c, k, est, meas);
+            worst = fmax(worst, fmax(est / meas, meas / est));
+            svp_blur_free(b);
+        }
+        /* a sharp boundary is beyond any interpolation of kernels: budgets it can meet */
+        const double tols[3][2] = {{1e-2, 2e-3}, {0.15, 0.15}, {3e-2, 3e-2}};
+        for (int t = 0; t < 2; t++) {
+            svp_variant_options o;
+            svp_variant_defaults(&o);
+            o.tolerance = tols[c][t];
+            svp_blur *b = NULL;
+            svp_variant_info in;
+            ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_ZERO, &o, &b));
+            ASSERT_OK(svp_blur_variant_info(b, &in));
+            const double meas = measured_operator_error(b, f, w, h, r);
+            print_message("map %d, budget %.0e: %s %d x %d rank %d (of %d candidates), estimated "
+                          "%.3e, measured %.3e, %.1f MB\n",
+                          c, tols[c][t], in.representation ? "low rank" : "tent", in.grid_x,
+                          in.grid_y, in.rank, in.candidates, in.estimated_error, meas,
+                          in.memory_bytes / 1e6);
+            assert_int_equal(in.tolerance_met, 1);
+            assert_true(in.estimated_error <= tols[c][t]);
+            if (!(meas <= tols[c][t]))
+                fail_msg("map %d: the choice for budget %g measures %g", c, tols[c][t], meas);
+            svp_blur_free(b);
+        }
+        svp_psf_field_free(f);
+    }
+    print_message("operator error estimate vs measured: worst ratio %.2f\n", worst);
 }
 
 static void test_low_rank(void **state)
@@ -1217,6 +1327,7 @@ int main(void)
         cmocka_unit_test(test_second_order_convergence),
         cmocka_unit_test(test_low_rank),
         cmocka_unit_test(test_lowrank_gram),
+        cmocka_unit_test(test_operator_tolerance),
         cmocka_unit_test(test_cg_matches_wiener),
         cmocka_unit_test(test_cg_variant_normal_equations),
         cmocka_unit_test(test_round_trip_region_psfs),

@@ -25,6 +25,9 @@ typedef struct svp_frame {
     double *otf_re;
 } svp_frame;
 
+/* The frame size svp_frame_init would choose, without planning or tables. */
+svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
+                          int *ny);
 /* Frame geometry for an image of width x height, kernel radii rx, ry (offsets that reach). */
 svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
                           svp_boundary boundary);
@@ -108,6 +111,7 @@ struct svp_blur {
      * describe the PSF at the image centre (for solvers that need one invariant stand-in,
      * e.g. the CG preconditioner), and frame holds the shared geometry without an OTF. */
     svp_psf_field *field;
+    svp_variant_info info; /* space-variant kinds: what was built and why */
     svp_variant_data *variant;
     svp_exact_data *exact;
     double *work_r_image; /* width x height work image */
@@ -178,6 +182,18 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
  * number of terms (0 when r is out of range or the operator is not tent / low rank). */
 int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
                      const double **coef);
+/* Representation choice by error budget (choose.c, docs/model.md §6): *chosen = options with
+ * the cheapest tent / low rank whose estimated error is within options->tolerance (else the
+ * most accurate), info filled with the estimate. */
+svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
+                              svp_boundary boundary, const svp_variant_options *options,
+                              svp_variant_options *chosen, svp_variant_info *info);
+/* options->max_memory, or the physical memory when 0. */
+double svp_variant_memory_limit(const svp_variant_options *options);
+/* Bytes a tent (lowrank 0: K nodes) or low-rank (1: K terms from S samples) operator holds at
+ * its peak while built, kernel radii rx, ry, halo map included (an upper estimate). */
+size_t svp_variant_peak_bytes(int width, int height, svp_boundary boundary, int lowrank, int K,
+                              int S, int rx, int ry);
 /* Bytes the Gram low-rank build holds while it runs (besides the operator itself). */
 size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threads);
 /* svp_blur_new_exact with the kernel table forced on (1), off (0) or automatic (-1: on when

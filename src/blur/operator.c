@@ -77,6 +77,18 @@ svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
     return SVP_OK;
 }
 
+svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
+                          int *ny)
+{
+    int off, *src = NULL;
+    svp_status st = axis_init(width, rx, boundary, nx, &off, &src);
+    free(src);
+    src = NULL;
+    if (st == SVP_OK) st = axis_init(height, ry, boundary, ny, &off, &src);
+    free(src);
+    return st;
+}
+
 void svp_frame_release(svp_frame *f)
 {
     free(f->src_x);

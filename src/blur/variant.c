@@ -86,7 +86,10 @@ struct svp_variant_data {
 void svp_variant_defaults(svp_variant_options *o)
 {
     memset(o, 0, sizeof *o);
-    o->representation = SVP_VARIANT_TENT;
+    o->representation = SVP_VARIANT_AUTO;
+    o->tolerance = 1e-3;
+    o->applications = 50;
+    o->max_memory = 0;
     o->grid_x = 8;
     o->grid_y = 8;
     o->rank = 6;
@@ -715,11 +718,17 @@ svp_status svp_blur_psf_at(const svp_blur *b, double x, double y, svp_psf *out)
 
 static svp_status check_options(const svp_variant_options *o)
 {
-    if (o->representation != SVP_VARIANT_TENT && o->representation != SVP_VARIANT_LOWRANK)
+    if (o->representation != SVP_VARIANT_TENT && o->representation != SVP_VARIANT_LOWRANK &&
+        o->representation != SVP_VARIANT_AUTO)
         return svp_fail(SVP_ERR_INVALID,
-                        "variant representation %d is not tent (0) or low "
-                        "rank (1)",
+                        "variant representation %d is not tent (0), low rank (1) or automatic "
+                        "(2)",
                         (int)o->representation);
+    if (o->representation == SVP_VARIANT_AUTO && (!(o->tolerance > 0) || !isfinite(o->tolerance)))
+        return svp_fail(SVP_ERR_INVALID, "operator tolerance must be > 0, got %g", o->tolerance);
+    if (!(o->max_memory >= 0) || !isfinite(o->max_memory))
+        return svp_fail(SVP_ERR_INVALID, "memory limit must be >= 0 bytes, got %g",
+                        o->max_memory);
     if (o->grid_x < 1 || o->grid_y < 1 || o->grid_x > 64 || o->grid_y > 64)
         return svp_fail(SVP_ERR_INVALID, "tent node grid %d x %d: each side must be in 1..64",
                         o->grid_x, o->grid_y);
@@ -1501,7 +1510,42 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     else
         svp_variant_defaults(&o);
     SVP_CHECK(check_options(&o));
+    if (!field) return svp_fail(SVP_ERR_INVALID, "PSF field is NULL");
+    SVP_CHECK(svp_blur_check_geometry(width, height, boundary));
+    if (field->width != 0 && (field->width != width || field->height != height))
+        return svp_fail(SVP_ERR_SIZE, "the PSF field is for a %d x %d image, the operator for %d x %d",
+                        field->width, field->height, width, height);
+    svp_variant_info info;
+    memset(&info, 0, sizeof info);
+    info.estimated_error = NAN;
+    if (o.representation == SVP_VARIANT_AUTO) {
+        svp_variant_options chosen;
+        SVP_CHECK(svp_variant_choose(field, width, height, boundary, &o, &chosen, &info));
+        o = chosen;
+    }
     const int lowrank = o.representation == SVP_VARIANT_LOWRANK;
+    {
+        /* the memory it needs, before anything large is allocated */
+        const double sup = o.support > 0 ? o.support : svp_psf_field_base(field)->support;
+        const int krx = sup > 0 ? (int)ceil(sup) : width - 1, kry = sup > 0 ? (int)ceil(sup)
+                                                                           : height - 1;
+        const int gx = lowrank ? o.samples_x : o.grid_x, gy = lowrank ? o.samples_y : o.grid_y;
+        const int S = (gx < width ? gx : width) * (gy < height ? gy : height);
+        const size_t need = svp_variant_peak_bytes(width, height, boundary, lowrank,
+                                                   lowrank ? o.rank : S, lowrank ? S : 0, krx, kry);
+        const double limit = svp_variant_memory_limit(&o);
+        info.peak_bytes = need;
+        if ((double)need > limit)
+            return svp_fail(SVP_ERR_INVALID,
+                            "the space-variant operator (%s, %d x %d %s%s) for %d x %d with "
+                            "kernels of %d x %d pixels needs about %.0f MB, more than the "
+                            "memory limit of %.0f MB; set a smaller support, fewer terms or a "
+                            "larger limit",
+                            lowrank ? "low rank" : "tent", gx, gy, lowrank ? "samples" : "nodes",
+                            lowrank ? "" : "", width, height, 2 * krx + 1, 2 * kry + 1,
+                            need / 1e6, limit / 1e6);
+    }
+    const double t_build = omp_get_wtime();
     svp_blur *b = NULL;
     int rx, ry;
     double support;
@@ -1547,6 +1591,47 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
         svp_blur_free(b);
         return st;
     }
+    info.representation = o.representation;
+    info.grid_x = v->gx;
+    info.grid_y = v->gy;
+    info.rank = lowrank ? o.rank : 0;
+    info.build_seconds = omp_get_wtime() - t_build;
+    info.memory_bytes = svp_blur_memory(b);
+    b->info = info;
     *out = b;
     return SVP_OK;
+}
+
+svp_status svp_blur_variant_info(const svp_blur *b, svp_variant_info *info)
+{
+    if (!b || !info) return svp_fail(SVP_ERR_INVALID, "svp_blur_variant_info: NULL argument");
+    if (b->kind != SVP_BLUR_TENT && b->kind != SVP_BLUR_LOWRANK)
+        return svp_fail(SVP_ERR_UNSUPPORTED,
+                        "the operator is not a tent or low-rank space-variant operator");
+    *info = b->info;
+    return SVP_OK;
+}
+
+size_t svp_variant_peak_bytes(int width, int height, svp_boundary boundary, int lowrank, int K,
+                              int S, int rx, int ry)
+{
+    int nx = 0, ny = 0;
+    if (svp_frame_size(width, height, rx, ry, boundary, &nx, &ny) != SVP_OK) return SIZE_MAX;
+    const size_t spectrum = (size_t)ny * (nx / 2 + 1) * sizeof(fftw_complex);
+    const size_t frame = (size_t)nx * ny * sizeof(double);
+    const size_t image = (size_t)width * height * sizeof(double);
+    const size_t kernel = (size_t)(2 * rx + 1) * (2 * ry + 1) * sizeof(double);
+    const int threads = omp_get_max_threads();
+    size_t bytes = (size_t)K * spectrum  /* the terms' spectra, complex until made real */
+                   + 3 * spectrum         /* work_c, accumulator, second spectrum */
+                   + 2 * frame            /* adjoint accumulator, the FFT's real frame */
+                   + kernel               /* the central kernel kept as stand-in */
+                   + 3 * image            /* work image, scale, halo map */
+                   + (size_t)threads * 3 * SVP_FFT_BLOCK * (size_t)nx * sizeof(double) +
+                   (size_t)(lowrank ? K * (S > 0 ? S : 1) : K) * nx * sizeof(double);
+    if (lowrank)
+        bytes += svp_lowrank_build_memory(S, K, rx, ry, threads);
+    else
+        bytes += kernel; /* a node's kernel while its spectrum is made */
+    return bytes;
 }

@@ -624,14 +624,62 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
     return 0;
 }
 
+/* BYTES with an optional suffix k, M, G, T (powers of 1024): 0, else 1. */
+static int parse_bytes(const char *arg, double *bytes)
+{
+    char *end = NULL;
+    double v = strtod(arg, &end);
+    if (end == arg || !(v > 0) || !isfinite(v)) return 1;
+    static const char suffix[] = "kMGT";
+    if (*end) {
+        const char *q = strchr(suffix, *end == 'K' ? 'k' : *end);
+        if (!q || end[1] != '\0') return 1;
+        v *= pow(1024.0, (double)(q - suffix + 1));
+    }
+    *bytes = v;
+    return 0;
+}
+
 int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
                  svp_blur **out)
 {
     svp_status st;
     if (psf->field) {
-        st = svp_blur_new_field(psf->field, width, height, boundary, &psf->variant, out);
-        if (st == SVP_OK)
-            cli_setting_int(run, "psf_operator_bytes", (long long)svp_blur_memory(*out));
+        svp_variant_options vo = psf->variant;
+        const char *env = getenv("SVPSF_MAX_MEMORY");
+        if (vo.max_memory == 0 && env && *env && parse_bytes(env, &vo.max_memory))
+            return cli_error(run,
+                             "SVPSF_MAX_MEMORY='%s' is not a size in bytes (a number > 0, "
+                             "optionally with k, M, G or T: powers of 1024)",
+                             env);
+        st = svp_blur_new_field(psf->field, width, height, boundary, &vo, out);
+        svp_variant_info in;
+        if (st == SVP_OK && svp_blur_variant_info(*out, &in) == SVP_OK) {
+            const int lowrank = in.representation == SVP_VARIANT_LOWRANK;
+            char buf[64];
+            if (!isfinite(in.estimated_error) &&
+                svp_variant_estimate(psf->field, width, height, boundary, &vo,
+                                     &in.estimated_error) != SVP_OK)
+                in.estimated_error = NAN;
+            cli_setting_int(run, "psf_operator_bytes", (long long)in.memory_bytes);
+            cli_setting_str(run, "psf_representation", lowrank ? "low rank" : "tent");
+            cli_setting_str(run, "psf_representation_chosen_by",
+                            vo.representation == SVP_VARIANT_AUTO ? "operator-tol" : "option");
+            snprintf(buf, sizeof buf, "%d x %d", in.grid_x, in.grid_y);
+            cli_setting_str(run, lowrank ? "psf_samples" : "psf_nodes", buf);
+            if (lowrank) cli_setting_int(run, "psf_rank", in.rank);
+            if (vo.representation == SVP_VARIANT_AUTO) {
+                cli_setting_num(run, "operator_tolerance", in.tolerance);
+                cli_setting_int(run, "operator_tolerance_met", in.tolerance_met);
+                cli_setting_int(run, "operator_candidates", in.candidates);
+                cli_setting_num(run, "operator_estimate_s", in.estimate_seconds);
+            }
+            if (isfinite(in.estimated_error))
+                cli_setting_num(run, "operator_estimated_error", in.estimated_error);
+            cli_setting_num(run, "operator_build_s", in.build_seconds);
+            cli_setting_int(run, "operator_peak_bytes_estimate", (long long)in.peak_bytes);
+            if (vo.max_memory > 0) cli_setting_num(run, "max_memory_bytes", vo.max_memory);
+        }
     } else if (psf->is_model)
         st = svp_blur_new(&psf->model, width, height, boundary, out);
     else
@@ -646,6 +694,28 @@ void cli_psf_release(cli_psf *psf)
     psf->kernel_raw = NULL;
     svp_psf_field_free(psf->field);
     psf->field = NULL;
+}
+
+void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size)
+{
+    svp_variant_info in;
+    buf[0] = '\0';
+    if (!blur || svp_blur_variant_info(blur, &in) != SVP_OK) {
+        return;
+    }
+    char what[96], err[96] = "";
+    if (in.representation == SVP_VARIANT_LOWRANK)
+        snprintf(what, sizeof what, "low rank %d (%d x %d samples)", in.rank, in.grid_x,
+                 in.grid_y);
+    else
+        snprintf(what, sizeof what, "tent %d x %d", in.grid_x, in.grid_y);
+    if (isfinite(in.estimated_error) && in.tolerance > 0)
+        snprintf(err, sizeof err, ", estimated error %.2g (budget %.2g%s)", in.estimated_error,
+                 in.tolerance, in.tolerance_met ? "" : ", not met: the most accurate candidate");
+    else if (isfinite(in.estimated_error))
+        snprintf(err, sizeof err, ", estimated error %.2g", in.estimated_error);
+    snprintf(buf, size, " Operator: %s%s, built in %.2f s, %.0f MB.", what, err,
+             in.build_seconds, in.memory_bytes / 1e6);
 }
 
 void cli_variant_defaults(svp_variant_options *variant)
@@ -663,6 +733,22 @@ int cli_variant_option(const cli_run *run, svp_variant_options *variant, int opt
         variant->representation = SVP_VARIANT_LOWRANK;
         return 0;
     }
+    if (option == CLI_OPT_OPERATOR_TOL) {
+        char *end = NULL;
+        const double t = strtod(arg, &end);
+        if (end == arg || *end != '\0' || !(t > 0) || !(t < 1))
+            return cli_error(run, "--operator-tol: '%s' is not a number in (0, 1)", arg);
+        variant->tolerance = t;
+        return 0;
+    }
+    if (option == CLI_OPT_MAX_MEMORY) {
+        if (parse_bytes(arg, &variant->max_memory))
+            return cli_error(run,
+                             "--max-memory: '%s' is not a size in bytes (a number > 0, optionally "
+                             "with k, M, G or T: powers of 1024)",
+                             arg);
+        return 0;
+    }
     /* --nodes N or NxM */
     int nx = 0, ny = 0, used = 0;
     if (sscanf(arg, "%d%n", &nx, &used) == 1 && arg[used] == '\0')
@@ -671,6 +757,7 @@ int cli_variant_option(const cli_run *run, svp_variant_options *variant, int opt
         return cli_error(run, "--nodes: '%s' is not N or NxM (e.g. 8x8)", arg);
     if (nx < 1 || ny < 1 || nx > 64 || ny > 64)
         return cli_error(run, "--nodes %s: each side must be in 1..64", arg);
+    if (variant->representation != SVP_VARIANT_LOWRANK) variant->representation = SVP_VARIANT_TENT;
     variant->grid_x = variant->samples_x = nx;
     variant->grid_y = variant->samples_y = ny;
     return 0;
@@ -682,7 +769,12 @@ void cli_print_variant_help(FILE *out)
           "  --nodes NxM           tent node grid of the space-variant operator (default 8x8;\n"
           "                        N alone = NxN; error falls as the node spacing squared)\n"
           "  --rank R              use the low-rank (eigen-PSF) operator with R terms instead,\n"
-          "                        the PSF sampled on the --nodes grid (R <= N M)\n",
+          "                        the PSF sampled on the --nodes grid (R <= N M)\n"
+          "  --operator-tol TOL    without --nodes / --rank: the cheapest tent grid or low rank\n"
+          "                        whose estimated relative operator error is <= TOL (default\n"
+          "                        1e-3; docs/model.md section 6)\n"
+          "  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
+          "                        $SVPSF_MAX_MEMORY, else the physical memory)\n",
           out);
 }
 
@@ -748,6 +840,10 @@ void cli_psf_describe(cli_run *run, const cli_psf *psf)
             if (centre.model == SVP_PSF_MOFFAT)
                 cli_setting_num(run, "psf_centre_beta", centre.beta);
             cli_setting_num(run, "psf_support_px", centre.support);
+        }
+        if (v->representation == SVP_VARIANT_AUTO) {
+            cli_setting_str(run, "psf_representation", "chosen by --operator-tol");
+            return; /* the choice is recorded when the operator is built (cli_psf_blur) */
         }
         cli_setting_str(run, "psf_representation", lowrank ? "low rank" : "tent");
         snprintf(buf, sizeof buf, "%d x %d", lowrank ? v->samples_x : v->grid_x,
@@ -1320,6 +1416,8 @@ int cli_maps_option(cli_run *run, cli_maps *maps, int option, const char *arg)
         return cli_parse_boundary(run, "--boundary", arg, &maps->boundary);
     case CLI_OPT_NODES:
     case CLI_OPT_RANK:
+    case CLI_OPT_OPERATOR_TOL:
+    case CLI_OPT_MAX_MEMORY:
         maps->variant_given = 1;
         return cli_variant_option(run, &maps->variant, option, arg);
     default: return -1;

@@ -265,17 +265,24 @@ void cli_psf_describe(cli_run *run, const cli_psf *psf);
  * CLI_VARIANT_LONGOPTS to its option table, calls cli_variant_defaults once, passes
  * CLI_OPT_NODES / CLI_OPT_RANK to cli_variant_option, loads with cli_psf_load_map and prints
  * cli_print_variant_help in its --help. --nodes NxM: tent node grid (default 8x8; "N" = NxN);
- * --rank R: low rank with R eigen-PSFs sampled on the --nodes grid instead. */
-enum { CLI_OPT_NODES = 1900, CLI_OPT_RANK };
+ * --rank R: low rank with R eigen-PSFs sampled on the --nodes grid instead; neither: the
+ * representation chosen by --operator-tol TOL (default 1e-3); --max-memory BYTES (or the
+ * environment's SVPSF_MAX_MEMORY) bounds the operator's memory. */
+enum { CLI_OPT_NODES = 1900, CLI_OPT_RANK, CLI_OPT_OPERATOR_TOL, CLI_OPT_MAX_MEMORY };
 /* clang-format off */
 #define CLI_VARIANT_LONGOPTS \
-    {"nodes", required_argument, NULL, CLI_OPT_NODES}, {"rank", required_argument, NULL, CLI_OPT_RANK}
+    {"nodes", required_argument, NULL, CLI_OPT_NODES}, {"rank", required_argument, NULL, CLI_OPT_RANK}, \
+    {"operator-tol", required_argument, NULL, CLI_OPT_OPERATOR_TOL}, \
+    {"max-memory", required_argument, NULL, CLI_OPT_MAX_MEMORY}
 /* clang-format on */
 void cli_variant_defaults(svp_variant_options *variant);
 /* 0, or CLI_EXIT_USAGE after a message naming the option. */
 int cli_variant_option(const cli_run *run, svp_variant_options *variant, int option,
                        const char *arg);
 void cli_print_variant_help(FILE *out);
+/* " Operator: ..." for the report paragraph (the representation, its estimated error, build
+ * time and memory); "" for operators that are not space-variant. */
+void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size);
 int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
                      cli_psf *psf);
 /* Before any output is written: a PSF map fits a width x height image and its options are

@@ -487,7 +487,8 @@ int cmd_correct(int argc, char **argv)
     if ((code = cli_maps_write(&run, &maps, pl_true, field_true, validity))) goto cleanup;
 
     {
-        char iters[96] = "";
+        char iters[96] = "", op[256];
+        cli_variant_sentence(blur, op, sizeof op);
         if (opt.method != SVP_METHOD_W)
             snprintf(iters, sizeof iters, ", %d RL iterations", opt.deconv.iterations);
         if (has_wiener && !opt.balance_auto)
@@ -498,12 +499,12 @@ int cmd_correct(int argc, char **argv)
         printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
                "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "
                "%zu pixels (%.2f %%) are flagged (validity < 1), %zu of them with no "
-               "information (validity 0). Time %.2f s (deconvolutions %.2f s). "
+               "information (validity 0). Time %.2f s (deconvolutions %.2f s).%s "
                "Outputs in %s.\n",
                maps.n_fields, maps.n_fields > 1 ? "s" : "", w, h, method_long_name(opt.method),
                iters, bal, n_missing, n_missing == 1 ? "" : "s", n_flagged,
                100.0 * (double)n_flagged / (double)n, n_invalid, cli_now() - run.t_start,
-               cli_stage_seconds(&run, "transform"), run.output);
+               cli_stage_seconds(&run, "transform"), op, run.output);
     }
 
 cleanup:

@@ -85,10 +85,12 @@ int cmd_forward(int argc, char **argv)
 
     if ((code = cli_maps_write(&run, &maps, pl_apparent, field_apparent, validity))) goto cleanup;
 
+    char op[256];
+    cli_variant_sentence(blur, op, sizeof op);
     printf("svpsf forward: %d x %d, %d field map%s: apparent maps written to %s "
-           "(%zu dark pixel%s with zero apparent PL) in %.2f s\n",
+           "(%zu dark pixel%s with zero apparent PL) in %.2f s.%s\n",
            w, h, maps.n_fields, maps.n_fields > 1 ? "s" : "", run.output, n_dark,
-           n_dark == 1 ? "" : "s", cli_now() - run.t_start);
+           n_dark == 1 ? "" : "s", cli_now() - run.t_start, op);
 
 cleanup:
     svp_blur_free(blur);

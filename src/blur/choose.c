@@ -1,0 +1,422 @@
+/* Choosing the space-variant representation by an error budget (docs/model.md §6, "Choosing
+ * the representation").
+ *
+ * The error of a representation is measured as the relative Frobenius norm of H − H_exact,
+ * ‖H − H_exact‖_F / ‖H_exact‖_F: the expected relative error of H x for a white-noise x, and
+ * the root-mean-square over sources of ‖k̂_s − k_s‖ / rms ‖k_s‖, k_s the exact kernel at source
+ * s and k̂_s the representation's. It is estimated at P probe sources spread over the image,
+ * with kernels of a compact radius (their core holds nearly all of their squared norm):
+ *   tent g x g:     k̂_p = Σ_k hat_k(p) k_node_k (the node kernels themselves);
+ *   low rank R:     k̂_p = K̄ + Σ_{q < R−1} c_q(p) e_q, e_q the eigen-PSFs of the compact sampled
+ *                   kernels' deviations from their mean, c_q bilinear in the samples — this
+ *                   carries both the truncated spectrum's tail and the interpolation between
+ *                   the samples.
+ * The cost model counts FFTs of the frame: an application and its adjoint are 2 (K + 1) for K
+ * terms, times the expected number of applications, plus the build (a node or sample kernel
+ * about one FFT, the Gram matrix S² m / (10 N log2 N)). The cheapest candidate within the
+ * budget and within the memory limit wins; when none meets the budget, the most accurate
+ * that fits. */
+#include "blur_internal.h"
+#include "../psf/field_internal.h"
+
+#include <lapacke.h>
+#include <math.h>
+#include <omp.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+enum { PROBES = 96, RC_MIN = 6, RC_MAX = 40, RANK_MAX = 24 };
+
+static const int tent_grids[] = {1, 2, 3, 4, 5, 6, 8, 10, 12, 16};
+static const int lowrank_samples[] = {6, 8, 12, 16};
+
+typedef struct est_ctx {
+    const svp_psf_field *field;
+    int width, height;
+    double support; /* the operator's support (0: whole field) */
+    int rc;         /* the compact radius of the estimates */
+    size_t mc;      /* (2 rc + 1)² */
+    int probes;
+    double *px, *py;  /* probe positions */
+    double *pk;       /* probe kernels, probes x mc */
+    double norm2;     /* Σ_p ‖k_p‖² */
+} est_ctx;
+
+static double dotp(const double *a, const double *b, size_t n)
+{
+    double s = 0;
+    for (size_t i = 0; i < n; i++) s += a[i] * b[i];
+    return s;
+}
+
+static double node_at(int i, int g, int size)
+{
+    return g == 1 ? 0.5 * (size - 1) : (double)i * (size - 1) / (g - 1);
+}
+
+/* Lower node and fraction towards the next of position x on g nodes over size pixels. */
+static void hat_of(double x, int g, int size, int *i0, double *t)
+{
+    if (g == 1) {
+        *i0 = 0;
+        *t = 0;
+        return;
+    }
+    double u = x * (g - 1) / (size - 1);
+    int i = (int)floor(u);
+    if (i > g - 2) i = g - 2;
+    if (i < 0) i = 0;
+    *i0 = i;
+    *t = u - i;
+}
+
+/* The field's kernel at (x, y) on the compact radius, scaled to the share of the flux the
+ * operator's kernel has there (its encircled energy). */
+static svp_status compact_kernel(const est_ctx *c, double x, double y, double *out)
+{
+    svp_psf psf;
+    SVP_CHECK(svp_psf_field_at(c->field, x, y, &psf));
+    psf.support = c->support;
+    svp_image *k = NULL;
+    SVP_CHECK(svp_psf_render(&psf, c->rc, c->rc, &k));
+    double R = c->support > 0 ? c->support : 0.0;
+    double ee = svp_psf_encircled_energy(&psf, c->rc + 0.5, R);
+    if (!(ee > 0 && ee <= 1)) /* heavy tails over the whole field: the image's extent */
+        ee = svp_psf_encircled_energy(&psf, c->rc + 0.5, fmax(c->width, c->height));
+    if (!(ee > 0 && ee <= 1)) ee = 1;
+    for (size_t i = 0; i < c->mc; i++) out[i] = ee * k->data[i];
+    svp_image_free(k);
+    return SVP_OK;
+}
+
+static void est_release(est_ctx *c)
+{
+    free(c->px);
+    free(c->py);
+    free(c->pk);
+    memset(c, 0, sizeof *c);
+}
+
+static svp_status est_init(est_ctx *c, const svp_psf_field *field, int width, int height,
+                           double support)
+{
+    memset(c, 0, sizeof *c);
+    c->field = field;
+    c->width = width;
+    c->height = height;
+    const double sup = support > 0 ? support : svp_psf_field_base(field)->support;
+    c->support = sup;
+    /* radius: 5 x the largest FWHM among a few positions, within RC_MIN .. RC_MAX and the
+     * operator's support */
+    double fmax_px = 0;
+    for (int j = 0; j < 9; j++) {
+        svp_psf p;
+        SVP_CHECK(svp_psf_field_at(field, 0.5 * (j % 3) * (width - 1), 0.5 * (j / 3) * (height - 1),
+                                   &p));
+        fmax_px = fmax(fmax_px, fmax(p.fwhm, p.fwhm_minor));
+    }
+    int rc = (int)ceil(5 * fmax_px);
+    if (rc < RC_MIN) rc = RC_MIN;
+    if (rc > RC_MAX) rc = RC_MAX;
+    if (sup > 0 && rc > (int)ceil(sup)) rc = (int)ceil(sup);
+    const int lim = (width > height ? width : height) - 1;
+    if (rc > lim) rc = lim > 0 ? lim : 0;
+    c->rc = rc;
+    c->mc = (size_t)(2 * rc + 1) * (2 * rc + 1);
+    c->probes = PROBES;
+    c->px = malloc(PROBES * sizeof(double));
+    c->py = malloc(PROBES * sizeof(double));
+    c->pk = malloc(PROBES * c->mc * sizeof(double));
+    if (!c->px || !c->py || !c->pk) {
+        est_release(c);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's error estimate");
+    }
+    /* a rank-1 lattice (golden ratio) over the image: every row and column band sampled */
+    for (int p = 0; p < PROBES; p++) {
+        const double u = (p + 0.5) / PROBES, v = fmod(0.5 + p * 0.6180339887498949, 1.0);
+        c->px[p] = u * (width - 1);
+        c->py[p] = v * (height - 1);
+    }
+    svp_status st = SVP_OK;
+    c->norm2 = 0;
+    for (int p = 0; p < PROBES && st == SVP_OK; p++) {
+        double *k = c->pk + (size_t)p * c->mc;
+        st = compact_kernel(c, c->px[p], c->py[p], k);
+        if (st == SVP_OK) c->norm2 += dotp(k, k, c->mc);
+    }
+    if (st != SVP_OK) est_release(c);
+    return st;
+}
+
+/* Relative error of the tent gx x gy. */
+static svp_status est_tent(const est_ctx *c, int gx, int gy, double *err)
+{
+    const size_t mc = c->mc;
+    double *nodes = malloc((size_t)gx * gy * mc * sizeof(double));
+    double *r = malloc(mc * sizeof(double));
+    svp_status st = nodes && r ? SVP_OK : svp_fail(SVP_ERR_NOMEM, "out of memory for estimates");
+    for (int k = 0; k < gx * gy && st == SVP_OK; k++)
+        st = compact_kernel(c, node_at(k % gx, gx, c->width), node_at(k / gx, gy, c->height),
+                            nodes + (size_t)k * mc);
+    double e2 = 0;
+    for (int p = 0; p < c->probes && st == SVP_OK; p++) {
+        int i0, j0;
+        double tx, ty;
+        hat_of(c->px[p], gx, c->width, &i0, &tx);
+        hat_of(c->py[p], gy, c->height, &j0, &ty);
+        const int i1 = i0 + 1 < gx ? i0 + 1 : i0, j1 = j0 + 1 < gy ? j0 + 1 : j0;
+        const double w00 = (1 - tx) * (1 - ty), w10 = tx * (1 - ty), w01 = (1 - tx) * ty,
+                     w11 = tx * ty;
+        const double *a = nodes + (size_t)(j0 * gx + i0) * mc, *b = nodes + (size_t)(j0 * gx + i1) * mc;
+        const double *d = nodes + (size_t)(j1 * gx + i0) * mc, *e = nodes + (size_t)(j1 * gx + i1) * mc;
+        const double *k = c->pk + (size_t)p * mc;
+        for (size_t i = 0; i < mc; i++) {
+            const double x = k[i] - (w00 * a[i] + w10 * b[i] + w01 * d[i] + w11 * e[i]);
+            e2 += x * x;
+        }
+    }
+    free(nodes);
+    free(r);
+    if (st == SVP_OK) *err = sqrt(e2 / c->norm2);
+    return st;
+}
+
+/* Relative errors of the mean-centred low rank on sx x sy samples at ranks 1 .. nr (err[R − 1]),
+ * nr <= S + 1. */
+static svp_status est_lowrank(const est_ctx *c, int sx, int sy, int nr, double *err)
+{
+    const size_t mc = c->mc;
+    const int S = sx * sy, Q = nr - 1;
+    double *k = malloc((size_t)S * mc * sizeof(double)), *mean = calloc(mc, sizeof(double));
+    double *g = malloc((size_t)S * S * sizeof(double)), *z = malloc((size_t)S * S * sizeof(double));
+    double *lam = malloc((size_t)S * sizeof(double));
+    double *e = malloc((size_t)(Q > 0 ? Q : 1) * mc * sizeof(double));
+    double *cf = malloc((size_t)(Q > 0 ? Q : 1) * S * sizeof(double));
+    double *r = malloc(mc * sizeof(double)), *e2 = calloc((size_t)nr, sizeof(double));
+    lapack_int *isuppz = malloc(2 * (size_t)S * sizeof(lapack_int));
+    svp_status st = SVP_OK;
+    if (!k || !mean || !g || !z || !lam || !e || !cf || !r || !e2 || !isuppz) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for estimates");
+        goto done;
+    }
+    for (int j = 0; j < S && st == SVP_OK; j++)
+        st = compact_kernel(c, node_at(j % sx, sx, c->width), node_at(j / sx, sy, c->height),
+                            k + (size_t)j * mc);
+    if (st != SVP_OK) goto done;
+    for (int j = 0; j < S; j++)
+        for (size_t i = 0; i < mc; i++) mean[i] += k[(size_t)j * mc + i] / S;
+    for (int j = 0; j < S; j++)
+        for (size_t i = 0; i < mc; i++) k[(size_t)j * mc + i] -= mean[i];
+    for (int j = 0; j < S; j++)
+        for (int i = j; i < S; i++)
+            g[(size_t)j * S + i] = g[(size_t)i * S + j] =
+                dotp(k + (size_t)i * mc, k + (size_t)j * mc, mc);
+    if (Q > 0) {
+        lapack_int found = 0;
+        lapack_int info = LAPACKE_dsyevr(LAPACK_COL_MAJOR, 'V', 'A', 'L', S, g, S, 0, 0, 0, 0,
+                                         0.0, &found, lam, z, S, isuppz);
+        if (info != 0) {
+            st = svp_fail(SVP_ERR_NUMERIC, "low rank estimate: dsyevr info %d", (int)info);
+            goto done;
+        }
+        for (int q = 0; q < Q; q++) {
+            const double *v = z + (size_t)(S - 1 - q) * S, l = lam[S - 1 - q];
+            const double s = l > 0 ? sqrt(l) : 0;
+            double *eq = e + (size_t)q * mc;
+            memset(eq, 0, mc * sizeof(double));
+            if (s > 0)
+                for (int j = 0; j < S; j++)
+                    for (size_t i = 0; i < mc; i++) eq[i] += v[j] / s * k[(size_t)j * mc + i];
+            for (int j = 0; j < S; j++) cf[(size_t)q * S + j] = s * v[j];
+        }
+    }
+    for (int p = 0; p < c->probes; p++) {
+        int i0, j0;
+        double tx, ty;
+        hat_of(c->px[p], sx, c->width, &i0, &tx);
+        hat_of(c->py[p], sy, c->height, &j0, &ty);
+        const int i1 = i0 + 1 < sx ? i0 + 1 : i0, j1 = j0 + 1 < sy ? j0 + 1 : j0;
+        const double *kp = c->pk + (size_t)p * mc;
+        for (size_t i = 0; i < mc; i++) r[i] = kp[i] - mean[i];
+        e2[0] += dotp(r, r, mc);
+        for (int q = 0; q < Q; q++) {
+            const double *cq = cf + (size_t)q * S;
+            const double cp = (1 - ty) * ((1 - tx) * cq[j0 * sx + i0] + tx * cq[j0 * sx + i1]) +
+                              ty * ((1 - tx) * cq[j1 * sx + i0] + tx * cq[j1 * sx + i1]);
+            const double *eq = e + (size_t)q * mc;
+            for (size_t i = 0; i < mc; i++) r[i] -= cp * eq[i];
+            e2[q + 1] += dotp(r, r, mc);
+        }
+    }
+    for (int q = 0; q < nr; q++) err[q] = sqrt(e2[q] / c->norm2);
+done:
+    free(k);
+    free(mean);
+    free(g);
+    free(z);
+    free(lam);
+    free(e);
+    free(cf);
+    free(r);
+    free(e2);
+    free(isuppz);
+    return st;
+}
+
+/* Kernel radii and support as svp_variant_begin chooses them. */
+static void radii(const svp_psf_field *field, int width, int height, double support, int *rx,
+                  int *ry)
+{
+    const double sup = support > 0 ? support : svp_psf_field_base(field)->support;
+    *rx = width - 1;
+    *ry = height - 1;
+    if (sup > 0) *rx = *ry = (int)ceil(sup);
+}
+
+double svp_variant_memory_limit(const svp_variant_options *o)
+{
+    if (o->max_memory > 0) return o->max_memory;
+    const long pages = sysconf(_SC_PHYS_PAGES), page = sysconf(_SC_PAGESIZE);
+    return pages > 0 && page > 0 ? (double)pages * page : INFINITY;
+}
+
+/* FFT-equivalents of a candidate: K terms, S samples (low rank; 0 for tent). */
+static double cost_of(int K, int S, double applications, double kernel_px, double frame_px)
+{
+    const double fft = 5.0 * frame_px * log2(frame_px > 2 ? frame_px : 2);
+    double build = 2.0 * K;
+    if (S > 0) build = K + S * kernel_px / frame_px + (double)S * S * kernel_px / fft;
+    return applications * 2.0 * (K + 1) + build;
+}
+
+svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
+                              svp_boundary boundary, const svp_variant_options *o,
+                              svp_variant_options *chosen, svp_variant_info *info)
+{
+    const double t0 = omp_get_wtime();
+    *chosen = *o;
+    memset(info, 0, sizeof *info);
+    if (!(o->tolerance > 0) || !isfinite(o->tolerance))
+        return svp_fail(SVP_ERR_INVALID, "operator tolerance must be > 0, got %g", o->tolerance);
+    int rx, ry, nx, ny;
+    radii(field, width, height, o->support, &rx, &ry);
+    SVP_CHECK(svp_frame_size(width, height, rx, ry, boundary, &nx, &ny));
+    const double frame_px = (double)nx * ny, kernel_px = (2.0 * rx + 1) * (2.0 * ry + 1);
+    const double limit = svp_variant_memory_limit(o);
+    const double apps = o->applications > 0 ? o->applications : 50;
+    est_ctx c;
+    SVP_CHECK(est_init(&c, field, width, height, o->support));
+    svp_status st = SVP_OK;
+    double best_cost = INFINITY, best_err = INFINITY, fallback_err = INFINITY;
+    svp_variant_options best = *o, fallback = *o;
+    int n = 0;
+    for (size_t i = 0; i < sizeof tent_grids / sizeof *tent_grids && st == SVP_OK; i++) {
+        const int gx = tent_grids[i] < width ? tent_grids[i] : width;
+        const int gy = tent_grids[i] < height ? tent_grids[i] : height;
+        if (i > 0 && gx == (tent_grids[i - 1] < width ? tent_grids[i - 1] : width) &&
+            gy == (tent_grids[i - 1] < height ? tent_grids[i - 1] : height))
+            continue;
+        const double bytes =
+            (double)svp_variant_peak_bytes(width, height, boundary, 0, gx * gy, 0, rx, ry);
+        if (bytes > limit) break; /* larger grids need more */
+        double err;
+        st = est_tent(&c, gx, gy, &err);
+        if (st != SVP_OK) break;
+        n++;
+        const double cost = cost_of(gx * gy, 0, apps, kernel_px, frame_px);
+        svp_variant_options cand = *o;
+        cand.representation = SVP_VARIANT_TENT;
+        cand.grid_x = gx;
+        cand.grid_y = gy;
+        if (err <= o->tolerance && cost < best_cost) {
+            best_cost = cost;
+            best_err = err;
+            best = cand;
+        }
+        if (err < fallback_err) {
+            fallback_err = err;
+            fallback = cand;
+        }
+        if (err <= o->tolerance) break; /* finer grids cost more */
+    }
+    for (size_t i = 0; i < sizeof lowrank_samples / sizeof *lowrank_samples && st == SVP_OK; i++) {
+        const int sx = lowrank_samples[i] < width ? lowrank_samples[i] : width;
+        const int sy = lowrank_samples[i] < height ? lowrank_samples[i] : height;
+        const int S = sx * sy, nr = S + 1 < RANK_MAX ? S + 1 : RANK_MAX;
+        double err[RANK_MAX];
+        st = est_lowrank(&c, sx, sy, nr, err);
+        if (st != SVP_OK) break;
+        for (int R = 1; R <= nr && R <= S; R++) {
+            const double bytes =
+                (double)svp_variant_peak_bytes(width, height, boundary, 1, R, S, rx, ry);
+            if (bytes > limit) break;
+            n++;
+            const double cost = cost_of(R, S, apps, kernel_px, frame_px);
+            svp_variant_options cand = *o;
+            cand.representation = SVP_VARIANT_LOWRANK;
+            cand.samples_x = sx;
+            cand.samples_y = sy;
+            cand.rank = R;
+            cand.lowrank_mean = 1;
+            if (err[R - 1] <= o->tolerance && cost < best_cost) {
+                best_cost = cost;
+                best_err = err[R - 1];
+                best = cand;
+            }
+            if (err[R - 1] < fallback_err) {
+                fallback_err = err[R - 1];
+                fallback = cand;
+            }
+        }
+    }
+    est_release(&c);
+    if (st != SVP_OK) return st;
+    if (n == 0)
+        return svp_fail(SVP_ERR_INVALID,
+                        "space-variant operator for %d x %d: even a 1 x 1 tent needs about %.0f "
+                        "MB, more than the memory limit of %.0f MB",
+                        width, height,
+                        svp_variant_peak_bytes(width, height, boundary, 0, 1, 0, rx, ry) / 1e6,
+                        limit / 1e6);
+    info->tolerance_met = isfinite(best_cost);
+    *chosen = info->tolerance_met ? best : fallback;
+    info->estimated_error = info->tolerance_met ? best_err : fallback_err;
+    info->tolerance = o->tolerance;
+    info->candidates = n;
+    info->estimate_seconds = omp_get_wtime() - t0;
+    return SVP_OK;
+}
+
+svp_status svp_variant_estimate(const svp_psf_field *field, int width, int height,
+                                svp_boundary boundary, const svp_variant_options *options,
+                                double *error)
+{
+    (void)boundary;
+    if (!field || !error) return svp_fail(SVP_ERR_INVALID, "svp_variant_estimate: NULL argument");
+    svp_variant_options o;
+    if (options)
+        o = *options;
+    else
+        svp_variant_defaults(&o);
+    if (o.representation != SVP_VARIANT_TENT && o.representation != SVP_VARIANT_LOWRANK)
+        return svp_fail(SVP_ERR_INVALID,
+                        "svp_variant_estimate: the options must force tent or low rank");
+    est_ctx c;
+    SVP_CHECK(est_init(&c, field, width, height, o.support));
+    svp_status st;
+    if (o.representation == SVP_VARIANT_TENT) {
+        st = est_tent(&c, o.grid_x < width ? o.grid_x : width,
+                      o.grid_y < height ? o.grid_y : height, error);
+    } else {
+        const int sx = o.samples_x < width ? o.samples_x : width;
+        const int sy = o.samples_y < height ? o.samples_y : height;
+        double *err = malloc((size_t)o.rank * sizeof(double));
+        st = err ? est_lowrank(&c, sx, sy, o.rank, err)
+                 : svp_fail(SVP_ERR_NOMEM, "out of memory for estimates");
+        if (st == SVP_OK) *error = err[o.rank - 1];
+        free(err);
+    }
+    est_release(&c);
+    return st;
+}
