@@ -279,7 +279,7 @@ typedef struct svp_deconv_options {
     int auto_stop;             /* RL: 1 = iterations is a cap; stop at the discrepancy
                                   principle (χ² per finite datum ≤ 1) or when χ² falls by less
                                   than 0.1 % over 10 iterations (stalled above the noise level),
-                                  whichever comes first (docs/model.md §6). Default 0. */
+                                  whichever comes first (docs/model.md §9). Default 0. */
     const svp_image *variance; /* RL auto_stop: the noise variance of every pixel of y (y's
                                   size, > 0 where y is finite); NULL (default) = one σ² from
                                   svp_noise_sigma_estimate(y) */
@@ -614,7 +614,8 @@ SVP_API svp_status svp_psf_field_write(const char *path, const svp_psf_field *fi
  *    Flux and positivity are kept exactly; error vs the exact operator falls as (node
  *    spacing)². One application: K forward + 1 inverse real FFT; adjoint 1 + K.
  *  - low rank: the field's PSF sampled on sx x sy positions (placed like tent nodes), the
- *    stacked kernels' SVD (LAPACKE_dgesdd) gives `rank` eigen-PSFs e_r and coefficients at the
+ *    stacked kernels' SVD (from their S x S Gram matrix, LAPACKE_dsyevr, the kernels streamed
+ *    in row blocks: docs/model.md §9) gives `rank` eigen-PSFs e_r and coefficients at the
  *    samples, interpolated bilinearly into maps c_r: H x = Σ_r e_r ⊛ (c_r (1 − α) ⊙ x) + ...
  *    With lowrank_mean (default) the first term is the mean sampled kernel (c_0 = 1) and the
  *    others come from the SVD of the deviations from it: they sum to zero, so every source
@@ -624,8 +625,8 @@ SVP_API svp_status svp_psf_field_write(const char *path, const svp_psf_field *fi
  *    unit flux exactly (with lowrank_mean and no halo that flux is 1 to round-off, and the
  *    division is skipped). Positivity is not guaranteed by either. rank = sx sy with
  *    renormalise = 0 equals the tent operator on the same grid, so the error never falls below
- *    the tent's on the sample grid. The SVD holds sx sy kernels of (2 rx + 1)(2 ry + 1) values: at most 2^27
- *    values (1 GB); beyond that set a support.
+ *    the tent's on the sample grid. Whole-field kernels are fine at any size that the memory
+ *    limit (max_memory) allows.
  * All kernels share one radius: support (pixels) if > 0, else the field's PSF support, else the
  * whole field of view (offsets up to width − 1, height − 1), as svp_blur_new. Memory: one
  * spectrum of the padded frame per node / eigen-PSF (svp_blur_memory), real for point-symmetric
@@ -635,7 +636,7 @@ typedef enum svp_variant_repr {
     SVP_VARIANT_TENT = 0,
     SVP_VARIANT_LOWRANK = 1,
     /* default: the cheapest tent grid or low rank whose estimated relative operator error
-     * (docs/model.md §6, "Choosing the representation") is at most `tolerance`, by a cost model
+     * (docs/model.md §9, "Choosing the representation") is at most `tolerance`, by a cost model
      * of `applications` applications plus the build; grid_x / samples_x etc. are ignored */
     SVP_VARIANT_AUTO = 2
 } svp_variant_repr;
@@ -660,7 +661,7 @@ typedef struct svp_variant_options {
 } svp_variant_options;
 
 /* What svp_blur_new_field built (svp_blur_variant_info). estimated_error: the relative
- * operator error ‖H − H_exact‖_F / ‖H_exact‖_F estimated at probe sources (docs/model.md §6),
+ * operator error ‖H − H_exact‖_F / ‖H_exact‖_F estimated at probe sources (docs/model.md §9),
  * NaN when not estimated (a forced representation estimates only through
  * svp_variant_estimate). */
 typedef struct svp_variant_info {

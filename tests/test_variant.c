@@ -637,7 +637,7 @@ static double measured_operator_error(svp_blur *b, const svp_psf_field *f, int w
     return sqrt(e2 / n2);
 }
 
-/* The representation chosen by an error budget (docs/model.md §6): on a smooth polynomial map
+/* The representation chosen by an error budget (docs/model.md §9): on a smooth polynomial map
  * and a two-region map (sharp and blended boundary), 128 x 128 and 160 x 144, the estimated
  * error of tent grids and low ranks is within a factor 2 of the error measured against the
  * exact per-source operator, and the automatic choice meets its budget (smooth: 1e-2 and 2e-3;

@@ -182,7 +182,7 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
  * number of terms (0 when r is out of range or the operator is not tent / low rank). */
 int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
                      const double **coef);
-/* Representation choice by error budget (choose.c, docs/model.md §6): *chosen = options with
+/* Representation choice by error budget (choose.c, docs/model.md §9): *chosen = options with
  * the cheapest tent / low rank whose estimated error is within options->tolerance (else the
  * most accurate), info filled with the estimate. */
 svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,

@@ -1,4 +1,4 @@
-/* Choosing the space-variant representation by an error budget (docs/model.md §6, "Choosing
+/* Choosing the space-variant representation by an error budget (docs/model.md §9, "Choosing
  * the representation").
  *
  * The error of a representation is measured as the relative Frobenius norm of H − H_exact,

@@ -772,7 +772,7 @@ void cli_print_variant_help(FILE *out)
           "                        the PSF sampled on the --nodes grid (R <= N M)\n"
           "  --operator-tol TOL    without --nodes / --rank: the cheapest tent grid or low rank\n"
           "                        whose estimated relative operator error is <= TOL (default\n"
-          "                        1e-3; docs/model.md section 6)\n"
+          "                        1e-3; docs/model.md section 9)\n"
           "  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
           "                        $SVPSF_MAX_MEMORY, else the physical memory)\n",
           out);
