@@ -14,8 +14,8 @@
  * The cost model counts FFTs of the frame: an application and its adjoint are 2 (K + 1) for K
  * terms, times the expected number of applications, plus the build (a node or sample kernel
  * about one FFT, the Gram matrix S² m / (10 N log2 N)). The cheapest candidate within the
- * budget and within the memory limit wins; when none meets the budget, the most accurate
- * that fits. */
+ * budget and within the memory limit wins; when none meets the budget, the cheapest whose
+ * error is within 1.25 x the smallest estimated. */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
@@ -311,6 +311,11 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
     double best_cost = INFINITY, best_err = INFINITY, fallback_err = INFINITY;
     svp_variant_options best = *o, fallback = *o;
     int n = 0;
+    /* every candidate, for the fallback: the cheapest within 1.25 x the smallest error */
+    enum { MAX_CAND = 256 };
+    svp_variant_options cands[MAX_CAND];
+    double cerr[MAX_CAND], ccost[MAX_CAND];
+    int nc = 0;
     for (size_t i = 0; i < sizeof tent_grids / sizeof *tent_grids && st == SVP_OK; i++) {
         const int gx = tent_grids[i] < width ? tent_grids[i] : width;
         const int gy = tent_grids[i] < height ? tent_grids[i] : height;
@@ -334,10 +339,7 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
             best_err = err;
             best = cand;
         }
-        if (err < fallback_err) {
-            fallback_err = err;
-            fallback = cand;
-        }
+        if (nc < MAX_CAND) cands[nc] = cand, cerr[nc] = err, ccost[nc++] = cost;
         if (err <= o->tolerance) break; /* finer grids cost more */
     }
     for (size_t i = 0; i < sizeof lowrank_samples / sizeof *lowrank_samples && st == SVP_OK; i++) {
@@ -364,10 +366,7 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
                 best_err = err[R - 1];
                 best = cand;
             }
-            if (err[R - 1] < fallback_err) {
-                fallback_err = err[R - 1];
-                fallback = cand;
-            }
+            if (nc < MAX_CAND) cands[nc] = cand, cerr[nc] = err[R - 1], ccost[nc++] = cost;
         }
     }
     est_release(&c);
@@ -379,6 +378,14 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
                         width, height,
                         svp_variant_peak_bytes(width, height, boundary, 0, 1, 0, rx, ry) / 1e6,
                         limit / 1e6);
+    double emin = INFINITY, fcost = INFINITY;
+    for (int i = 0; i < nc; i++) emin = fmin(emin, cerr[i]);
+    for (int i = 0; i < nc; i++)
+        if (cerr[i] <= 1.25 * emin && ccost[i] < fcost) {
+            fcost = ccost[i];
+            fallback = cands[i];
+            fallback_err = cerr[i];
+        }
     info->tolerance_met = isfinite(best_cost);
     *chosen = info->tolerance_met ? best : fallback;
     info->estimated_error = info->tolerance_met ? best_err : fallback_err;

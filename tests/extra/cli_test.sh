@@ -390,8 +390,8 @@ awk 'BEGIN { for (y = 0; y < 32; y++) { l = ""; for (x = 0; x < 32; x++) l = l (
     printf '  - {label: 0, name: oxide, fwhm_um: 1.0, beta: 2.5}\n'
     printf '  - {label: 1, name: metal, fwhm_um: 2.0, beta: 1.3}\n'
 } >map_regions.yaml
-check_help forward --nodes --rank
-check_help correct --nodes --rank
+check_help forward --nodes --rank --operator-tol --max-memory
+check_help correct --nodes --rank --operator-tol --max-memory
 expect_ok map_fwd_plain forward --field Bz.txt --pl pl.txt --psf moffat.yaml --boundary mirror -o map_plain --format txt $FAST
 expect_ok map_fwd_uniform forward --field Bz.txt --pl pl.txt --psf map_uniform.yaml --boundary mirror -o map_uni --format txt $FAST
 check_close "PSF map of kind uniform = the plain PSF file (forward field)" map_plain/field.txt map_uni/field.txt 1e-12
@@ -425,6 +425,32 @@ if grep -q '"psf_map_kind": "regions"' map_r/summary.json && grep -q '"psf_rank"
     pass "regions map with a label image, low rank 4 on 6 x 6 samples: summary records it"
 else
     fail "regions map summary" "$(grep psf map_r/summary.json)"
+fi
+# without --nodes / --rank the representation is chosen by --operator-tol: summary and report
+expect_ok map_fwd_auto forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --operator-tol 3e-2 -o map_auto --format txt $FAST
+if grep -q '"psf_representation_chosen_by": "operator-tol"' map_auto/summary.json &&
+    grep -q '"operator_tolerance": 0.03' map_auto/summary.json &&
+    grep -q '"operator_tolerance_met": 1' map_auto/summary.json &&
+    grep -q '"operator_estimated_error"' map_auto/summary.json &&
+    grep -q '"operator_build_s"' map_auto/summary.json &&
+    grep -q 'Operator: .*estimated error .*budget 0.03.*built in' out.map_fwd_auto; then
+    pass "--operator-tol: summary.json and the report state the choice, its estimated error, build time and memory"
+else
+    fail "--operator-tol summary" "$(grep -E 'operator|psf_rep' map_auto/summary.json) / $(cat out.map_fwd_auto)"
+fi
+awk -F': ' '/"operator_estimated_error"/ { gsub(/,/, "", $2); exit !($2 + 0 <= 0.03) }' map_auto/summary.json &&
+    pass "--operator-tol 3e-2: the choice's estimated error is within it" ||
+    fail "--operator-tol estimate" "$(grep operator_estimated_error map_auto/summary.json)"
+expect_bad map_bad_tol "--operator-tol|0|(0, 1)" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --operator-tol 0 -o bad $FAST
+expect_bad map_bad_mem "--max-memory|12x" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --max-memory 12x -o bad $FAST
+# an operator beyond the memory limit is refused up front (exit 1) with what it would need
+expect_bad map_mem_refused "needs about|MB|memory limit" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --rank 4 --max-memory 64k -o bad_mem $FAST
+[ -e bad_mem ] && fail "refused --max-memory" "left bad_mem" || pass "an operator over --max-memory writes nothing"
+SVPSF_MAX_MEMORY=64k run map_mem_env forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 4 -o bad_mem $FAST
+if [ "$(cat rc.map_mem_env)" = 1 ] && grep -qF "needs about" err.map_mem_env; then
+    pass "SVPSF_MAX_MEMORY bounds the operator like --max-memory"
+else
+    fail "SVPSF_MAX_MEMORY" "exit $(cat rc.map_mem_env): $(cat err.map_mem_env)"
 fi
 # a point source keeps its flux through the region map
 awk 'BEGIN { for (y = 0; y < 32; y++) { l = ""; for (x = 0; x < 32; x++) l = l (x ? " " : "") (x == 15 && y == 16); print l } }' >map_point.txt

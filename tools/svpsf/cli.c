@@ -711,7 +711,7 @@ void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size)
         snprintf(what, sizeof what, "tent %d x %d", in.grid_x, in.grid_y);
     if (isfinite(in.estimated_error) && in.tolerance > 0)
         snprintf(err, sizeof err, ", estimated error %.2g (budget %.2g%s)", in.estimated_error,
-                 in.tolerance, in.tolerance_met ? "" : ", not met: the most accurate candidate");
+                 in.tolerance, in.tolerance_met ? "" : ", not met: the cheapest near the smallest error");
     else if (isfinite(in.estimated_error))
         snprintf(err, sizeof err, ", estimated error %.2g", in.estimated_error);
     snprintf(buf, size, " Operator: %s%s, built in %.2f s, %.0f MB.", what, err,
