@@ -88,10 +88,37 @@ typedef enum svp_blur_kind {
     SVP_BLUR_EXACT = 3    /* space-variant: the per-source reference sum (exact.c) */
 } svp_blur_kind;
 
+/* One operator interface: every representation fills a table of its application, adjoint,
+ * memory and release; svp_blur_apply / _adjoint / _memory / _free (operator.c) check the
+ * arguments and call through it. The tables: svp_invariant_ops (operator.c), svp_tent_ops and
+ * svp_lowrank_ops (variant.c), svp_exact_ops (exact.c). Image sizes are checked by the
+ * caller. memory counts what the representation holds besides the svp_blur's common part
+ * (counted by svp_blur_memory); release frees it. */
+typedef struct svp_blur_ops {
+    const char *name;
+    svp_status (*apply)(svp_blur *b, const double *restrict x, double *restrict y);
+    svp_status (*adjoint)(svp_blur *b, const double *restrict y, double *restrict x);
+    size_t (*memory)(const svp_blur *b);
+    void (*release)(svp_blur *b);
+    const double *(*halo_map)(const svp_blur *b); /* per-pixel halo (svp_blur_halo_map) */
+} svp_blur_ops;
+extern const svp_blur_ops svp_invariant_ops, svp_tent_ops, svp_lowrank_ops, svp_exact_ops;
+/* The common part only (what svp_variant_begin made), until a constructor sets its table. */
+extern const svp_blur_ops svp_variant_common_ops;
+
+/* A cache that a higher layer keeps with an operator (the solvers' workspace, restore/): the
+ * operator frees and counts it through the functions stored with it and never names them. */
+typedef struct svp_blur_cache {
+    void *data;
+    void (*release)(void *data);
+    size_t (*memory)(const void *data);
+} svp_blur_cache;
+
 typedef struct svp_variant_data svp_variant_data; /* variant.c */
 typedef struct svp_exact_data svp_exact_data;     /* exact.c */
 
 struct svp_blur {
+    const svp_blur_ops *ops;
     svp_blur_kind kind;
     int width, height;
     svp_boundary boundary;
@@ -115,12 +142,8 @@ struct svp_blur {
     svp_variant_data *variant;
     svp_exact_data *exact;
     double *work_r_image; /* width x height work image */
-    /* Zero-boundary Wiener (restore/wiener.c): its preconditioner's filter on `frame` for
-     * wiener_balance, ny x ncx, NULL until first used; freed with the operator. */
-    double *wiener_filter;
-    double wiener_balance;
-    int wiener_steps; /* CG steps and FFT pairs (at frame size) of the last zero-boundary */
-    int wiener_pairs; /* Wiener solve, for benchmarks and tests */
+    /* the solvers' workspace (restore/: Wiener filters, gains, frames; CG counts) */
+    svp_blur_cache restore;
     /* Single precision (svp_blur_set_single, invariant operators only): H and Hᵀ transform
      * in float on the same frame (row-pruned like `pruned` in zero mode); the buffers and the
      * OTF / (nx ny) in float are made on first use and kept. */
@@ -129,14 +152,6 @@ struct svp_blur {
     float *work_rf;
     fftwf_complex *work_cf;
     fftwf_complex *otf_f;
-    /* Periodic and mirror Wiener: the gain conj(P) / (|P|² + λ|L|²) for wiener_balance
-     * (valid when wiener_gain_ok); mirror also its full-period frame with OTF and buffers. All
-     * made on first use, freed with the operator. */
-    fftw_complex *wiener_gain;
-    int wiener_gain_ok;
-    svp_frame *wiener_frame;
-    double *wiener_work_r;
-    fftw_complex *wiener_work_c;
 };
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
@@ -151,21 +166,14 @@ void svp_blur_spectrum_in(svp_blur *b, const double *restrict image, int adjoint
 svp_status svp_blur_set_single(svp_blur *b, int on);
 void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
 
-/* Dispatch targets of svp_blur_apply / _adjoint / _free / _memory for kind != INVARIANT
- * (variant.c; it forwards SVP_BLUR_EXACT to the svp_exact_* functions of exact.c). Image
- * sizes are checked by the caller. */
-svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y);
-svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x);
-void svp_variant_release(svp_blur *b);
-size_t svp_variant_memory(const svp_blur *b);
+/* The parts of tent / low rank / exact operators that other files of blur/ share. */
 /* Tent / low rank: 1 when the term spectra are stored real (every term's kernel point-symmetric
  * and no row-pruning phase), 0 when complex. */
 int svp_variant_real_spectra(const svp_blur *b);
-svp_status svp_exact_apply(svp_blur *b, const double *restrict x, double *restrict y);
-svp_status svp_exact_adjoint(svp_blur *b, const double *restrict y, double *restrict x);
-void svp_exact_release(svp_blur *b);
-const double *svp_exact_halo_map(const svp_blur *b);
-size_t svp_exact_memory(const svp_blur *b);
+/* The common part of the space-variant kinds (variant.c): its memory, and its release (the
+ * field's copy and the work image). */
+size_t svp_variant_common_memory(const svp_blur *b);
+void svp_variant_common_release(svp_blur *b);
 /* Shared set-up of the variant kinds (variant.c): checks, the field's copy, kernel radii
  * (rx, ry) and support as svp_blur_new would choose them, the central PSF as stand-in. */
 svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
@@ -217,29 +225,5 @@ void svp_halo_gather(const double *restrict alpha, size_t n, const double *restr
                      double *restrict out);
 /* Image size >= 1 x 1 and a known boundary mode (operator.c; every operator constructor). */
 svp_status svp_blur_check_geometry(int width, int height, svp_boundary boundary);
-/* Tikhonov inverse filter in place (wiener.c): filt (ny x ncx, holding |Ĥ|²) becomes
- * 1 / (nx ny max(|Ĥ|² + λ |L̂|², 1e-12 max |Ĥ|²)), L̂ the 5-point Laplacian's transfer
- * function on the nx x ny frame. */
-void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance);
-/* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
- * both of the operator's size, x not y; `what` names the method in the message. */
-/* svp_deconv_rl that follows a given extrapolation path: with acceleration, alpha_in (may be
- * NULL: computed) gives the weight α of every iteration and alpha_out (may be NULL) receives the
- * ones used (options->iterations entries each). T⁻¹ runs its numerators on the PL's path, so
- * the two halves of (4) extrapolate alike and their errors cancel as without acceleration. */
-svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
-                              const svp_deconv_options *options, svp_image *x,
-                              const double *alpha_in, double *alpha_out);
-/* k² of the field noise model σ_B² = k² / Ĩ (noise.c); 0 when nothing is usable. */
-svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
-/* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0
- * estimated): Σ M (H x_λ − y)² / var = n_finite. *at_bound: −1 / +1 when the choice is the
- * lower / upper end of the search, else 0 (wiener.c). */
-svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,
-                                              const svp_image *variance, double sigma,
-                                              int cg_max_steps, double *balance,
-                                              double *sigma_used, int *at_bound);
-svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
-                                   const char *what);
 
 #endif

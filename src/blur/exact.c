@@ -147,6 +147,7 @@ svp_status svp_blur_new_exact_tab(const svp_psf_field *field, int width, int hei
     double sup;
     SVP_CHECK(svp_variant_begin(field, width, height, boundary, support, SVP_BLUR_EXACT, &b, &rx,
                                 &ry, &sup));
+    b->ops = &svp_exact_ops;
     svp_status st = SVP_OK;
     const size_t n = (size_t)width * height;
     const int kw = 2 * rx + 1, kh = 2 * ry + 1;
@@ -222,7 +223,7 @@ cleanup:
     return SVP_OK;
 }
 
-svp_status svp_exact_apply(svp_blur *b, const double *restrict x, double *restrict y)
+static svp_status exact_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
     const svp_exact_data *d = b->exact;
     const int w = b->width, h = b->height, rx = d->rx, ry = d->ry;
@@ -250,7 +251,7 @@ svp_status svp_exact_apply(svp_blur *b, const double *restrict x, double *restri
     return SVP_OK;
 }
 
-svp_status svp_exact_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
+static svp_status exact_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
     const svp_exact_data *d = b->exact;
     const int w = b->width, h = b->height, rx = d->rx, ry = d->ry;
@@ -282,11 +283,15 @@ svp_status svp_exact_adjoint(svp_blur *b, const double *restrict y, double *rest
     return SVP_OK;
 }
 
-const double *svp_exact_halo_map(const svp_blur *b) { return b->exact ? b->exact->alpha : NULL; }
+static const double *exact_halo_map(const svp_blur *b)
+{
+    return b->exact ? b->exact->alpha : NULL;
+}
 
-void svp_exact_release(svp_blur *b)
+static void exact_release(svp_blur *b)
 {
     svp_exact_data *d = b->exact;
+    svp_variant_common_release(b);
     if (!d) return;
     free(d->src);
     svp_free(d->alpha);
@@ -301,12 +306,12 @@ void svp_exact_release(svp_blur *b)
     b->exact = NULL;
 }
 
-size_t svp_exact_memory(const svp_blur *b)
+static size_t exact_memory(const svp_blur *b)
 {
     const svp_exact_data *d = b->exact;
-    if (!d) return 0;
+    if (!d) return svp_variant_common_memory(b);
     const size_t n = (size_t)b->width * b->height;
-    size_t bytes = sizeof *d + n * sizeof(source_eval);
+    size_t bytes = svp_variant_common_memory(b) + sizeof *d + n * sizeof(source_eval);
     if (d->alpha) bytes += n * sizeof(double);
     bytes += (size_t)(2 * (b->width + 2 * d->rx) + 2 * (b->height + 2 * d->ry) + b->width +
                       b->height + 2) *
@@ -314,3 +319,6 @@ size_t svp_exact_memory(const svp_blur *b)
     if (d->table) bytes += n * (size_t)(2 * d->rx + 1) * (2 * d->ry + 1) * sizeof(double);
     return bytes;
 }
+
+const svp_blur_ops svp_exact_ops = {"exact",      exact_apply,   exact_adjoint,
+                                    exact_memory, exact_release, exact_halo_map};

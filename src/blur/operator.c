@@ -358,6 +358,7 @@ svp_status svp_blur_new(const svp_psf *psf, int width, int height, svp_boundary 
     svp_blur *b = calloc(1, sizeof *b);
     if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
     b->kind = SVP_BLUR_INVARIANT;
+    b->ops = &svp_invariant_ops;
     b->width = width;
     b->height = height;
     b->boundary = boundary;
@@ -397,6 +398,7 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
     svp_blur *b = calloc(1, sizeof *b);
     if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
     b->kind = SVP_BLUR_INVARIANT;
+    b->ops = &svp_invariant_ops;
     b->width = width;
     b->height = height;
     b->boundary = boundary;
@@ -415,19 +417,12 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
 void svp_blur_free(svp_blur *b)
 {
     if (!b) return;
-    if (b->kind != SVP_BLUR_INVARIANT) svp_variant_release(b);
+    if (b->ops) b->ops->release(b);
+    if (b->restore.release) b->restore.release(b->restore.data);
     svp_frame_release(&b->frame);
     svp_image_free(b->kernel);
     svp_free(b->work_r);
     svp_free(b->work_c);
-    svp_free(b->wiener_filter);
-    svp_free(b->wiener_gain);
-    if (b->wiener_frame) {
-        svp_frame_release(b->wiener_frame);
-        free(b->wiener_frame);
-    }
-    svp_free(b->wiener_work_r);
-    svp_free(b->wiener_work_c);
     svp_free(b->work_rf);
     svp_free(b->work_cf);
     svp_free(b->otf_f);
@@ -441,21 +436,8 @@ double svp_blur_halo(const svp_blur *b) { return b->halo; }
 
 size_t svp_blur_memory(const svp_blur *b)
 {
-    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_memory(b);
-    size_t wiener = 0; /* the Wiener caches, once used */
-    const svp_frame *wf = b->wiener_frame ? b->wiener_frame : &b->frame;
-    if (b->wiener_filter) wiener += (size_t)b->frame.ny * b->frame.ncx * sizeof(double);
-    if (b->wiener_gain) wiener += (size_t)wf->ny * wf->ncx * sizeof(fftw_complex);
-    if (b->wiener_frame)
-        wiener += svp_frame_memory(wf) + (size_t)wf->ny * wf->nx * sizeof(double) +
-                  (size_t)wf->ny * wf->ncx * sizeof(fftw_complex);
-    size_t single = 0; /* the float frame, spectrum and OTF, once used */
-    if (b->rows_f)
-        single = (size_t)b->frame.ny * b->frame.nx * sizeof(float) +
-                 2 * (size_t)b->frame.ny * b->frame.ncx * sizeof(fftwf_complex);
-    return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
-           (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
-           (size_t)b->kernel->width * b->kernel->height * sizeof(double) + wiener + single;
+    const size_t cache = b->restore.memory ? b->restore.memory(b->restore.data) : 0;
+    return b->ops->memory(b) + cache;
 }
 
 static svp_status check_io(const svp_blur *b, const svp_image *in, const svp_image *out,
@@ -586,36 +568,62 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
         svp_frame_crop_f(f, fr, out);
 }
 
-svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
+/* ---- the invariant representation ----------------------------------------------------- */
+
+static svp_status invariant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
-    SVP_CHECK(check_io(b, x, y, "svp_blur_apply"));
-    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_apply(b, x->data, y->data);
     if (b->single) {
-        apply_single(b, x->data, y->data, 0);
-        add_halo(b, x->data, y->data);
+        apply_single(b, x, y, 0);
+        add_halo(b, x, y);
         return SVP_OK;
     }
     svp_frame *f = &b->frame;
-    svp_blur_spectrum_in(b, x->data, 0);
+    svp_blur_spectrum_in(b, x, 0);
     svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
-    svp_blur_spectrum_out(b, y->data, 0);
-    add_halo(b, x->data, y->data);
+    svp_blur_spectrum_out(b, y, 0);
+    add_halo(b, x, y);
     return SVP_OK;
+}
+
+static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
+{
+    if (b->single) {
+        apply_single(b, y, x, 1);
+        add_halo(b, y, x);
+        return SVP_OK;
+    }
+    svp_frame *f = &b->frame;
+    svp_blur_spectrum_in(b, y, 1);
+    svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
+    svp_blur_spectrum_out(b, x, 1);
+    add_halo(b, y, x);
+    return SVP_OK;
+}
+
+static size_t invariant_memory(const svp_blur *b)
+{
+    size_t single = 0; /* the float frame, spectrum and OTF, once used */
+    if (b->rows_f)
+        single = (size_t)b->frame.ny * b->frame.nx * sizeof(float) +
+                 2 * (size_t)b->frame.ny * b->frame.ncx * sizeof(fftwf_complex);
+    return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
+           (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
+           (size_t)b->kernel->width * b->kernel->height * sizeof(double) + single;
+}
+
+static void invariant_release(svp_blur *b) { (void)b; }
+
+const svp_blur_ops svp_invariant_ops = {"invariant",      invariant_apply,   invariant_adjoint,
+                                        invariant_memory, invariant_release, NULL};
+
+svp_status svp_blur_apply(svp_blur *b, const svp_image *x, svp_image *y)
+{
+    SVP_CHECK(check_io(b, x, y, "svp_blur_apply"));
+    return b->ops->apply(b, x->data, y->data);
 }
 
 svp_status svp_blur_adjoint(svp_blur *b, const svp_image *y, svp_image *x)
 {
     SVP_CHECK(check_io(b, y, x, "svp_blur_adjoint"));
-    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_adjoint(b, y->data, x->data);
-    if (b->single) {
-        apply_single(b, y->data, x->data, 1);
-        add_halo(b, y->data, x->data);
-        return SVP_OK;
-    }
-    svp_frame *f = &b->frame;
-    svp_blur_spectrum_in(b, y->data, 1);
-    svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
-    svp_blur_spectrum_out(b, x->data, 1);
-    add_halo(b, y->data, x->data);
-    return SVP_OK;
+    return b->ops->adjoint(b, y->data, x->data);
 }

@@ -458,9 +458,8 @@ static void accumulate_spectra(svp_variant_data *v, int k, int pair, int assign,
 }
 #undef SVP_ACCUMULATE
 
-svp_status svp_variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
+static svp_status variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
-    if (b->kind == SVP_BLUR_EXACT) return svp_exact_apply(b, x, y);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
     const size_t ns = (size_t)f->ny * f->ncx;
@@ -522,9 +521,8 @@ static void fold_spectrum_rows(const svp_frame *f, fftw_complex *restrict s)
     }
 }
 
-svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
+static svp_status variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
-    if (b->kind == SVP_BLUR_EXACT) return svp_exact_adjoint(b, y, x);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
     const svp_fft_block *p = v->block;
@@ -602,9 +600,8 @@ svp_status svp_variant_adjoint(svp_blur *b, const double *restrict y, double *re
     return SVP_OK;
 }
 
-void svp_variant_release(svp_blur *b)
+static void variant_release(svp_blur *b)
 {
-    if (b->kind == SVP_BLUR_EXACT) svp_exact_release(b);
     svp_variant_data *v = b->variant;
     if (v) {
         if (v->otf)
@@ -635,19 +632,30 @@ void svp_variant_release(svp_blur *b)
         free(v);
         b->variant = NULL;
     }
+    svp_variant_common_release(b);
+}
+
+void svp_variant_common_release(svp_blur *b)
+{
     svp_free(b->work_r_image);
     b->work_r_image = NULL;
     svp_psf_field_free(b->field);
     b->field = NULL;
 }
 
-size_t svp_variant_memory(const svp_blur *b)
+size_t svp_variant_common_memory(const svp_blur *b)
 {
     size_t bytes = sizeof *b;
     const size_t n = (size_t)b->width * b->height;
     if (b->kernel) bytes += (size_t)b->kernel->width * b->kernel->height * sizeof(double);
     if (b->work_r_image) bytes += n * sizeof(double);
-    if (b->kind == SVP_BLUR_EXACT) return bytes + svp_exact_memory(b);
+    return bytes;
+}
+
+static size_t variant_memory(const svp_blur *b)
+{
+    size_t bytes = svp_variant_common_memory(b);
+    const size_t n = (size_t)b->width * b->height;
     const svp_variant_data *v = b->variant;
     const size_t spectrum = (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex);
     bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
@@ -673,6 +681,20 @@ size_t svp_variant_memory(const svp_blur *b)
     return bytes;
 }
 
+const svp_blur_ops svp_variant_common_ops = {"space-variant (being built)", NULL, NULL,
+                                             svp_variant_common_memory,
+                                             svp_variant_common_release, NULL};
+
+static const double *variant_halo_map(const svp_blur *b)
+{
+    return b->variant ? b->variant->alpha : NULL;
+}
+
+const svp_blur_ops svp_tent_ops = {"tent",         variant_apply,   variant_adjoint,
+                                   variant_memory, variant_release, variant_halo_map};
+const svp_blur_ops svp_lowrank_ops = {"low rank",     variant_apply,   variant_adjoint,
+                                      variant_memory, variant_release, variant_halo_map};
+
 int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
                      const double **coef)
 {
@@ -697,10 +719,7 @@ int svp_blur_is_variant(const svp_blur *b) { return b && b->kind != SVP_BLUR_INV
 const double *svp_blur_halo_map(const svp_blur *b)
 {
     if (!b) return NULL;
-    if (b->kind == SVP_BLUR_TENT || b->kind == SVP_BLUR_LOWRANK)
-        return b->variant ? b->variant->alpha : NULL;
-    if (b->kind == SVP_BLUR_EXACT) return svp_exact_halo_map(b);
-    return NULL;
+    return b->ops->halo_map ? b->ops->halo_map(b) : NULL;
 }
 
 svp_status svp_blur_psf_at(const svp_blur *b, double x, double y, svp_psf *out)
@@ -772,6 +791,10 @@ svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
     svp_blur *b = calloc(1, sizeof *b);
     if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
     b->kind = kind;
+    /* the exact operator's constructor (exact.c) puts its own table in place */
+    b->ops = kind == SVP_BLUR_TENT      ? &svp_tent_ops
+             : kind == SVP_BLUR_LOWRANK ? &svp_lowrank_ops
+                                        : &svp_variant_common_ops;
     b->width = width;
     b->height = height;
     b->boundary = boundary;

@@ -7,7 +7,7 @@
  * in a periodic frame of the image size: exact for an invariant periodic H without missing
  * data, where CG then stops after one step at the Wiener–Hunt solution. For a space-variant H
  * |Ĥ_c|² is replaced by the envelope max_s |Ĥ_s|² of PSFs sampled on a 5 x 5 grid. */
-#include "../blur/blur_internal.h"
+#include "restore_internal.h"
 
 #include <math.h>
 #include <stdlib.h>

@@ -3,7 +3,7 @@
  * caller gives no per-pixel σ. Both are estimated from the images with the Immerkær mask
  * N = [1 −2 1; −2 4 −2; 1 −2 1], whose response to white noise of variance v has variance 36 v
  * and which cancels locally quadratic signal. */
-#include "../blur/blur_internal.h"
+#include "restore_internal.h"
 
 #include <math.h>
 #include <stdlib.h>

@@ -6,7 +6,7 @@
  * RL, exact for a periodic unit-flux operator without missing data), floor = options->floor ·
  * max(y). Started flat at the mean of the finite data (RL forgets the start's scale after one
  * iteration). */
-#include "../blur/blur_internal.h"
+#include "restore_internal.h"
 
 #include <float.h>
 #include <math.h>

@@ -2,7 +2,7 @@
  * docs/model.md, and the closed-form halo correction (eq. 7). Everything goes through
  * svp_blur_apply / svp_blur_adjoint and the two deconvolutions, so the same code serves
  * space-invariant and space-variant operators. */
-#include "../blur/blur_internal.h"
+#include "restore_internal.h"
 
 #include <math.h>
 #include <stdint.h>

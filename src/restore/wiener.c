@@ -7,7 +7,7 @@
  * The zero boundary (light leaving the field is lost: no frame makes it Fourier-diagonal)
  * solves the same regularised problem of the linear operator by preconditioned CG
  * (wiener_zero below). Space-variant operators go to svp_deconv_tikhonov_cg (cg.c). */
-#include "../blur/blur_internal.h"
+#include "restore_internal.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -197,6 +197,60 @@ cleanup:
     return st;
 }
 
+/* ---- the solvers' workspace kept with the operator ---------------------------------------- */
+
+static void cache_release(void *data)
+{
+    svp_restore_cache *c = data;
+    if (!c) return;
+    svp_free(c->wiener_filter);
+    svp_free(c->wiener_gain);
+    if (c->wiener_frame) {
+        svp_frame_release(c->wiener_frame);
+        free(c->wiener_frame);
+    }
+    svp_free(c->wiener_work_r);
+    svp_free(c->wiener_work_c);
+    free(c);
+}
+
+/* The caches once made: the zero-boundary filter (on the operator's frame), the gain and the
+ * mirror Wiener's own frame with its buffers. */
+static size_t cache_memory(const void *data)
+{
+    const svp_restore_cache *c = data;
+    if (!c) return 0;
+    size_t bytes = sizeof *c;
+    const svp_frame *wf = c->wiener_frame;
+    if (c->wiener_filter) bytes += c->filter_bytes;
+    if (c->wiener_gain) bytes += c->gain_bytes;
+    if (wf)
+        bytes += svp_frame_memory(wf) + (size_t)wf->ny * wf->nx * sizeof(double) +
+                 (size_t)wf->ny * wf->ncx * sizeof(fftw_complex);
+    return bytes;
+}
+
+svp_restore_cache *svp_restore_cache_of(svp_blur *blur)
+{
+    if (blur->restore.data) return blur->restore.data;
+    svp_restore_cache *c = calloc(1, sizeof *c);
+    if (!c) {
+        svp_fail(SVP_ERR_NOMEM, "out of memory for the solver's workspace");
+        return NULL;
+    }
+    blur->restore.data = c;
+    blur->restore.release = cache_release;
+    blur->restore.memory = cache_memory;
+    return c;
+}
+
+void svp_restore_wiener_counts(const svp_blur *blur, int *steps, int *pairs)
+{
+    const svp_restore_cache *c = blur->restore.data;
+    *steps = c ? c->wiener_steps : 0;
+    *pairs = c ? c->wiener_pairs : 0;
+}
+
 /* Wiener–Hunt for the invariant operator with the periodic or mirror boundary, in a frame that
  * makes the problem Fourier-diagonal: periodic → the periodic frame at the image size; mirror
  * → the full symmetric period (2 width x 2 height) with the data mirror-extended.
@@ -213,6 +267,8 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
+    svp_restore_cache *rc = svp_restore_cache_of(blur);
+    if (!rc) return SVP_ERR_NOMEM;
     double *lap_x = NULL, *lap_y = NULL, *residual = NULL, *scratch = NULL;
     svp_status st = SVP_OK;
     /* The frame, its OTF, its buffers and the gain are cached in the operator: periodic uses
@@ -222,44 +278,45 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
     double *frame = blur->work_r;
     fftw_complex *spectrum = blur->work_c;
     if (blur->boundary == SVP_BOUNDARY_MIRROR) {
-        if (!blur->wiener_frame) {
+        if (!rc->wiener_frame) {
             svp_frame *nf = calloc(1, sizeof *nf);
             if (!nf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a Wiener frame");
             if ((st = svp_frame_init(nf, w, h, w, h, SVP_BOUNDARY_MIRROR)) == SVP_OK)
                 st = svp_frame_set_kernel(nf, blur->kernel, blur->kcx, blur->kcy,
                                           SVP_BOUNDARY_MIRROR);
             if (st == SVP_OK) {
-                blur->wiener_work_r = svp_alloc((size_t)nf->ny * nf->nx * sizeof(double));
-                blur->wiener_work_c = svp_alloc((size_t)nf->ny * nf->ncx * sizeof(fftw_complex));
-                if (!blur->wiener_work_r || !blur->wiener_work_c)
+                rc->wiener_work_r = svp_alloc((size_t)nf->ny * nf->nx * sizeof(double));
+                rc->wiener_work_c = svp_alloc((size_t)nf->ny * nf->ncx * sizeof(fftw_complex));
+                if (!rc->wiener_work_r || !rc->wiener_work_c)
                     st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener frame",
                                   nf->nx, nf->ny);
             }
             if (st != SVP_OK) {
                 svp_frame_release(nf);
                 free(nf);
-                svp_free(blur->wiener_work_r);
-                svp_free(blur->wiener_work_c);
-                blur->wiener_work_r = NULL;
-                blur->wiener_work_c = NULL;
+                svp_free(rc->wiener_work_r);
+                svp_free(rc->wiener_work_c);
+                rc->wiener_work_r = NULL;
+                rc->wiener_work_c = NULL;
                 return st;
             }
-            blur->wiener_frame = nf;
-            blur->wiener_gain_ok = 0;
+            rc->wiener_frame = nf;
+            rc->wiener_gain_ok = 0;
         }
-        fp = blur->wiener_frame;
-        frame = blur->wiener_work_r;
-        spectrum = blur->wiener_work_c;
+        fp = rc->wiener_frame;
+        frame = rc->wiener_work_r;
+        spectrum = rc->wiener_work_c;
     }
     const svp_frame *f = fp;
     const int nx = f->nx, ny = f->ny, ncx = f->ncx;
     const size_t nc = (size_t)ny * ncx;
-    if (!blur->wiener_gain) {
-        blur->wiener_gain = svp_alloc(nc * sizeof(fftw_complex));
-        blur->wiener_gain_ok = 0;
+    if (!rc->wiener_gain) {
+        rc->wiener_gain = svp_alloc(nc * sizeof(fftw_complex));
+        rc->gain_bytes = nc * sizeof(fftw_complex);
+        rc->wiener_gain_ok = 0;
     }
-    fftw_complex *gain = blur->wiener_gain;
-    const int need_gain = !(blur->wiener_gain_ok && blur->wiener_balance == balance);
+    fftw_complex *gain = rc->wiener_gain;
+    const int need_gain = !(rc->wiener_gain_ok && rc->wiener_balance == balance);
     if (need_gain || filled) {
         lap_x = malloc((size_t)ncx * sizeof(double));
         lap_y = malloc((size_t)ny * sizeof(double));
@@ -281,7 +338,7 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
     /* gain G = conj(P) / (|P|² + λ|L|²) / (nx ny); residual filter R = λ|L|² / (...) too */
     const double scale = 1.0 / ((double)nx * ny);
     if (need_gain || filled) {
-        blur->wiener_gain_ok = 0;
+        rc->wiener_gain_ok = 0;
 #pragma omp parallel for schedule(static) if (nc > 32768)
         for (int v = 0; v < ny; v++) {
             for (int u = 0; u < ncx; u++) {
@@ -297,8 +354,8 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
                 if (residual) residual[k] = denom > 0 ? prior / denom * scale : 0.0;
             }
         }
-        blur->wiener_balance = balance;
-        blur->wiener_gain_ok = 1;
+        rc->wiener_balance = balance;
+        rc->wiener_gain_ok = 1;
     }
     if (filled) {
         residual_op op = {f, residual, frame, spectrum, scratch};
@@ -397,24 +454,29 @@ void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double 
 /* The preconditioner's filter on the operator's frame for this balance, cached in the blur. */
 static svp_status zero_filter(svp_blur *blur, double balance, const double **out)
 {
+    svp_restore_cache *rc = svp_restore_cache_of(blur);
+    if (!rc) return SVP_ERR_NOMEM;
     const svp_frame *f = &blur->frame;
     const int ncx = f->ncx, ny = f->ny;
     const size_t nc = (size_t)ny * ncx;
-    if (blur->wiener_filter && blur->wiener_balance == balance) {
-        *out = blur->wiener_filter;
+    if (rc->wiener_filter && rc->wiener_balance == balance) {
+        *out = rc->wiener_filter;
         return SVP_OK;
     }
-    if (!blur->wiener_filter) blur->wiener_filter = svp_alloc(nc * sizeof(double));
-    if (!blur->wiener_filter)
+    if (!rc->wiener_filter) {
+        rc->wiener_filter = svp_alloc(nc * sizeof(double));
+        rc->filter_bytes = nc * sizeof(double);
+    }
+    if (!rc->wiener_filter)
         return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d Wiener filter", f->nx, ny);
-    double *restrict filt = blur->wiener_filter;
+    double *restrict filt = rc->wiener_filter;
     const double keep = 1.0 - blur->halo;
     for (size_t k = 0; k < nc; k++) {
         double complex hk = keep * svp_frame_otf(f, k) + (k == 0 ? blur->halo : 0.0);
         filt[k] = creal(hk) * creal(hk) + cimag(hk) * cimag(hk);
     }
     svp_tikhonov_invert(filt, f->nx, ny, ncx, balance);
-    blur->wiener_balance = balance;
+    rc->wiener_balance = balance;
     *out = filt;
     return SVP_OK;
 }
@@ -437,6 +499,8 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
+    svp_restore_cache *rc = svp_restore_cache_of(blur);
+    if (!rc) return SVP_ERR_NOMEM;
     const double *filter = NULL;
     svp_status st = zero_filter(blur, balance, &filter);
     if (st != SVP_OK) return st;
@@ -505,8 +569,8 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
     for (size_t i = 0; i < n; i++)
         if (!isfinite(x_data[i])) x_data[i] = 0.0;
-    blur->wiener_steps = it;
-    blur->wiener_pairs = pairs;
+    rc->wiener_steps = it;
+    rc->wiener_pairs = pairs;
     if (report) {
         report->cg_steps = it;
         report->cg_residual = rhs_norm > 0 && isfinite(rhs_norm) ? res_norm / rhs_norm : 0.0;

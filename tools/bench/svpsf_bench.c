@@ -20,7 +20,7 @@
  * seconds; maxrss_mb is the process's peak resident memory (getrusage). Exit 3 when the
  * library reports the feature as not available yet (SVP_ERR_UNSUPPORTED). */
 #include "bench_common.h"
-#include "blur/blur_internal.h"
+#include "restore/restore_internal.h"
 
 #include <math.h>
 #include <stdint.h>
@@ -423,8 +423,7 @@ static int bench_inverse(const bench_args *a)
             goto cleanup;
         }
         total[r] = t1 - t0;
-        wiener_pairs = blur->wiener_pairs; /* of the Wiener inside T⁻¹ */
-        wiener_steps = blur->wiener_steps;
+        svp_restore_wiener_counts(blur, &wiener_steps, &wiener_pairs); /* of the Wiener in T⁻¹ */
         /* the two deconvolutions alone, for the breakdown (the Wiener on B̃Ĩ, as in T⁻¹) */
         if ((st = svp_deconv_rl(blur, pl_app, &o.deconv, pl_rec)) != SVP_OK) {
             rc = fail("svp_deconv_rl", st);
