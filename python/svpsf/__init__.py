@@ -325,11 +325,12 @@ class Blur:
     """The blur operator H for an image shape (height, width): svp_blur_new (a PSF),
     svp_blur_new_kernel (a kernel image, normalised, centre at (w // 2, h // 2)) or
     svp_blur_new_field (a PSFMap: tent nodes, or rank R eigen-PSFs on the nodes grid, as
-    `--nodes`/`--rank`). psf may also be a file name (read_psf); boundary None = the file's,
+    `--nodes`/`--rank`; neither: the representation chosen by operator_tol, default 1e-3, as
+    `--operator-tol`). psf may also be a file name (read_psf); boundary None = the file's,
     else 'zero'. Building it plans the FFTs once: reuse it for many images of one size. One
     Blur must not be used from two threads at once."""
 
-    def __init__(self, psf, shape, boundary=None, nodes=(8, 8), rank=None):
+    def __init__(self, psf, shape, boundary=None, nodes=None, rank=None, operator_tol=None):
         if isinstance(psf, (str, bytes, os.PathLike)):
             f = read_psf(psf)
             psf = f.psf
@@ -343,9 +344,13 @@ class Blur:
         elif isinstance(psf, PSFMap):
             v = ffi.new("svp_variant_options *")
             lib.svp_variant_defaults(v)
-            nx, ny = (nodes, nodes) if np.isscalar(nodes) else nodes
-            v.grid_x = v.samples_x = int(nx)
-            v.grid_y = v.samples_y = int(ny)
+            if nodes is not None:
+                nx, ny = (nodes, nodes) if np.isscalar(nodes) else nodes
+                v.grid_x = v.samples_x = int(nx)
+                v.grid_y = v.samples_y = int(ny)
+                v.representation = lib.SVP_VARIANT_TENT
+            if operator_tol is not None:
+                v.tolerance = float(operator_tol)
             if rank is not None:
                 v.representation = lib.SVP_VARIANT_LOWRANK
                 v.rank = int(rank)
@@ -426,7 +431,7 @@ def _same_shape(arrays, names):
 ForwardResult = namedtuple("ForwardResult", "pl fields validity")
 
 
-def forward(pl, fields, psf, boundary=None, nodes=(8, 8), rank=None):
+def forward(pl, fields, psf, boundary=None, nodes=None, rank=None):
     """The forward transform T (eq. 3 of docs/model.md): what a blurred measurement of the true
     PL and field map(s) reports; `svpsf forward`. fields: one 2-D map or a list. psf: a PSF,
     PSFMap, kernel image, file name or a Blur of the maps' shape. Returns (pl, fields,
@@ -462,7 +467,7 @@ def _report(r):
 def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=None,
             pl_floor=None, shift=None, cg_max_steps=None, precision="double",
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
-            keep_doubtful=False, plausible_factor=None, boundary=None, nodes=(8, 8), rank=None,
+            keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
             field_names=None):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
@@ -547,7 +552,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
 
 
 def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=50,
-               precision="double", cg_max_steps=400, boundary=None, nodes=(8, 8), rank=None):
+               precision="double", cg_max_steps=400, boundary=None, nodes=None, rank=None):
     """One image ⊘ one PSF: Wiener–Hunt ('wiener'; balance λ or 'auto' by the discrepancy
     principle, noise σ or 0 = estimated) or Richardson–Lucy ('rl'); `svpsf deconvolve`.
     Returns (x, report): the deconvolved image and a dict of what was done."""
