@@ -540,6 +540,7 @@ static svp_status make_region_blur(run_ctx *c, const scene_psf *p, int w, int h,
     if (st == SVP_OK) {
         svp_variant_options o;
         svp_variant_defaults(&o);
+        o.representation = SVP_VARIANT_TENT; /* the scene's node grid, as before */
         o.grid_x = p->nodes_x;
         o.grid_y = p->nodes_y;
         st = svp_blur_new_field(field, w, h, p->boundary, &o, out);
