@@ -234,6 +234,9 @@ typedef struct svp_deconv_report {
     int balance_at_bound; /* discrepancy balance: -1 / +1 when the choice ended on the lower /
                              upper end of its search (the data cannot tell λ: see svp_correct's
                              doubt checks), else 0 */
+    int balance_lcurve; /* svp_inverse_transform's automatic balance: 1 when no balance the
+                           search could solve met the noise level and the L-curve's corner was
+                           taken instead (docs/model.md §6), else 0 */
     /* Richardson–Lucy */
     int iterations;     /* iterations taken */
     double chi2;        /* with auto_stop: the last iterate's residual χ² per finite datum,
@@ -365,7 +368,7 @@ typedef struct svp_correct_options {
                                     pl_floor · max(PL) before dividing; pixels below it have
                                     validity < 1; default 1e-3 */
     double shift;                /* c of the signed shift (methods R, RL_SIGNED); 0 (default)
-                                    = automatic per component: c = 2 · max|B̃| over the
+                                    = automatic per component: c = 100 · max|B̃| over the
                                     measured pixels (1 for an all-zero map; docs/model.md §3).
                                     An explicit c must give B̃ + c > 0 at every measured pixel
                                     of every component. */

@@ -511,7 +511,8 @@ sig=$(jnum corr_auto/summary.json noise_sigma_pl)
 lam10=$(jnum corr_auto10/summary.json balance_pl)
 lam_dec=$(jnum dec_auto_pl.summary.json balance)
 if grep -q '"noise_sigma_from": "estimated"' corr_auto/summary.json && [ -n "$lam_f" ] &&
-    grep -q "discrepancy principle: PL" out.corr_auto &&
+    grep -q "automatic balance: PL [0-9.e+-]* (discrepancy principle" out.corr_auto &&
+    grep -q "\"balance_rule_pl\": \"discrepancy\"" corr_auto/summary.json &&
     awk -v s="$sig" 'BEGIN { exit !(s > 0.0085 && s < 0.0115) }'; then
     pass "correct --balance auto records balance_pl $lam, balance_field $lam_f and the PL's noise estimate $sig (true 0.01)"
 else

@@ -415,6 +415,8 @@ int cmd_correct(int argc, char **argv)
             cli_result_num(&run, key, r->balance);
             snprintf(key, sizeof key, "noise_sigma_%s", name);
             cli_result_num(&run, key, r->noise_sigma);
+            snprintf(key, sizeof key, "balance_rule_%s", name);
+            cli_result_str(&run, key, r->balance_lcurve ? "lcurve" : "discrepancy");
             char what[600];
             if (k == 0)
                 snprintf(what, sizeof what, "the PL %s", maps.pl_path);
@@ -426,9 +428,13 @@ int cmd_correct(int argc, char **argv)
                 cli_result_str(&run, key, bound);
             }
             if (at < sizeof bal)
-                at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (noise sigma %g)",
-                                       at ? "," : ", balance by the discrepancy principle:",
-                                       k == 0 ? "PL" : name, r->balance, r->noise_sigma);
+                at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (%s, noise sigma %g)",
+                                       at ? "," : ", automatic balance:", k == 0 ? "PL" : name,
+                                       r->balance,
+                                       r->balance_lcurve ? "L-curve corner: the noise level is "
+                                                           "out of reach"
+                                                         : "discrepancy principle",
+                                       r->noise_sigma);
         }
         if (r->cg_steps > 0) {
             snprintf(key, sizeof key, "cg_steps_%s", name);
