@@ -468,7 +468,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
     'double' | 'single'; acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
-    PSF, zero boundary); gain, offset of the PL's camera; field_sigma one σ map per field.
+    PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
+    gain, offset of the PL's camera; field_sigma one σ map per field.
     None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
