@@ -707,6 +707,13 @@ typedef enum svp_register_motion {
     SVP_MOTION_AFFINE = 2       /* full 2 x 3 affine, 6 parameters (ECC only) */
 } svp_register_motion;
 
+typedef enum svp_register_contrast {
+    SVP_CONTRAST_AUTO = 0,    /* the sign of the correlation peak decides (default) */
+    SVP_CONTRAST_SAME = 1,    /* bright in one image is bright in the other */
+    SVP_CONTRAST_INVERTED = 2 /* bright in one is dark in the other: a label mask of regions
+                                 that are dark in the PL (a metal wire), a negative */
+} svp_register_contrast;
+
 typedef struct svp_register_options {
     svp_register_method method; /* default SVP_REGISTER_PHASE */
     svp_register_motion motion; /* default SVP_MOTION_TRANSLATION; phase correlation accepts
@@ -747,6 +754,13 @@ typedef struct svp_register_options {
     const char *reference_name, *moving_name; /* optional: what error messages call the two
                             images (their files, say); NULL (default) = "reference image",
                             "moving image" */
+    svp_register_contrast contrast; /* AUTO (default): the phase-correlation surface is
+                            searched for its highest peak and its deepest trough; the trough
+                            wins when its significance (of the negated surface) is the higher,
+                            and the moving image is then registered (and ECC run, and the
+                            quality measured) with its contrast inverted. SAME / INVERTED force
+                            the sign. ECC with initial_affine and AUTO keeps the contrast as it
+                            is (nothing measures it). */
 } svp_register_options;
 
 SVP_API void svp_register_defaults(svp_register_options *options);
@@ -785,6 +799,13 @@ typedef struct svp_register_result {
     size_t nonfinite_reference; /* NaN/Inf pixels, filled from their neighbours for the
                                    estimation and left out of correlation and residual */
     size_t nonfinite_moving;
+    int inverted;       /* 1 when the moving image was registered with its contrast inverted
+                           (options->contrast INVERTED, or AUTO finding the trough more
+                           significant than the peak); correlation and residual_rms are then
+                           those of the inverted moving image */
+    double significance_other; /* the significance of the opposite sign's extremum (the
+                           trough when not inverted, the peak when inverted): how clearly the
+                           sign was decided; NaN when not measured */
 } svp_register_result;
 
 /* Estimates the transform that maps reference pixel coordinates to moving pixel coordinates
