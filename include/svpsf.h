@@ -77,9 +77,22 @@ typedef enum svp_fft_effort {
     SVP_FFT_MEASURE = 1   /* FFTW_MEASURE (default): slower first plan per size, faster FFTs */
 } svp_fft_effort;
 SVP_API void svp_set_fft_effort(svp_fft_effort effort);
-/* FFTW wisdom: plans measured once can be saved and reused across runs. */
+/* FFTW wisdom: plans measured once can be saved and reused across runs. Loading adds the
+ * file's wisdom (double and single precision) to what the process holds; a malformed file is
+ * refused (SVP_ERR_IO naming it) before FFTW sees it. Saving writes everything the process
+ * holds to a temporary file in the same folder and renames it into place, so a concurrent
+ * reader sees the old file or the new one, never a part (in place, when the folder is not
+ * writable). To share one file between concurrent processes, load it again just before
+ * saving (docs/api.md, "Shared machines"). */
 SVP_API svp_status svp_fft_wisdom_load(const char *path);
 SVP_API svp_status svp_fft_wisdom_save(const char *path);
+/* Called before the library measures FFT plans (SVP_FFT_MEASURE) that no loaded wisdom
+ * covers: ny x nx is the transform (ny = 1 for 1-D row transforms), single_precision 1 for
+ * float plans. Measuring takes ~0.1 s at 512 x 512 to seconds at 2048 x 2048, so a program
+ * can tell its user why it is waiting. The callback runs under the library's FFT lock, on the
+ * thread that plans: it must not call the library. NULL (default): none. Process-wide. */
+typedef void (*svp_fft_plan_fn)(void *user, int ny, int nx, int single_precision);
+SVP_API void svp_set_fft_plan_callback(svp_fft_plan_fn callback, void *user);
 /* The smallest 2,3,5,7-smooth integer >= n (n >= 1). */
 SVP_API int svp_fft_good_size(int n);
 
