@@ -77,9 +77,22 @@ typedef enum svp_fft_effort {
     SVP_FFT_MEASURE = 1   /* FFTW_MEASURE (default): slower first plan per size, faster FFTs */
 } svp_fft_effort;
 SVP_API void svp_set_fft_effort(svp_fft_effort effort);
-/* FFTW wisdom: plans measured once can be saved and reused across runs. */
+/* FFTW wisdom: plans measured once can be saved and reused across runs. Loading adds the
+ * file's wisdom (double and single precision) to what the process holds; a malformed file is
+ * refused (SVP_ERR_IO naming it) before FFTW sees it. Saving writes everything the process
+ * holds to a temporary file in the same folder and renames it into place, so a concurrent
+ * reader sees the old file or the new one, never a part (in place, when the folder is not
+ * writable). To share one file between concurrent processes, load it again just before
+ * saving (docs/api.md, "Shared machines"). */
 SVP_API svp_status svp_fft_wisdom_load(const char *path);
 SVP_API svp_status svp_fft_wisdom_save(const char *path);
+/* Called before the library measures FFT plans (SVP_FFT_MEASURE) that no loaded wisdom
+ * covers: ny x nx is the transform (ny = 1 for 1-D row transforms), single_precision 1 for
+ * float plans. Measuring takes ~0.1 s at 512 x 512 to seconds at 2048 x 2048, so a program
+ * can tell its user why it is waiting. The callback runs under the library's FFT lock, on the
+ * thread that plans: it must not call the library. NULL (default): none. Process-wide. */
+typedef void (*svp_fft_plan_fn)(void *user, int ny, int nx, int single_precision);
+SVP_API void svp_set_fft_plan_callback(svp_fft_plan_fn callback, void *user);
 /* The smallest 2,3,5,7-smooth integer >= n (n >= 1). */
 SVP_API int svp_fft_good_size(int n);
 
@@ -710,6 +723,13 @@ typedef enum svp_register_motion {
     SVP_MOTION_AFFINE = 2       /* full 2 x 3 affine, 6 parameters (ECC only) */
 } svp_register_motion;
 
+typedef enum svp_register_contrast {
+    SVP_CONTRAST_AUTO = 0,    /* the sign of the correlation peak decides (default) */
+    SVP_CONTRAST_SAME = 1,    /* bright in one image is bright in the other */
+    SVP_CONTRAST_INVERTED = 2 /* bright in one is dark in the other: a label mask of regions
+                                 that are dark in the PL (a metal wire), a negative */
+} svp_register_contrast;
+
 typedef struct svp_register_options {
     svp_register_method method; /* default SVP_REGISTER_PHASE */
     svp_register_motion motion; /* default SVP_MOTION_TRANSLATION; phase correlation accepts
@@ -750,6 +770,13 @@ typedef struct svp_register_options {
     const char *reference_name, *moving_name; /* optional: what error messages call the two
                             images (their files, say); NULL (default) = "reference image",
                             "moving image" */
+    svp_register_contrast contrast; /* AUTO (default): the phase-correlation surface is
+                            searched for its highest peak and its deepest trough; the trough
+                            wins when its significance (of the negated surface) is the higher,
+                            and the moving image is then registered (and ECC run, and the
+                            quality measured) with its contrast inverted. SAME / INVERTED force
+                            the sign. ECC with initial_affine and AUTO keeps the contrast as it
+                            is (nothing measures it). */
 } svp_register_options;
 
 SVP_API void svp_register_defaults(svp_register_options *options);
@@ -788,6 +815,13 @@ typedef struct svp_register_result {
     size_t nonfinite_reference; /* NaN/Inf pixels, filled from their neighbours for the
                                    estimation and left out of correlation and residual */
     size_t nonfinite_moving;
+    int inverted;       /* 1 when the moving image was registered with its contrast inverted
+                           (options->contrast INVERTED, or AUTO finding the trough more
+                           significant than the peak); correlation and residual_rms are then
+                           those of the inverted moving image */
+    double significance_other; /* the significance of the opposite sign's extremum (the
+                           trough when not inverted, the peak when inverted): how clearly the
+                           sign was decided; NaN when not measured */
 } svp_register_result;
 
 /* Estimates the transform that maps reference pixel coordinates to moving pixel coordinates

@@ -141,10 +141,15 @@ static void free_kvs(cli_kv *kv, int n)
 int cli_run_finish(cli_run *run, int exit_code)
 {
     if (run->stage_open) cli_stage_end(run);
+    svp_set_fft_plan_callback(NULL, NULL);
     if (run->wisdom && exit_code == CLI_EXIT_OK) {
         svp_status st = svp_fft_wisdom_save(run->wisdom);
         if (st != SVP_OK) exit_code = cli_fail(run, st, "--wisdom");
     }
+    /* measured plans are good whatever the outcome: kept for the next run */
+    cli_wisdom_cache_save(run);
+    free(run->wisdom_cache);
+    run->wisdom_cache = NULL;
     for (int i = 0; i < run->n_inputs; i++) {
         free(run->inputs[i].role);
         free(run->inputs[i].path);
@@ -223,6 +228,7 @@ enum {
     OPT_THREADS,
     OPT_WISDOM,
     OPT_FFT,
+    OPT_NO_WISDOM_CACHE,
 };
 
 #define MAX_OPTIONS 64
@@ -340,6 +346,7 @@ static int apply_common(cli_run *run)
 {
     if (run->threads > 0) svp_set_threads(run->threads);
     svp_set_fft_effort(run->fft_measure ? SVP_FFT_MEASURE : SVP_FFT_ESTIMATE);
+    svp_set_fft_plan_callback(cli_plan_callback, run);
     if (run->wisdom) {
         /* the wisdom is saved at the end of a successful run: a path that cannot be written is
          * refused now, before any work or output, not after all outputs were written */
@@ -369,6 +376,10 @@ static int apply_common(cli_run *run)
         svp_status st = svp_fft_wisdom_load(run->wisdom);
         if (st != SVP_OK) return cli_fail(run, st, run->wisdom);
     }
+    /* the wisdom cache: commands that take --fft, when measuring, without --wisdom FILE */
+    if ((run->common & CLI_COMMON_FFT) && run->fft_measure && !run->wisdom &&
+        !run->no_wisdom_cache && !cli_wisdom_cache_disabled())
+        cli_wisdom_cache_open(run);
     return 0;
 }
 
@@ -389,6 +400,7 @@ int cli_next_option(cli_run *run, const struct option *own)
     if (run->common & CLI_COMMON_FFT) {
         opts[n++] = (struct option){"wisdom", required_argument, NULL, OPT_WISDOM};
         opts[n++] = (struct option){"fft", required_argument, NULL, OPT_FFT};
+        opts[n++] = (struct option){"no-wisdom-cache", no_argument, NULL, OPT_NO_WISDOM_CACHE};
     }
     opts[n] = (struct option){NULL, 0, NULL, 0};
     const char *shorts = (run->common & CLI_COMMON_OUTPUT) ? ":hqo:" : ":hq";
@@ -428,6 +440,7 @@ int cli_next_option(cli_run *run, const struct option *own)
             break;
         }
         case OPT_WISDOM: run->wisdom = optarg; break;
+        case OPT_NO_WISDOM_CACHE: run->no_wisdom_cache = 1; break;
         case OPT_FFT: {
             static const char *const names[] = {"estimate", "measure", NULL};
             int i = 0;
@@ -459,7 +472,11 @@ void cli_print_common_help(const cli_run *run, FILE *out)
                 "                        run (default %s)\n"
                 "  --wisdom FILE         load FFTW wisdom from FILE when it exists and save it\n"
                 "                        there after a successful run; FILE's folder must\n"
-                "                        exist (checked before any work) (default: none)\n",
+                "                        exist (checked before any work) (default: the cache)\n"
+                "  --no-wisdom-cache     do not load or save the FFTW wisdom cache\n"
+                "                        ($XDG_CACHE_HOME/svpsf/wisdom, else\n"
+                "                        ~/.cache/svpsf/wisdom; also SVPSF_NO_WISDOM_CACHE=1),\n"
+                "                        used when measuring without --wisdom\n",
                 run->fft_measure ? "measure" : "estimate");
     fputs("  -q, --quiet           no progress and no notes on stderr (errors still shown)\n"
           "  -h, --help            this help\n",
@@ -1216,6 +1233,14 @@ int cli_summary_write(cli_run *run, const char *path)
     svp_json_int(j, svp_get_threads());
     svp_json_key(j, "fft_planning");
     svp_json_string(j, run->fft_measure ? "measure" : "estimate");
+    svp_json_key(j, "fft_wisdom");
+    svp_json_string(j, run->wisdom ? run->wisdom : run->wisdom_cache ? run->wisdom_cache : "");
+    const char *policy_source = NULL;
+    const char *policy = cli_omp_wait_policy(&policy_source);
+    svp_json_key(j, "omp_wait_policy");
+    svp_json_string(j, policy);
+    svp_json_key(j, "omp_wait_policy_from");
+    svp_json_string(j, policy_source);
 
     svp_json_key(j, "timings_s");
     svp_json_begin_object(j);
