@@ -93,13 +93,13 @@ static void assert_contains(const char *haystack, const char *needle)
         assert_contains(svp_last_error(), (needle));                                               \
     } while (0)
 
-/* No ".tmp" leftovers of atomic writes in the test folder. */
+/* No temporary files of atomic writes (".<name>.svpsf-tmp-<pid>-XXXXXX") left behind. */
 static void assert_no_temporaries(void)
 {
     DIR *d = opendir(tmpdir);
     struct dirent *e;
     while ((e = readdir(d)) != NULL)
-        if (strstr(e->d_name, ".tmp")) fail_msg("temporary file left behind: %s", e->d_name);
+        if (strstr(e->d_name, SVP_IO_TEMP_TAG)) fail_msg("temporary file left behind: %s", e->d_name);
     closedir(d);
 }
 

@@ -9,6 +9,7 @@
 #include <yaml.h>
 #include <limits.h>
 #include <math.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -115,8 +116,35 @@ double cli_now(void)
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
 
+/* SIGTERM, SIGINT, SIGHUP, SIGQUIT: the temporary files of writes under way are removed, then
+ * the signal ends the process as it would have (docs/reliability.md, interrupted runs). */
+static void remove_temps_and_die(int sig)
+{
+    svp_io_temp_remove_all(); /* unlink() only: async-signal-safe */
+    raise(sig);               /* SA_RESETHAND: the default action now */
+}
+
+static void install_temp_cleanup(void)
+{
+    static int installed;
+    if (installed) return;
+    installed = 1;
+    static const int sigs[] = {SIGTERM, SIGINT, SIGHUP, SIGQUIT};
+    for (size_t i = 0; i < sizeof sigs / sizeof sigs[0]; i++) {
+        struct sigaction old, sa;
+        /* a signal ignored on entry (nohup, a background shell) stays ignored */
+        if (sigaction(sigs[i], NULL, &old) != 0 || old.sa_handler == SIG_IGN) continue;
+        memset(&sa, 0, sizeof sa);
+        sa.sa_handler = remove_temps_and_die;
+        sa.sa_flags = SA_RESETHAND;
+        sigemptyset(&sa.sa_mask);
+        sigaction(sigs[i], &sa, NULL);
+    }
+}
+
 void cli_run_init(cli_run *run, const char *command, int argc, char **argv, unsigned common)
 {
+    install_temp_cleanup();
     memset(run, 0, sizeof *run);
     run->command = command;
     run->argc = argc;
