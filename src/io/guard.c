@@ -85,7 +85,7 @@ svp_status svp_io_memory_budget(double *bytes, char *source, size_t source_size)
 static void format_bytes(double b, char *buf, size_t size)
 {
     if (b >= 0x1p30)
-        snprintf(buf, size, "%.1f GiB", b / 0x1p30);
+        snprintf(buf, size, "%.2f GiB", b / 0x1p30);
     else if (b >= 0x1p20)
         snprintf(buf, size, "%.1f MiB", b / 0x1p20);
     else

@@ -129,6 +129,15 @@ expect_refused "npy over SVPSF_MAX_MEMORY=2M" \
 SVPSF_MAX_MEMORY=24M
 awk 'BEGIN { for (y = 0; y < 1500; y++) { l = ""; for (x = 0; x < 2000; x++) l = l "0 "; print l } }' >z.txt
 expect_refused "text over SVPSF_MAX_MEMORY=24M" "z.txt: reading its numbers needs|more than the 24.0 MiB allowed" $DEC z.txt
+# a PSF map's operator is estimated before it is built: 64 tent nodes on a frame of at least
+# 399 x 399 pixels (no support: the whole view), 2 x 64 x 8 x 399^2 bytes, and 10 images
+awk 'BEGIN { for (y = 0; y < 200; y++) { l = ""; for (x = 0; x < 200; x++) l = l "1 "; print l } }' >f200.txt
+printf 'pixel_um: 0.1\nimage: {width: 200, height: 200}\nkind: poly\nmodel: gaussian\ndegree: 1\ncoefficients: {fwhm_um: [0.4, 0.05, 0.0]}\n' >map200.yaml
+SVPSF_MAX_MEMORY=64M
+expect_refused "PSF-map operator over SVPSF_MAX_MEMORY=64M" \
+    "map200.yaml: building the space-variant operator (64 tent nodes on a frame of at least 399 x 399 pixels) needs 158.5 MiB of memory, more than the 64.0 MiB allowed" \
+    forward --field f200.txt --pl f200.txt --psf map200.yaml --nodes 8x8 -o fwd200 --fft estimate
+[ -e fwd200 ] && fail "no output after a refusal" "fwd200 exists"
 SVPSF_MAX_MEMORY=lots
 expect_refused "SVPSF_MAX_MEMORY=lots" "SVPSF_MAX_MEMORY=lots is not a memory size" $DEC z.txt
 unset SVPSF_MAX_MEMORY

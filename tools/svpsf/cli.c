@@ -652,11 +652,43 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
     return 0;
 }
 
+/* The memory building a space-variant operator needs, estimated from below before it is built
+ * (docs/reliability.md): one spectrum per term (tent node or eigen-PSF) of a frame at least the
+ * image plus the kernel radius, twice over while they are made, the low-rank SVD's sampled
+ * kernels, and ten images for the solvers. */
+static svp_status check_variant_memory(const cli_psf *psf, int width, int height)
+{
+    const svp_variant_options *v = &psf->variant;
+    const double w = width, h = height;
+    const double gx = v->grid_x < width ? v->grid_x : width;
+    const double gy = v->grid_y < height ? v->grid_y : height;
+    const int lowrank = v->representation == SVP_VARIANT_LOWRANK;
+    const double terms = lowrank ? v->rank : gx * gy;
+    double r = v->support;
+    svp_psf centre;
+    if (!(r > 0) && svp_psf_field_at(psf->field, (w - 1) / 2, (h - 1) / 2, &centre) == SVP_OK)
+        r = centre.support;
+    const double rx = r > 0 && ceil(r) < w - 1 ? ceil(r) : w - 1;
+    const double ry = r > 0 && ceil(r) < h - 1 ? ceil(r) : h - 1;
+    const double frame = (w + rx) * (h + ry);
+    double bytes = 2.0 * terms * 8.0 * frame + 10.0 * 8.0 * w * h;
+    if (lowrank)
+        bytes += (double)v->samples_x * v->samples_y * (2 * rx + 1) * (2 * ry + 1) * 8.0;
+    char what[160];
+    snprintf(what, sizeof what,
+             "building the space-variant operator (%.0f %s on a frame of at least %.0f x %.0f "
+             "pixels)",
+             terms, lowrank ? "eigen-PSFs" : "tent nodes", w + rx, h + ry);
+    return svp_io_check_memory(psf->path, what, bytes);
+}
+
 int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
                  svp_blur **out)
 {
     svp_status st;
     if (psf->field) {
+        if ((st = check_variant_memory(psf, width, height)) != SVP_OK)
+            return cli_fail(run, st, NULL);
         st = svp_blur_new_field(psf->field, width, height, boundary, &psf->variant, out);
         if (st == SVP_OK)
             cli_setting_int(run, "psf_operator_bytes", (long long)svp_blur_memory(*out));
