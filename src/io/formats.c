@@ -646,8 +646,8 @@ static svp_status read_text(const char *path, char *text, size_t size, svp_image
                     /* the file, the buffer while it moves, and the image made from it */
                     if (new_cap >= ((size_t)1 << 21) &&
                         (st = svp_io_check_memory(path, "reading its numbers",
-                                                  (double)size + 8.0 * (double)(cap + 2 * new_cap))) !=
-                            SVP_OK)
+                                                  (double)size +
+                                                      8.0 * (double)(cap + 2 * new_cap))) != SVP_OK)
                         goto cleanup;
                     double *bigger = realloc(values, new_cap * sizeof *values);
                     if (!bigger) {
@@ -773,8 +773,8 @@ static svp_status png_critical_chunks(const char *path, const unsigned char *byt
             /* OpenCV decodes gray + alpha and colour to up to 4 channels */
             const double channels = d[9] == 0 ? 1 : 4, sample = d[8] == 16 ? 2 : 1;
             SVP_CHECK(svp_io_check_memory(path, "decoding the PNG",
-                                          2.0 * (double)size + (double)w * (double)h *
-                                                                   (channels * sample + 8.0)));
+                                          2.0 * (double)size +
+                                              (double)w * (double)h * (channels * sample + 8.0)));
         }
         /* critical chunks have an upper-case first letter (bit 5 clear) */
         if (!(type[0] & 0x20)) {
@@ -804,11 +804,11 @@ static uint64_t tiff_entry_value(const unsigned char *b, size_t size, const unsi
                                  int little, int big)
 {
     const int type = (int)tiff_get(entry + 2, 2, little);
-    const int tsize = type == 1 || type == 6   ? 1
-                      : type == 3 || type == 8 ? 2
-                      : type == 4 || type == 9 ? 4
+    const int tsize = type == 1 || type == 6     ? 1
+                      : type == 3 || type == 8   ? 2
+                      : type == 4 || type == 9   ? 4
                       : type == 16 || type == 17 ? 8
-                                               : 0;
+                                                 : 0;
     if (!tsize) return 0;
     const int is_signed = type == 6 || type == 8 || type == 9 || type == 17;
     const int count_bytes = big ? 8 : 4, inline_bytes = big ? 8 : 4;
@@ -842,7 +842,7 @@ static void tiff_scan_page(const unsigned char *b, size_t size, uint64_t ifd, ui
     for (uint64_t k = 0; k < n; k++) {
         const unsigned char *e = b + ifd + (uint64_t)count_bytes + k * (uint64_t)entry_bytes;
         const unsigned tag = (unsigned)tiff_get(e, 2, little);
-        const unsigned bit = tag >= 256 && tag <= 278 ? 1u << (tag - 256)
+        const unsigned bit = tag >= 256 && tag <= 278   ? 1u << (tag - 256)
                              : tag == 322 || tag == 323 ? 1u << (tag - 322 + 23)
                                                         : 0;
         if (!bit || (seen & bit)) continue;
@@ -871,9 +871,11 @@ static void tiff_scan_page(const unsigned char *b, size_t size, uint64_t ifd, ui
     const double sample = bits > 8 ? (double)((bits + 7) / 8) : 1;
     const double pixels = (double)width * (double)height;
     scan->decoded += pixels * (channels * sample + (double)sizeof(double));
-    double tile = tile_w && tile_h ? (double)tile_w * (double)tile_h
-                                   : (double)width * (double)(rows_per_strip && rows_per_strip <
-                                                                  height ? rows_per_strip : height);
+    double tile =
+        tile_w && tile_h
+            ? (double)tile_w * (double)tile_h
+            : (double)width *
+                  (double)(rows_per_strip && rows_per_strip < height ? rows_per_strip : height);
     tile *= channels * sample;
     if (tile > scan->tile_max) scan->tile_max = tile;
 }
@@ -928,8 +930,7 @@ static svp_status tiff_check(const char *path, const unsigned char *bytes, size_
         return svp_fail(SVP_ERR_FORMAT, "%s: a TIFF of %lld pages is too large", path, *pages);
     if (scan.big_page) {
         char where[64] = "";
-        if (*pages > 1)
-            snprintf(where, sizeof where, "page %lld of %lld: ", scan.big_page, *pages);
+        if (*pages > 1) snprintf(where, sizeof where, "page %lld of %lld: ", scan.big_page, *pages);
         return svp_io_check_image_size(path, where, scan.big_width, scan.big_height);
     }
     char what[96];

@@ -52,10 +52,22 @@ static int parse_size(const char *text, double *bytes)
     if (end == text || errno || !(v > 0) || v > 1e18) return 0;
     double unit = 1;
     switch (toupper((unsigned char)*end)) {
-    case 'K': unit = 0x1p10; end++; break;
-    case 'M': unit = 0x1p20; end++; break;
-    case 'G': unit = 0x1p30; end++; break;
-    case 'T': unit = 0x1p40; end++; break;
+    case 'K':
+        unit = 0x1p10;
+        end++;
+        break;
+    case 'M':
+        unit = 0x1p20;
+        end++;
+        break;
+    case 'G':
+        unit = 0x1p30;
+        end++;
+        break;
+    case 'T':
+        unit = 0x1p40;
+        end++;
+        break;
     default: break;
     }
     if (unit > 1 && (*end == 'i' || *end == 'I')) end++;
@@ -180,8 +192,8 @@ void svp_io_temp_remove_stale(const char *folder, const char *base)
         /* a process that no longer exists (ESRCH) cannot finish its write; EPERM: it exists */
         if (pid > INT_MAX || (kill((pid_t)pid, 0) != 0 && errno == ESRCH)) {
             char path[PATH_MAX];
-            if (snprintf(path, sizeof path, "%s/%s", folder && *folder ? folder : ".",
-                         e->d_name) < (int)sizeof path)
+            if (snprintf(path, sizeof path, "%s/%s", folder && *folder ? folder : ".", e->d_name) <
+                (int)sizeof path)
                 unlink(path);
         }
     }

@@ -316,6 +316,9 @@ if [ -n "$REG" ] && [ -d "$REG" ]; then
         txt) cp "$f" in.txt && expect_ends "fuzz txt $b" deconvolve in.txt --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
         tiff) cp "$f" in.tif && expect_ends "fuzz tiff $b" deconvolve in.tif --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
         png) cp "$f" in.png && expect_ends "fuzz png $b" deconvolve in.png --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        stack) case $(head -c 2 "$f") in II | MM) e=tif ;; *) e=npy ;; esac
+            cp "$f" "in_stack.$e" && expect_ends "fuzz stack $b" \
+                fit-odmr "in_stack.$e" --frequencies 2.80:2.94:5 -o "o_$b" ;;
         wisdom) cp "$f" in.wisdom && expect_ends "fuzz wisdom $b" \
             forward --field f.txt --pl pl.txt --psf good.yaml -o "w_$b" --wisdom in.wisdom ;;
         esac

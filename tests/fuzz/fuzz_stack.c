@@ -7,8 +7,8 @@
 
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
 {
-    const int tiff = size >= 2 && ((data[0] == 'I' && data[1] == 'I') ||
-                                   (data[0] == 'M' && data[1] == 'M'));
+    const int tiff =
+        size >= 2 && ((data[0] == 'I' && data[1] == 'I') || (data[0] == 'M' && data[1] == 'M'));
     const char *path = fuzz_write(tiff ? "stack.tif" : "stack.npy", data, size);
     svp_stack *s = NULL;
     svp_status st = svp_stack_read(path, &s);

@@ -672,8 +672,7 @@ static svp_status check_variant_memory(const cli_psf *psf, int width, int height
     const double ry = r > 0 && ceil(r) < h - 1 ? ceil(r) : h - 1;
     const double frame = (w + rx) * (h + ry);
     double bytes = 2.0 * terms * 8.0 * frame + 10.0 * 8.0 * w * h;
-    if (lowrank)
-        bytes += (double)v->samples_x * v->samples_y * (2 * rx + 1) * (2 * ry + 1) * 8.0;
+    if (lowrank) bytes += (double)v->samples_x * v->samples_y * (2 * rx + 1) * (2 * ry + 1) * 8.0;
     char what[160];
     snprintf(what, sizeof what,
              "building the space-variant operator (%.0f %s on a frame of at least %.0f x %.0f "
