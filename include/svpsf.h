@@ -121,7 +121,11 @@ SVP_API size_t svp_image_count_nonfinite(const svp_image *image);
 /* Reads a single-channel image. The format follows the extension: .tif/.tiff (float32,
  * float64, 8/16-bit integer), .png (8/16-bit), .npy (float32/float64/integers, C or Fortran
  * order, 2-D), .txt/.csv/.dat (numbers as numpy.savetxt writes them, whitespace or comma
- * separated, '#' comments). Errors name the file and the fault. */
+ * separated, '#' comments). Errors name the file and the fault. An image may have at most
+ * 2^28 pixels, each side at most 2^20 (SVP_ERR_FORMAT, checked from the file's header before
+ * decoding); the memory the decoding needs is checked first against the environment variable
+ * SVPSF_MAX_MEMORY, else the memory available (SVP_ERR_INVALID "<path>: ... needs N of memory,
+ * more than the M allowed"; docs/reliability.md). svp_stack_read likewise, for all pages. */
 SVP_API svp_status svp_image_read(const char *path, svp_image **out);
 /* A stack where one image is expected is refused (SVP_ERR_FORMAT) naming its page count:
  *   "<path>: multi-page TIFF of 5 pages: expected one image (a stack is read as an ODMR stack

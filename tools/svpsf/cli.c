@@ -9,6 +9,7 @@
 #include <yaml.h>
 #include <limits.h>
 #include <math.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -115,8 +116,35 @@ double cli_now(void)
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
 
+/* SIGTERM, SIGINT, SIGHUP, SIGQUIT: the temporary files of writes under way are removed, then
+ * the signal ends the process as it would have (docs/reliability.md, interrupted runs). */
+static void remove_temps_and_die(int sig)
+{
+    svp_io_temp_remove_all(); /* unlink() only: async-signal-safe */
+    raise(sig);               /* SA_RESETHAND: the default action now */
+}
+
+static void install_temp_cleanup(void)
+{
+    static int installed;
+    if (installed) return;
+    installed = 1;
+    static const int sigs[] = {SIGTERM, SIGINT, SIGHUP, SIGQUIT};
+    for (size_t i = 0; i < sizeof sigs / sizeof sigs[0]; i++) {
+        struct sigaction old, sa;
+        /* a signal ignored on entry (nohup, a background shell) stays ignored */
+        if (sigaction(sigs[i], NULL, &old) != 0 || old.sa_handler == SIG_IGN) continue;
+        memset(&sa, 0, sizeof sa);
+        sa.sa_handler = remove_temps_and_die;
+        sa.sa_flags = SA_RESETHAND;
+        sigemptyset(&sa.sa_mask);
+        sigaction(sigs[i], &sa, NULL);
+    }
+}
+
 void cli_run_init(cli_run *run, const char *command, int argc, char **argv, unsigned common)
 {
+    install_temp_cleanup();
     memset(run, 0, sizeof *run);
     run->command = command;
     run->argc = argc;
@@ -641,11 +669,42 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
     return 0;
 }
 
+/* The memory building a space-variant operator needs, estimated from below before it is built
+ * (docs/reliability.md): one spectrum per term (tent node or eigen-PSF) of a frame at least the
+ * image plus the kernel radius, twice over while they are made, the low-rank SVD's sampled
+ * kernels, and ten images for the solvers. */
+static svp_status check_variant_memory(const cli_psf *psf, int width, int height)
+{
+    const svp_variant_options *v = &psf->variant;
+    const double w = width, h = height;
+    const double gx = v->grid_x < width ? v->grid_x : width;
+    const double gy = v->grid_y < height ? v->grid_y : height;
+    const int lowrank = v->representation == SVP_VARIANT_LOWRANK;
+    const double terms = lowrank ? v->rank : gx * gy;
+    double r = v->support;
+    svp_psf centre;
+    if (!(r > 0) && svp_psf_field_at(psf->field, (w - 1) / 2, (h - 1) / 2, &centre) == SVP_OK)
+        r = centre.support;
+    const double rx = r > 0 && ceil(r) < w - 1 ? ceil(r) : w - 1;
+    const double ry = r > 0 && ceil(r) < h - 1 ? ceil(r) : h - 1;
+    const double frame = (w + rx) * (h + ry);
+    double bytes = 2.0 * terms * 8.0 * frame + 10.0 * 8.0 * w * h;
+    if (lowrank) bytes += (double)v->samples_x * v->samples_y * (2 * rx + 1) * (2 * ry + 1) * 8.0;
+    char what[160];
+    snprintf(what, sizeof what,
+             "building the space-variant operator (%.0f %s on a frame of at least %.0f x %.0f "
+             "pixels)",
+             terms, lowrank ? "eigen-PSFs" : "tent nodes", w + rx, h + ry);
+    return svp_io_check_memory(psf->path, what, bytes);
+}
+
 int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
                  svp_blur **out)
 {
     svp_status st;
     if (psf->field) {
+        if ((st = check_variant_memory(psf, width, height)) != SVP_OK)
+            return cli_fail(run, st, NULL);
         st = svp_blur_new_field(psf->field, width, height, boundary, &psf->variant, out);
         if (st == SVP_OK)
             cli_setting_int(run, "psf_operator_bytes", (long long)svp_blur_memory(*out));
