@@ -160,7 +160,7 @@ SVP_API svp_status svp_mat_read_stack(const char *path, const char *variable, sv
                                       svp_mat_info *info);
 /* Writes n images as double variables names[i] (MATLAB names: a letter, then letters, digits
  * or '_', at most 63; distinct) into one v7 MAT-file (zlib-compressed, as MATLAB's save), and
- * with pixel_um > 0 the scalar `step` = pixel_um * 1e-6 (metres, as QDMlab writes it).
+ * with pixel_um > 0 the scalar `step` = pixel_um / 1e6 (metres, as QDMlab writes it).
  * Atomic like svp_image_write; overwrite == 0 never replaces a file (SVP_ERR_EXISTS). */
 SVP_API svp_status svp_mat_write(const char *path, int n, const char *const *names,
                                  const svp_image *const *images, double pixel_um, int overwrite);

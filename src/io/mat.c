@@ -229,6 +229,50 @@ static void mat_file_close(mat_file *f)
     f->vars = NULL;
 }
 
+/* The top-level data elements after the header: each an 8-byte tag (type, byte count) and
+ * its bytes (miMATRIX or miCOMPRESSED), the last ending at the end of the file.
+ * libmatio reads a variable cut short as if it were whole (the missing values left as they
+ * were in memory), so a file that ends inside an element is refused here. */
+static svp_status check_elements(const char *path, long long bytes, int big_endian)
+{
+    FILE *fp = fopen(path, "rb");
+    if (!fp) return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
+    long long pos = 128;
+    int index = 0;
+    svp_status st = SVP_OK;
+    while (pos < bytes) {
+        unsigned char t[8];
+        index++;
+        if (bytes - pos < 8 || fseeko(fp, (off_t)pos, SEEK_SET) != 0 || fread(t, 1, 8, fp) != 8) {
+            st = svp_fail(SVP_ERR_FORMAT,
+                          "%s: truncated: the file ends inside the tag of data element %d (byte "
+                          "%lld of %lld)",
+                          path, index, pos, bytes);
+            break;
+        }
+        uint32_t type, n;
+        if (big_endian) {
+            type = (uint32_t)t[0] << 24 | (uint32_t)t[1] << 16 | (uint32_t)t[2] << 8 | t[3];
+            n = (uint32_t)t[4] << 24 | (uint32_t)t[5] << 16 | (uint32_t)t[6] << 8 | t[7];
+        } else {
+            type = (uint32_t)t[3] << 24 | (uint32_t)t[2] << 16 | (uint32_t)t[1] << 8 | t[0];
+            n = (uint32_t)t[7] << 24 | (uint32_t)t[6] << 16 | (uint32_t)t[5] << 8 | t[4];
+        }
+        long long end = pos + 8 + (long long)n; /* n counts a plain matrix's own padding */
+        (void)type;
+        if (end > bytes) {
+            st = svp_fail(SVP_ERR_FORMAT,
+                          "%s: truncated: data element %d (at byte %lld) needs %lld bytes, the "
+                          "file ends at %lld",
+                          path, index, pos, end, bytes);
+            break;
+        }
+        pos = end;
+    }
+    fclose(fp);
+    return st;
+}
+
 /* The v5 header: 116 bytes of text, 8 of subsystem offset, version and endian indicator. */
 static svp_status check_header(const char *path, long long bytes)
 {
@@ -259,7 +303,7 @@ static svp_status check_header(const char *path, long long bytes)
     if (version != 0x0100)
         return svp_fail(SVP_ERR_FORMAT, "%s: unknown MAT-file version 0x%04x (expected 0x0100)",
                         path, (unsigned)version);
-    return SVP_OK;
+    return check_elements(path, bytes, h[126] == 'M');
 }
 
 static svp_status mat_file_open(const char *path, mat_file *f)
@@ -802,7 +846,7 @@ svp_status svp_mat_write(const char *path, int n, const char *const *names,
         st = write_var(mat, path, names[i], col, h, w);
     }
     if (st == SVP_OK && pixel_um > 0) {
-        double step = pixel_um * 1e-6; /* metres, as QDMlab writes it */
+        double step = pixel_um / 1e6; /* metres, as QDMlab writes it */
         st = write_var(mat, path, "step", &step, 1, 1);
     }
     if (Mat_Close(mat) != 0 && st == SVP_OK)

@@ -3,6 +3,7 @@
 
 #include "io/image_io.h"
 #include "io/json.h"
+#include "io/mat.h"
 #include "io/yaml.h"
 
 #include <errno.h>
@@ -418,9 +419,10 @@ int cli_next_option(cli_run *run, const struct option *own)
                 return CLI_OPTION_ERROR;
             break;
         case OPT_FORMAT: {
-            static const char *const names[] = {"tif", "npy", "txt", "tiff", NULL};
+            static const char *const names[] = {"tif", "npy", "txt", "tiff", "mat", NULL};
             static const svp_file_format formats[] = {SVP_FORMAT_TIFF, SVP_FORMAT_NPY,
-                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF};
+                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF,
+                                                      SVP_FORMAT_MAT};
             int i = 0;
             if (cli_parse_choice(run, "--format", optarg, names, &i)) return CLI_OPTION_ERROR;
             run->format = formats[i];
@@ -443,8 +445,9 @@ int cli_next_option(cli_run *run, const struct option *own)
 void cli_print_common_help(const cli_run *run, FILE *out)
 {
     if (run->common & CLI_COMMON_FORMAT)
-        fputs("  --format tif|npy|txt  format of the image outputs: float32 TIFF, float64 .npy,\n"
-              "                        or numpy.savetxt text (default tif)\n",
+        fputs("  --format tif|npy|txt|mat  format of the image outputs: float32 TIFF, float64\n"
+              "                        .npy, numpy.savetxt text, or MATLAB .mat (one variable\n"
+              "                        named after the file; default tif)\n",
               out);
     if (run->common & CLI_COMMON_OUTPUT)
         fputs("  --force               overwrite existing outputs (default: refuse, and write\n"
@@ -498,6 +501,10 @@ const char *const cli_precision_names[] = {"double", "single", NULL};
 static long long file_size(const char *path)
 {
     struct stat st;
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    if (stat(path, &st) != 0 && svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad))
+        path = file; /* "FILE.mat:VAR" */
     return stat(path, &st) == 0 ? (long long)st.st_size : -1;
 }
 
@@ -785,6 +792,7 @@ const char *cli_format_extension(svp_file_format format)
     switch (format) {
     case SVP_FORMAT_NPY: return "npy";
     case SVP_FORMAT_TXT: return "txt";
+    case SVP_FORMAT_MAT: return "mat";
     case SVP_FORMAT_PNG16: return "png";
     default: return "tif";
     }
@@ -797,6 +805,13 @@ svp_file_format cli_format_of_path(const char *path)
     if (has_extension(path, "txt") || has_extension(path, "csv") || has_extension(path, "dat"))
         return SVP_FORMAT_TXT;
     if (has_extension(path, "png")) return SVP_FORMAT_PNG16;
+    if (has_extension(path, "mat")) return SVP_FORMAT_MAT;
+    {
+        /* "OUT.mat:VAR" names the variable */
+        char file[PATH_MAX], var[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad)) return SVP_FORMAT_MAT;
+    }
     return SVP_FORMAT_AUTO;
 }
 
