@@ -14,6 +14,7 @@
 #include <stdio.h>
 #include <sys/stat.h>
 #include <unistd.h>
+#include <zlib.h>
 
 static char tmpdir[64];
 
@@ -22,6 +23,22 @@ static int make_tmpdir(void **state)
     (void)state;
     strcpy(tmpdir, "/tmp/svpsf-test-mat-XXXXXX");
     return mkdtemp(tmpdir) ? 0 : -1;
+}
+
+/* With SVP_TEST_MAT_KEEP=DIR the files written here are copied into DIR first (the seeds of
+ * the fuzz target tests/fuzz/fuzz_mat.c come from there). */
+static void keep_copy(const char *path, const char *name)
+{
+    const char *keep = getenv("SVP_TEST_MAT_KEEP");
+    if (!keep || !*keep) return;
+    char dest[600];
+    snprintf(dest, sizeof dest, "%s/%s", keep, name);
+    FILE *in = fopen(path, "rb"), *out = in ? fopen(dest, "wb") : NULL;
+    char buf[4096];
+    size_t n;
+    while (in && out && (n = fread(buf, 1, sizeof buf, in)) > 0) fwrite(buf, 1, n, out);
+    if (in) fclose(in);
+    if (out) fclose(out);
 }
 
 static int remove_tmpdir(void **state)
@@ -34,6 +51,7 @@ static int remove_tmpdir(void **state)
     while ((e = readdir(d)) != NULL) {
         if (!strcmp(e->d_name, ".") || !strcmp(e->d_name, "..")) continue;
         snprintf(path, sizeof path, "%s/%s", tmpdir, e->d_name);
+        keep_copy(path, e->d_name);
         remove(path);
     }
     closedir(d);
@@ -587,10 +605,34 @@ static void test_too_large_and_truncated(void **state)
     svp_image *img = NULL;
     char want[900];
     snprintf(want, sizeof want,
-             "%s: variable Bz claims 10000000000 elements, more than the file's %lld bytes can "
-             "hold (truncated or corrupt)",
-             path, (long long)sb.st_size);
+             "%s: data element 1 (at byte 128): variable Bz: 48 bytes of data for 10000000000 "
+             "values of 8 bytes",
+             path);
     assert_error(svp_image_read(path, &img), SVP_ERR_FORMAT, want);
+    (void)sb;
+
+    /* a compressed variable claiming 20000 x 20000 uint8 values whose stream holds only the
+     * variable's head: refused by deflate's largest ratio (1032:1) before any allocation */
+    uint32_t inner[] = {MAT_T_MATRIX, 0,      MAT_T_UINT32, 8, MAT_C_UINT8, 0, MAT_T_INT32, 8,
+                        20000,        20000,  0x00020001,   0, MAT_T_UINT8, 400000000};
+    memcpy(&inner[11], "Bz\0\0", 4);
+    inner[1] = 48 + 400000000;
+    unsigned char packed[256];
+    uLongf packed_n = sizeof packed;
+    assert_int_equal(compress2(packed, &packed_n, (const Bytef *)inner, sizeof inner, 6), Z_OK);
+    const char *zbig = tpath("zbig.mat");
+    mat = create(zbig);
+    Mat_Close(mat); /* the header only */
+    f = fopen(zbig, "ab");
+    uint32_t tag[2] = {MAT_T_COMPRESSED, (uint32_t)packed_n};
+    fwrite(tag, 4, 2, f);
+    fwrite(packed, 1, packed_n, f);
+    fclose(f);
+    snprintf(want, sizeof want,
+             "%s: variable Bz claims 400000000 elements, more than its %lld compressed bytes "
+             "can hold (corrupt)",
+             zbig, (long long)packed_n + 8);
+    assert_error(svp_image_read(zbig, &img), SVP_ERR_FORMAT, want);
 
     /* truncated files: every cut of a compressed and of a plain file ends in an error naming
      * the file (or, cut after the last variable's data, in the same values) */

@@ -26,6 +26,7 @@
 #include <strings.h>
 #include <sys/stat.h>
 #include <unistd.h>
+#include <zlib.h>
 
 /* Largest number of variables listed from one file (a QDMlab file has about ten). */
 #define MAT_MAX_VARIABLES 4096
@@ -122,12 +123,15 @@ typedef struct var_info {
     size_t dims[3]; /* the first three dimensions (rank <= 3) */
     int dims_ok;    /* the dimensions' product fits size_t */
     size_t n;       /* elements */
+    long long pos, size; /* the variable's data element in the file: offset and bytes */
 } var_info;
 
 typedef struct mat_file {
     const char *path;
     long long bytes;
-    mat_t *mat;
+    int big_endian;
+    mat_t *mat;     /* libmatio on the extract (extract_vars), NULL before */
+    char *extract;  /* that file's path */
     var_info *vars;
     int n_vars;
 } mat_file;
@@ -174,6 +178,24 @@ static size_t class_bytes(enum matio_classes c)
     }
 }
 
+/* Bytes of one value of a stored data type (miINT8 ... miUINT64), 0 for other types. */
+static size_t type_bytes(uint32_t t)
+{
+    switch (t) {
+    case MAT_T_INT8:
+    case MAT_T_UINT8: return 1;
+    case MAT_T_INT16:
+    case MAT_T_UINT16: return 2;
+    case MAT_T_INT32:
+    case MAT_T_UINT32:
+    case MAT_T_SINGLE: return 4;
+    case MAT_T_DOUBLE:
+    case MAT_T_INT64:
+    case MAT_T_UINT64: return 8;
+    default: return 0;
+    }
+}
+
 static double element(const void *data, enum matio_classes c, size_t i)
 {
     switch (c) {
@@ -191,29 +213,6 @@ static double element(const void *data, enum matio_classes c, size_t i)
     }
 }
 
-static void info_of(const matvar_t *v, var_info *out)
-{
-    memset(out, 0, sizeof *out);
-    snprintf(out->name, sizeof out->name, "%s", v->name ? v->name : "");
-    out->cls = v->class_type;
-    out->is_complex = v->isComplex != 0;
-    out->logical = v->isLogical != 0;
-    out->compressed = v->compression != MAT_COMPRESSION_NONE;
-    int rank = v->dims ? v->rank : 0;
-    out->dims_ok = 1;
-    out->n = 1;
-    for (int i = 0; i < rank; i++) {
-        size_t d = v->dims[i];
-        if (d && out->n > SIZE_MAX / d)
-            out->dims_ok = 0;
-        else
-            out->n *= d;
-    }
-    while (rank > 2 && v->dims[rank - 1] == 1) rank--;
-    out->rank = rank;
-    for (int i = 0; i < rank && i < 3; i++) out->dims[i] = v->dims[i];
-}
-
 static const var_info *find_var(const mat_file *f, const char *name)
 {
     for (int i = 0; i < f->n_vars; i++)
@@ -224,48 +223,267 @@ static const var_info *find_var(const mat_file *f, const char *name)
 static void mat_file_close(mat_file *f)
 {
     if (f->mat) Mat_Close(f->mat);
+    if (f->extract) {
+        unlink(f->extract);
+        free(f->extract);
+    }
     free(f->vars);
     f->mat = NULL;
+    f->extract = NULL;
     f->vars = NULL;
 }
 
-/* The top-level data elements after the header: each an 8-byte tag (type, byte count) and
- * its bytes (miMATRIX or miCOMPRESSED), the last ending at the end of the file.
- * libmatio reads a variable cut short as if it were whole (the missing values left as they
- * were in memory), so a file that ends inside an element is refused here. */
-static svp_status check_elements(const char *path, long long bytes, int big_endian)
+/* ---- the file's structure, checked before libmatio sees any of it ------------------------------
+ * A v5 MAT-file is a 128-byte header and a sequence of data elements, each an 8-byte tag (type,
+ * byte count) and its bytes: miMATRIX (a variable) or miCOMPRESSED (a zlib stream holding one
+ * miMATRIX). A variable starts with sub-elements: array flags (class, complex, logical), the
+ * dimensions (int32), the name, then the data. svpsf reads these headers itself (inflating
+ * the start of a compressed variable) to list the variables and check every count against the
+ * bytes that hold it; only the variables it reads are copied, unchanged, into a private
+ * MAT-file that libmatio then reads. libmatio never parses a variable svpsf does not read (cell
+ * arrays, structs, objects), and never an element whose counts do not fit. */
+
+/* Enough inflated bytes for the tag, flags, up to 32 dimensions, a 63-byte name and the data
+ * tag. */
+#define MAT_HEAD_BYTES 512
+#define MAT_MAX_RANK 32
+
+static uint32_t get_u32(const unsigned char *p, int big)
 {
-    FILE *fp = fopen(path, "rb");
-    if (!fp) return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
+    return big ? (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3]
+               : (uint32_t)p[3] << 24 | (uint32_t)p[2] << 16 | (uint32_t)p[1] << 8 | p[0];
+}
+
+/* The start of element `index` (n bytes at pos + 8): for miMATRIX its first bytes, for
+ * miCOMPRESSED the first bytes inflated. *head gets the matrix's sub-elements (after its own
+ * tag), *head_n their count, *total the bytes the matrix claims. */
+static svp_status element_head(const mat_file *f, FILE *fp, int index, long long pos,
+                               uint32_t type, uint32_t n, unsigned char *head, size_t *head_n,
+                               uint64_t *total)
+{
+    *head_n = 0;
+    *total = n;
+    if (type == MAT_T_MATRIX) {
+        size_t want = n < MAT_HEAD_BYTES ? n : MAT_HEAD_BYTES;
+        if (fseeko(fp, (off_t)(pos + 8), SEEK_SET) != 0 || fread(head, 1, want, fp) != want)
+            return svp_fail(SVP_ERR_IO, "%s: read error", f->path);
+        *head_n = want;
+        return SVP_OK;
+    }
+    /* miCOMPRESSED: inflate until the matrix tag and MAT_HEAD_BYTES are out, or the stream or
+     * the element ends */
+    unsigned char out[8 + MAT_HEAD_BYTES], in[4096];
+    z_stream z;
+    memset(&z, 0, sizeof z);
+    if (inflateInit(&z) != Z_OK) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", f->path);
+    z.next_out = out;
+    z.avail_out = sizeof out;
+    uint64_t left = n;
+    int rc = Z_OK;
+    if (fseeko(fp, (off_t)(pos + 8), SEEK_SET) != 0) rc = Z_ERRNO;
+    while (rc == Z_OK && z.avail_out > 0 && left > 0) {
+        size_t chunk = left < sizeof in ? (size_t)left : sizeof in;
+        if (fread(in, 1, chunk, fp) != chunk) {
+            rc = Z_ERRNO;
+            break;
+        }
+        left -= chunk;
+        z.next_in = in;
+        z.avail_in = (uInt)chunk;
+        while (z.avail_in > 0 && z.avail_out > 0 && rc == Z_OK) rc = inflate(&z, Z_NO_FLUSH);
+        if (rc == Z_BUF_ERROR) rc = Z_OK; /* needs more input */
+    }
+    size_t got = sizeof out - z.avail_out;
+    inflateEnd(&z);
+    if (rc != Z_OK && rc != Z_STREAM_END)
+        return svp_fail(SVP_ERR_FORMAT, "%s: data element %d (at byte %lld): corrupt compressed "
+                                        "data",
+                        f->path, index, pos);
+    if (got < 8)
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: data element %d (at byte %lld): compressed data too short", f->path,
+                        index, pos);
+    if (get_u32(out, f->big_endian) != MAT_T_MATRIX)
+        return svp_fail(SVP_ERR_FORMAT,
+                        "%s: data element %d (at byte %lld): the compressed data is not a "
+                        "variable (type %u)",
+                        f->path, index, pos, get_u32(out, f->big_endian));
+    *total = get_u32(out + 4, f->big_endian);
+    size_t have = got - 8;
+    if (have > *total) have = (size_t)*total;
+    memcpy(head, out + 8, have);
+    *head_n = have;
+    return SVP_OK;
+}
+
+/* Parses a variable's flags, dimensions and name from its head (`total` bytes claimed), and
+ * for a real numeric variable the tag of its data. *listed = 0 for an element to pass over
+ * (an empty matrix element, or a name MATLAB does not give variables, as its own
+ * "__function_workspace__"). */
+static svp_status parse_head(const mat_file *f, int index, long long pos,
+                             const unsigned char *h, size_t hn, uint64_t total, int compressed,
+                             uint32_t stored, var_info *v, int *listed)
+{
+    const int big = f->big_endian;
+    *listed = 0;
+    memset(v, 0, sizeof *v);
+    if (total == 0) return SVP_OK;
+#define BAD(...)                                                                               \
+    do {                                                                                       \
+        char what_[160];                                                                       \
+        snprintf(what_, sizeof what_, __VA_ARGS__);                                            \
+        return svp_fail(SVP_ERR_FORMAT, "%s: data element %d (at byte %lld): %s", f->path,     \
+                        index, pos, what_);                                                    \
+    } while (0)
+    if (hn < 24 || total < 24) BAD("too short for a variable");
+    if (get_u32(h, big) != MAT_T_UINT32 || get_u32(h + 4, big) != 8) BAD("no array flags");
+    uint32_t flags = get_u32(h + 8, big);
+    unsigned cls = flags & 0xff;
+    if (cls < MAT_C_CELL || cls > MAT_C_OPAQUE) BAD("unknown class %u", cls);
+    v->cls = (enum matio_classes)cls;
+    v->is_complex = (flags & MAT_F_COMPLEX) != 0;
+    v->logical = (flags & MAT_F_LOGICAL) != 0;
+    v->compressed = compressed;
+    v->pos = pos;
+    v->size = 8 + (long long)stored;
+    if (cls == MAT_C_OPAQUE) { /* MATLAB objects of new classes: no dimension list */
+        v->rank = 2;
+        v->dims_ok = 1;
+        snprintf(v->name, sizeof v->name, "(object)");
+        return SVP_OK; /* not listed: nothing svpsf can read */
+    }
+    if (get_u32(h + 16, big) != MAT_T_INT32) BAD("no dimensions");
+    uint32_t dbytes = get_u32(h + 20, big);
+    if (dbytes % 4 || dbytes < 8 || dbytes > 4 * MAT_MAX_RANK)
+        BAD("a dimension list of %u bytes (expected 2 to %d dimensions)", dbytes, MAT_MAX_RANK);
+    size_t q = 24 + ((dbytes + 7) & ~7u);
+    if (q + 8 > hn || q + 8 > total) BAD("too short for its dimensions and name");
+    int rank = (int)(dbytes / 4);
+    size_t dims[MAT_MAX_RANK];
+    v->dims_ok = 1;
+    v->n = 1;
+    for (int i = 0; i < rank; i++) {
+        int32_t d = (int32_t)get_u32(h + 24 + 4 * i, big);
+        if (d < 0) BAD("negative dimension %d", (int)d);
+        dims[i] = (size_t)d;
+        if (dims[i] && v->n > SIZE_MAX / dims[i])
+            v->dims_ok = 0;
+        else
+            v->n *= dims[i];
+    }
+    while (rank > 2 && dims[rank - 1] == 1) rank--;
+    v->rank = rank;
+    for (int i = 0; i < rank && i < 3; i++) v->dims[i] = dims[i];
+    /* the name: small element (type and length in one word, up to 4 bytes) or miINT8 */
+    uint32_t w = get_u32(h + q, big), ntype, nlen;
+    size_t at;
+    if (w >> 16) {
+        ntype = w & 0xffff;
+        nlen = w >> 16;
+        at = q + 4;
+        if (nlen > 4) BAD("a malformed name");
+    } else {
+        ntype = w;
+        nlen = get_u32(h + q + 4, big);
+        at = q + 8;
+    }
+    if (ntype != MAT_T_INT8 && ntype != MAT_T_UINT8) BAD("a malformed name");
+    if (nlen > 63) BAD("a name of %u bytes (MATLAB's names have at most 63)", nlen);
+    if (at + nlen > hn || at + nlen > total) BAD("too short for its name");
+    memcpy(v->name, h + at, nlen);
+    v->name[nlen] = '\0';
+    if (!is_matlab_name(v->name)) return SVP_OK;
+    *listed = 1;
+    /* a real numeric array: its data must be there, whole, in a numeric type */
+    if (!class_bytes(v->cls) || v->is_complex) return SVP_OK;
+    size_t r = nlen > 0 && (w >> 16) ? q + 8 : at + ((nlen + 7) & ~7u);
+    if (r + 8 > hn || r + 8 > total) BAD("variable %s has no data", v->name);
+    uint32_t dw = get_u32(h + r, big), dtype, dn;
+    size_t data_at;
+    if (dw >> 16) {
+        dtype = dw & 0xffff;
+        dn = dw >> 16;
+        data_at = r + 4;
+        if (dn > 4) BAD("variable %s: malformed data", v->name);
+    } else {
+        dtype = dw;
+        dn = get_u32(h + r + 4, big);
+        data_at = r + 8;
+    }
+    size_t tb = type_bytes(dtype);
+    if (!tb) BAD("variable %s: data of type %u (expected a numeric type)", v->name, dtype);
+    if (!v->dims_ok || v->n > UINT32_MAX / tb || (uint64_t)v->n * tb != dn)
+        BAD("variable %s: %u bytes of data for %zu values of %zu bytes", v->name, dn, v->n, tb);
+    if ((uint64_t)data_at + dn > total)
+        BAD("variable %s: its data run past the variable's end", v->name);
+#undef BAD
+    return SVP_OK;
+}
+
+static svp_status parse_elements(mat_file *f)
+{
+    FILE *fp = fopen(f->path, "rb");
+    if (!fp) return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", f->path, strerror(errno));
     long long pos = 128;
-    int index = 0;
+    int index = 0, cap = 0;
     svp_status st = SVP_OK;
-    while (pos < bytes) {
+    unsigned char head[MAT_HEAD_BYTES];
+    while (pos < f->bytes && st == SVP_OK) {
         unsigned char t[8];
         index++;
-        if (bytes - pos < 8 || fseeko(fp, (off_t)pos, SEEK_SET) != 0 || fread(t, 1, 8, fp) != 8) {
+        if (f->bytes - pos < 8 || fseeko(fp, (off_t)pos, SEEK_SET) != 0 ||
+            fread(t, 1, 8, fp) != 8) {
             st = svp_fail(SVP_ERR_FORMAT,
                           "%s: truncated: the file ends inside the tag of data element %d (byte "
                           "%lld of %lld)",
-                          path, index, pos, bytes);
+                          f->path, index, pos, f->bytes);
             break;
         }
-        uint32_t type, n;
-        if (big_endian) {
-            type = (uint32_t)t[0] << 24 | (uint32_t)t[1] << 16 | (uint32_t)t[2] << 8 | t[3];
-            n = (uint32_t)t[4] << 24 | (uint32_t)t[5] << 16 | (uint32_t)t[6] << 8 | t[7];
-        } else {
-            type = (uint32_t)t[3] << 24 | (uint32_t)t[2] << 16 | (uint32_t)t[1] << 8 | t[0];
-            n = (uint32_t)t[7] << 24 | (uint32_t)t[6] << 16 | (uint32_t)t[5] << 8 | t[4];
-        }
-        long long end = pos + 8 + (long long)n; /* n counts a plain matrix's own padding */
-        (void)type;
-        if (end > bytes) {
+        uint32_t type = get_u32(t, f->big_endian), n = get_u32(t + 4, f->big_endian);
+        long long end = pos + 8 + (long long)n;
+        if (end > f->bytes) {
+            /* libmatio would read a variable cut short as if it were whole */
             st = svp_fail(SVP_ERR_FORMAT,
                           "%s: truncated: data element %d (at byte %lld) needs %lld bytes, the "
                           "file ends at %lld",
-                          path, index, pos, end, bytes);
+                          f->path, index, pos, end, f->bytes);
             break;
+        }
+        if (type != MAT_T_MATRIX && type != MAT_T_COMPRESSED) {
+            st = svp_fail(SVP_ERR_FORMAT,
+                          "%s: data element %d (at byte %lld) has type %u (expected a variable)",
+                          f->path, index, pos, type);
+            break;
+        }
+        size_t hn = 0;
+        uint64_t total = 0;
+        int listed = 0;
+        var_info v;
+        st = element_head(f, fp, index, pos, type, n, head, &hn, &total);
+        if (st == SVP_OK)
+            st = parse_head(f, index, pos, head, hn, total, type == MAT_T_COMPRESSED, n, &v,
+                            &listed);
+        if (st == SVP_OK && listed) {
+            if (find_var(f, v.name)) {
+                st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s appears twice", f->path, v.name);
+                break;
+            }
+            if (f->n_vars == MAT_MAX_VARIABLES) {
+                st = svp_fail(SVP_ERR_FORMAT, "%s: more than %d variables", f->path,
+                              MAT_MAX_VARIABLES);
+                break;
+            }
+            if (f->n_vars == cap) {
+                int bigger = cap ? 2 * cap : 16;
+                var_info *vars = realloc(f->vars, (size_t)bigger * sizeof *vars);
+                if (!vars) {
+                    st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", f->path);
+                    break;
+                }
+                f->vars = vars;
+                cap = bigger;
+            }
+            f->vars[f->n_vars++] = v;
         }
         pos = end;
     }
@@ -274,14 +492,15 @@ static svp_status check_elements(const char *path, long long bytes, int big_endi
 }
 
 /* The v5 header: 116 bytes of text, 8 of subsystem offset, version and endian indicator. */
-static svp_status check_header(const char *path, long long bytes)
+static svp_status check_header(mat_file *f)
 {
+    const char *path = f->path;
     unsigned char h[128];
     FILE *fp = fopen(path, "rb");
     if (!fp) return svp_fail(SVP_ERR_IO, "%s: cannot open (%s)", path, strerror(errno));
     size_t got = fread(h, 1, sizeof h, fp);
     fclose(fp);
-    if (got < sizeof h || bytes < 128)
+    if (got < sizeof h || f->bytes < 128)
         return svp_fail(SVP_ERR_FORMAT,
                         "%s: not a MATLAB .mat file (shorter than the 128-byte MAT-file header)",
                         path);
@@ -303,7 +522,8 @@ static svp_status check_header(const char *path, long long bytes)
     if (version != 0x0100)
         return svp_fail(SVP_ERR_FORMAT, "%s: unknown MAT-file version 0x%04x (expected 0x0100)",
                         path, (unsigned)version);
-    return check_elements(path, bytes, h[126] == 'M');
+    f->big_endian = h[126] == 'M';
+    return SVP_OK;
 }
 
 static svp_status mat_file_open(const char *path, mat_file *f)
@@ -318,42 +538,67 @@ static svp_status mat_file_open(const char *path, mat_file *f)
     }
     if (S_ISDIR(sb.st_mode)) return svp_fail(SVP_ERR_IO, "%s: is a directory", path);
     f->bytes = (long long)sb.st_size;
-    SVP_CHECK(check_header(path, f->bytes));
+    SVP_CHECK(check_header(f));
+    svp_status st = parse_elements(f);
+    if (st != SVP_OK) mat_file_close(f);
+    return st;
+}
+
+/* Copies the header and the data elements of `want` (NULL entries skipped) into a private
+ * MAT-file and opens it with libmatio (f->mat). */
+static svp_status extract_vars(mat_file *f, const var_info *const *want, int n_want)
+{
+    const char *base = getenv("TMPDIR");
+    if (!base || !*base) base = "/tmp";
+    size_t len = strlen(base) + 32;
+    f->extract = malloc(len);
+    if (!f->extract) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", f->path);
+    snprintf(f->extract, len, "%s/svpsf-mat-XXXXXX", base);
+    int fd = mkstemp(f->extract);
+    if (fd < 0) {
+        free(f->extract);
+        f->extract = NULL;
+        return svp_fail(SVP_ERR_IO, "%s: cannot make a temporary file in %s (%s)", f->path,
+                        base, strerror(errno));
+    }
+    FILE *out = fdopen(fd, "wb");
+    FILE *in = fopen(f->path, "rb");
+    svp_status st = SVP_OK;
+    if (!out || !in) st = svp_fail(SVP_ERR_IO, "%s: cannot read (%s)", f->path, strerror(errno));
+    unsigned char buf[1 << 16];
+    for (int i = -1; i < n_want && st == SVP_OK; i++) {
+        long long from = 0, left = 128; /* i == -1: the header */
+        if (i >= 0) {
+            if (!want[i]) continue;
+            from = want[i]->pos;
+            left = want[i]->size;
+        }
+        if (fseeko(in, (off_t)from, SEEK_SET) != 0) st = svp_fail(SVP_ERR_IO, "%s: read error", f->path);
+        while (st == SVP_OK && left > 0) {
+            size_t chunk = left < (long long)sizeof buf ? (size_t)left : sizeof buf;
+            if (fread(buf, 1, chunk, in) != chunk)
+                st = svp_fail(SVP_ERR_IO, "%s: read error", f->path);
+            else if (fwrite(buf, 1, chunk, out) != chunk)
+                st = svp_fail(SVP_ERR_IO, "%s: cannot write a temporary file (%s)", f->path,
+                              strerror(errno));
+            left -= (long long)chunk;
+        }
+    }
+    if (in) fclose(in);
+    if (out) {
+        if (fclose(out) != 0 && st == SVP_OK)
+            st = svp_fail(SVP_ERR_IO, "%s: cannot write a temporary file (%s)", f->path,
+                          strerror(errno));
+    } else {
+        close(fd);
+    }
+    if (st != SVP_OK) return st;
     matio_begin();
     char why[300];
-    f->mat = Mat_Open(path, MAT_ACC_RDONLY);
+    f->mat = Mat_Open(f->extract, MAT_ACC_RDONLY);
     if (!f->mat)
-        return svp_fail(SVP_ERR_FORMAT, "%s: cannot read as a MATLAB .mat file%s", path,
+        return svp_fail(SVP_ERR_FORMAT, "%s: cannot read as a MATLAB .mat file%s", f->path,
                         matio_reason(why, sizeof why));
-    if (Mat_GetVersion(f->mat) != MAT_FT_MAT5) {
-        mat_file_close(f);
-        return svp_fail(SVP_ERR_FORMAT, "%s: not a MATLAB v5/v7 .mat file", path);
-    }
-    /* the list of variables, from their headers only */
-    int cap = 0;
-    matvar_t *v;
-    while ((v = Mat_VarReadNextInfo(f->mat)) != NULL) {
-        if (f->n_vars == MAT_MAX_VARIABLES) {
-            Mat_VarFree(v);
-            mat_file_close(f);
-            return svp_fail(SVP_ERR_FORMAT, "%s: more than %d variables", path,
-                            MAT_MAX_VARIABLES);
-        }
-        if (f->n_vars == cap) {
-            int bigger = cap ? 2 * cap : 16;
-            var_info *vars = realloc(f->vars, (size_t)bigger * sizeof *vars);
-            if (!vars) {
-                Mat_VarFree(v);
-                mat_file_close(f);
-                return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
-            }
-            f->vars = vars;
-            cap = bigger;
-        }
-        info_of(v, &f->vars[f->n_vars]);
-        if (f->vars[f->n_vars].name[0]) f->n_vars++;
-        Mat_VarFree(v);
-    }
     return SVP_OK;
 }
 
@@ -573,6 +818,16 @@ svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_ima
                           v->dims[0], v->dims[1]);
         goto done;
     }
+    {
+        /* libmatio reads a private copy holding this variable and the scalars used with it */
+        static const char *const extras[] = {"step", "h", "imgNumRows", "imgNumCols"};
+        const var_info *want[5] = {v, NULL, NULL, NULL, NULL};
+        for (int i = 0; i < 4; i++) {
+            const var_info *x = find_var(&f, extras[i]);
+            if (x && x != v && is_numeric_real(x) && x->n == 1) want[1 + i] = x;
+        }
+        if ((st = extract_vars(&f, want, 5)) != SVP_OK) goto done;
+    }
     long long rows = (long long)v->dims[0], cols = (long long)v->dims[1], nf = 1;
     int is_raw = 0;
     if ((st = raw_layout(&f, v, &rows, &cols, &is_raw)) != SVP_OK) goto done;
@@ -600,14 +855,14 @@ svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_ima
                       file, v->name, rows, cols, nf);
         goto done;
     }
-    /* the elements must fit in the file: at least one byte each as stored, or 1/1032 byte
-     * compressed (deflate's largest ratio) */
-    long double room = (long double)f.bytes * (v->compressed ? MAT_DEFLATE_MAX_RATIO : 1);
-    if ((long double)v->n > room) {
+    /* a compressed variable holds at most 1032 bytes per byte (deflate's largest ratio): one
+     * that claims more elements is corrupt, and is refused before libmatio allocates them (a
+     * plain variable's data were checked against its bytes in parse_head) */
+    if (v->compressed && (long double)v->n > (long double)v->size * MAT_DEFLATE_MAX_RATIO) {
         st = svp_fail(SVP_ERR_FORMAT,
-                      "%s: variable %s claims %zu elements, more than the file's %lld bytes can "
-                      "hold (truncated or corrupt)",
-                      file, v->name, v->n, f.bytes);
+                      "%s: variable %s claims %zu elements, more than its %lld compressed bytes "
+                      "can hold (corrupt)",
+                      file, v->name, v->n, v->size);
         goto done;
     }
     if ((st = read_geometry(&f, &info)) != SVP_OK) goto done;
@@ -621,9 +876,9 @@ svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_ima
                       file, v->name, matio_reason(why, sizeof why));
         goto done;
     }
-    var_info got;
-    info_of(m, &got);
-    if (got.n != v->n || got.dims[0] != v->dims[0] || got.dims[1] != v->dims[1]) {
+    size_t got_n = 1;
+    for (int i = 0; i < m->rank; i++) got_n *= m->dims[i];
+    if (m->rank < 2 || got_n != v->n || m->dims[0] != v->dims[0] || m->dims[1] != v->dims[1]) {
         st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s changed shape between reads (corrupt)",
                       file, v->name);
         goto done;
