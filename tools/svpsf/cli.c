@@ -471,6 +471,15 @@ void cli_print_common_help(const cli_run *run, FILE *out)
 
 void cli_path_stem(const char *path, char *stem, size_t size)
 {
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    if (svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && var[0]) {
+        /* "DIR/Q.mat:Bz" -> "Q_Bz" */
+        char fstem[256];
+        cli_path_stem(file, fstem, sizeof fstem);
+        snprintf(stem, size, "%s_%s", fstem, var);
+        return;
+    }
     const char *base = strrchr(path, '/');
     base = base ? base + 1 : path;
     const char *dot = strrchr(base, '.');
@@ -937,9 +946,17 @@ int cli_outputs_check(cli_run *run)
     for (int i = 0; i < run->n_outputs; i++) {
         struct stat st;
         const char *path = run->outputs[i].path;
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            path = mfile; /* "OUT.mat:VAR" is written to OUT.mat */
         if (stat(path, &st) != 0) continue;
         if (S_ISDIR(st.st_mode)) return cli_error(run, "%s exists and is a folder", path);
-        if (!run->force && n_existing++ == 0) first = path;
+        if (!run->force && n_existing++ == 0) {
+            static char first_path[PATH_MAX];
+            snprintf(first_path, sizeof first_path, "%s", path);
+            first = first_path;
+        }
     }
     if (n_existing == 1)
         return cli_error(run, "%s exists (use --force to overwrite); nothing was written", first);
