@@ -108,7 +108,8 @@ SVP_API size_t svp_image_count_nonfinite(const svp_image *image);
 /* Reads a single-channel image. The format follows the extension: .tif/.tiff (float32,
  * float64, 8/16-bit integer), .png (8/16-bit), .npy (float32/float64/integers, C or Fortran
  * order, 2-D), .txt/.csv/.dat (numbers as numpy.savetxt writes them, whitespace or comma
- * separated, '#' comments). Errors name the file and the fault. */
+ * separated, '#' comments), .mat ("FILE.mat" or "FILE.mat:VAR": svp_mat_read below). Errors
+ * name the file and the fault. */
 SVP_API svp_status svp_image_read(const char *path, svp_image **out);
 /* A stack where one image is expected is refused (SVP_ERR_FORMAT) naming its page count:
  *   "<path>: multi-page TIFF of 5 pages: expected one image (a stack is read as an ODMR stack

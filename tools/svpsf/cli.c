@@ -209,6 +209,11 @@ int cli_fail(const cli_run *run, svp_status status, const char *context)
 {
     const char *msg = svp_last_error();
     if (!msg || !msg[0]) msg = svp_status_string(status);
+    char mfile[PATH_MAX], mvar[64];
+    int bad = 0;
+    if (context && svp_io_mat_path(context, mfile, sizeof mfile, mvar, sizeof mvar, &bad) &&
+        strstr(msg, mfile))
+        context = NULL; /* "X.mat:VAR": the message names X.mat (and the variable) */
     if (context && context[0] && !strstr(msg, context))
         cli_error(run, "%s: %s", context, msg);
     else
