@@ -188,6 +188,7 @@ if [ -n "$REG" ] && [ -d "$REG" ]; then
         txt) cp "$f" in.txt && expect_ends "fuzz txt $b" deconvolve in.txt --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
         tiff) cp "$f" in.tif && expect_ends "fuzz tiff $b" deconvolve in.tif --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
         png) cp "$f" in.png && expect_ends "fuzz png $b" deconvolve in.png --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
+        mat) cp "$f" in.mat && expect_ends "fuzz mat $b" deconvolve in.mat --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
         wisdom) cp "$f" in.wisdom && expect_ends "fuzz wisdom $b" \
             forward --field f.txt --pl pl.txt --psf good.yaml -o "w_$b" --wisdom in.wisdom ;;
         esac
