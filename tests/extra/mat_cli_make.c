@@ -4,6 +4,9 @@
  *                                 save), DIR/B111dataToPlot.mat (B111ferro, B111para in gauss,
  *                                 negDiff, posDiff, ledImg), and the same Bz and LED image as
  *                                 DIR/Bz.npy, DIR/led.npy
+ *   mat_cli_make odmr DIR W H N   an ODMR stack of N frames (both lines of one NV axis) as
+ *                                 DIR/stack.npy, QDMlab's raw DIR/run_00000.mat (imgStack1) and
+ *                                 a 3-D variable DIR/stack3.mat:odmr
  *   mat_cli_make compare A B      exit 0 when images A and B (any format svpsf reads) are
  *                                 equal value for value (NaN equal to NaN)
  *   mat_cli_make info FILE[:VAR]  prints "variable W H pixel_um standoff_um" (svp_mat_read) */
@@ -72,6 +75,91 @@ static int qdm(const char *dir, int w, int h)
     return rc;
 }
 
+/* A 3-D .npy (frames, height, width), C order, float64. */
+static int write_npy3(const char *path, const double *d, int n, int h, int w)
+{
+    FILE *f = fopen(path, "wb");
+    if (!f) return 1;
+    char header[128];
+    int len = snprintf(header, sizeof header,
+                       "{'descr': '<f8', 'fortran_order': False, 'shape': (%d, %d, %d), }", n, h,
+                       w);
+    int total = 10 + len + 1, pad = (64 - total % 64) % 64;
+    unsigned short hl = (unsigned short)(len + pad + 1);
+    fwrite("\x93NUMPY\x01\x00", 1, 8, f);
+    fputc(hl & 0xff, f);
+    fputc(hl >> 8, f);
+    fwrite(header, 1, (size_t)len, f);
+    for (int i = 0; i < pad; i++) fputc(' ', f);
+    fputc('\n', f);
+    size_t count = (size_t)n * h * w;
+    int rc = fwrite(d, sizeof *d, count, f) != count;
+    return fclose(f) != 0 || rc;
+}
+
+/* An ODMR stack of n frames over 2.84..2.90 GHz (n points): both lines of one NV axis at
+ * D +/- gamma B with B varying over the image, as DIR/stack.npy (frames, h, w), as QDMlab's raw
+ * DIR/run_00000.mat (imgStack1: n x (h * w), frame k = row k, pixels row after row; imgNumRows,
+ * imgNumCols, numFreqs, freqList) and as a 3-D variable DIR/stack3.mat:odmr (h x w x n). */
+static int odmr(const char *dir, int w, int h, int n)
+{
+    size_t np = (size_t)w * h;
+    double *frames = malloc(np * n * sizeof *frames), *raw = malloc(np * n * sizeof *raw),
+           *cube = malloc(np * n * sizeof *cube), *freq = malloc(2 * (size_t)n * sizeof *freq);
+    if (!frames || !raw || !cube || !freq) return 1;
+    for (int k = 0; k < n; k++) freq[k] = freq[n + k] = 2.84e9 + 0.06e9 * k / (n - 1);
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            double b = 4e-4 * (x - 0.3 * w) / w + 2e-4 * y / h, pl = 1000 + 10 * x + 3 * y;
+            for (int k = 0; k < n; k++) {
+                double s = 0;
+                for (int sign = -1; sign <= 1; sign += 2) {
+                    double u = (freq[k] - (2.87e9 + sign * 28.033e9 * b)) / 2e6; /* HWHM 2 MHz */
+                    s += 0.02 / (1 + u * u);
+                }
+                double v = pl * (1 - s);
+                frames[(size_t)k * np + (size_t)y * w + x] = v;
+                raw[(size_t)k + (size_t)n * ((size_t)y * w + x)] = v;
+                cube[(size_t)y + (size_t)h * x + np * k] = v;
+            }
+        }
+    char path[1024];
+    snprintf(path, sizeof path, "%s/stack.npy", dir);
+    int rc = write_npy3(path, frames, n, h, w);
+    snprintf(path, sizeof path, "%s/run_00000.mat", dir);
+    mat_t *mat = Mat_CreateVer(path, NULL, MAT_FT_MAT5);
+    if (!mat) return 1;
+    double rows = h, cols = w, nf = n;
+    size_t dims[2] = {(size_t)n, np}, fd[2] = {1, 2 * (size_t)n}, one[2] = {1, 1};
+    matvar_t *v = Mat_VarCreate("imgStack1", MAT_C_DOUBLE, MAT_T_DOUBLE, 2, dims, raw, 0);
+    rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_ZLIB);
+    Mat_VarFree(v);
+    v = Mat_VarCreate("freqList", MAT_C_DOUBLE, MAT_T_DOUBLE, 2, fd, freq, 0);
+    rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_NONE);
+    Mat_VarFree(v);
+    const char *names[3] = {"imgNumRows", "imgNumCols", "numFreqs"};
+    double *vals[3] = {&rows, &cols, &nf};
+    for (int i = 0; i < 3; i++) {
+        v = Mat_VarCreate(names[i], MAT_C_DOUBLE, MAT_T_DOUBLE, 2, one, vals[i], 0);
+        rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_NONE);
+        Mat_VarFree(v);
+    }
+    Mat_Close(mat);
+    snprintf(path, sizeof path, "%s/stack3.mat", dir);
+    mat = Mat_CreateVer(path, NULL, MAT_FT_MAT5);
+    if (!mat) return 1;
+    size_t d3[3] = {(size_t)h, (size_t)w, (size_t)n};
+    v = Mat_VarCreate("odmr", MAT_C_DOUBLE, MAT_T_DOUBLE, 3, d3, cube, 0);
+    rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_ZLIB);
+    Mat_VarFree(v);
+    Mat_Close(mat);
+    free(frames);
+    free(raw);
+    free(cube);
+    free(freq);
+    return rc;
+}
+
 static int compare(const char *a_path, const char *b_path)
 {
     svp_image *a = NULL, *b = NULL;
@@ -98,6 +186,8 @@ int main(int argc, char **argv)
 {
     if (argc == 5 && !strcmp(argv[1], "qdm")) return qdm(argv[2], atoi(argv[3]), atoi(argv[4]));
     if (argc == 4 && !strcmp(argv[1], "compare")) return compare(argv[2], argv[3]);
+    if (argc == 6 && !strcmp(argv[1], "odmr"))
+        return odmr(argv[2], atoi(argv[3]), atoi(argv[4]), atoi(argv[5]));
     if (argc == 3 && !strcmp(argv[1], "info")) {
         svp_image *img = NULL;
         svp_mat_info info;

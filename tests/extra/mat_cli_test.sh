@@ -3,8 +3,9 @@
 # Bz_uc0.mat and B111dataToPlot.mat, written by mat_cli_make with libmatio, feed `correct` with
 # results identical to the same arrays given as .npy; `--format mat` and `-o OUT.mat:VAR` outputs
 # hold the same values (read back by svpsf and, when Debian's /usr/bin/python3 has scipy, by
-# scipy.io.loadmat); `reconstruct` takes the pixel size and stand-off from the file; refusals
-# exit 1 naming the file and the fault; no overwrite without --force.
+# scipy.io.loadmat); `reconstruct` takes the pixel size and stand-off from the file; `fit-odmr`
+# from QDMlab's raw run_00000.mat and from a 3-D variable gives the maps of the same stack as
+# .npy; refusals exit 1 naming the file and the fault; no overwrite without --force.
 # Usage: mat_cli_test.sh SVPSF MAT_CLI_MAKE
 set -u
 svpsf=$1
@@ -118,6 +119,22 @@ run 1 deconvolve cut.mat --method wiener $common -o bad4.npy
 expect_in err 'cut.mat: truncated: data element 1 (at byte 128) needs [0-9]* bytes, the file ends at 400'
 run 1 correct --field Bz_uc0.mat --pl Bz_uc0.mat:corners $common -o bad5
 expect_in err 'size mismatch'
+
+# 6. fit-odmr from QDMlab's raw run_00000.mat (imgStack1) and from a 3-D variable: the same maps
+#    as from the same stack as a 3-D .npy
+"$make" odmr . 12 10 41 || { echo "FAIL: cannot write the ODMR stacks"; exit 1; }
+fit="--frequencies 2.84e9:2.90e9:41 --linewidth 4e6 --threads 1 --format npy --quiet"
+run 0 fit-odmr stack.npy $fit -o fitn
+run 0 fit-odmr run_00000.mat $fit -o fitr
+run 0 fit-odmr stack3.mat:odmr $fit -o fit3
+for m in field pl contrast linewidth quality; do
+    same "fitr/$m.npy" "fitn/$m.npy"
+    same "fit3/$m.npy" "fitn/$m.npy"
+done
+expect_in fitn/summary.json '"n_failed": 0'
+# one image expected: the raw stack is refused naming its frame count
+run 1 deconvolve run_00000.mat:imgStack1 --method wiener $common -o bad6.npy
+expect_in err 'run_00000.mat: variable imgStack1 is a stack of 41 frames (QDMlab.s raw layout, 10 x 12 pixels): expected one image'
 
 if [ "$failures" -ne 0 ]; then
     echo "$failures failure(s)"
