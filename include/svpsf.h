@@ -121,7 +121,8 @@ SVP_API size_t svp_image_count_nonfinite(const svp_image *image);
 /* Reads a single-channel image. The format follows the extension: .tif/.tiff (float32,
  * float64, 8/16-bit integer), .png (8/16-bit), .npy (float32/float64/integers, C or Fortran
  * order, 2-D), .txt/.csv/.dat (numbers as numpy.savetxt writes them, whitespace or comma
- * separated, '#' comments). Errors name the file and the fault. An image may have at most
+ * separated, '#' comments), .mat ("FILE.mat" or "FILE.mat:VAR": svp_mat_read below). Errors
+ * name the file and the fault. An image may have at most
  * 2^28 pixels, each side at most 2^20 (SVP_ERR_FORMAT, checked from the file's header before
  * decoding); the memory the decoding needs is checked first against the environment variable
  * SVPSF_MAX_MEMORY, else the memory available (SVP_ERR_INVALID "<path>: ... needs N of memory,
@@ -147,12 +148,48 @@ typedef struct svp_stack {
 SVP_API svp_status svp_stack_read(const char *path, svp_stack **out);
 SVP_API void svp_stack_free(svp_stack *stack);
 
+/* MATLAB .mat files (docs/cli.md "MATLAB / QDMlab files"): the v5/v7 MAT-files MATLAB's save
+ * writes by default, as QDMlab's maps are (B111dataToPlot.mat, Bz_uc0.mat) and its raw ODMR
+ * runs (run_0000N.mat); read and written through libmatio. v7.3 (HDF5) and v4 files are refused
+ * from their header. svp_image_read, svp_stack_read and svp_image_write take "FILE.mat" and
+ * "FILE.mat:VAR" too (without the pixel size and stand-off). */
+typedef struct svp_mat_info {
+    char variable[64];  /* the variable read */
+    int n_variables;    /* variables in the file */
+    double pixel_um;    /* from the file's `step` (QDMlab: metres; a value >= 1e-3 is taken as
+                           micrometres), 0 when the file has none */
+    double standoff_um; /* from the file's `h` (metres), 0 when the file has none */
+} svp_mat_info;
+/* Reads one real numeric 2-D variable (double, single, any integer class, logical) as an image:
+ * MATLAB's element (r, c) (column-major) becomes pixel (x = c, y = r). variable NULL or "" (and
+ * no ":VAR" in path) picks the first present of Bz, B111ferro, B111para, else the only 2-D
+ * numeric array with more than one element. info may be NULL. Errors (SVP_ERR_FORMAT, naming
+ * the file): a missing variable (listing those present), a complex, sparse, cell, struct or
+ * char variable, more than 2 dimensions (a 3-D array names its frame count), an empty array, a
+ * variable larger than the file can hold. */
+SVP_API svp_status svp_mat_read(const char *path, const char *variable, svp_image **out,
+                                svp_mat_info *info);
+/* Reads a stack: a 3-D variable rows x cols x frames (MATLAB's (:, :, k) is frame k), QDMlab's
+ * raw layout (imgStackN of numFreqs x imgNumRows*imgNumCols, with the scalars imgNumRows and
+ * imgNumCols: row k is frame k, written row after row), or a 2-D variable as one frame. The
+ * default variable: the only 3-D numeric array, else imgStack1 in the raw layout, else as
+ * svp_mat_read. */
+SVP_API svp_status svp_mat_read_stack(const char *path, const char *variable, svp_stack **out,
+                                      svp_mat_info *info);
+/* Writes n images as double variables names[i] (MATLAB names: a letter, then letters, digits
+ * or '_', at most 63; distinct) into one v7 MAT-file (zlib-compressed, as MATLAB's save), and
+ * with pixel_um > 0 the scalar `step` = pixel_um / 1e6 (metres, as QDMlab writes it).
+ * Atomic like svp_image_write; overwrite == 0 never replaces a file (SVP_ERR_EXISTS). */
+SVP_API svp_status svp_mat_write(const char *path, int n, const char *const *names,
+                                 const svp_image *const *images, double pixel_um, int overwrite);
+
 typedef enum svp_file_format {
     SVP_FORMAT_AUTO = 0,  /* from the extension; unknown extension → error */
     SVP_FORMAT_TIFF = 1,  /* float32 TIFF */
     SVP_FORMAT_NPY = 2,   /* float64 .npy */
     SVP_FORMAT_TXT = 3,   /* numpy.savetxt-compatible text, %.17g */
-    SVP_FORMAT_PNG16 = 4  /* 16-bit PNG scaled from [lo, hi] of the data (figures only) */
+    SVP_FORMAT_PNG16 = 4, /* 16-bit PNG scaled from [lo, hi] of the data (figures only) */
+    SVP_FORMAT_MAT = 5    /* MATLAB v7 .mat, one double variable (svp_mat_write) */
 } svp_file_format;
 
 /* Writes atomically (temporary file in the same folder, then rename). With overwrite == 0 an

@@ -922,8 +922,8 @@ static void test_missing_and_unknown(void **state)
     const char *path = tmp_path("picture.jpg");
     write_string(path, "x");
     snprintf(expect, sizeof expect,
-             "%s: unknown image format '.jpg' (expected .tif, .tiff, .png, .npy, .txt, .csv or "
-             ".dat)",
+             "%s: unknown image format '.jpg' (expected .tif, .tiff, .png, .npy, .txt, .csv, "
+             ".dat or .mat)",
              path);
     ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_INVALID, expect);
     svp_image *small = test_image(2, 2);

@@ -4,6 +4,7 @@
 #include "../core/internal.h"
 #include "image_io.h"
 #include "json.h"
+#include "mat.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -940,7 +941,7 @@ static svp_status tiff_check(const char *path, const unsigned char *bytes, size_
 
 /* ---- dispatch ------------------------------------------------------------------------------------ */
 
-typedef enum file_kind { KIND_UNKNOWN, KIND_TIFF, KIND_PNG, KIND_NPY, KIND_TXT } file_kind;
+typedef enum file_kind { KIND_UNKNOWN, KIND_TIFF, KIND_PNG, KIND_NPY, KIND_TXT, KIND_MAT } file_kind;
 
 /* The extension after the last '.' of the file name (not of a folder), lower-cased. */
 static const char *extension(const char *path, char *buf, size_t size)
@@ -965,6 +966,7 @@ static file_kind kind_of(const char *ext)
     if (!strcmp(ext, "png")) return KIND_PNG;
     if (!strcmp(ext, "npy")) return KIND_NPY;
     if (!strcmp(ext, "txt") || !strcmp(ext, "csv") || !strcmp(ext, "dat")) return KIND_TXT;
+    if (!strcmp(ext, "mat")) return KIND_MAT;
     return KIND_UNKNOWN;
 }
 
@@ -973,11 +975,11 @@ static svp_status unknown_extension(const char *path, const char *ext)
     if (!*ext)
         return svp_fail(SVP_ERR_INVALID,
                         "%s: no file extension to tell the format (expected .tif, .tiff, .png, "
-                        ".npy, .txt, .csv or .dat)",
+                        ".npy, .txt, .csv, .dat or .mat)",
                         path);
     return svp_fail(SVP_ERR_INVALID,
                     "%s: unknown image format '.%s' (expected .tif, .tiff, .png, .npy, .txt, "
-                    ".csv or .dat)",
+                    ".csv, .dat or .mat)",
                     path, ext);
 }
 
@@ -986,6 +988,12 @@ svp_status svp_image_read(const char *path, svp_image **out)
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_image_read: out is NULL");
     *out = NULL;
     if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "svp_image_read: no path given");
+    {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            return svp_mat_read(path, NULL, out, NULL);
+    }
     char ext[16];
     extension(path, ext, sizeof ext);
     file_kind kind = kind_of(ext);
@@ -1027,6 +1035,7 @@ svp_status svp_image_read(const char *path, svp_image **out)
         }
         break;
     }
+    case KIND_MAT: /* handled above */
     case KIND_UNKNOWN: break;
     }
     free(bytes);
@@ -1047,6 +1056,12 @@ svp_status svp_stack_read(const char *path, svp_stack **out)
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_stack_read: out is NULL");
     *out = NULL;
     if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "svp_stack_read: no path given");
+    {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            return svp_mat_read_stack(path, NULL, out, NULL);
+    }
     char ext[16];
     extension(path, ext, sizeof ext);
     file_kind kind = kind_of(ext);
@@ -1103,12 +1118,20 @@ svp_status svp_image_write(const char *path, const svp_image *image, svp_file_fo
         return svp_fail(SVP_ERR_INVALID, "%s: no image to write", path);
     char ext[16];
     extension(path, ext, sizeof ext);
+    {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (format == SVP_FORMAT_AUTO && svp_io_mat_path(path, mfile, sizeof mfile, mvar,
+                                                         sizeof mvar, &bad))
+            format = SVP_FORMAT_MAT;
+    }
     if (format == SVP_FORMAT_AUTO) {
         switch (kind_of(ext)) {
         case KIND_TIFF: format = SVP_FORMAT_TIFF; break;
         case KIND_PNG: format = SVP_FORMAT_PNG16; break;
         case KIND_NPY: format = SVP_FORMAT_NPY; break;
         case KIND_TXT: format = SVP_FORMAT_TXT; break;
+        case KIND_MAT: format = SVP_FORMAT_MAT; break;
         case KIND_UNKNOWN: return unknown_extension(path, ext);
         }
     }
@@ -1117,6 +1140,7 @@ svp_status svp_image_write(const char *path, const svp_image *image, svp_file_fo
     case SVP_FORMAT_PNG16: return svp_io_write_png16(path, image, overwrite);
     case SVP_FORMAT_NPY: return write_npy(path, image, overwrite);
     case SVP_FORMAT_TXT: return write_text(path, image, !strcmp(ext, "csv"), overwrite);
+    case SVP_FORMAT_MAT: return svp_io_mat_write_image(path, image, overwrite);
     case SVP_FORMAT_AUTO: break;
     }
     return svp_fail(SVP_ERR_INVALID, "%s: unknown output format %d", path, (int)format);

@@ -319,6 +319,7 @@ if [ -n "$REG" ] && [ -d "$REG" ]; then
         stack) case $(head -c 2 "$f") in II | MM) e=tif ;; *) e=npy ;; esac
             cp "$f" "in_stack.$e" && expect_ends "fuzz stack $b" \
                 fit-odmr "in_stack.$e" --frequencies 2.80:2.94:5 -o "o_$b" ;;
+        mat) cp "$f" in.mat && expect_ends "fuzz mat $b" deconvolve in.mat --psf good.yaml -o "d_$b.npy" --method wiener --fft estimate ;;
         wisdom) cp "$f" in.wisdom && expect_ends "fuzz wisdom $b" \
             forward --field f.txt --pl pl.txt --psf good.yaml -o "w_$b" --wisdom in.wisdom ;;
         esac

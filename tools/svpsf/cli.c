@@ -3,6 +3,7 @@
 
 #include "io/image_io.h"
 #include "io/json.h"
+#include "io/mat.h"
 #include "io/yaml.h"
 
 #include <errno.h>
@@ -241,6 +242,11 @@ int cli_fail(const cli_run *run, svp_status status, const char *context)
 {
     const char *msg = svp_last_error();
     if (!msg || !msg[0]) msg = svp_status_string(status);
+    char mfile[PATH_MAX], mvar[64];
+    int bad = 0;
+    if (context && svp_io_mat_path(context, mfile, sizeof mfile, mvar, sizeof mvar, &bad) &&
+        strstr(msg, mfile))
+        context = NULL; /* "X.mat:VAR": the message names X.mat (and the variable) */
     if (context && context[0] && !strstr(msg, context))
         cli_error(run, "%s: %s", context, msg);
     else
@@ -458,9 +464,10 @@ int cli_next_option(cli_run *run, const struct option *own)
                 return CLI_OPTION_ERROR;
             break;
         case OPT_FORMAT: {
-            static const char *const names[] = {"tif", "npy", "txt", "tiff", NULL};
+            static const char *const names[] = {"tif", "npy", "txt", "tiff", "mat", NULL};
             static const svp_file_format formats[] = {SVP_FORMAT_TIFF, SVP_FORMAT_NPY,
-                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF};
+                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF,
+                                                      SVP_FORMAT_MAT};
             int i = 0;
             if (cli_parse_choice(run, "--format", optarg, names, &i)) return CLI_OPTION_ERROR;
             run->format = formats[i];
@@ -484,8 +491,9 @@ int cli_next_option(cli_run *run, const struct option *own)
 void cli_print_common_help(const cli_run *run, FILE *out)
 {
     if (run->common & CLI_COMMON_FORMAT)
-        fputs("  --format tif|npy|txt  format of the image outputs: float32 TIFF, float64 .npy,\n"
-              "                        or numpy.savetxt text (default tif)\n",
+        fputs("  --format tif|npy|txt|mat  format of the image outputs: float32 TIFF, float64\n"
+              "                        .npy, numpy.savetxt text, or MATLAB .mat (one variable\n"
+              "                        named after the file; default tif)\n",
               out);
     if (run->common & CLI_COMMON_OUTPUT)
         fputs("  --force               overwrite existing outputs (default: refuse, and write\n"
@@ -513,6 +521,15 @@ void cli_print_common_help(const cli_run *run, FILE *out)
 
 void cli_path_stem(const char *path, char *stem, size_t size)
 {
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    if (svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && var[0]) {
+        /* "DIR/Q.mat:Bz" -> "Q_Bz" */
+        char fstem[256];
+        cli_path_stem(file, fstem, sizeof fstem);
+        snprintf(stem, size, "%s_%s", fstem, var);
+        return;
+    }
     const char *base = strrchr(path, '/');
     base = base ? base + 1 : path;
     const char *dot = strrchr(base, '.');
@@ -543,6 +560,10 @@ const char *const cli_precision_names[] = {"double", "single", NULL};
 static long long file_size(const char *path)
 {
     struct stat st;
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    if (stat(path, &st) != 0 && svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad))
+        path = file; /* "FILE.mat:VAR" */
     return stat(path, &st) == 0 ? (long long)st.st_size : -1;
 }
 
@@ -861,6 +882,7 @@ const char *cli_format_extension(svp_file_format format)
     switch (format) {
     case SVP_FORMAT_NPY: return "npy";
     case SVP_FORMAT_TXT: return "txt";
+    case SVP_FORMAT_MAT: return "mat";
     case SVP_FORMAT_PNG16: return "png";
     default: return "tif";
     }
@@ -873,6 +895,13 @@ svp_file_format cli_format_of_path(const char *path)
     if (has_extension(path, "txt") || has_extension(path, "csv") || has_extension(path, "dat"))
         return SVP_FORMAT_TXT;
     if (has_extension(path, "png")) return SVP_FORMAT_PNG16;
+    if (has_extension(path, "mat")) return SVP_FORMAT_MAT;
+    {
+        /* "OUT.mat:VAR" names the variable */
+        char file[PATH_MAX], var[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad)) return SVP_FORMAT_MAT;
+    }
     return SVP_FORMAT_AUTO;
 }
 
@@ -998,9 +1027,17 @@ int cli_outputs_check(cli_run *run)
     for (int i = 0; i < run->n_outputs; i++) {
         struct stat st;
         const char *path = run->outputs[i].path;
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            path = mfile; /* "OUT.mat:VAR" is written to OUT.mat */
         if (stat(path, &st) != 0) continue;
         if (S_ISDIR(st.st_mode)) return cli_error(run, "%s exists and is a folder", path);
-        if (!run->force && n_existing++ == 0) first = path;
+        if (!run->force && n_existing++ == 0) {
+            static char first_path[PATH_MAX];
+            snprintf(first_path, sizeof first_path, "%s", path);
+            first = first_path;
+        }
     }
     if (n_existing == 1)
         return cli_error(run, "%s exists (use --force to overwrite); nothing was written", first);

@@ -50,7 +50,7 @@ static void print_help(const cli_run *run, FILE *out)
           "                           default translation for phase, affine for ecc\n"
           "  --warp IMAGE             warp IMAGE (in MOVING's frame, any size) onto REFERENCE's\n"
           "                           grid and write it to -o OUT\n"
-          "  -o, --output OUT         with --warp: the warped image (.tif, .npy or .txt);\n"
+          "  -o, --output OUT         with --warp: the warped image (.tif, .npy, .txt, .mat);\n"
           "                           without --warp: the transform file (.json, .yaml, .yml)\n"
           "  --transform-out FILE     the transform file (.json, .yaml or .yml)\n"
           "  --interp auto|nearest|linear\n"
@@ -346,7 +346,7 @@ int cmd_register(int argc, char **argv)
         svp_file_format f = cli_format_of_path(run.output);
         if (f == SVP_FORMAT_AUTO || f == SVP_FORMAT_PNG16)
             return cli_run_finish(&run, cli_error(&run, "-o %s: the warped image needs a .tif, "
-                                                  ".npy or .txt name",
+                                                  ".npy, .txt or .mat name",
                                                   run.output));
         warp_out = run.output;
     } else if (run.output) {
