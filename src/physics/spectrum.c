@@ -749,7 +749,9 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     {
         size_t next_report = step; /* thread 0's */
         svp_lm_workspace *ws = NULL;
-        double *y = malloc((size_t)nf * sizeof(double));
+        /* the chunk's spectra, pixel-major: read frame by frame (a run of contiguous pixels
+         * from each), not pixel by pixel across all frames */
+        double *spectra = malloc((size_t)nf * chunk * sizeof(double)), *y = spectra;
         if (svp_lm_workspace_new(np, nf, &ws) != SVP_OK || !y) {
 #pragma omp atomic write
             alloc_failed = 1;
@@ -770,13 +772,16 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
             stop = cancelled;
             if (stop || !ws || !y) continue;
             const size_t p0 = ck * chunk, p1 = p0 + chunk < n ? p0 + chunk : n;
+            for (int f = 0; f < nf; f++) {
+                const double *src = cube->frame[f]->data + p0;
+                for (size_t k = 0; k < p1 - p0; k++) spectra[k * (size_t)nf + f] = src[k];
+            }
             for (size_t p = p0; p < p1; p++) {
                 double b0 = 0, den = 0, mean = 0;
                 int finite = 1;
-                for (int f = 0; f < nf; f++) {
-                    y[f] = cube->frame[f]->data[p];
-                    finite &= isfinite(y[f]) != 0;
-                }
+                y = spectra + (p - p0) * (size_t)nf;
+                prob.data = gprob.data = go.y = y;
+                for (int f = 0; f < nf; f++) finite &= isfinite(y[f]) != 0;
                 if (!finite) { /* a missing pixel (NaN/Inf in some frame): NaN maps */
                     svp_image *const all[] = {
                         maps->field,         maps->field_sigma,   maps->field_lower,
@@ -952,7 +957,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
             }
         }
         svp_lm_workspace_free(ws);
-        free(y);
+        free(spectra);
     }
     free(q);
     free(xs);

@@ -18,8 +18,8 @@
  *       contrast, linewidth, their σ, R², converged) against the scene engine's call
  *       (svp_odmr_fit with the field alone, as `svpsf simulate` makes it) on the same blurred
  *       cube, interleaved, median over R repetitions each; also the one-line model (--lines
- *       one: the sweep holds the upper line only). S > 0 adds Gaussian noise of S × the peak
- *       PL to every frame (fixed seed). Prints a hash of every map's bits (to compare thread
+ *       one: the sweep holds the upper line only). S > 0 adds Gaussian noise of σ = S √(b ·
+ *       b_peak) to every frame, b the pixel's off-resonance PL (shot-noise-like; fixed seed). Prints a hash of every map's bits (to compare thread
  *       counts) and whether the two calls' fields are identical. With --out DIR it writes the
  *       cube as DIR/stack.tif (float32, one page per frequency) and DIR/freq.txt (Hz) for
  *       timing the program end to end.
@@ -443,7 +443,7 @@ static int write_stack(const svp_cube *cube, const char *dir)
             le_put(q + 8, e[k][2], e[k][1] == 3 ? 2 : 4);
         }
         const size_t end = ifd + 2 + 12 * 10 + 4;
-        le_put(d + 2 + 12 * 10, p + 1 < n ? (uint32_t)end : 0, 4);
+        le_put(d + 2 + 12 * 10, p + 1 < n ? (uint32_t)(end + bytes) : 0, 4); /* next page's */
         bad |= fwrite(buf, 1, end - pos, f) != end - pos;
         pos = end;
     }
@@ -488,13 +488,18 @@ static int run_odmr(const args *a)
     svp_cube *cube = NULL;
     double t_sim, t_blur;
     TRY(blurred_cube(&s, &cube, &t_sim, &t_blur), "cube");
-    if (a->noise > 0) {
+    if (a->noise > 0) { /* shot-noise-like: σ = S √(b · b_peak), b the off-resonance PL */
         double peak = 0;
-        for (size_t p = 0; p < np; p++) peak = fmax(peak, s.pl->data[p]);
+        for (size_t p = 0; p < np; p++) peak = fmax(peak, cube->frame[0]->data[p]);
+        double *sd = malloc(np * sizeof(double));
+        if (!sd) return fail(SVP_ERR_NOMEM, "alloc");
+        for (size_t p = 0; p < np; p++)
+            sd[p] = a->noise * sqrt(fmax(cube->frame[0]->data[p], 0) * peak);
         uint64_t seed = 12345;
         for (int f = 0; f < s.nf; f++)
             for (size_t p = 0; p < np; p++)
-                cube->frame[f]->data[p] += a->noise * peak * gauss_noise(&seed);
+                cube->frame[f]->data[p] += sd[p] * gauss_noise(&seed);
+        free(sd);
     }
     if (a->out && write_stack(cube, a->out)) {
         printf("{\"error\": \"io\", \"message\": \"cannot write %s/stack.tif\"}\n", a->out);
@@ -543,7 +548,7 @@ static int run_odmr(const args *a)
         const double want = s.bz->data[p] + s.bias;
         r_pair += (pair[0]->data[p] - want) * (pair[0]->data[p] - want);
         r_one += (one[0]->data[p] - want) * (one[0]->data[p] - want);
-        sig += pair[1]->data[p] * pair[1]->data[p];
+        if (isfinite(pair[1]->data[p])) sig += pair[1]->data[p] * pair[1]->data[p];
         cnt++;
     }
     const double c = cnt ? (double)cnt : 1;
