@@ -3,7 +3,8 @@
 # given as --pl is refused naming its page count; a 100-frame float32 TIFF stack simulated by
 # odmr_cli_make's own lines (with noise) is fitted back to the known field within a stated
 # tolerance (and σ matches the scatter); its maps feed `svpsf correct` directly, --field-sigma
-# included; bad frequencies and no overwrite without --force.
+# included; bad frequencies (a count that differs, named with both counts), a stack of one
+# page, and no overwrite without --force.
 # Usage: odmr_cli_test.sh SVPSF ODMR_CLI_MAKE
 set -u
 svpsf=$1
@@ -81,6 +82,11 @@ run 1 fit-odmr stack.tif --frequencies freq99.txt -o bad2
 expect_in err "freq99.txt: 99 frequencies for a stack of 100 frames (stack.tif)"
 run 1 fit-odmr pages5.tif --frequencies 1:5:5 -o bad3 --lines two
 expect_in err "pages5.tif: 5 frames: a Lorentzian fit (--lines two) needs at least 6"
+# a stack of one page (or one 2-D image): too few frequencies, before the frequencies are read
+run 1 fit-odmr pages1.tif --frequencies 2.87e9 -o bad7
+expect_in err "svpsf fit-odmr: pages1.tif: 1 frame: a Lorentzian fit (--lines pair) needs at least 5 (one per frequency)"
+run 1 fit-odmr f.txt --frequencies 1:5:5 -o bad8
+expect_in err "f.txt: 1 frame: a Lorentzian fit"
 run 1 fit-odmr stack.tif --frequencies freq.txt --line lower -o bad4
 expect_in err "--line lower needs --lines one"
 run 1 fit-odmr stack.tif -o bad5
@@ -88,7 +94,7 @@ expect_in err "--frequencies is required"
 awk 'NR == 50 {print 2.9e9; next} {print}' freq.txt >freq_bad.txt
 run 1 fit-odmr stack.tif --frequencies freq_bad.txt -o bad6
 expect_in err "freq_bad.txt: not monotonic"
-for d in bad1 bad2 bad3 bad4 bad5 bad6; do [ -e "$d" ] && fail "$d was created by a refused run"; done
+for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8; do [ -e "$d" ] && fail "$d was created by a refused run"; done
 cp fit/field.npy field.before
 run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
 expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"
