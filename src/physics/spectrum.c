@@ -909,6 +909,9 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                         if (first_error == SVP_OK) first_error = st;
                     }
                 }
+                if (!(th[1] > 0 && th[1] < 1)) /* C on its bound: no σ from the curvature */
+                    for (int a = 0; a < np; a++)
+                        for (int c = 0; c < np; c++) cov[a][c] = a == c ? INFINITY : 0;
                 const double sd_b = sqrt(cov[0][0]), sd_c = sqrt(cov[1][1]);
                 const double sd_w = sqrt(cov[np - 1][np - 1]);
                 double B, sd_B;
