@@ -5,10 +5,11 @@
 # tolerance (and σ matches the scatter); its maps feed `svpsf correct` directly, --field-sigma
 # included; bad frequencies (a count that differs, named with both counts), a stack of one
 # page, and no overwrite without --force.
-# Usage: odmr_cli_test.sh SVPSF ODMR_CLI_MAKE
+# Usage: odmr_cli_test.sh SVPSF ODMR_CLI_MAKE [CLI_MD]
 set -u
 svpsf=$1
 make=$2
+cli_md=${3:-}
 dir=$(mktemp -d "${TMPDIR:-/tmp}/svpsf-odmr.XXXXXX") || exit 1
 trap 'rm -rf "$dir"' EXIT
 export XDG_CACHE_HOME="$dir/cache"
@@ -99,6 +100,24 @@ cp fit/field.npy field.before
 run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
 expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"
 cmp -s fit/field.npy field.before || fail "fit/field.npy changed without --force"
+
+# 5. --help and the reference (docs/cli.md, section `svpsf fit-odmr`) name the same options
+if [ -n "$cli_md" ] && [ -r "$cli_md" ]; then
+    "$svpsf" fit-odmr --help >help.txt || fail "fit-odmr --help exited $?"
+    grep -o -- '--[a-z][a-z-]*' help.txt | sort -u >help_opts
+    awk '/^## `svpsf fit-odmr`/ {f = 1; next} /^## / {f = 0} f' "$cli_md" >section.md
+    [ -s section.md ] || fail "no fit-odmr section in $cli_md"
+    grep -o -- '--[a-z][a-z-]*' section.md | sort -u >doc_opts
+    # common options the reference names once for all commands
+    for o in --help --quiet --threads --format --force --output; do echo "$o"; done | sort -u >common_opts
+    missing=$(comm -23 help_opts doc_opts | comm -23 - common_opts)
+    extra=$(comm -13 help_opts doc_opts | grep -v -e '^--field-sigma$' -e '^--pl$' -e '^--field$' \
+        -e '^--psf$' -e '^--balance$')
+    [ -z "$missing" ] || fail "in fit-odmr --help but not in docs/cli.md: $missing"
+    [ -z "$extra" ] || fail "in docs/cli.md's fit-odmr section but not in --help: $extra"
+else
+    echo "SKIP (part): no docs/cli.md given: --help not compared with the reference"
+fi
 
 if [ "$failures" -ne 0 ]; then
     echo "$failures failure(s)"

@@ -457,6 +457,14 @@ static int write_stack(const svp_cube *cube, const char *dir)
     return bad;
 }
 
+/* CPU seconds of the process (all its threads) */
+static double cpu_now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
 /* FNV-1a over the bits of the images */
 static uint64_t hash_images(svp_image *const *imgs, int n, uint64_t h)
 {
@@ -522,23 +530,29 @@ static int run_odmr(const args *a)
     svp_odmr_fit_defaults(&o_one);
     o_one.lines = SVP_ODMR_LINES_ONE;
     o_one.line_sign = 1;
-    double *t = malloc(3 * (size_t)a->reps * sizeof(double));
+    /* wall-clock and process CPU seconds (every thread's; the CPU time is what load changes
+     * least: fits per CPU-second x cores is the speed of idle cores) */
+    double *t = malloc(6 * (size_t)a->reps * sizeof(double)), *cpu = t + 3 * (size_t)a->reps;
     if (!t) return fail(SVP_ERR_NOMEM, "alloc");
     size_t f_old = 0, f_pair = 0, f_one = 0;
     for (int r = 0; r < a->reps; r++) {
-        double t0 = bench_now();
+        double t0 = bench_now(), c0 = cpu_now();
         TRY(svp_odmr_fit(&s.odmr, cube, NULL, old, NULL, NULL, NULL, &f_old), "scene fit");
-        double t1 = bench_now();
+        double t1 = bench_now(), c1 = cpu_now();
         TRY(svp_odmr_fit_maps(&s.odmr, cube, &o_pair, &maps_pair, &f_pair), "fit maps (pair)");
-        double t2 = bench_now();
+        double t2 = bench_now(), c2 = cpu_now();
         TRY(svp_odmr_fit_maps(&s.odmr, cube, &o_one, &maps_one, &f_one), "fit maps (one)");
-        double t3 = bench_now();
+        double t3 = bench_now(), c3 = cpu_now();
         t[r] = t1 - t0;
         t[a->reps + r] = t2 - t1;
         t[2 * a->reps + r] = t3 - t2;
+        cpu[r] = c1 - c0;
+        cpu[a->reps + r] = c2 - c1;
+        cpu[2 * a->reps + r] = c3 - c2;
     }
     const double m_old = bench_median(t, a->reps), m_pair = bench_median(t + a->reps, a->reps),
                  m_one = bench_median(t + 2 * a->reps, a->reps);
+    const double cpu_old = bench_median(cpu, a->reps), cpu_pair = bench_median(cpu + a->reps, a->reps);
     const int same = memcmp(old->data, pair[0]->data, np * sizeof(double)) == 0;
     /* errors against the true field (the bias removed), converged pixels */
     double r_pair = 0, r_one = 0, sig = 0;
@@ -555,12 +569,14 @@ static int run_odmr(const args *a)
     const uint64_t hash = hash_images(one, NM, hash_images(pair, NM, 0xcbf29ce484222325u));
     printf("{\"mode\": \"odmr\", \"size\": %d, \"points\": %d, \"threads\": %d, \"reps\": %d, "
            "\"noise\": %.6g, \"fits\": %zu, \"scene_seconds\": %.6g, \"pair_seconds\": %.6g, "
-           "\"one_seconds\": %.6g, \"scene_fits_per_second\": %.6g, "
+           "\"one_seconds\": %.6g, \"scene_cpu_seconds\": %.6g, \"pair_cpu_seconds\": %.6g, "
+           "\"scene_fits_per_second\": %.6g, "
            "\"pair_fits_per_second\": %.6g, \"one_fits_per_second\": %.6g, "
            "\"scene_failed\": %zu, \"pair_failed\": %zu, \"one_failed\": %zu, "
            "\"field_identical\": %s, \"maps_hash\": \"%016llx\", \"pair_rms_uT\": %.4g, "
            "\"one_rms_uT\": %.4g, \"pair_sigma_rms_uT\": %.4g, \"maxrss_mb\": %.1f}\n",
-           n, s.nf, svp_get_threads(), a->reps, a->noise, np, m_old, m_pair, m_one,
+           n, s.nf, svp_get_threads(), a->reps, a->noise, np, m_old, m_pair, m_one, cpu_old,
+           cpu_pair,
            (double)np / m_old, (double)np / m_pair, (double)np / m_one, f_old, f_pair, f_one,
            same ? "true" : "false", (unsigned long long)hash, 1e6 * sqrt(r_pair / c),
            1e6 * sqrt(r_one / c), 1e6 * sqrt(sig / c), bench_maxrss_mb());
