@@ -1635,8 +1635,9 @@ typedef struct svp_odmr_fit_options {
     svp_odmr_lines lines; /* default SVP_ODMR_LINES_PAIR */
     int line_sign;       /* SVP_ODMR_LINES_ONE: +1 (default) the dip is the upper line
                             (m_s = +1, at D + γ B_NV), −1 the lower (at D − γ B_NV) */
-    svp_progress_fn progress; /* optional: fraction of the pixels done (in blocks of rows,
-                                 from one thread); nonzero cancels (SVP_ERR_CANCELLED) */
+    svp_progress_fn progress; /* optional: fraction of the pixels done, about every 1 % and
+                                 last 1, always from the calling thread; nonzero cancels
+                                 (SVP_ERR_CANCELLED) */
     void *progress_user;
 } svp_odmr_fit_options;
 
