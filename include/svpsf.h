@@ -77,9 +77,22 @@ typedef enum svp_fft_effort {
     SVP_FFT_MEASURE = 1   /* FFTW_MEASURE (default): slower first plan per size, faster FFTs */
 } svp_fft_effort;
 SVP_API void svp_set_fft_effort(svp_fft_effort effort);
-/* FFTW wisdom: plans measured once can be saved and reused across runs. */
+/* FFTW wisdom: plans measured once can be saved and reused across runs. Loading adds the
+ * file's wisdom (double and single precision) to what the process holds; a malformed file is
+ * refused (SVP_ERR_IO naming it) before FFTW sees it. Saving writes everything the process
+ * holds to a temporary file in the same folder and renames it into place, so a concurrent
+ * reader sees the old file or the new one, never a part (in place, when the folder is not
+ * writable). To share one file between concurrent processes, load it again just before
+ * saving (docs/api.md, "Shared machines"). */
 SVP_API svp_status svp_fft_wisdom_load(const char *path);
 SVP_API svp_status svp_fft_wisdom_save(const char *path);
+/* Called before the library measures FFT plans (SVP_FFT_MEASURE) that no loaded wisdom
+ * covers: ny x nx is the transform (ny = 1 for 1-D row transforms), single_precision 1 for
+ * float plans. Measuring takes ~0.1 s at 512 x 512 to seconds at 2048 x 2048, so a program
+ * can tell its user why it is waiting. The callback runs under the library's FFT lock, on the
+ * thread that plans: it must not call the library. NULL (default): none. Process-wide. */
+typedef void (*svp_fft_plan_fn)(void *user, int ny, int nx, int single_precision);
+SVP_API void svp_set_fft_plan_callback(svp_fft_plan_fn callback, void *user);
 /* The smallest 2,3,5,7-smooth integer >= n (n >= 1). */
 SVP_API int svp_fft_good_size(int n);
 
@@ -108,7 +121,12 @@ SVP_API size_t svp_image_count_nonfinite(const svp_image *image);
 /* Reads a single-channel image. The format follows the extension: .tif/.tiff (float32,
  * float64, 8/16-bit integer), .png (8/16-bit), .npy (float32/float64/integers, C or Fortran
  * order, 2-D), .txt/.csv/.dat (numbers as numpy.savetxt writes them, whitespace or comma
- * separated, '#' comments). Errors name the file and the fault. */
+ * separated, '#' comments), .mat ("FILE.mat" or "FILE.mat:VAR": svp_mat_read below). Errors
+ * name the file and the fault. An image may have at most
+ * 2^28 pixels, each side at most 2^20 (SVP_ERR_FORMAT, checked from the file's header before
+ * decoding); the memory the decoding needs is checked first against the environment variable
+ * SVPSF_MAX_MEMORY, else the memory available (SVP_ERR_INVALID "<path>: ... needs N of memory,
+ * more than the M allowed"; docs/reliability.md). svp_stack_read likewise, for all pages. */
 SVP_API svp_status svp_image_read(const char *path, svp_image **out);
 /* A stack where one image is expected is refused (SVP_ERR_FORMAT) naming its page count:
  *   "<path>: multi-page TIFF of 5 pages: expected one image (a stack is read as an ODMR stack
@@ -130,12 +148,48 @@ typedef struct svp_stack {
 SVP_API svp_status svp_stack_read(const char *path, svp_stack **out);
 SVP_API void svp_stack_free(svp_stack *stack);
 
+/* MATLAB .mat files (docs/cli.md "MATLAB / QDMlab files"): the v5/v7 MAT-files MATLAB's save
+ * writes by default, as QDMlab's maps are (B111dataToPlot.mat, Bz_uc0.mat) and its raw ODMR
+ * runs (run_0000N.mat); read and written through libmatio. v7.3 (HDF5) and v4 files are refused
+ * from their header. svp_image_read, svp_stack_read and svp_image_write take "FILE.mat" and
+ * "FILE.mat:VAR" too (without the pixel size and stand-off). */
+typedef struct svp_mat_info {
+    char variable[64];  /* the variable read */
+    int n_variables;    /* variables in the file */
+    double pixel_um;    /* from the file's `step` (QDMlab: metres; a value >= 1e-3 is taken as
+                           micrometres), 0 when the file has none */
+    double standoff_um; /* from the file's `h` (metres), 0 when the file has none */
+} svp_mat_info;
+/* Reads one real numeric 2-D variable (double, single, any integer class, logical) as an image:
+ * MATLAB's element (r, c) (column-major) becomes pixel (x = c, y = r). variable NULL or "" (and
+ * no ":VAR" in path) picks the first present of Bz, B111ferro, B111para, else the only 2-D
+ * numeric array with more than one element. info may be NULL. Errors (SVP_ERR_FORMAT, naming
+ * the file): a missing variable (listing those present), a complex, sparse, cell, struct or
+ * char variable, more than 2 dimensions (a 3-D array names its frame count), an empty array, a
+ * variable larger than the file can hold. */
+SVP_API svp_status svp_mat_read(const char *path, const char *variable, svp_image **out,
+                                svp_mat_info *info);
+/* Reads a stack: a 3-D variable rows x cols x frames (MATLAB's (:, :, k) is frame k), QDMlab's
+ * raw layout (imgStackN of numFreqs x imgNumRows*imgNumCols, with the scalars imgNumRows and
+ * imgNumCols: row k is frame k, written row after row), or a 2-D variable as one frame. The
+ * default variable: the only 3-D numeric array, else imgStack1 in the raw layout, else as
+ * svp_mat_read. */
+SVP_API svp_status svp_mat_read_stack(const char *path, const char *variable, svp_stack **out,
+                                      svp_mat_info *info);
+/* Writes n images as double variables names[i] (MATLAB names: a letter, then letters, digits
+ * or '_', at most 63; distinct) into one v7 MAT-file (zlib-compressed, as MATLAB's save), and
+ * with pixel_um > 0 the scalar `step` = pixel_um / 1e6 (metres, as QDMlab writes it).
+ * Atomic like svp_image_write; overwrite == 0 never replaces a file (SVP_ERR_EXISTS). */
+SVP_API svp_status svp_mat_write(const char *path, int n, const char *const *names,
+                                 const svp_image *const *images, double pixel_um, int overwrite);
+
 typedef enum svp_file_format {
     SVP_FORMAT_AUTO = 0,  /* from the extension; unknown extension → error */
     SVP_FORMAT_TIFF = 1,  /* float32 TIFF */
     SVP_FORMAT_NPY = 2,   /* float64 .npy */
     SVP_FORMAT_TXT = 3,   /* numpy.savetxt-compatible text, %.17g */
-    SVP_FORMAT_PNG16 = 4  /* 16-bit PNG scaled from [lo, hi] of the data (figures only) */
+    SVP_FORMAT_PNG16 = 4, /* 16-bit PNG scaled from [lo, hi] of the data (figures only) */
+    SVP_FORMAT_MAT = 5    /* MATLAB v7 .mat, one double variable (svp_mat_write) */
 } svp_file_format;
 
 /* Writes atomically (temporary file in the same folder, then rename). With overwrite == 0 an
@@ -234,6 +288,9 @@ typedef struct svp_deconv_report {
     int balance_at_bound; /* discrepancy balance: -1 / +1 when the choice ended on the lower /
                              upper end of its search (the data cannot tell λ: see svp_correct's
                              doubt checks), else 0 */
+    int balance_lcurve; /* svp_inverse_transform's automatic balance: 1 when no balance the
+                           search could solve met the noise level and the L-curve's corner was
+                           taken instead (docs/model.md §6), else 0 */
     /* Richardson–Lucy */
     int iterations;     /* iterations taken */
     double chi2;        /* with auto_stop: the last iterate's residual χ² per finite datum,
@@ -365,7 +422,7 @@ typedef struct svp_correct_options {
                                     pl_floor · max(PL) before dividing; pixels below it have
                                     validity < 1; default 1e-3 */
     double shift;                /* c of the signed shift (methods R, RL_SIGNED); 0 (default)
-                                    = automatic per component: c = 2 · max|B̃| over the
+                                    = automatic per component: c = 100 · max|B̃| over the
                                     measured pixels (1 for an all-zero map; docs/model.md §3).
                                     An explicit c must give B̃ + c > 0 at every measured pixel
                                     of every component. */
@@ -742,6 +799,13 @@ typedef enum svp_register_motion {
     SVP_MOTION_AFFINE = 2       /* full 2 x 3 affine, 6 parameters (ECC only) */
 } svp_register_motion;
 
+typedef enum svp_register_contrast {
+    SVP_CONTRAST_AUTO = 0,    /* the sign of the correlation peak decides (default) */
+    SVP_CONTRAST_SAME = 1,    /* bright in one image is bright in the other */
+    SVP_CONTRAST_INVERTED = 2 /* bright in one is dark in the other: a label mask of regions
+                                 that are dark in the PL (a metal wire), a negative */
+} svp_register_contrast;
+
 typedef struct svp_register_options {
     svp_register_method method; /* default SVP_REGISTER_PHASE */
     svp_register_motion motion; /* default SVP_MOTION_TRANSLATION; phase correlation accepts
@@ -782,6 +846,13 @@ typedef struct svp_register_options {
     const char *reference_name, *moving_name; /* optional: what error messages call the two
                             images (their files, say); NULL (default) = "reference image",
                             "moving image" */
+    svp_register_contrast contrast; /* AUTO (default): the phase-correlation surface is
+                            searched for its highest peak and its deepest trough; the trough
+                            wins when its significance (of the negated surface) is the higher,
+                            and the moving image is then registered (and ECC run, and the
+                            quality measured) with its contrast inverted. SAME / INVERTED force
+                            the sign. ECC with initial_affine and AUTO keeps the contrast as it
+                            is (nothing measures it). */
 } svp_register_options;
 
 SVP_API void svp_register_defaults(svp_register_options *options);
@@ -820,6 +891,13 @@ typedef struct svp_register_result {
     size_t nonfinite_reference; /* NaN/Inf pixels, filled from their neighbours for the
                                    estimation and left out of correlation and residual */
     size_t nonfinite_moving;
+    int inverted;       /* 1 when the moving image was registered with its contrast inverted
+                           (options->contrast INVERTED, or AUTO finding the trough more
+                           significant than the peak); correlation and residual_rms are then
+                           those of the inverted moving image */
+    double significance_other; /* the significance of the opposite sign's extremum (the
+                           trough when not inverted, the peak when inverted): how clearly the
+                           sign was decided; NaN when not measured */
 } svp_register_result;
 
 /* Estimates the transform that maps reference pixel coordinates to moving pixel coordinates
@@ -1592,8 +1670,9 @@ typedef struct svp_odmr_fit_options {
     svp_odmr_lines lines; /* default SVP_ODMR_LINES_PAIR */
     int line_sign;       /* SVP_ODMR_LINES_ONE: +1 (default) the dip is the upper line
                             (m_s = +1, at D + γ B_NV), −1 the lower (at D − γ B_NV) */
-    svp_progress_fn progress; /* optional: fraction of the pixels done (in blocks of rows,
-                                 from one thread); nonzero cancels (SVP_ERR_CANCELLED) */
+    svp_progress_fn progress; /* optional: fraction of the pixels done, about every 1 % and
+                                 last 1, always from the calling thread; nonzero cancels
+                                 (SVP_ERR_CANCELLED) */
     void *progress_user;
 } svp_odmr_fit_options;
 

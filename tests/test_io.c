@@ -13,6 +13,7 @@
 #include <errno.h>
 #include <stdio.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 static char tmpdir[64];
@@ -93,13 +94,14 @@ static void assert_contains(const char *haystack, const char *needle)
         assert_contains(svp_last_error(), (needle));                                               \
     } while (0)
 
-/* No ".tmp" leftovers of atomic writes in the test folder. */
+/* No temporary files of atomic writes (".<name>.svpsf-tmp-<pid>-XXXXXX") left behind. */
 static void assert_no_temporaries(void)
 {
     DIR *d = opendir(tmpdir);
     struct dirent *e;
     while ((e = readdir(d)) != NULL)
-        if (strstr(e->d_name, ".tmp")) fail_msg("temporary file left behind: %s", e->d_name);
+        if (strstr(e->d_name, SVP_IO_TEMP_TAG))
+            fail_msg("temporary file left behind: %s", e->d_name);
     closedir(d);
 }
 
@@ -708,6 +710,105 @@ static void test_tiff_stacks(void **state)
     free(buf);
 }
 
+/* The readers' limits and memory budget (docs/reliability.md), checked from the TIFF
+ * directories before OpenCV decodes anything; the budget's variable; the temporary-file
+ * registry and the removal of stale temporary files. */
+static void test_limits_and_temporaries(void **state)
+{
+    (void)state;
+    enum { W = 24, H = 10, N = 100 };
+    unsigned char *buf = malloc(N * (2 * W * H + 200) + 8);
+    const size_t size = hand_tiff_stack(buf, W, H, N, 0);
+    const char *path = tmp_path("budget.tif");
+    write_bytes(path, buf, size);
+    /* the file, every page as OpenCV's 16-bit Mat and as float64, one strip buffer */
+    const double need = (double)size + N * W * H * (2.0 + 8.0) + W * H * 2.0;
+    char expect[600];
+    snprintf(expect, sizeof expect,
+             "%s: decoding 100 TIFF pages needs %.0f KiB of memory, more than the 200 KiB "
+             "allowed (SVPSF_MAX_MEMORY=200K;",
+             path, need / 1024);
+    svp_stack *s = NULL;
+    setenv("SVPSF_MAX_MEMORY", "200K", 1);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_INVALID, expect);
+    assert_null(s);
+    setenv("SVPSF_MAX_MEMORY", "0.5MiB", 1); /* 512 KiB: enough */
+    ASSERT_OK(svp_stack_read(path, &s));
+    assert_int_equal(s->n_frames, N);
+    svp_stack_free(s);
+    s = NULL;
+    const char *bad[] = {"0", "-1G", "lots", "4Q", "1e30"};
+    for (int i = 0; i < 5; i++) {
+        setenv("SVPSF_MAX_MEMORY", bad[i], 1);
+        snprintf(expect, sizeof expect, "SVPSF_MAX_MEMORY=%s is not a memory size", bad[i]);
+        ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_INVALID, expect);
+    }
+    unsetenv("SVPSF_MAX_MEMORY");
+    double budget = 0;
+    char source[96];
+    ASSERT_OK(svp_io_memory_budget(&budget, source, sizeof source));
+    assert_string_equal(source, "available memory");
+    assert_true(budget > 0); /* /proc/meminfo on Linux */
+    setenv("SVPSF_MAX_MEMORY", "1.5GiB", 1);
+    ASSERT_OK(svp_io_memory_budget(&budget, source, sizeof source));
+    assert_true(budget == 1.5 * 1073741824.0);
+    assert_string_equal(source, "SVPSF_MAX_MEMORY=1.5GiB");
+    unsetenv("SVPSF_MAX_MEMORY");
+
+    /* page 3 of 5 claims 20000 x 20000 pixels: refused, naming the page, before decoding */
+    size_t size5 = hand_tiff_stack(buf, W, H, 5, 0);
+    size_t ifd = 8;
+    for (int p = 0; p < 3; p++) {
+        size_t data_end = ifd + 2 * W * H;
+        ifd = data_end + (data_end & 1);
+        if (p < 2) ifd += 2 + 12 * 10 + 4;
+    }
+    assert_int_equal(buf[ifd + 2], 0x00); /* tag 256 = 0x0100, little-endian: 00 01 */
+    assert_int_equal(buf[ifd + 3], 0x01);
+    put_le(buf + ifd + 2 + 8, 20000, 2);
+    put_le(buf + ifd + 2 + 12 + 8, 20000, 2);
+    path = tmp_path("bigpage.tif");
+    write_bytes(path, buf, size5);
+    snprintf(expect, sizeof expect,
+             "%s: page 3 of 5: 20000 x 20000 pixels: larger than an image may be", path);
+    ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
+    free(buf);
+
+    /* the registry: recorded temporary files go with svp_io_temp_remove_all, released don't */
+    const char *t1 = tmp_path(".a.npy.svpsf-tmp-1-aaaaaa"),
+               *t2 = tmp_path(".b.npy.svpsf-tmp-1-bbbbbb");
+    write_bytes(t1, (const unsigned char *)"x", 1);
+    write_bytes(t2, (const unsigned char *)"y", 1);
+    int slot1 = svp_io_temp_register(t1), slot2 = svp_io_temp_register(t2);
+    assert_true(slot1 >= 0 && slot2 >= 0 && slot1 != slot2);
+    svp_io_temp_release(slot2);
+    svp_io_temp_remove_all();
+    struct stat sb;
+    assert_int_equal(stat(t1, &sb), -1);
+    assert_int_equal(stat(t2, &sb), 0);
+    svp_io_temp_release(slot1);
+    /* stale: t2 names PID 1 (alive: init) and stays; this process's own stays; a PID that no
+     * longer exists is removed; other names are not touched */
+    char dead_name[128], own_name[128];
+    pid_t dead = fork();
+    if (dead == 0) _exit(0);
+    waitpid(dead, NULL, 0);
+    snprintf(dead_name, sizeof dead_name, ".b.npy.svpsf-tmp-%ld-cccccc", (long)dead);
+    snprintf(own_name, sizeof own_name, ".b.npy.svpsf-tmp-%ld-dddddd", (long)getpid());
+    const char *td = tmp_path(dead_name), *to = tmp_path(own_name), *tx = tmp_path(".b.npy.tmpXYZ");
+    write_bytes(td, (const unsigned char *)"d", 1);
+    write_bytes(to, (const unsigned char *)"o", 1);
+    write_bytes(tx, (const unsigned char *)"x", 1);
+    svp_io_temp_remove_stale(tmpdir, "b.npy");
+    assert_int_equal(stat(td, &sb), -1);
+    assert_int_equal(stat(to, &sb), 0);
+    assert_int_equal(stat(tx, &sb), 0);
+    assert_int_equal(stat(t2, &sb), 0);
+    remove(t2);
+    remove(to);
+    remove(tx);
+}
+
 static void test_npy_stacks(void **state)
 {
     (void)state;
@@ -821,8 +922,8 @@ static void test_missing_and_unknown(void **state)
     const char *path = tmp_path("picture.jpg");
     write_string(path, "x");
     snprintf(expect, sizeof expect,
-             "%s: unknown image format '.jpg' (expected .tif, .tiff, .png, .npy, .txt, .csv or "
-             ".dat)",
+             "%s: unknown image format '.jpg' (expected .tif, .tiff, .png, .npy, .txt, .csv, "
+             ".dat or .mat)",
              path);
     ASSERT_FAILS(svp_image_read(path, &img), SVP_ERR_INVALID, expect);
     svp_image *small = test_image(2, 2);
@@ -1307,6 +1408,7 @@ int main(void)
         cmocka_unit_test(test_tiff_integer_and_truncated),
         cmocka_unit_test(test_tiff_stacks),
         cmocka_unit_test(test_npy_stacks),
+        cmocka_unit_test(test_limits_and_temporaries),
         cmocka_unit_test(test_colour_png_and_channels),
         cmocka_unit_test(test_missing_and_unknown),
         cmocka_unit_test(test_no_overwrite),

@@ -1,7 +1,12 @@
-/* The space-invariant blur operator: against a direct sum, adjointness, flux, linearity. */
+/* The space-invariant blur operator: against a direct sum, adjointness, flux, linearity; FFT
+ * planning (the plan callback) and wisdom files. */
 #include "test_helpers.h"
 
 #include "blur/blur_internal.h"
+
+#include <dirent.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 static const svp_boundary modes[] = {SVP_BOUNDARY_ZERO, SVP_BOUNDARY_MIRROR, SVP_BOUNDARY_PERIODIC};
 static const char *mode_names[] = {"zero", "mirror", "periodic"};
@@ -299,6 +304,90 @@ static void test_block_transforms(void **state)
     }
 }
 
+/* FFT planning: a measured plan that no wisdom covers is announced once through the plan
+ * callback (with its size and precision), never for a cached plan or one the wisdom holds;
+ * svp_fft_wisdom_save writes atomically (no temporary file left; the new file 0644, a
+ * replaced one keeps its mode) and what it wrote, loaded into a process that forgot its
+ * wisdom, makes measuring unnecessary again. */
+typedef struct plan_calls {
+    int n, ny, nx, single;
+} plan_calls;
+
+static void count_plans(void *user, int ny, int nx, int single_precision)
+{
+    plan_calls *c = user;
+    c->n++;
+    c->ny = ny;
+    c->nx = nx;
+    c->single = single_precision;
+}
+
+static int count_files(const char *dir)
+{
+    DIR *d = opendir(dir);
+    int n = 0;
+    for (struct dirent *e; d && (e = readdir(d));)
+        if (strcmp(e->d_name, ".") && strcmp(e->d_name, "..")) n++;
+    if (d) closedir(d);
+    return n;
+}
+
+static void test_plan_callback_and_wisdom(void **state)
+{
+    (void)state;
+    char dir[] = "/tmp/svpsf-test-wisdom-XXXXXX", path[64];
+    assert_non_null(mkdtemp(dir));
+    snprintf(path, sizeof path, "%s/wisdom", dir);
+    svp_fft_cleanup();
+    fftw_forget_wisdom();
+    fftwf_forget_wisdom();
+    plan_calls c = {0, 0, 0, -1};
+    svp_set_fft_plan_callback(count_plans, &c);
+    const svp_fft_plan *p;
+    svp_set_fft_effort(SVP_FFT_ESTIMATE); /* estimate: nothing measured, nothing announced */
+    ASSERT_OK(svp_fft_plan_get(36, 44, &p));
+    assert_int_equal(c.n, 0);
+    svp_set_fft_effort(SVP_FFT_MEASURE);
+    ASSERT_OK(svp_fft_plan_get(40, 48, &p));
+    assert_int_equal(c.n, 1);
+    assert_true(c.ny == 40 && c.nx == 48 && c.single == 0);
+    ASSERT_OK(svp_fft_plan_get(40, 48, &p)); /* the cached plan */
+    svp_fft_cleanup();
+    ASSERT_OK(svp_fft_plan_get(40, 48, &p)); /* a new plan, from the wisdom in memory */
+    assert_int_equal(c.n, 1);
+
+    ASSERT_OK(svp_fft_wisdom_save(path));
+    struct stat st;
+    assert_int_equal(stat(path, &st), 0);
+    assert_int_equal(st.st_mode & 0777, 0644);
+    assert_int_equal(count_files(dir), 1); /* no temporary file left */
+    assert_int_equal(chmod(path, 0600), 0);
+    ASSERT_OK(svp_fft_wisdom_save(path));
+    assert_int_equal(stat(path, &st), 0);
+    assert_int_equal(st.st_mode & 0777, 0600);
+    assert_int_equal(count_files(dir), 1);
+
+    svp_fft_cleanup();
+    fftw_forget_wisdom();
+    ASSERT_OK(svp_fft_plan_get(40, 48, &p)); /* forgotten: measured and announced again */
+    assert_int_equal(c.n, 2);
+    svp_fft_cleanup();
+    fftw_forget_wisdom();
+    ASSERT_OK(svp_fft_wisdom_load(path));
+    ASSERT_OK(svp_fft_plan_get(40, 48, &p)); /* from the file */
+    assert_int_equal(c.n, 2);
+    const svp_fftf_rows *pf;
+    ASSERT_OK(svp_fftf_rows_get(40, 48, 40, &pf)); /* float plans: not in the file */
+    assert_int_equal(c.n, 3);
+    assert_true(c.ny == 40 && c.nx == 48 && c.single == 1);
+
+    svp_set_fft_plan_callback(NULL, NULL);
+    svp_set_fft_effort(SVP_FFT_ESTIMATE);
+    svp_fft_cleanup();
+    unlink(path);
+    rmdir(dir);
+}
+
 int main(void)
 {
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -306,7 +395,7 @@ int main(void)
         cmocka_unit_test(test_matches_direct_sum), cmocka_unit_test(test_adjoint_identity),
         cmocka_unit_test(test_unit_flux),          cmocka_unit_test(test_linearity_and_delta),
         cmocka_unit_test(test_real_otf),           cmocka_unit_test(test_block_transforms),
-        cmocka_unit_test(test_bad_arguments),
+        cmocka_unit_test(test_bad_arguments),      cmocka_unit_test(test_plan_callback_and_wisdom),
     };
     int rc = cmocka_run_group_tests_name("operator", tests, NULL, NULL);
     svp_fft_cleanup();

@@ -1028,13 +1028,14 @@ static double pull_rms(const svp_image *est, const double *truth, const svp_imag
 typedef struct progress_log {
     int calls, cancel_at;
     double last;
-    int monotone;
+    int monotone, other_thread;
 } progress_log;
 
 static int log_progress(void *user, double fraction)
 {
     progress_log *l = user;
     l->calls++;
+    if (omp_get_thread_num() != 0) l->other_thread++; /* the calling thread is thread 0 */
     if (fraction < l->last) l->monotone = 0;
     l->last = fraction;
     return l->cancel_at > 0 && l->calls >= l->cancel_at;
@@ -1078,7 +1079,7 @@ static void test_fit_maps_lines(void **state)
     size_t failed = 99;
     ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps, &failed));
     assert_int_equal(failed, 0);
-    assert_true(log.calls >= 2 && log.monotone && log.last == 1.0);
+    assert_true(log.calls >= 2 && log.monotone && log.last == 1.0 && !log.other_thread);
     double err = 0, worst = 0, *t_lo = malloc(n * sizeof(double)), *t_hi = malloc(n * sizeof(double));
     double *t_b = malloc(n * sizeof(double)), *t_c = malloc(n * sizeof(double)),
            *t_g = malloc(n * sizeof(double));
@@ -1211,6 +1212,52 @@ static void test_fit_maps_lines(void **state)
     free(t_g);
 }
 
+/* A pixel whose best contrast is on a bound has no σ from the curvature: INFINITY in every σ
+ * map. A frame read as 0 (a dropped frame) in a flat spectrum is fitted by one line as a
+ * narrow dip of depth 1 — with R² near 1, so only σ tells; where the fit lands exactly on
+ * C = 1 every σ must be INFINITY; a real dip keeps finite σ. */
+static void test_fit_maps_bound(void **state)
+{
+    (void)state;
+    const int nf = 80, w = 25;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    od.linewidth_hz = 4e6;
+    const double D = od.zero_field_hz, g = od.gamma_hz_per_t;
+    double freq[80];
+    for (int f = 0; f < nf; f++) freq[f] = D - 60e6 + 120e6 * f / (nf - 1);
+    svp_cube *cube = NULL;
+    ASSERT_OK(svp_cube_new(w, 1, nf, freq, &cube));
+    uint64_t seed = 11;
+    for (int f = 0; f < nf; f++) {
+        cube->frame[f]->data[0] =
+            own_spectrum(freq[f], 1000, 0.03, NAN, D + g * 1e-3, 5e6) + test_gauss(&seed);
+        for (int p = 1; p < w; p++) /* the dropped frame at 20 + 1.5 p */
+            cube->frame[f]->data[p] = f == 20 + 3 * p / 2 ? 0 : 1000 + cos(1.7 * f + p);
+    }
+    svp_odmr_fit_options opt;
+    svp_odmr_fit_defaults(&opt);
+    opt.lines = SVP_ODMR_LINES_ONE;
+    fit_maps_set m;
+    svp_odmr_maps maps = maps_of(&m, w, 1, 0);
+    ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps, NULL));
+    assert_true(fabs(m.field->data[0] - 1e-3) < 20e-6 && m.quality->data[0] > 0.9);
+    svp_image *sig[] = {m.field_sigma, m.b_sigma, m.c_sigma, m.g_sigma};
+    int on_bound = 0;
+    for (int p = 0; p < w; p++) {
+        const int bound = m.c->data[p] == 0 || m.c->data[p] == 1;
+        on_bound += bound;
+        if (p > 0) assert_true(m.c->data[p] > 0.99 && m.quality->data[p] > 0.99);
+        for (int k = 0; k < 4; k++) /* (elsewhere JᵀJ may be singular: INFINITY too) */
+            if (bound || p == 0) assert_true(isinf(sig[k]->data[p]) == bound);
+    }
+    print_message("dropped frames: %d of %d fits end on C = 1 (sigma INFINITY)\n", on_bound,
+                  w - 1);
+    assert_true(on_bound >= 1 && m.c->data[0] < 1);
+    maps_free(&m);
+    svp_cube_free(cube);
+}
+
 /* ---- bad input -------------------------------------------------------------------------- */
 
 static void test_bad_input(void **state)
@@ -1300,6 +1347,7 @@ int main(void)
         cmocka_unit_test(test_fit_vs_centroid),
         cmocka_unit_test(test_fit_noisy),
         cmocka_unit_test(test_fit_maps_lines),
+        cmocka_unit_test(test_fit_maps_bound),
         cmocka_unit_test(test_projection),
         cmocka_unit_test(test_bad_input),
     };

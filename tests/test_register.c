@@ -523,8 +523,9 @@ static void test_bad_input(void **state)
     assert_non_null(strstr(svp_last_error(), "flat.tif is constant"));
     o.reference_name = o.moving_name = NULL;
 
-    /* unrelated images: a result, flagged by its significance (measured 3.45 against 24.2 for
-     * the shifted pair; the response alone does not separate them: 0.68 against 1.00) */
+    /* unrelated images: a result, flagged by its significance (measured 4.84, the more
+     * significant of the peak and the trough (contrast AUTO), against 24.2 for
+     * the shifted pair; the response alone does not separate them: 0.53 against 1.00) */
     scene other;
     scene_init(&other, w, h, 60, 99);
     svp_image *unrelated = test_image(w, h), *dummy = test_image(w, h);
@@ -654,6 +655,71 @@ static void test_ecc_failures(void **state)
     svp_image_free(mov);
 }
 
+/* Inverted contrast: a moving image that is a negative of the shifted reference (moving =
+ * 5 − 2 · scene(x − d), as a mask of regions that are dark in the PL) is detected from the
+ * correlation's trough and registered as well as a positive; forcing SAME finds no significant
+ * peak; forcing INVERTED gives the AUTO answer; ECC works on the inverted image. A positive
+ * pair keeps SAME. */
+static void test_inverted_contrast(void **state)
+{
+    (void)state;
+    const int w = 96, h = 80;
+    scene sc;
+    scene_init(&sc, w, h, 70, 3);
+    svp_image *ref = test_image(w, h), *mov = test_image(w, h);
+    const double T[6] = {1, 0, 3.7, 0, 1, -2.2};
+    render_pair(&sc, T, ref, mov);
+    for (int i = 0; i < w * h; i++) mov->data[i] = 5 - 2 * mov->data[i];
+    svp_register_options o;
+    svp_register_defaults(&o);
+    assert_int_equal(o.contrast, SVP_CONTRAST_AUTO);
+    svp_register_result r, forced, same;
+    ASSERT_OK(svp_register(ref, mov, &o, &r));
+    const double err = hypot(r.affine[2] - 3.7, r.affine[5] + 2.2);
+    print_message("inverted pair: error %.2e px, significance %.1f (peak %.1f), correlation "
+                  "%.4f\n",
+                  err, r.significance, r.significance_other, r.correlation);
+    assert_int_equal(r.inverted, 1);
+    assert_int_equal(r.low_significance, 0);
+    assert_true(err < 0.05);
+    assert_true(r.significance > 2 * o.min_significance && r.significance_other < 10);
+    assert_true(r.correlation > 0.99); /* of the inverted moving image */
+
+    o.contrast = SVP_CONTRAST_INVERTED;
+    ASSERT_OK(svp_register(ref, mov, &o, &forced));
+    assert_int_equal(forced.inverted, 1);
+    assert_true(forced.affine[2] == r.affine[2] && forced.affine[5] == r.affine[5]);
+    assert_true(forced.significance == r.significance);
+
+    o.contrast = SVP_CONTRAST_SAME; /* the sign-blind search of before: a wrong answer, flagged */
+    ASSERT_OK(svp_register(ref, mov, &o, &same));
+    print_message("inverted pair registered as the same contrast: significance %.1f\n",
+                  same.significance);
+    assert_int_equal(same.inverted, 0);
+    assert_int_equal(same.low_significance, 1);
+
+    o.contrast = SVP_CONTRAST_AUTO;
+    o.method = SVP_REGISTER_ECC;
+    o.motion = SVP_MOTION_TRANSLATION;
+    ASSERT_OK(svp_register(ref, mov, &o, &forced));
+    assert_int_equal(forced.inverted, 1);
+    assert_true(hypot(forced.affine[2] - 3.7, forced.affine[5] + 2.2) < 0.05);
+
+    /* the positive pair: SAME detected */
+    render_pair(&sc, T, ref, mov);
+    svp_register_defaults(&o);
+    ASSERT_OK(svp_register(ref, mov, &o, &r));
+    assert_int_equal(r.inverted, 0);
+    assert_true(r.significance > 2 * o.min_significance && r.significance_other < 10);
+    assert_true(hypot(r.affine[2] - 3.7, r.affine[5] + 2.2) < 0.05);
+
+    o.contrast = (svp_register_contrast)7;
+    assert_int_equal(svp_register(ref, mov, &o, &r), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "contrast 7"));
+    svp_image_free(ref);
+    svp_image_free(mov);
+}
+
 int main(void)
 {
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -668,6 +734,7 @@ int main(void)
         cmocka_unit_test(test_affine_invert),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_ecc_failures),
+        cmocka_unit_test(test_inverted_contrast),
     };
     int failed = cmocka_run_group_tests(tests, NULL, NULL);
     svp_fft_cleanup();

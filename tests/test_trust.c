@@ -3,6 +3,7 @@
  * stopping rule land near the error-minimising choice, light from outside the view is handled
  * by the margin domain, and results in doubt are refused (or kept with validity 0). */
 #include "test_helpers.h"
+#include "restore/restore_internal.h"
 #include "core/internal.h"
 
 #include <math.h>
@@ -92,7 +93,7 @@ static double rms_error(const svp_image *rec, const svp_image *truth, const unsi
 /* ---- a converging signed RL --------------------------------------------------------------- */
 
 /* A noiseless 256² round trip, Moffat 0.6 µm (6 px) β 1.5, zero boundary, a band whose PL is
- * 10× darker: with the automatic shift c = 2 max|B̃| the lit error falls from 300 to 2000
+ * 10× darker: with the automatic shift c = 100 max|B̃| the lit error falls from 300 to 2000
  * iterations and ends below 1 % of the peak. (c = 0.1 range − min made it rise with
  * iterations: 10 % → 16 %.) */
 static void test_signed_rl_converges(void **state)
@@ -141,6 +142,63 @@ static void test_signed_rl_converges(void **state)
 }
 
 /* ---- accelerated RL ------------------------------------------------------------------------- */
+
+/* A narrow current strip (Bz of a sheet current: log((x−a)² + d²) − log((x+a)² + d²), peaks at
+ * its edges) whose metal quenches the PL 20×, under a Moffat 6 px β 1.1: blurring shrinks the
+ * field's extremes about fourfold, so a shift sized by the measured map (c = 2 max|B̃|) does not
+ * clear the true field's minimum, RL (≥ 0) clips it and the error on the strip *rises* with
+ * iterations; the automatic shift clears it and the error falls (docs/model.md §3). */
+static void test_signed_rl_strip(void **state)
+{
+    (void)state;
+    const int w = 128, h = 128;
+    svp_blur *op = moffat_op(6.0, 1.1, w, h, SVP_BOUNDARY_ZERO);
+    svp_image *pl = test_image(w, h), *b = test_image(w, h);
+    const double a = 5, d = 0.5, xc = 64;
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            const double u = x - xc;
+            const size_t i = (size_t)y * w + x;
+            b->data[i] = 10 * log(((u - a) * (u - a) + d * d) / ((u + a) * (u + a) + d * d));
+            pl->data[i] = fabs(u) <= a ? 0.05 : 1.0;
+        }
+    maps m = maps_new(w, h);
+    const svp_image *bt[1] = {b};
+    svp_image *ba[1] = {m.field};
+    ASSERT_OK(svp_forward_transform(op, pl, bt, 1, m.pl, ba, NULL));
+    unsigned char *strip = malloc((size_t)w * h);
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) strip[(size_t)y * w + x] = y >= 16 && y < h - 16 &&
+                                                              fabs(x - xc) <= a + 2;
+    const double small = 2 * test_max_abs(m.field);
+    const int counts[2] = {100, 1000};
+    double e_auto[2], e_small[2];
+    for (int k = 0; k < 2; k++) {
+        svp_correct_options o;
+        svp_correct_defaults(&o);
+        o.method = SVP_METHOD_R;
+        o.deconv.iterations = counts[k];
+        ASSERT_OK(correct(op, &m, &o));
+        e_auto[k] = rms_error(m.field_out, b, strip);
+        o.shift = small;
+        ASSERT_OK(correct(op, &m, &o));
+        e_small[k] = rms_error(m.field_out, b, strip);
+    }
+    print_message("strip under a quenching wire (true peak %.3g, measured %.3g): rms error on "
+                  "the strip, automatic shift %.3g -> %.3g (100 -> 1000 it); c = 2 max|B~| "
+                  "%.3g -> %.3g\n",
+                  test_max_abs(b), test_max_abs(m.field), e_auto[0], e_auto[1], e_small[0],
+                  e_small[1]);
+    assert_true(test_max_abs(b) > 2 * test_max_abs(m.field)); /* the case this is about */
+    assert_true(e_auto[1] < e_auto[0]);
+    assert_true(e_auto[1] < 0.5 * e_small[1]);
+    assert_true(e_small[1] > e_small[0]); /* the failure the automatic shift avoids */
+    free(strip);
+    maps_free(&m);
+    svp_image_free(pl);
+    svp_image_free(b);
+    svp_blur_free(op);
+}
 
 /* Biggs–Andrews extrapolation on noiseless data reaches plain RL's 100-iteration error in 40
  * iterations or fewer; both stay non-negative and finite. */
@@ -280,6 +338,72 @@ static void test_auto_choices_near_optimal(void **state)
 }
 
 /* ---- light from outside the view ------------------------------------------------------------ */
+
+/* When no balance can meet the noise level — here a noise σ 10⁴× below the true one, as a
+ * wrong --noise or a model that cannot reach the data would give — the discrepancy principle
+ * has no answer; correct's automatic balance then takes the L-curve's corner, which lands
+ * within a stated factor of the error-minimising λ (docs/model.md §6). */
+static void test_lcurve_fallback(void **state)
+{
+    (void)state;
+    const int w = 96, h = 96;
+    svp_blur *op = moffat_op(4.0, 2.0, w, h, SVP_BOUNDARY_ZERO);
+    svp_image *x_true = test_image(w, h), *y = test_image(w, h), *x = test_image(w, h);
+    for (int j = 0; j < h; j++)
+        for (int i = 0; i < w; i++)
+            x_true->data[(size_t)j * w + i] =
+                1.0 + ((i / 16 + j / 16) % 2) +
+                2 * exp(-((i - 50) * (i - 50) + (j - 40) * (j - 40)) / 30.0);
+    ASSERT_OK(svp_blur_apply(op, x_true, y));
+    const double sigma = 0.01;
+    uint64_t seed = 5;
+    for (size_t i = 0; i < (size_t)w * h; i++) {
+        double u1 = test_rand(&seed), u2 = test_rand(&seed);
+        y->data[i] += sigma * sqrt(-2 * log(u1 + 1e-300)) * cos(2 * M_PI * u2);
+    }
+    unsigned char *all = malloc((size_t)w * h);
+    memset(all, 1, (size_t)w * h);
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    double best_lambda = 0, best_e = INFINITY;
+    for (double t = -7; t <= 0.01; t += 0.5) {
+        o.balance = pow(10, t);
+        ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
+        const double e = rms_error(x, x_true, all);
+        if (e < best_e) {
+            best_e = e;
+            best_lambda = o.balance;
+        }
+    }
+    double lambda = 0, used = 0;
+    int at_bound = 0, lcurve = 0;
+    /* without the fallback: the search ends on its lower bound */
+    ASSERT_OK(svp_wiener_balance_discrepancy_var(op, y, NULL, sigma / 1e4, 400, &lambda, &used,
+                                                 &at_bound, NULL));
+    assert_int_equal(at_bound, -1);
+    const double lambda_bound = lambda;
+    ASSERT_OK(svp_wiener_balance_discrepancy_var(op, y, NULL, sigma / 1e4, 400, &lambda, &used,
+                                                 &at_bound, &lcurve));
+    o.balance = lambda;
+    ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
+    const double e = rms_error(x, x_true, all);
+    o.balance = lambda_bound;
+    ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
+    const double e_bound = rms_error(x, x_true, all);
+    print_message("noise 1e4x underestimated: discrepancy ends on its bound (lambda %.3g, error "
+                  "%.4g); L-curve corner lambda %.3g (error %.4g, %.2fx the best %.4g at lambda "
+                  "%.3g)\n",
+                  lambda_bound, e_bound, lambda, e, e / best_e, best_e, best_lambda);
+    assert_int_equal(lcurve, 1);
+    assert_int_equal(at_bound, 0);
+    assert_true(lambda / best_lambda < 30 && best_lambda / lambda < 30);
+    assert_true(e < 2.0 * best_e);
+    free(all);
+    svp_image_free(x_true);
+    svp_image_free(y);
+    svp_image_free(x);
+    svp_blur_free(op);
+}
 
 /* The scene extends M pixels beyond the view on every side (a bright spot there too), and the
  * data are the view's crop of its blur. Corrected on the view alone, the 2 µm band at the edge
@@ -463,8 +587,10 @@ int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_signed_rl_converges),
+        cmocka_unit_test(test_signed_rl_strip),
         cmocka_unit_test(test_accelerated_rl),
         cmocka_unit_test(test_auto_choices_near_optimal),
+        cmocka_unit_test(test_lcurve_fallback),
         cmocka_unit_test(test_margin_domain),
         cmocka_unit_test(test_doubt_checks),
         cmocka_unit_test(test_pl_noise_estimate),

@@ -19,6 +19,7 @@ __all__ = [
     "Error", "DoubtfulError", "version", "fftw_version", "set_threads", "get_threads",
     "set_fft_effort", "wisdom_load", "wisdom_save", "read_image", "write_image", "PSF", "PSFMap",
     "read_psf", "Blur", "forward", "correct", "deconvolve", "fit_psf", "map_psf", "fit_odmr",
+    "read_stack", "OdmrFit",
     "SpotFit", "LIBRARY", "HEADER",
 ]
 
@@ -473,7 +474,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
     'double' | 'single'; acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
-    PSF, zero boundary); gain, offset of the PL's camera; field_sigma one σ map per field.
+    PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
+    gain, offset of the PL's camera; field_sigma one σ map per field.
     None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
@@ -761,41 +763,142 @@ def map_psf(samples, shape, labels=None, degree="auto", max_degree=3, folds=5,
 
 # ---- ODMR stacks ------------------------------------------------------------------------------
 
-OdmrFit = namedtuple("OdmrFit", "field contrast baseline linewidth n_failed")
+
+def read_stack(path):
+    """Reads an image stack as svpsf fit-odmr does (svp_stack_read): a multi-page TIFF (one
+    frame per page), a .npy of shape (frames, height, width), or any single image (one frame).
+    Returns a (frames, height, width) float64 array (one copy: the library holds every frame
+    in its own buffer)."""
+    out = ffi.new("svp_stack **")
+    _check(lib.svp_stack_read(_path(path), out))
+    s = out[0]
+    try:
+        nf, h, w = s.n_frames, s.height, s.width
+        a = np.empty((nf, h, w), dtype=np.float64)
+        for i in range(nf):
+            a[i] = np.frombuffer(ffi.buffer(s.frame[i].data, 8 * w * h),
+                                 dtype=np.float64).reshape(h, w)
+    finally:
+        lib.svp_stack_free(s)
+    return a
 
 
-def fit_odmr(stack, frequencies, zero_field_hz=2.870e9, gamma_hz_per_t=28.033e9,
-             linewidth_hz=1e6, max_iterations=None):
-    """Per-pixel Lorentzian fits of an ODMR stack (svp_odmr_fit): stack of shape (n_freq,
-    height, width), one frame per frequency (Hz, strictly increasing). The frames are handed
-    to the library in place (a C-contiguous float64 stack is not copied). Returns (field |B|
-    in T, contrast, baseline, linewidth in Hz, n_failed)."""
-    st = np.asarray(stack, dtype=np.float64)
-    if st.ndim != 3:
-        raise ValueError("stack: shape (n_freq, height, width) needed, got %s" % (st.shape,))
-    if not st.flags.c_contiguous:
-        st = np.ascontiguousarray(st)
-    fr = np.ascontiguousarray(frequencies, dtype=np.float64)
-    nf, h, w = st.shape
-    if fr.shape != (nf,):
+class OdmrFit(dict):
+    """fit_odmr's maps by name, also as attributes (r.field, r["field"]); .n_failed."""
+
+    def __getattr__(self, name):
+        try:
+            return self[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+
+_LINES = {"pair": "SVP_ODMR_LINES_PAIR", "two": "SVP_ODMR_LINES_TWO", "one": "SVP_ODMR_LINES_ONE"}
+_LINE_SIGN = {"upper": 1, "lower": -1}
+# the maps in the order of svp_odmr_maps, named as the files `svpsf fit-odmr` writes
+_ODMR_MAPS = (("field", "field"), ("field_sigma", "field_sigma"), ("field_lower", "field_lower"),
+              ("field_lower_sigma", "field_lower_sigma"), ("field_upper", "field_upper"),
+              ("field_upper_sigma", "field_upper_sigma"), ("pl", "baseline"),
+              ("pl_sigma", "baseline_sigma"), ("contrast", "contrast"),
+              ("contrast_sigma", "contrast_sigma"), ("linewidth", "linewidth"),
+              ("linewidth_sigma", "linewidth_sigma"), ("quality", "quality"),
+              ("converged", "converged"))
+
+
+def _stack_frames(stack):
+    """Frames of a stack as C-contiguous float64 2-D arrays: views of a C-contiguous float64
+    (n, h, w) array (no copy), else converted once."""
+    if isinstance(stack, np.ndarray):
+        st = stack if stack.dtype == np.float64 and stack.flags.c_contiguous else \
+            np.ascontiguousarray(stack, dtype=np.float64)
+        if st.ndim != 3:
+            raise ValueError("stack: shape (n_freq, height, width) needed, got %s" % (st.shape,))
+        if st.shape[1] < 1 or st.shape[2] < 1:
+            raise ValueError("stack: the frames are empty (shape %s)" % (st.shape,))
+        return [st[i] for i in range(st.shape[0])]
+    frames = [_input(f, "stack[%d]" % i) for i, f in enumerate(stack)]
+    if frames:
+        _same_shape(frames, ["stack[%d]" % i for i in range(len(frames))])
+    return frames
+
+
+def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
+             gamma_hz_per_t=28.033e9, linewidth_hz=1e6, baseline_frames=3, max_iterations=None,
+             failed="nan"):
+    """Per-pixel Lorentzian fits of an ODMR stack (svp_odmr_fit_maps; `svpsf fit-odmr`,
+    docs/model.md §10): stack of shape (n_freq, height, width) (or a sequence of 2-D frames),
+    one frame per frequency (Hz; a decreasing sweep is put in increasing order, as the program
+    does). A C-contiguous float64 stack is handed to the library in place.
+
+    lines: 'pair' (both lines at D ± γB about zero_field_hz: field = |B|), 'two' (two free
+    dips f₋ < f₊: field = (f₊ − f₋) / 2γ, and field_lower / field_upper per resonance) or
+    'one' (one dip; line='upper' (default) or 'lower' gives its sign). linewidth_hz: the
+    starting FWHM; baseline_frames: frames at each end for the starting baseline;
+    max_iterations: Levenberg–Marquardt steps per pixel (default 200). failed: 'nan' (as the
+    program: the field maps are NaN where the fit did not converge) or 'keep'.
+
+    Returns an OdmrFit (a dict, keys also attributes) with the maps `svpsf fit-odmr` writes,
+    in SI units (field in T, linewidth in Hz): field, field_sigma (with lines='two' also
+    field_lower, field_lower_sigma, field_upper, field_upper_sigma), pl, pl_sigma, contrast,
+    contrast_sigma, linewidth, linewidth_sigma, quality (R²), converged (1 or 0); and
+    .n_failed, the pixels not converged or missing. σ: 1σ from (JᵀJ)⁻¹ χ²/dof."""
+    if lines not in _LINES:
+        raise ValueError("lines %r: one of %s" % (lines, ", ".join(_LINES)))
+    if line is not None and lines != "one":
+        raise ValueError("line=%r needs lines='one'" % (line,))
+    if (line or "upper") not in _LINE_SIGN:
+        raise ValueError("line %r: 'upper' or 'lower'" % (line,))
+    if failed not in ("nan", "keep"):
+        raise ValueError("failed %r: 'nan' or 'keep'" % (failed,))
+    frames = _stack_frames(stack)
+    nf = len(frames)
+    fr = np.array(frequencies, dtype=np.float64)
+    if fr.ndim != 1 or fr.size != nf:
         raise ValueError("frequencies: %d values for a stack of %d frames" % (fr.size, nf))
+    for f in range(nf):
+        if not np.isfinite(fr[f]):
+            raise ValueError("frequencies: frequency %d is not a finite number" % (f + 1))
+    decreasing = nf > 1 and fr[-1] < fr[0]
+    if decreasing:
+        frames, fr = frames[::-1], np.ascontiguousarray(fr[::-1])
+    for f in range(1, nf):
+        if not fr[f] > fr[f - 1]:
+            raise ValueError("frequencies: not monotonic: frame %d at %.9g Hz after %.9g Hz"
+                             % (nf - f if decreasing else f + 1, fr[f], fr[f - 1]))
+    h, w = frames[0].shape if nf else (0, 0)
     imgs = _Images()
-    frames = [imgs.view(st[i]) for i in range(nf)]
     cube = ffi.new("svp_cube *")
     cube.width, cube.height, cube.n_freq = w, h, nf
     fbuf = ffi.from_buffer("double[]", fr)
     cube.freq = fbuf
-    cube.frame = imgs.array(frames)
+    cube.frame = imgs.array([imgs.view(f) for f in frames])
     odmr = ffi.new("svp_odmr *")
     lib.svp_odmr_defaults(odmr)
     odmr.zero_field_hz, odmr.gamma_hz_per_t, odmr.linewidth_hz = (zero_field_hz, gamma_hz_per_t,
                                                                     linewidth_hz)
     opt = ffi.new("svp_odmr_fit_options *")
     lib.svp_odmr_fit_defaults(opt)
+    opt.lines = getattr(lib, _LINES[lines])
+    opt.line_sign = _LINE_SIGN[line or "upper"]
+    opt.baseline_frames = int(baseline_frames)
     if max_iterations is not None:
         opt.lm.max_iterations = int(max_iterations)
-    outs = [imgs.out((h, w)) for _ in range(4)]
+    maps = ffi.new("svp_odmr_maps *")
+    result = OdmrFit()
+    for name, member in _ODMR_MAPS:
+        if lines != "two" and name in ("field_lower", "field_lower_sigma", "field_upper",
+                                       "field_upper_sigma"):
+            continue
+        a, img = imgs.out((h, w))
+        setattr(maps, member, img)
+        result[name] = a
     n_failed = ffi.new("size_t *")
-    _check(lib.svp_odmr_fit(odmr, cube, opt, outs[0][1], outs[1][1], outs[2][1], outs[3][1],
-                            n_failed))
-    return OdmrFit(outs[0][0], outs[1][0], outs[2][0], outs[3][0], int(n_failed[0]))
+    _check(lib.svp_odmr_fit_maps(odmr, cube, opt, maps, n_failed))
+    if failed == "nan":
+        bad = result["converged"] != 1
+        for name in ("field", "field_sigma", "field_lower", "field_lower_sigma", "field_upper",
+                     "field_upper_sigma"):
+            if name in result:
+                result[name][bad] = np.nan
+    result.n_failed = int(n_failed[0])
+    return result

@@ -73,8 +73,9 @@ def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     plf = write(tmp_path, "pl_app.npy", apparent.pl)
     b1 = write(tmp_path, "Bx.npy", apparent.fields[0])
     b2 = write(tmp_path, "Bz.npy", apparent.fields[1])
+    # the CLI's default margin for r is auto, the library's (and so Python's) 0
     cli("correct", "--pl", plf, "--field", b1, "--field", b2, "--psf", pf, "-o",
-        tmp_path / "out", *COMMON, *args)
+        tmp_path / "out", "--margin", "0", *COMMON, *args)
     r = svpsf.correct(apparent.pl, apparent.fields, pf, **kwargs)
     out = tmp_path / "out"
     assert np.array_equal(r.pl, np.load(out / "pl.npy"))
@@ -193,10 +194,153 @@ def test_fit_odmr_recovers_the_field():
 
     stack = pl * (1 - c * (lor(D + gamma * b) + lor(D - gamma * b)))
     r = svpsf.fit_odmr(stack, freq, linewidth_hz=lw)
-    assert r.n_failed == 0
+    assert r.n_failed == 0 and np.all(r.converged == 1)
     assert np.max(np.abs(r.field - b)) < 1e-9  # noiseless: to the fit's tolerance
     assert np.max(np.abs(r.contrast - c)) < 1e-6
-    assert np.max(np.abs(r.baseline - pl) / pl) < 1e-6
+    assert np.max(np.abs(r.pl - pl) / pl) < 1e-6
+    assert np.all(r.quality > 1 - 1e-12)  # R² of a perfect fit
+    assert "field_lower" not in r  # per resonance with lines="two" only
+    # a decreasing sweep is the same sweep (the program reorders it too)
+    rd = svpsf.fit_odmr(stack[::-1], freq[::-1], linewidth_hz=lw)
+    assert all(np.array_equal(rd[k], r[k]) for k in r)
+
+
+# ---- ODMR stacks: the package against `svpsf fit-odmr` ------------------------------------------
+
+def write_tiff_stack(path, frames):
+    """A little-endian multi-page float32 TIFF written here (one strip per page, then its
+    directory), not by the library: what a camera's software saves."""
+    import struct
+    frames = np.asarray(frames, dtype="<f4")
+    n, h, w = frames.shape
+    out = bytearray(b"II*\0" + struct.pack("<I", 0))
+    link = 4
+    for p in range(n):
+        data = len(out)
+        out += frames[p].tobytes()
+        ifd = len(out)
+        struct.pack_into("<I", out, link, ifd)
+        tags = [(256, 3, w), (257, 3, h), (258, 3, 32), (259, 3, 1), (262, 3, 1),
+                (273, 4, data), (277, 3, 1), (278, 3, h), (279, 4, 4 * w * h), (339, 3, 3)]
+        out += struct.pack("<H", len(tags))
+        for tag, typ, value in tags:
+            out += struct.pack("<HHI", tag, typ, 1)
+            out += struct.pack("<HH", value, 0) if typ == 3 else struct.pack("<I", value)
+        link = len(out)
+        out += struct.pack("<I", 0)
+    with open(path, "wb") as f:
+        f.write(bytes(out))
+    return str(path)
+
+
+def odmr_stack(h=14, w=18, nf=100, seed=3):
+    """A noisy two-dip stack (D shifted by 0.4 MHz, B 1..3 mT, FWHM 5 MHz, contrast 3 %,
+    PL ~1000 counts, noise 3 counts), its frequencies (Hz) and the true field (T)."""
+    rng = np.random.default_rng(seed)
+    D, gamma, lw = 2.870e9 + 0.4e6, 28.033e9, 5e6
+    freq = 1e6 * (2750.0 + (2990.0 - 2750.0) * np.arange(nf) / float(nf - 1))
+    y, x = np.mgrid[0:h, 0:w]
+    b = 1e-3 + 2e-3 * (0.5 + 0.5 * np.sin(0.3 * x) * np.cos(0.2 * y))
+    pl = 1000 + 200 * np.cos(0.15 * (x + y))
+
+    def lor(f0):
+        return (lw / 2) ** 2 / ((freq[:, None, None] - f0) ** 2 + (lw / 2) ** 2)
+
+    stack = pl * (1 - 0.03 * (lor(D - gamma * b) + lor(D + gamma * b)))
+    return stack + 3 * rng.standard_normal(stack.shape), freq, b
+
+
+ODMR_COMMON = ["--threads", "2", "--format", "npy", "--quiet"]  # fit-odmr makes no FFT plans
+
+ODMR_CASES = [
+    (["--lines", "two", "--linewidth", "4e6"], dict(lines="two", linewidth_hz=4e6)),
+    (["--zero-field", "2.8704e9", "--linewidth", "4e6"], dict(zero_field_hz=2.8704e9,
+                                                            linewidth_hz=4e6)),
+    (["--lines", "one", "--line", "lower", "--max-iterations", "30"],
+     dict(lines="one", line="lower", max_iterations=30)),
+]
+
+
+@pytest.mark.parametrize("args, kwargs", ODMR_CASES)
+def test_fit_odmr_equals_cli_on_a_tiff_stack(cli, tmp_path, args, kwargs):
+    stack, freq, b = odmr_stack()
+    tif = write_tiff_stack(tmp_path / "stack.tif", stack)
+    # the stack as the library reads it: the float32 pages exactly
+    read = svpsf.read_stack(tif)
+    assert read.shape == stack.shape and read.dtype == np.float64
+    assert np.array_equal(read, stack.astype(np.float32))
+    ffile = tmp_path / "freq.txt"
+    ffile.write_text("".join("%r\n" % f for f in freq))
+    cli("fit-odmr", tif, "--frequencies", ffile, "-o", tmp_path / "fit", *args, *ODMR_COMMON)
+    r = svpsf.fit_odmr(read, freq, **kwargs)
+    written = sorted(p.name[:-4] for p in (tmp_path / "fit").glob("*.npy"))
+    assert written == sorted(k for k in r if k != "converged")
+    for k in written:  # bit for bit, NaN (not converged) where the program has NaN
+        assert np.array_equal(r[k], np.load(tmp_path / "fit" / (k + ".npy")), equal_nan=True), k
+    summary = json.loads((tmp_path / "fit" / "summary.json").read_text())
+    assert summary["results"]["n_failed"] == r.n_failed
+    if kwargs.get("lines") != "one":  # (one line cannot fit two dips: not asserted)
+        # σ_B ≈ 4 µT: the field within a stated 10 µT mean, 50 µT max; R² > 0.5 (a dip 10 σ
+        # deep in 100 frames of which most are off resonance)
+        assert r.n_failed == 0 and np.all(r.quality > 0.5)
+        assert np.mean(np.abs(r.field - b)) < 10e-6 and np.max(np.abs(r.field - b)) < 50e-6
+
+
+def test_fit_odmr_equals_cli_on_a_npy_stack_and_a_range(cli, tmp_path):
+    # a 3-D .npy read in place by the program; frequencies as START:STOP:N in MHz, decreasing
+    stack, freq, _ = odmr_stack(nf=60, seed=4)
+    freq = 1e6 * (2990.0 + (2750.0 - 2990.0) * np.arange(60) / 59.0)
+    stack = stack[::-1].copy()  # the same spectra, swept downwards
+    f = write(tmp_path, "stack.npy", stack)
+    cli("fit-odmr", f, "--frequencies", "2990:2750:60", "--frequency-unit", "MHz", "--unit", "T",
+        "--failed", "keep", "-o", tmp_path / "fit", *ODMR_COMMON)
+    r = svpsf.fit_odmr(stack, freq, failed="keep")
+    for k in ("field", "field_sigma", "pl", "contrast", "linewidth", "quality"):
+        assert np.array_equal(r[k], np.load(tmp_path / "fit" / (k + ".npy"))), k
+
+
+def test_fit_odmr_does_not_copy_the_stack():
+    stack, freq, _ = odmr_stack(h=16, w=20, nf=100)
+    svpsf.fit_odmr(stack, freq)
+    tracemalloc.start()
+    r = svpsf.fit_odmr(stack, freq)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    maps = sum(a.nbytes for a in r.values())  # 12 output maps: ~31 kB; the stack: 256 kB
+    assert maps <= peak < maps + stack.nbytes // 4, (peak, maps, stack.nbytes)
+
+
+def test_fit_odmr_errors(cli, tmp_path):
+    stack, freq, _ = odmr_stack(h=6, w=5, nf=40)
+    # a truncated .npy stack: the library's message, as the program prints it
+    f = write(tmp_path, "s.npy", stack)
+    trunc = tmp_path / "trunc.npy"
+    trunc.write_bytes(open(f, "rb").read()[:2000])
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.read_stack(trunc)
+    p = cli("fit-odmr", trunc, "--frequencies", "1:40:40", "-o", tmp_path / "o", ok=False)
+    assert p.returncode == 1
+    assert p.stderr.strip() == "svpsf fit-odmr: " + e.value.message
+    assert "trunc.npy" in e.value.message and "truncated" in e.value.message
+    # one frame: the library refuses the fit
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.fit_odmr(stack[:1], freq[:1])
+    assert e.value.status == 1 and e.value.message == "Lorentzian fit: 1 frequencies, >= 5 needed"
+    with pytest.raises(svpsf.Error, match="baseline_frames 30 must be in \\[1, 20\\]"):
+        svpsf.fit_odmr(stack, freq, baseline_frames=30)
+    # arguments the wrapper checks before the library, as the program does
+    with pytest.raises(ValueError, match="frequencies: 39 values for a stack of 40 frames"):
+        svpsf.fit_odmr(stack, freq[:-1])
+    bad = freq.copy()
+    bad[20] = bad[5]
+    with pytest.raises(ValueError, match="not monotonic: frame 21"):
+        svpsf.fit_odmr(stack, bad)
+    with pytest.raises(ValueError, match="lines 'three'"):
+        svpsf.fit_odmr(stack, freq, lines="three")
+    with pytest.raises(ValueError, match="needs lines='one'"):
+        svpsf.fit_odmr(stack, freq, line="lower")
+    with pytest.raises(ValueError, match="shape \\(n_freq, height, width\\)"):
+        svpsf.fit_odmr(stack[0], freq)
 
 
 def test_errors_carry_the_library_message(cli, tmp_path, maps):

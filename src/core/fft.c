@@ -8,6 +8,8 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include "svpsf_version.h"
 
@@ -24,6 +26,30 @@ typedef struct plan_entry {
     struct plan_entry *next;
 } plan_entry;
 static plan_entry *plan_cache;
+static svp_fft_plan_fn plan_callback; /* svp_set_fft_plan_callback */
+static void *plan_callback_user;
+
+void svp_set_fft_plan_callback(svp_fft_plan_fn callback, void *user)
+{
+    pthread_mutex_lock(&fft_lock);
+    plan_callback = callback;
+    plan_callback_user = user;
+    pthread_mutex_unlock(&fft_lock);
+}
+
+/* The planning flags, and whether to try FFTW_WISDOM_ONLY first: measured plans are first
+ * asked of the wisdom alone (free when it has them); only when that fails is the caller told
+ * (plan_measuring) and the measuring done. Called under fft_lock. */
+static unsigned plan_flags(int *wisdom_first)
+{
+    *wisdom_first = fft_effort == SVP_FFT_MEASURE;
+    return fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE;
+}
+
+static void plan_measuring(int ny, int nx, int single_precision)
+{
+    if (plan_callback) plan_callback(plan_callback_user, ny, nx, single_precision);
+}
 
 static void fft_init(void)
 {
@@ -195,23 +221,66 @@ svp_status svp_fft_wisdom_load(const char *path)
     return SVP_OK;
 }
 
+/* Writes d and f to fp; 0 on success. */
+static int wisdom_write(FILE *fp, const char *d, const char *f)
+{
+    int bad = fputs(d, fp) < 0 || fputs(f, fp) < 0;
+    bad = fflush(fp) != 0 || bad;
+    return bad;
+}
+
 svp_status svp_fft_wisdom_save(const char *path)
 {
+    if (!path || !path[0]) return svp_fail(SVP_ERR_INVALID, "FFTW wisdom: no file name");
     pthread_once(&fft_once, fft_init);
     pthread_mutex_lock(&fft_lock);
     char *d = fftw_export_wisdom_to_string();
     char *f = fftwf_export_wisdom_to_string();
     pthread_mutex_unlock(&fft_lock);
     svp_status st = SVP_OK;
-    FILE *fp = d && f ? fopen(path, "wb") : NULL;
-    if (!fp) {
-        st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path,
-                      d && f ? strerror(errno) : "out of memory");
-    } else {
-        int bad = fputs(d, fp) < 0 || fputs(f, fp) < 0;
-        if (fclose(fp) != 0 || bad)
-            st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path, strerror(errno));
+    if (!d || !f) {
+        st = svp_fail(SVP_ERR_NOMEM, "%s: cannot write FFTW wisdom: out of memory", path);
+        goto done;
     }
+    /* a temporary file next to the target, renamed into place: readers (a concurrent run
+     * loading the same cache) see the old file or the new one, never a part */
+    const size_t n = strlen(path);
+    char *tmp = malloc(n + 8);
+    if (!tmp) {
+        st = svp_fail(SVP_ERR_NOMEM, "%s: cannot write FFTW wisdom: out of memory", path);
+        goto done;
+    }
+    memcpy(tmp, path, n);
+    memcpy(tmp + n, ".XXXXXX", 8);
+    int fd = mkstemp(tmp);
+    if (fd >= 0) {
+        /* mkstemp makes 0600; keep the mode of the file it replaces, else 0644 */
+        struct stat old;
+        fchmod(fd, stat(path, &old) == 0 ? (old.st_mode & 07777) : 0644);
+        FILE *fp = fdopen(fd, "wb");
+        int bad = !fp || wisdom_write(fp, d, f);
+        bad = (fp ? fclose(fp) != 0 : close(fd) != 0) || bad;
+        if (bad || rename(tmp, path) != 0) {
+            st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path,
+                          errno ? strerror(errno) : "write failed");
+            unlink(tmp);
+        }
+    } else if (errno == EACCES || errno == EROFS || errno == EPERM) {
+        /* a folder that is not writable: the file itself may be (written in place) */
+        FILE *fp = fopen(path, "wb");
+        if (!fp) {
+            st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path, strerror(errno));
+        } else {
+            int bad = wisdom_write(fp, d, f);
+            if (fclose(fp) != 0 || bad)
+                st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path,
+                              strerror(errno));
+        }
+    } else {
+        st = svp_fail(SVP_ERR_IO, "%s: cannot write FFTW wisdom: %s", path, strerror(errno));
+    }
+    free(tmp);
+done:
     if (d) fftw_free(d);
     if (f) fftwf_free(f);
     return st;
@@ -255,18 +324,27 @@ svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out)
         goto cleanup;
     }
     if (fft_threads_ok) fftw_plan_with_nthreads(threads);
-    unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);
+    int wisdom_first;
+    const unsigned flags = plan_flags(&wisdom_first);
     e->plan.ny = ny;
     e->plan.nx = nx;
     e->plan.ncx = ncx;
     e->threads = threads;
-    e->plan.r2c = fftw_plan_dft_r2c_2d(ny, nx, r, c, flags);
-    e->plan.c2r = fftw_plan_dft_c2r_2d(ny, nx, c, r, flags);
-    if (!e->plan.r2c || !e->plan.c2r) {
+    for (;;) {
+        const unsigned f = wisdom_first ? flags | FFTW_WISDOM_ONLY : flags;
+        e->plan.r2c = fftw_plan_dft_r2c_2d(ny, nx, r, c, f);
+        e->plan.c2r = fftw_plan_dft_c2r_2d(ny, nx, c, r, f);
+        if (e->plan.r2c && e->plan.c2r) break;
         if (e->plan.r2c) fftw_destroy_plan(e->plan.r2c);
         if (e->plan.c2r) fftw_destroy_plan(e->plan.c2r);
-        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a %d x %d transform", ny, nx);
-        goto cleanup;
+        e->plan.r2c = e->plan.c2r = NULL;
+        if (!wisdom_first) {
+            status =
+                svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a %d x %d transform", ny, nx);
+            goto cleanup;
+        }
+        wisdom_first = 0;
+        plan_measuring(ny, nx, 0);
     }
     e->next = plan_cache;
     plan_cache = e;
@@ -345,28 +423,37 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
             goto cleanup;                                                                          \
         }                                                                                          \
         if (fft_threads_ok) P##plan_with_nthreads(threads);                                        \
-        unsigned flags = (fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE);           \
+        int wisdom_first;                                                                          \
+        const unsigned flags = plan_flags(&wisdom_first);                                          \
         T *p = &e->plan;                                                                           \
         p->ny = ny;                                                                                \
         p->nx = nx;                                                                                \
         p->ncx = ncx;                                                                              \
         p->rows = rows;                                                                            \
         e->threads = threads;                                                                      \
-        if (rows > 0) { /* rows = 0: the column plans only */                                      \
-            p->rows_r2c = P##plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx,      \
-                                               flags);                                             \
-            p->rows_c2r = P##plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx,      \
-                                               flags);                                             \
-        }                                                                                          \
-        p->cols_fwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,              \
-                                       FFTW_FORWARD, flags);                                       \
-        p->cols_bwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,              \
-                                       FFTW_BACKWARD, flags);                                      \
-        if ((rows > 0 && (!p->rows_r2c || !p->rows_c2r)) || !p->cols_fwd || !p->cols_bwd) {        \
+        for (;;) {                                                                                 \
+            const unsigned f = wisdom_first ? flags | FFTW_WISDOM_ONLY : flags;                    \
+            if (rows > 0) { /* rows = 0: the column plans only */                                  \
+                p->rows_r2c = P##plan_many_dft_r2c(1, &nx, rows, r, NULL, 1, nx, c, NULL, 1, ncx,  \
+                                                   f);                                             \
+                p->rows_c2r = P##plan_many_dft_c2r(1, &nx, rows, c, NULL, 1, ncx, r, NULL, 1, nx,  \
+                                                   f);                                             \
+            }                                                                                      \
+            p->cols_fwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,          \
+                                           FFTW_FORWARD, f);                                       \
+            p->cols_bwd = P##plan_many_dft(1, &ny, ncx, c, NULL, ncx, 1, c, NULL, ncx, 1,          \
+                                           FFTW_BACKWARD, f);                                      \
+            if (!((rows > 0 && (!p->rows_r2c || !p->rows_c2r)) || !p->cols_fwd || !p->cols_bwd))   \
+                break;                                                                             \
             DESTROY(p);                                                                            \
-            status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a " WHAT " %d x %d "          \
-                              "transform", ny, nx);                                                \
-            goto cleanup;                                                                          \
+            p->rows_r2c = p->rows_c2r = p->cols_fwd = p->cols_bwd = NULL;                          \
+            if (!wisdom_first) {                                                                   \
+                status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan a " WHAT " %d x %d "      \
+                                  "transform", ny, nx);                                            \
+                goto cleanup;                                                                      \
+            }                                                                                      \
+            wisdom_first = 0;                                                                      \
+            plan_measuring(ny, nx, sizeof(R) == sizeof(float));                                    \
         }                                                                                          \
         e->next = CACHE;                                                                           \
         CACHE = e;                                                                                 \
@@ -442,21 +529,29 @@ svp_status svp_fft_block_get(int nx, const svp_fft_block **out)
         goto cleanup;
     }
     if (fft_threads_ok) fftw_plan_with_nthreads(1); /* run inside the caller's threads */
-    unsigned flags = fft_effort == SVP_FFT_MEASURE ? FFTW_MEASURE : FFTW_ESTIMATE;
+    int wisdom_first;
+    const unsigned flags = plan_flags(&wisdom_first);
     svp_fft_block *p = &e->plan;
     p->nx = nx;
     p->ncx = ncx;
     p->bx = bx;
     double *r16 = r ? r + 2 : NULL;
     fftw_complex *c16 = c ? c + 1 : NULL;
-    p->r2c = fftw_plan_many_dft_r2c(1, &nx, B, r16, NULL, 1, bx, c16, NULL, 1, ncx, flags);
-    p->c2r = fftw_plan_many_dft_c2r(1, &nx, B, c16, NULL, 1, ncx, r16, NULL, 1, bx, flags);
-    p->r2c1 = fftw_plan_dft_r2c_1d(nx, r16, c16, flags);
-    p->c2r1 = fftw_plan_dft_c2r_1d(nx, c16, r16, flags);
-    if (!p->r2c || !p->c2r || !p->r2c1 || !p->c2r1) {
+    for (;;) {
+        const unsigned f = wisdom_first ? flags | FFTW_WISDOM_ONLY : flags;
+        p->r2c = fftw_plan_many_dft_r2c(1, &nx, B, r16, NULL, 1, bx, c16, NULL, 1, ncx, f);
+        p->c2r = fftw_plan_many_dft_c2r(1, &nx, B, c16, NULL, 1, ncx, r16, NULL, 1, bx, f);
+        p->r2c1 = fftw_plan_dft_r2c_1d(nx, r16, c16, f);
+        p->c2r1 = fftw_plan_dft_c2r_1d(nx, c16, r16, f);
+        if (p->r2c && p->c2r && p->r2c1 && p->c2r1) break;
         block_destroy(p);
-        status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan %d-wide row transforms", nx);
-        goto cleanup;
+        p->r2c = p->c2r = p->r2c1 = p->c2r1 = NULL;
+        if (!wisdom_first) {
+            status = svp_fail(SVP_ERR_INTERNAL, "FFTW could not plan %d-wide row transforms", nx);
+            goto cleanup;
+        }
+        wisdom_first = 0;
+        plan_measuring(1, nx, 0);
     }
     e->next = block_cache;
     block_cache = e;

@@ -4,6 +4,7 @@
 #include "../core/internal.h"
 #include "image_io.h"
 #include "json.h"
+#include "mat.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -84,14 +85,24 @@ svp_status svp_io_atomic_write_bytes(const char *path, const void *data, size_t 
     const char *base = path + folder_len;
     if (!*base) return svp_fail(SVP_ERR_INVALID, "%s: names a folder, not a file", path);
 
-    /* ".<name>.tmpXXXXXX" in the same folder, so rename/link never cross file systems */
-    size_t tmp_size = strlen(path) + 16;
+    /* ".<name>.svpsf-tmp-<pid>-XXXXXX" in the same folder, so rename/link never cross file
+     * systems; the PID lets a later run remove what a killed one left (docs/reliability.md) */
+    {
+        char folder[PATH_MAX];
+        if (folder_len < sizeof folder) {
+            snprintf(folder, sizeof folder, "%.*s", (int)folder_len, path);
+            svp_io_temp_remove_stale(folder, base);
+        }
+    }
+    size_t tmp_size = strlen(path) + sizeof SVP_IO_TEMP_TAG + 32;
     char *tmp = malloc(tmp_size);
     if (!tmp) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
-    snprintf(tmp, tmp_size, "%.*s.%s.tmpXXXXXX", (int)folder_len, path, base);
+    snprintf(tmp, tmp_size, "%.*s.%s" SVP_IO_TEMP_TAG "%ld-XXXXXX", (int)folder_len, path, base,
+             (long)getpid());
     svp_status st = SVP_OK;
     int fd = mkstemp(tmp);
     int tmp_exists = fd >= 0;
+    int slot = tmp_exists ? svp_io_temp_register(tmp) : -1;
     if (fd < 0) {
         st = svp_fail(SVP_ERR_IO, "%s: cannot write (%s)", path, strerror(errno));
         goto cleanup;
@@ -142,6 +153,7 @@ svp_status svp_io_atomic_write_bytes(const char *path, const void *data, size_t 
     fsync_folder(path);
 cleanup:
     if (tmp_exists) unlink(tmp);
+    svp_io_temp_release(slot);
     free(tmp);
     return st;
 }
@@ -491,6 +503,7 @@ static svp_status read_npy_frames(const char *path, const unsigned char *bytes, 
         (unsigned long long)rows > SIZE_MAX / (size_t)cols / (size_t)item ||
         (unsigned long long)frames > SIZE_MAX / ((size_t)rows * (size_t)cols * (size_t)item))
         return svp_fail(SVP_ERR_FORMAT, "%s: array of shape %s is too large", path, shape);
+    SVP_CHECK(svp_io_check_image_size(path, "", cols, rows));
     const size_t plane = (size_t)rows * (size_t)cols, count = plane * (size_t)frames;
     size_t expected = count * (size_t)item;
     size_t data_start = header_start + header_len;
@@ -499,6 +512,8 @@ static svp_status read_npy_frames(const char *path, const unsigned char *bytes, 
         return svp_fail(SVP_ERR_FORMAT, "%s: truncated: expected %zu bytes of data, found %zu",
                         path, expected, found);
     /* trailing bytes are ignored, as numpy.load does */
+    SVP_CHECK(svp_io_check_memory(path, "reading the array as float64",
+                                  (double)size + 8.0 * (double)count));
 
     svp_image **img = calloc((size_t)frames, sizeof *img);
     if (!img) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory for %lld frames", path, frames);
@@ -629,6 +644,12 @@ static svp_status read_text(const char *path, char *text, size_t size, svp_image
                 *tok_end = saved;
                 if (nvalues == cap) {
                     size_t new_cap = cap ? 2 * cap : 1024;
+                    /* the file, the buffer while it moves, and the image made from it */
+                    if (new_cap >= ((size_t)1 << 21) &&
+                        (st = svp_io_check_memory(path, "reading its numbers",
+                                                  (double)size +
+                                                      8.0 * (double)(cap + 2 * new_cap))) != SVP_OK)
+                        goto cleanup;
                     double *bigger = realloc(values, new_cap * sizeof *values);
                     if (!bigger) {
                         st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
@@ -659,6 +680,8 @@ static svp_status read_text(const char *path, char *text, size_t size, svp_image
                 st = svp_fail(SVP_ERR_FORMAT, "%s: too many rows or columns", path);
                 goto cleanup;
             }
+            if ((st = svp_io_check_image_size(path, "", columns, rows + 1LL)) != SVP_OK)
+                goto cleanup;
             rows++;
         }
         p = eol + 1;
@@ -744,6 +767,16 @@ static svp_status png_critical_chunks(const char *path, const unsigned char *byt
                             "%s: cannot decode PNG (truncated or corrupt: CRC error in chunk "
                             "'%.4s')",
                             path, (const char *)type);
+        if (!memcmp(type, "IHDR", 4) && len >= 13) { /* the size, before libpng allocates it */
+            const unsigned char *d = type + 4;
+            const long long w = be32(d), h = be32(d + 4);
+            SVP_CHECK(svp_io_check_image_size(path, "", w, h));
+            /* OpenCV decodes gray + alpha and colour to up to 4 channels */
+            const double channels = d[9] == 0 ? 1 : 4, sample = d[8] == 16 ? 2 : 1;
+            SVP_CHECK(svp_io_check_memory(path, "decoding the PNG",
+                                          2.0 * (double)size +
+                                              (double)w * (double)h * (channels * sample + 8.0)));
+        }
         /* critical chunks have an upper-case first letter (bit 5 clear) */
         if (!(type[0] & 0x20)) {
             memcpy(critical + out, bytes + pos, 12 + (size_t)len);
@@ -765,29 +798,120 @@ static uint64_t tiff_get(const unsigned char *p, int bytes, int little)
     return v;
 }
 
-/* The number of pages (image file directories) of a TIFF held in memory, classic or BigTIFF;
- * 0 when the chain is broken (a directory beyond the end of the file, or a loop). The magic
- * bytes were checked by the caller. */
-static long long tiff_page_count(const unsigned char *b, size_t size)
+/* The first value of a directory entry of an integer type, (S)BYTE, (S)SHORT, (S)LONG or
+ * (S)LONG8, as libtiff reads it (0 for any other type, a negative value, or a value beyond the
+ * end of the file). */
+static uint64_t tiff_entry_value(const unsigned char *b, size_t size, const unsigned char *entry,
+                                 int little, int big)
 {
+    const int type = (int)tiff_get(entry + 2, 2, little);
+    const int tsize = type == 1 || type == 6     ? 1
+                      : type == 3 || type == 8   ? 2
+                      : type == 4 || type == 9   ? 4
+                      : type == 16 || type == 17 ? 8
+                                                 : 0;
+    if (!tsize) return 0;
+    const int is_signed = type == 6 || type == 8 || type == 9 || type == 17;
+    const int count_bytes = big ? 8 : 4, inline_bytes = big ? 8 : 4;
+    const uint64_t count = tiff_get(entry + 4, count_bytes, little);
+    const unsigned char *value = entry + 4 + count_bytes;
+    if (count > (uint64_t)inline_bytes / (uint64_t)tsize) { /* stored elsewhere */
+        uint64_t at = tiff_get(value, inline_bytes, little);
+        if (at > size || size - at < (uint64_t)tsize) return 0;
+        value = b + at;
+    }
+    const uint64_t v = tiff_get(value, tsize, little);
+    return is_signed && (v >> (8 * tsize - 1)) & 1 ? 0 : v;
+}
+
+/* What a TIFF's directories claim: pages, and the memory OpenCV and svpsf need to decode them
+ * (every page as OpenCV's Mat and as float64, plus OpenCV's largest strip or tile buffer). */
+typedef struct tiff_scan {
+    long long pages;
+    double decoded;  /* bytes of all pages: OpenCV's Mat + svpsf's float64 image */
+    double tile_max; /* bytes of the largest strip or tile buffer */
+    long long big_page, big_width, big_height; /* a page beyond the size limit (0: none) */
+} tiff_scan;
+
+static void tiff_scan_page(const unsigned char *b, size_t size, uint64_t ifd, uint64_t n,
+                           int little, int big, tiff_scan *scan)
+{
+    const int count_bytes = big ? 8 : 2, entry_bytes = big ? 20 : 12;
+    uint64_t width = 0, height = 0, bits = 1, spp = 1, photometric = 1, rows_per_strip = 0;
+    uint64_t tile_w = 0, tile_h = 0;
+    unsigned seen = 0; /* a tag given twice: libtiff reads the first entry */
+    for (uint64_t k = 0; k < n; k++) {
+        const unsigned char *e = b + ifd + (uint64_t)count_bytes + k * (uint64_t)entry_bytes;
+        const unsigned tag = (unsigned)tiff_get(e, 2, little);
+        const unsigned bit = tag >= 256 && tag <= 278   ? 1u << (tag - 256)
+                             : tag == 322 || tag == 323 ? 1u << (tag - 322 + 23)
+                                                        : 0;
+        if (!bit || (seen & bit)) continue;
+        seen |= bit;
+        const uint64_t v = tiff_entry_value(b, size, e, little, big);
+        switch (tag) {
+        case 256: width = v; break;
+        case 257: height = v; break;
+        case 258: bits = v; break;
+        case 262: photometric = v; break;
+        case 277: spp = v; break;
+        case 278: rows_per_strip = v; break;
+        case 322: tile_w = v; break;
+        case 323: tile_h = v; break;
+        default: break;
+        }
+    }
+    if (!scan->big_page && (width > SVP_IO_MAX_SIDE || height > SVP_IO_MAX_SIDE ||
+                            (width && height > (uint64_t)SVP_IO_MAX_PIXELS / width))) {
+        scan->big_page = scan->pages;
+        scan->big_width = (long long)(width < INT64_MAX ? width : INT64_MAX);
+        scan->big_height = (long long)(height < INT64_MAX ? height : INT64_MAX);
+    }
+    /* OpenCV keeps one channel of a plain grayscale page; others it decodes to up to 4 */
+    const double channels = spp == 1 && photometric <= 1 ? 1 : 4;
+    const double sample = bits > 8 ? (double)((bits + 7) / 8) : 1;
+    const double pixels = (double)width * (double)height;
+    scan->decoded += pixels * (channels * sample + (double)sizeof(double));
+    double tile =
+        tile_w && tile_h
+            ? (double)tile_w * (double)tile_h
+            : (double)width *
+                  (double)(rows_per_strip && rows_per_strip < height ? rows_per_strip : height);
+    tile *= channels * sample;
+    if (tile > scan->tile_max) scan->tile_max = tile;
+}
+
+/* Walks the directory chain of a TIFF held in memory, classic or BigTIFF; pages = 0 when the
+ * chain is broken (a directory beyond the end of the file, or a loop). The magic bytes were
+ * checked by the caller. */
+static void tiff_walk(const unsigned char *b, size_t size, tiff_scan *scan)
+{
+    memset(scan, 0, sizeof *scan);
     const int little = b[0] == 'I', big = tiff_get(b + 2, 2, little) == 43;
     const int off_bytes = big ? 8 : 4, count_bytes = big ? 8 : 2, entry_bytes = big ? 20 : 12;
-    if (size < (size_t)(big ? 16 : 8)) return 0;
+    if (size < (size_t)(big ? 16 : 8)) return;
     uint64_t ifd = tiff_get(b + (big ? 8 : 4), off_bytes, little);
-    long long pages = 0;
     /* every directory takes at least count + next-offset bytes: more pages than fit means a loop */
     const long long max_pages = (long long)(size / (size_t)(count_bytes + off_bytes)) + 1;
     while (ifd != 0) {
-        if (ifd > size - (size_t)count_bytes || ++pages > max_pages) return 0;
+        if (ifd > size - (size_t)count_bytes || ++scan->pages > max_pages) {
+            scan->pages = 0;
+            return;
+        }
         uint64_t n = tiff_get(b + ifd, count_bytes, little);
         uint64_t next_at = ifd + (uint64_t)count_bytes + n * (uint64_t)entry_bytes;
-        if (n > size || next_at > size - (size_t)off_bytes) return 0;
+        if (n > size || next_at > size - (size_t)off_bytes) {
+            scan->pages = 0;
+            return;
+        }
+        tiff_scan_page(b, size, ifd, n, little, big, scan);
         ifd = tiff_get(b + next_at, off_bytes, little);
     }
-    return pages;
 }
 
-/* Checks a TIFF's magic bytes and counts its pages (>= 1), else a format error. */
+/* Checks a TIFF's magic bytes, counts its pages (>= 1), and checks every page's size against
+ * the image limit and the memory decoding all of them needs against the budget (before
+ * OpenCV allocates it), else an error. */
 static svp_status tiff_check(const char *path, const unsigned char *bytes, size_t size,
                              long long *pages)
 {
@@ -798,17 +922,26 @@ static svp_status tiff_check(const char *path, const unsigned char *bytes, size_
     if (memcmp(bytes, le, 4) && memcmp(bytes, be, 4) && memcmp(bytes, le_big, 4) &&
         memcmp(bytes, be_big, 4))
         return svp_fail(SVP_ERR_FORMAT, "%s: not a TIFF file (bad magic bytes)", path);
-    *pages = tiff_page_count(bytes, size);
+    tiff_scan scan;
+    tiff_walk(bytes, size, &scan);
+    *pages = scan.pages;
     if (*pages < 1)
         return svp_fail(SVP_ERR_FORMAT, "%s: cannot decode TIFF (truncated or corrupt)", path);
     if (*pages > INT_MAX)
         return svp_fail(SVP_ERR_FORMAT, "%s: a TIFF of %lld pages is too large", path, *pages);
-    return SVP_OK;
+    if (scan.big_page) {
+        char where[64] = "";
+        if (*pages > 1) snprintf(where, sizeof where, "page %lld of %lld: ", scan.big_page, *pages);
+        return svp_io_check_image_size(path, where, scan.big_width, scan.big_height);
+    }
+    char what[96];
+    snprintf(what, sizeof what, "decoding %lld TIFF page%s", *pages, *pages > 1 ? "s" : "");
+    return svp_io_check_memory(path, what, (double)size + scan.decoded + scan.tile_max);
 }
 
 /* ---- dispatch ------------------------------------------------------------------------------------ */
 
-typedef enum file_kind { KIND_UNKNOWN, KIND_TIFF, KIND_PNG, KIND_NPY, KIND_TXT } file_kind;
+typedef enum file_kind { KIND_UNKNOWN, KIND_TIFF, KIND_PNG, KIND_NPY, KIND_TXT, KIND_MAT } file_kind;
 
 /* The extension after the last '.' of the file name (not of a folder), lower-cased. */
 static const char *extension(const char *path, char *buf, size_t size)
@@ -833,6 +966,7 @@ static file_kind kind_of(const char *ext)
     if (!strcmp(ext, "png")) return KIND_PNG;
     if (!strcmp(ext, "npy")) return KIND_NPY;
     if (!strcmp(ext, "txt") || !strcmp(ext, "csv") || !strcmp(ext, "dat")) return KIND_TXT;
+    if (!strcmp(ext, "mat")) return KIND_MAT;
     return KIND_UNKNOWN;
 }
 
@@ -841,11 +975,11 @@ static svp_status unknown_extension(const char *path, const char *ext)
     if (!*ext)
         return svp_fail(SVP_ERR_INVALID,
                         "%s: no file extension to tell the format (expected .tif, .tiff, .png, "
-                        ".npy, .txt, .csv or .dat)",
+                        ".npy, .txt, .csv, .dat or .mat)",
                         path);
     return svp_fail(SVP_ERR_INVALID,
                     "%s: unknown image format '.%s' (expected .tif, .tiff, .png, .npy, .txt, "
-                    ".csv or .dat)",
+                    ".csv, .dat or .mat)",
                     path, ext);
 }
 
@@ -854,6 +988,12 @@ svp_status svp_image_read(const char *path, svp_image **out)
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_image_read: out is NULL");
     *out = NULL;
     if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "svp_image_read: no path given");
+    {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            return svp_mat_read(path, NULL, out, NULL);
+    }
     char ext[16];
     extension(path, ext, sizeof ext);
     file_kind kind = kind_of(ext);
@@ -895,6 +1035,7 @@ svp_status svp_image_read(const char *path, svp_image **out)
         }
         break;
     }
+    case KIND_MAT: /* handled above */
     case KIND_UNKNOWN: break;
     }
     free(bytes);
@@ -915,6 +1056,12 @@ svp_status svp_stack_read(const char *path, svp_stack **out)
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_stack_read: out is NULL");
     *out = NULL;
     if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "svp_stack_read: no path given");
+    {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            return svp_mat_read_stack(path, NULL, out, NULL);
+    }
     char ext[16];
     extension(path, ext, sizeof ext);
     file_kind kind = kind_of(ext);
@@ -971,12 +1118,20 @@ svp_status svp_image_write(const char *path, const svp_image *image, svp_file_fo
         return svp_fail(SVP_ERR_INVALID, "%s: no image to write", path);
     char ext[16];
     extension(path, ext, sizeof ext);
+    {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (format == SVP_FORMAT_AUTO && svp_io_mat_path(path, mfile, sizeof mfile, mvar,
+                                                         sizeof mvar, &bad))
+            format = SVP_FORMAT_MAT;
+    }
     if (format == SVP_FORMAT_AUTO) {
         switch (kind_of(ext)) {
         case KIND_TIFF: format = SVP_FORMAT_TIFF; break;
         case KIND_PNG: format = SVP_FORMAT_PNG16; break;
         case KIND_NPY: format = SVP_FORMAT_NPY; break;
         case KIND_TXT: format = SVP_FORMAT_TXT; break;
+        case KIND_MAT: format = SVP_FORMAT_MAT; break;
         case KIND_UNKNOWN: return unknown_extension(path, ext);
         }
     }
@@ -985,6 +1140,7 @@ svp_status svp_image_write(const char *path, const svp_image *image, svp_file_fo
     case SVP_FORMAT_PNG16: return svp_io_write_png16(path, image, overwrite);
     case SVP_FORMAT_NPY: return write_npy(path, image, overwrite);
     case SVP_FORMAT_TXT: return write_text(path, image, !strcmp(ext, "csv"), overwrite);
+    case SVP_FORMAT_MAT: return svp_io_mat_write_image(path, image, overwrite);
     case SVP_FORMAT_AUTO: break;
     }
     return svp_fail(SVP_ERR_INVALID, "%s: unknown output format %d", path, (int)format);

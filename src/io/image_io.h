@@ -16,7 +16,8 @@ extern "C" {
 #endif
 
 /* ---- atomic writes (formats.c) --------------------------------------------------------------
- * The bytes go to a temporary file in the same folder (".<name>.tmpXXXXXX", mode 0666 & ~umask),
+ * The bytes go to a temporary file in the same folder (".<name>.svpsf-tmp-<pid>-XXXXXX", mode
+ * 0666 & ~umask; recorded for svp_io_temp_remove_all, and stale ones of dead processes removed),
  * are fsync'ed, then:
  *   overwrite != 0: rename() over the final name;
  *   overwrite == 0: link() to the final name, so an existing file is never replaced:
@@ -27,6 +28,33 @@ svp_status svp_io_atomic_write_bytes(const char *path, const void *data, size_t 
                                      int overwrite);
 /* The same for a NUL-terminated text (summary.json, PSF-map YAML, CSV tables). */
 svp_status svp_io_atomic_write_text(const char *path, const char *text, int overwrite);
+
+/* ---- limits, memory budget, temporary files (guard.c; docs/reliability.md) -------------------
+ * The largest image a reader accepts: each side at most SVP_IO_MAX_SIDE, at most
+ * SVP_IO_MAX_PIXELS pixels (16384 x 16384, 2 GiB as float64). */
+#define SVP_IO_MAX_SIDE 1048576
+#define SVP_IO_MAX_PIXELS (1LL << 28)
+/* SVP_ERR_FORMAT "<path>: <where>W x H pixels: larger than an image may be (...)" */
+svp_status svp_io_check_image_size(const char *path, const char *where, long long width,
+                                   long long height);
+/* The memory budget: SVPSF_MAX_MEMORY (512M, 4G, ...) when set, else the kernel's MemAvailable
+ * (0 when unknown). *source names it for messages. SVP_ERR_INVALID for a malformed variable. */
+svp_status svp_io_memory_budget(double *bytes, char *source, size_t source_size);
+/* SVP_OK when `bytes` fit the budget (or the budget is unknown), else SVP_ERR_INVALID
+ * "<path>: <what> needs N GiB of memory, more than the M GiB allowed (<source>; ...)".
+ * Called before a large allocation, with the peak the step will need. path may be NULL. */
+svp_status svp_io_check_memory(const char *path, const char *what, double bytes);
+/* Temporary files of atomic writes are named ".<name>" SVP_IO_TEMP_TAG "<pid>-XXXXXX". */
+#define SVP_IO_TEMP_TAG ".svpsf-tmp-"
+/* Records a temporary file's name for svp_io_temp_remove_all (a slot, or -1 when all are
+ * taken); svp_io_temp_release(slot) once it was renamed or removed. */
+int svp_io_temp_register(const char *name);
+void svp_io_temp_release(int slot);
+/* Unlinks every recorded temporary file: async-signal-safe, for a SIGTERM/SIGINT handler. */
+void svp_io_temp_remove_all(void);
+/* Removes ".<base>" SVP_IO_TEMP_TAG "<pid>-*" in `folder` ("" = ".") whose process is gone
+ * (left by a run killed with SIGKILL). */
+void svp_io_temp_remove_stale(const char *folder, const char *base);
 
 /* ---- OpenCV codecs (image_io.cpp) ----------------------------------------------------------
  * Decodes a TIFF or PNG held in memory (the caller read the file; `path` only names it in

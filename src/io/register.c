@@ -50,6 +50,7 @@ void svp_register_defaults(svp_register_options *options)
     options->progress_user = NULL;
     options->reference_name = NULL;
     options->moving_name = NULL;
+    options->contrast = SVP_CONTRAST_AUTO;
 }
 
 static const char *motion_name(svp_register_motion m)
@@ -436,9 +437,11 @@ static double phase_maximise(phase_work *pw, double *tx, double *ty)
     return c;
 }
 
-/* (peak − mean) / sd of the correlation surface c, the mean and sd taken away from the peak
- * (circular distance > 5 + 2 σ px, beyond its main lobe). */
-static double peak_significance(const double *c, int w, int h, int px, int py, double sigma)
+/* sign · (peak − mean) / sd of the correlation surface c, the mean and sd taken away from
+ * the peak (circular distance > 5 + 2 σ px, beyond its main lobe); sign −1 measures a trough
+ * of c as the peak of −c. */
+static double peak_significance(const double *c, int w, int h, int px, int py, double sigma,
+                                double sign)
 {
     const double r_ex = 5 + 2 * sigma;
     size_t count = 0;
@@ -458,16 +461,20 @@ static double peak_significance(const double *c, int w, int h, int px, int py, d
     }
     if (count < 2) return NAN;
     const double mean = sum / count, var = sum2 / count - mean * mean;
-    return var > 0 ? (c[(size_t)py * w + px] - mean) / sqrt(var) : INFINITY;
+    return var > 0 ? sign * (c[(size_t)py * w + px] - mean) / sqrt(var) : INFINITY;
 }
 
 /* One pass: windows over the region both images see for the shift (dx, dy) (window_axis),
  * spectra, weights W; returns the refined shift. first (dx = dy = 0): start from the integer
- * peak of c (inverse FFT) and measure its significance, else start from (dx, dy). */
+ * peak of c (inverse FFT) and measure its significance, and that of the deepest trough (the
+ * peak of an inverted moving image); with contrast AUTO the more significant of the two is
+ * taken, and for the trough (or contrast INVERTED) W is negated (= the moving image inverted)
+ * and *inverted set, so the caller inverts the moving image for the later passes. Else start
+ * from (dx, dy). */
 static svp_status phase_pass(phase_work *pw, const double *ref, double mean_ref,
                              const double *mov, double mean_mov, const svp_register_options *o,
                              int first, double *dx, double *dy, double *response,
-                             double *significance)
+                             double *significance, double *significance_other, int *inverted)
 {
     const int w = pw->w, h = pw->h, ncx = pw->ncx;
     const size_t nc = (size_t)ncx * h;
@@ -513,13 +520,26 @@ static svp_status phase_pass(phase_work *pw, const double *ref, double mean_ref,
         /* integer peak: inverse FFT of W (c2r destroys its input: use spec_ref as scratch) */
         memcpy(pw->spec_ref, pw->weight, nc * sizeof(fftw_complex));
         svp_fft_inverse_unscaled(pw->plan, pw->spec_ref, pw->real);
-        size_t best = 0;
-        for (size_t i = 1; i < (size_t)w * h; i++)
+        size_t best = 0, worst = 0;
+        for (size_t i = 1; i < (size_t)w * h; i++) {
             if (pw->real[i] > pw->real[best]) best = i;
+            if (pw->real[i] < pw->real[worst]) worst = i;
+        }
+        const double s_peak = peak_significance(pw->real, w, h, (int)(best % w),
+                                                (int)(best / w), o->smooth_sigma, 1);
+        const double s_trough = peak_significance(pw->real, w, h, (int)(worst % w),
+                                                  (int)(worst / w), o->smooth_sigma, -1);
+        /* the moving image arrives already inverted when the caller forced INVERTED */
+        *inverted = o->contrast == SVP_CONTRAST_AUTO && s_trough > s_peak;
+        if (*inverted) {
+            best = worst;
+            for (size_t k = 0; k < nc; k++) pw->weight[k] = -pw->weight[k];
+        }
+        *significance = *inverted ? s_trough : s_peak;
+        *significance_other = *inverted ? s_peak : s_trough;
         int px = (int)(best % w), py = (int)(best / w);
         tx = px > w / 2 ? px - w : px;
         ty = py > h / 2 ? py - h : py;
-        *significance = peak_significance(pw->real, w, h, px, py, o->smooth_sigma);
     }
     const double c = phase_maximise(pw, &tx, &ty);
     *dx = tx;
@@ -528,21 +548,33 @@ static svp_status phase_pass(phase_work *pw, const double *ref, double mean_ref,
     return SVP_OK;
 }
 
-static svp_status phase_correlate(const double *ref, const double *mov, int w, int h,
+/* *inverted = 1 when the first pass chose the trough (contrast AUTO): mov and mov_nan are then
+ * negated here, for the later passes and for the caller (ECC, quality). */
+static svp_status phase_correlate(const double *ref, double *mov, double *mov_nan, int w, int h,
                                   const svp_register_options *o, double *dx, double *dy,
-                                  double *response, double *significance)
+                                  double *response, double *significance,
+                                  double *significance_other, int *inverted)
 {
     phase_work pw;
     SVP_CHECK(phase_work_init(&pw, w, h));
     const size_t n = (size_t)w * h;
-    const double mean_ref = svp_sum(ref, n) / n, mean_mov = svp_sum(mov, n) / n;
+    const double mean_ref = svp_sum(ref, n) / n;
+    double mean_mov = svp_sum(mov, n) / n;
     double sx = 0, sy = 0, resp = 0;
-    svp_status st =
-        phase_pass(&pw, ref, mean_ref, mov, mean_mov, o, 1, &sx, &sy, &resp, significance);
+    svp_status st = phase_pass(&pw, ref, mean_ref, mov, mean_mov, o, 1, &sx, &sy, &resp,
+                               significance, significance_other, inverted);
+    if (st == SVP_OK && *inverted) {
+        for (size_t i = 0; i < n; i++) {
+            mov[i] = -mov[i];
+            mov_nan[i] = -mov_nan[i];
+        }
+        mean_mov = -mean_mov;
+    }
     /* Without a window there is nothing to move: one pass is the answer. */
     for (int pass = 1; st == SVP_OK && o->window && pass < PHASE_MAX_PASSES; pass++) {
         double nx = sx, ny = sy;
-        st = phase_pass(&pw, ref, mean_ref, mov, mean_mov, o, 0, &nx, &ny, &resp, NULL);
+        st = phase_pass(&pw, ref, mean_ref, mov, mean_mov, o, 0, &nx, &ny, &resp, NULL, NULL,
+                        NULL);
         const double moved = hypot(nx - sx, ny - sy);
         sx = nx;
         sy = ny;
@@ -631,6 +663,11 @@ static svp_status check_options(const svp_register_options *o)
     if (!(o->whitening >= 0) || !isfinite(o->whitening))
         return svp_fail(SVP_ERR_INVALID, "registration: whitening %g (must be >= 0)",
                         o->whitening);
+    if (o->contrast != SVP_CONTRAST_AUTO && o->contrast != SVP_CONTRAST_SAME &&
+        o->contrast != SVP_CONTRAST_INVERTED)
+        return svp_fail(SVP_ERR_INVALID, "registration: contrast %d is not auto (0), same (1) "
+                                         "or inverted (2)",
+                        (int)o->contrast);
     if (isnan(o->min_significance))
         return svp_fail(SVP_ERR_INVALID, "registration: min_significance is NaN");
     if (o->method == SVP_REGISTER_ECC) {
@@ -658,7 +695,7 @@ svp_status svp_register(const svp_image *reference, const svp_image *moving,
     if (!result) return svp_fail(SVP_ERR_INVALID, "registration: result is NULL");
     memset(result, 0, sizeof *result);
     result->response = result->significance = result->correlation = NAN;
-    result->residual_rms = NAN;
+    result->residual_rms = result->significance_other = NAN;
     if (!reference || !reference->data)
         return svp_fail(SVP_ERR_INVALID, "registration: no reference image");
     if (!moving || !moving->data)
@@ -695,13 +732,23 @@ svp_status svp_register(const svp_image *reference, const svp_image *moving,
         SVP_OK)
         goto cleanup;
 
+    if (o->contrast == SVP_CONTRAST_INVERTED) {
+        for (size_t i = 0; i < n; i++) {
+            mov[i] = -mov[i];
+            mov_nan[i] = -mov_nan[i];
+        }
+        result->inverted = 1;
+    }
     double *a = result->affine;
     if (o->method == SVP_REGISTER_PHASE || !o->initial_affine) {
-        double dx = 0, dy = 0, response = 0, significance = 0;
-        if ((st = phase_correlate(ref, mov, w, h, o, &dx, &dy, &response, &significance)) !=
-            SVP_OK)
+        double dx = 0, dy = 0, response = 0, significance = 0, other = NAN;
+        int flipped = 0;
+        if ((st = phase_correlate(ref, mov, mov_nan, w, h, o, &dx, &dy, &response,
+                                  &significance, &other, &flipped)) != SVP_OK)
             goto cleanup;
+        if (flipped) result->inverted = 1;
         result->significance = significance;
+        result->significance_other = other;
         const double t[6] = {1, 0, dx, 0, 1, dy};
         memcpy(a, t, sizeof t);
         result->response = response;

@@ -5,6 +5,7 @@
 #include "physics_internal.h"
 
 #include <math.h>
+#include <omp.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -735,12 +736,22 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     const double lowerg[GEN_MAX] = {-INFINITY, 0, -INFINITY, -INFINITY, 0};
     const double upperg[GEN_MAX] = {INFINITY, 1, INFINITY, INFINITY, INFINITY};
     double lowerone[4] = {-INFINITY, 0, -INFINITY, 0};
-    /* blocks of rows between progress reports: about 1 % of the image, at least one row */
-    const int rows_per_block = cube->height / 100 > 0 ? cube->height / 100 : 1;
+    /* Pixels go to the threads in chunks (dynamic: fits differ in cost), with no barrier
+     * between them; the calling thread (OpenMP's thread 0) reports the fraction done from a
+     * shared count whenever it passes another 1 %, between its own chunks, and a cancel stops
+     * every thread at its next chunk. Each pixel's fit is independent, so neither the chunks
+     * nor the threads change a result. */
+    const size_t per_thread = n / ((size_t)omp_get_max_threads() * 32);
+    const size_t chunk = per_thread < 1 ? 1 : per_thread > 64 ? 64 : per_thread;
+    const size_t n_chunks = (n + chunk - 1) / chunk, step = n / 100 > 0 ? n / 100 : 1;
+    size_t done = 0;
 #pragma omp parallel reduction(+ : failed)
     {
+        size_t next_report = step; /* thread 0's */
         svp_lm_workspace *ws = NULL;
-        double *y = malloc((size_t)nf * sizeof(double));
+        /* the chunk's spectra, pixel-major: read frame by frame (a run of contiguous pixels
+         * from each), not pixel by pixel across all frames */
+        double *spectra = malloc((size_t)nf * chunk * sizeof(double)), *y = spectra;
         if (svp_lm_workspace_new(np, nf, &ws) != SVP_OK || !y) {
 #pragma omp atomic write
             alloc_failed = 1;
@@ -754,20 +765,23 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                                 .analytic_jacobian = 1, .data = y,
                                 .lower = np == 5 ? lowerg : lowerone,
                                 .upper = upperg};
-        for (int row0 = 0; row0 < cube->height; row0 += rows_per_block) {
-            const size_t p0 = (size_t)row0 * cube->width;
-            const size_t p1 = (size_t)(row0 + rows_per_block < cube->height ? row0 + rows_per_block
-                                                                            : cube->height) *
-                              cube->width;
-#pragma omp for schedule(dynamic, 64)
+#pragma omp for schedule(dynamic, 1)
+        for (size_t ck = 0; ck < n_chunks; ck++) {
+            int stop;
+#pragma omp atomic read
+            stop = cancelled;
+            if (stop || !ws || !y) continue;
+            const size_t p0 = ck * chunk, p1 = p0 + chunk < n ? p0 + chunk : n;
+            for (int f = 0; f < nf; f++) {
+                const double *src = cube->frame[f]->data + p0;
+                for (size_t k = 0; k < p1 - p0; k++) spectra[k * (size_t)nf + f] = src[k];
+            }
             for (size_t p = p0; p < p1; p++) {
-                if (!ws || !y) continue;
                 double b0 = 0, den = 0, mean = 0;
                 int finite = 1;
-                for (int f = 0; f < nf; f++) {
-                    y[f] = cube->frame[f]->data[p];
-                    finite &= isfinite(y[f]) != 0;
-                }
+                y = spectra + (p - p0) * (size_t)nf;
+                prob.data = gprob.data = go.y = y;
+                for (int f = 0; f < nf; f++) finite &= isfinite(y[f]) != 0;
                 if (!finite) { /* a missing pixel (NaN/Inf in some frame): NaN maps */
                     svp_image *const all[] = {
                         maps->field,         maps->field_sigma,   maps->field_lower,
@@ -895,6 +909,9 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                         if (first_error == SVP_OK) first_error = st;
                     }
                 }
+                if (!(th[1] > 0 && th[1] < 1)) /* C on its bound: no σ from the curvature */
+                    for (int a = 0; a < np; a++)
+                        for (int c = 0; c < np; c++) cov[a][c] = a == c ? INFINITY : 0;
                 const double sd_b = sqrt(cov[0][0]), sd_c = sqrt(cov[1][1]);
                 const double sd_w = sqrt(cov[np - 1][np - 1]);
                 double B, sd_B;
@@ -928,21 +945,29 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                     maps->quality->data[p] = ss > 0 ? 1 - chi2 / ss : 0.0;
                 }
             }
-            /* the implicit barrier of the loop above: every pixel so far is done */
-#pragma omp single
+            size_t now;
+#pragma omp atomic capture
             {
-                if (options->progress &&
-                    options->progress(options->progress_user, (double)p1 / (double)n))
-                    cancelled = 1;
+                done += p1 - p0;
+                now = done;
             }
-            if (cancelled) break; /* read by every thread after the single's barrier */
+            if (options->progress && omp_get_thread_num() == 0 && now >= next_report && now < n) {
+                next_report = (now / step + 1) * step;
+                if (options->progress(options->progress_user, (double)now / (double)n)) {
+#pragma omp atomic write
+                    cancelled = 1;
+                }
+            }
         }
         svp_lm_workspace_free(ws);
-        free(y);
+        free(spectra);
     }
     free(q);
     free(xs);
     if (alloc_failed) return svp_fail(SVP_ERR_NOMEM, "out of memory for the fit workspaces");
+    /* the last report, 1, from the calling thread once every pixel is done */
+    if (!cancelled && options->progress && options->progress(options->progress_user, 1.0))
+        cancelled = 1;
     if (cancelled) return svp_fail(SVP_ERR_CANCELLED, "Lorentzian fit cancelled");
     if (first_error != SVP_OK)
         return svp_fail(first_error, "Lorentzian fit: a pixel fit failed (%s)",

@@ -43,11 +43,13 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
 svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
 /* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0
  * estimated): Σ M (H x_λ − y)² / var = n_finite. *at_bound: −1 / +1 when the choice is the
- * lower / upper end of the search, else 0 (wiener.c). */
+ * lower / upper end of the search, else 0. lcurve (may be NULL: no fallback): when no λ the
+ * search can solve meets the noise, the L-curve's corner is taken instead and *lcurve = 1
+ * (wiener.c; docs/model.md §6). */
 svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,
                                               const svp_image *variance, double sigma,
                                               int cg_max_steps, double *balance,
-                                              double *sigma_used, int *at_bound);
+                                              double *sigma_used, int *at_bound, int *lcurve);
 svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, const svp_image *x,
                                    const char *what);
 

@@ -21,8 +21,8 @@
 #define PAR_MIN 32768
 /* Coverage of a missing pixel by measured ones below this is FFT round-off: nothing covers it. */
 #define COVERAGE_TINY 1e-9
-/* The automatic signed shift c = SHIFT_FACTOR · max|B̃| (eq. 5) */
-#define SHIFT_FACTOR 2.0
+/* The automatic signed shift c = SHIFT_FACTOR · max|B̃| (eq. 5; docs/model.md §3) */
+#define SHIFT_FACTOR 100.0
 /* A CG solve stopped at its cap is in doubt when its relative residual is still above this
  * (its own tolerance is 1e-8; between the two the solution is converged to plotting accuracy) */
 #define CG_DOUBT_RESIDUAL 1e-4
@@ -275,14 +275,14 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
         o.progress_user = share;
     }
     double sigma_used = 0;
-    int at_bound = 0;
+    int at_bound = 0, lcurve = 0;
     if (!use_rl && balance_auto) {
         /* the search's solves take the default step cap; the final solve the caller's */
         svp_deconv_options d;
         svp_deconv_defaults(&d);
         SVP_CHECK(svp_wiener_balance_discrepancy_var(blur, y, noise_sigma > 0 ? NULL : variance,
                                                      noise_sigma, d.cg_max_steps, &o.balance,
-                                                     &sigma_used, &at_bound));
+                                                     &sigma_used, &at_bound, &lcurve));
     }
     if (!share) o.progress = NULL;
     svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out)
@@ -290,6 +290,7 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
     if (report && !use_rl) {
         report->noise_sigma = sigma_used;
         report->balance_at_bound = at_bound;
+        report->balance_lcurve = lcurve;
     }
     if (st != SVP_OK) return st;
     if (base->progress && share) {
@@ -343,10 +344,11 @@ static const char *field_name(const svp_correct_options *o, int c, char *buf, si
     return buf;
 }
 
-/* The shift c of eq. 5 for component `c`: B̃ + c > 0 at every measured pixel. The automatic
- * c = 2 max|B̃| keeps the shifted numerator between max|B̃| and 3 max|B̃| times Ĩ: its dips
- * follow Ĩ's, where both RL runs converge alike, instead of B̃'s minimum, where the numerator
- * alone would converge slowly (docs/model.md §3, eq. 5). */
+/* The shift c of eq. 5 for component `c`: B̃ + c > 0 at every measured pixel. RL's result is
+ * >= 0, so c must clear the true field's minimum, which blurring hides (a narrow strip's true
+ * peak is several times its measured one): the automatic c = 100 max|B̃| does, and it makes the
+ * numerator's RL the PL's own plus a small linear response, so their residual errors cancel in
+ * eq. 5 (docs/model.md §3, "Why this c"). */
 static svp_status signed_shift(const svp_image *field, const unsigned char *missing, size_t n,
                                const svp_correct_options *o, int c, double *shift)
 {

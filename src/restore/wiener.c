@@ -690,6 +690,8 @@ svp_status svp_noise_sigma_estimate(const svp_image *y, double *sigma)
 #define DISCREPANCY_BISECTIONS 8 /* within a decade: λ to a factor 1.005 */
 /* a search solve stopped at its CG cap above this relative residual has not converged */
 #define DISCREPANCY_CG_RESIDUAL 1e-4
+/* solves recorded for the L-curve fallback: 15 decades and two refinements of five points */
+#define LCURVE_MAX 32
 
 /* Morozov's discrepancy principle: the λ whose Wiener–Hunt solution x_λ leaves a residual
  * ‖M (H x_λ − y)‖² equal to what the noise alone explains, n_finite σ². The residual grows
@@ -700,16 +702,42 @@ svp_status svp_wiener_balance_discrepancy(svp_blur *blur, const svp_image *y, do
                                           double *balance, double *sigma_used)
 {
     return svp_wiener_balance_discrepancy_var(blur, y, NULL, sigma, ZERO_CG_MAX, balance,
-                                              sigma_used, NULL);
+                                              sigma_used, NULL, NULL);
+}
+
+/* The L-curve's corner over points (t_k = log10 λ_k, uniform spacing, ascending) with
+ * ρ_k = log10 residual and η_k = log10 ‖L x_λ‖²: the interior point of largest curvature
+ * κ = (ρ′η″ − ρ″η′) / (ρ′² + η′²)^{3/2} (the curve turns from steep — λ too small, the solution
+ * grows, the residual barely falls — to flat — λ too large). Returns its index, or -1 when no
+ * interior point bends that way. */
+static int lcurve_corner(const double *rho, const double *eta, int n, double *kappa_out)
+{
+    int best = -1;
+    double best_k = 0;
+    for (int k = 1; k + 1 < n; k++) {
+        const double r1 = 0.5 * (rho[k + 1] - rho[k - 1]), e1 = 0.5 * (eta[k + 1] - eta[k - 1]);
+        const double r2 = rho[k + 1] - 2 * rho[k] + rho[k - 1];
+        const double e2 = eta[k + 1] - 2 * eta[k] + eta[k - 1];
+        const double d = r1 * r1 + e1 * e1;
+        if (!(d > 0)) continue;
+        const double kappa = (r1 * e2 - r2 * e1) / (d * sqrt(d));
+        if (kappa > best_k) {
+            best_k = kappa;
+            best = k;
+        }
+    }
+    if (kappa_out) *kappa_out = best_k;
+    return best;
 }
 
 svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,
                                               const svp_image *variance, double sigma,
                                               int cg_max_steps, double *balance,
-                                              double *sigma_used, int *at_bound)
+                                              double *sigma_used, int *at_bound, int *lcurve)
 {
     const char *what = "discrepancy principle";
     if (at_bound) *at_bound = 0;
+    if (lcurve) *lcurve = 0;
     if (!blur || !y || !y->data || !balance)
         return svp_fail(SVP_ERR_INVALID, "%s: NULL argument", what);
     if (y->width != blur->width || y->height != blur->height)
@@ -730,7 +758,12 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
     svp_status st = svp_image_new(w, h, &x);
     if (st == SVP_OK) st = svp_image_new(w, h, &hx);
     double *prod = svp_alloc(n * sizeof(double));
-    if (st == SVP_OK && !prod) st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", what);
+    double *lx = lcurve ? svp_alloc(n * sizeof(double)) : NULL;
+    if (st == SVP_OK && (!prod || (lcurve && !lx)))
+        st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", what);
+    /* the L-curve's points along the walk (log10 λ, log10 residual, log10 ‖L x‖²) */
+    double lc_t[LCURVE_MAX], lc_rho[LCURVE_MAX], lc_eta[LCURVE_MAX];
+    int lc_n = 0;
     /* Σ r² / var = n_finite; a constant variance folds into the target */
     const double target = variance ? (double)n_finite : (double)n_finite * sigma * sigma;
     const double var_floor = variance ? 1e-300 : 1.0;
@@ -754,6 +787,14 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
         }                                                                                      \
         excess = svp_sum(prod, n) - target;                                                    \
         unsolved = rep.cg_capped && rep.cg_residual > DISCREPANCY_CG_RESIDUAL;                 \
+        if (lx && !unsolved && lc_n < LCURVE_MAX) {                                            \
+            laplacian_neumann(w, h, x->data, lx);                                              \
+            for (size_t i = 0; i < n; i++) prod[i] = lx[i] * lx[i];                            \
+            lc_t[lc_n] = (t);                                                                  \
+            lc_rho[lc_n] = log10(fmax(excess + target, 1e-300));                               \
+            lc_eta[lc_n] = log10(fmax(svp_sum(prod, n), 1e-300));                              \
+            lc_n++;                                                                            \
+        }                                                                                      \
     } while (0)
     /* Down from the largest λ a decade at a time until the residual fits the noise (the
      * crossing lies in the last decade: bisected there) or the solves stop converging (the
@@ -792,12 +833,69 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
                 lo = t;
         }
     }
+    /* The model cannot reach the noise (light from outside the view, a wrong PSF, a noise
+     * estimate that is too small): the L-curve's corner over the decades walked, refined by
+     * half and quarter decades about it; a corner on the walk's end stays in doubt. */
+    double corner_t = 0;
+    int corner = 0;
+    if (st == SVP_OK && lx && bound < 0 && lc_n >= 3) {
+        /* the decade points, ascending in λ (the walk went down) */
+        double t[LCURVE_MAX], rho[LCURVE_MAX], eta[LCURVE_MAX];
+        int m = 0;
+        for (int k = lc_n - 1; k >= 0; k--)
+            if (fabs(lc_t[k] - round(lc_t[k])) < 1e-9) {
+                t[m] = lc_t[k];
+                rho[m] = lc_rho[k];
+                eta[m] = lc_eta[k];
+                m++;
+            }
+        int c = lcurve_corner(rho, eta, m, NULL);
+        if (c > 0) {
+            double step = 1.0, ct = t[c];
+            double ft[5], fr[5], fe[5]; /* five points at spacing step/2 about the corner */
+            for (int level = 0; st == SVP_OK && level < 2; level++) {
+                const double h2 = 0.5 * step;
+                for (int j = 0; j < 5; j++) ft[j] = ct + (j - 2) * h2;
+                int ok = 1;
+                for (int j = 0; st == SVP_OK && j < 5 && ok; j++) {
+                    /* reuse a point already solved */
+                    int found = -1;
+                    for (int k = 0; k < lc_n; k++)
+                        if (fabs(lc_t[k] - ft[j]) < 1e-9) found = k;
+                    if (found < 0) {
+                        const int before = lc_n;
+                        EXCESS(ft[j], unsolved);
+                        if (st != SVP_OK || unsolved || lc_n == before) {
+                            ok = 0;
+                            break;
+                        }
+                        found = lc_n - 1;
+                    }
+                    fr[j] = lc_rho[found];
+                    fe[j] = lc_eta[found];
+                }
+                if (st != SVP_OK || !ok) break;
+                const int cc = lcurve_corner(fr, fe, 5, NULL);
+                if (cc < 0) break;
+                ct = ft[cc];
+                step = h2;
+            }
+            corner_t = ct;
+            corner = 1;
+        }
+    }
 #undef EXCESS
     if (bound == 1) lo = hi;
     if (st == SVP_OK) *balance = pow(10.0, bound ? (bound < 0 ? hi : lo) : 0.5 * (lo + hi));
+    if (st == SVP_OK && corner) {
+        *balance = pow(10.0, corner_t);
+        bound = 0;
+        *lcurve = 1;
+    }
     if (at_bound) *at_bound = bound;
     svp_image_free(x);
     svp_image_free(hx);
     svp_free(prod);
+    svp_free(lx);
     return st;
 }

@@ -194,11 +194,11 @@ expect_ok corr_rw correct --field fwd_m/field.npy --pl fwd_m/pl.npy --psf moffat
 check_close "T^-1(T(B)), R&W 500 iterations, mirror: field" Bz.txt corr_rw/field.txt 1e-3
 expect_ok fwd_zero forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_z --format tif $FAST
 expect_ok corr_r correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
-    --method rl-signed --iterations 500 -o corr_r --format txt $FAST
+    --method rl-signed --iterations 500 --margin 0 -o corr_r --format txt $FAST
 # float32 TIFF inputs: 1e-7 relative rounding before the deconvolution
 check_close "T^-1(T(B)), signed RL 500 iterations, zero boundary, float32 TIFF: field" Bz.txt corr_r/field.txt 5e-3
 expect_ok corr_r32 correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
-    --method rl-signed --iterations 500 --precision single -o corr_r32 --format txt $FAST
+    --method rl-signed --iterations 500 --precision single --margin 0 -o corr_r32 --format txt $FAST
 check_close "correct --precision single (500 iterations) agrees with double" corr_r/field.txt corr_r32/field.txt 1e-3
 expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
     --psf moffat_periodic.yaml --method w --precision single -o corr_w32
@@ -537,7 +537,8 @@ sig=$(jnum corr_auto/summary.json noise_sigma_pl)
 lam10=$(jnum corr_auto10/summary.json balance_pl)
 lam_dec=$(jnum dec_auto_pl.summary.json balance)
 if grep -q '"noise_sigma_from": "estimated"' corr_auto/summary.json && [ -n "$lam_f" ] &&
-    grep -q "discrepancy principle: PL" out.corr_auto &&
+    grep -q "automatic balance: PL [0-9.e+-]* (discrepancy principle" out.corr_auto &&
+    grep -q "\"balance_rule_pl\": \"discrepancy\"" corr_auto/summary.json &&
     awk -v s="$sig" 'BEGIN { exit !(s > 0.0085 && s < 0.0115) }'; then
     pass "correct --balance auto records balance_pl $lam, balance_field $lam_f and the PL's noise estimate $sig (true 0.01)"
 else

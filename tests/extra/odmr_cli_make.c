@@ -121,21 +121,27 @@ static int make_pages(char **a)
     return bad;
 }
 
-static int compare_images(const svp_image *est, const svp_image *truth, const svp_image *sigma,
-                          char **a)
+static int compare(int argc, char **a)
 {
+    svp_image *est = NULL, *truth = NULL, *sigma = NULL;
+    int rc = 1;
+    if (svp_image_read(a[0], &est) || svp_image_read(a[1], &truth) ||
+        (argc > 5 && svp_image_read(a[5], &sigma))) {
+        fprintf(stderr, "%s\n", svp_last_error());
+        goto done;
+    }
     const double scale = atof(a[2]), mean_tol = atof(a[3]), max_tol = atof(a[4]);
     const size_t n = (size_t)est->width * est->height;
     if (truth->width != est->width || truth->height != est->height) {
         fprintf(stderr, "size mismatch\n");
-        return 1;
+        goto done;
     }
     double mean = 0, worst = 0, pull = 0;
     for (size_t p = 0; p < n; p++) {
         double d = est->data[p] / scale - truth->data[p];
         if (!isfinite(d)) {
             printf("pixel %zu is not finite\n", p);
-            return 1;
+            goto done;
         }
         mean += fabs(d) / (double)n;
         worst = fmax(worst, fabs(d));
@@ -145,25 +151,12 @@ static int compare_images(const svp_image *est, const svp_image *truth, const sv
     printf("mean |error| %.4g, max %.4g (tolerances %g, %g)", mean, worst, mean_tol, max_tol);
     if (sigma) printf(", rms (est - truth) / sigma %.3f", pull);
     printf("\n");
-    return !(mean <= mean_tol && worst <= max_tol && (!sigma || (pull > 0.8 && pull < 1.25)));
-}
-
-/* the images are freed on every path (a leak fails the sanitizer build's exit status) */
-static int compare(int argc, char **a)
-{
-    svp_image *est = NULL, *truth = NULL, *sigma = NULL;
-    int bad;
-    if (svp_image_read(a[0], &est) || svp_image_read(a[1], &truth) ||
-        (argc > 5 && svp_image_read(a[5], &sigma))) {
-        fprintf(stderr, "%s\n", svp_last_error());
-        bad = 1;
-    } else {
-        bad = compare_images(est, truth, sigma, a);
-    }
+    rc = !(mean <= mean_tol && worst <= max_tol && (!sigma || (pull > 0.8 && pull < 1.25)));
+done: /* freed, so the sanitizer build's leak check passes */
     svp_image_free(est);
     svp_image_free(truth);
     svp_image_free(sigma);
-    return bad;
+    return rc;
 }
 
 int main(int argc, char **argv)

@@ -3,11 +3,13 @@
 # given as --pl is refused naming its page count; a 100-frame float32 TIFF stack simulated by
 # odmr_cli_make's own lines (with noise) is fitted back to the known field within a stated
 # tolerance (and σ matches the scatter); its maps feed `svpsf correct` directly, --field-sigma
-# included; bad frequencies and no overwrite without --force.
-# Usage: odmr_cli_test.sh SVPSF ODMR_CLI_MAKE
+# included; bad frequencies (a count that differs, named with both counts), a stack of one
+# page, and no overwrite without --force.
+# Usage: odmr_cli_test.sh SVPSF ODMR_CLI_MAKE [CLI_MD]
 set -u
 svpsf=$1
 make=$2
+cli_md=${3:-}
 dir=$(mktemp -d "${TMPDIR:-/tmp}/svpsf-odmr.XXXXXX") || exit 1
 trap 'rm -rf "$dir"' EXIT
 export XDG_CACHE_HOME="$dir/cache"
@@ -81,6 +83,11 @@ run 1 fit-odmr stack.tif --frequencies freq99.txt -o bad2
 expect_in err "freq99.txt: 99 frequencies for a stack of 100 frames (stack.tif)"
 run 1 fit-odmr pages5.tif --frequencies 1:5:5 -o bad3 --lines two
 expect_in err "pages5.tif: 5 frames: a Lorentzian fit (--lines two) needs at least 6"
+# a stack of one page (or one 2-D image): too few frequencies, before the frequencies are read
+run 1 fit-odmr pages1.tif --frequencies 2.87e9 -o bad7
+expect_in err "svpsf fit-odmr: pages1.tif: 1 frame: a Lorentzian fit (--lines pair) needs at least 5 (one per frequency)"
+run 1 fit-odmr f.txt --frequencies 1:5:5 -o bad8
+expect_in err "f.txt: 1 frame: a Lorentzian fit"
 run 1 fit-odmr stack.tif --frequencies freq.txt --line lower -o bad4
 expect_in err "--line lower needs --lines one"
 run 1 fit-odmr stack.tif -o bad5
@@ -88,11 +95,29 @@ expect_in err "--frequencies is required"
 awk 'NR == 50 {print 2.9e9; next} {print}' freq.txt >freq_bad.txt
 run 1 fit-odmr stack.tif --frequencies freq_bad.txt -o bad6
 expect_in err "freq_bad.txt: not monotonic"
-for d in bad1 bad2 bad3 bad4 bad5 bad6; do [ -e "$d" ] && fail "$d was created by a refused run"; done
+for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8; do [ -e "$d" ] && fail "$d was created by a refused run"; done
 cp fit/field.npy field.before
 run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
 expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"
 cmp -s fit/field.npy field.before || fail "fit/field.npy changed without --force"
+
+# 5. --help and the reference (docs/cli.md, section `svpsf fit-odmr`) name the same options
+if [ -n "$cli_md" ] && [ -r "$cli_md" ]; then
+    "$svpsf" fit-odmr --help >help.txt || fail "fit-odmr --help exited $?"
+    grep -o -- '--[a-z][a-z-]*' help.txt | sort -u >help_opts
+    awk '/^## `svpsf fit-odmr`/ {f = 1; next} /^## / {f = 0} f' "$cli_md" >section.md
+    [ -s section.md ] || fail "no fit-odmr section in $cli_md"
+    grep -o -- '--[a-z][a-z-]*' section.md | sort -u >doc_opts
+    # common options the reference names once for all commands
+    for o in --help --quiet --threads --format --force --output; do echo "$o"; done | sort -u >common_opts
+    missing=$(comm -23 help_opts doc_opts | comm -23 - common_opts)
+    extra=$(comm -13 help_opts doc_opts | grep -v -e '^--field-sigma$' -e '^--pl$' -e '^--field$' \
+        -e '^--psf$' -e '^--balance$')
+    [ -z "$missing" ] || fail "in fit-odmr --help but not in docs/cli.md: $missing"
+    [ -z "$extra" ] || fail "in docs/cli.md's fit-odmr section but not in --help: $extra"
+else
+    echo "SKIP (part): no docs/cli.md given: --help not compared with the reference"
+fi
 
 if [ "$failures" -ne 0 ]; then
     echo "$failures failure(s)"

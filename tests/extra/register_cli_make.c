@@ -5,6 +5,12 @@
  *       ref_mask.npy  a label mask (0 bare, 1 strip, 2 disc) on the reference grid
  *       mov_mask.npy  the same layout in the moving frame
  *       other.npy     an unrelated scene; flat.npy a constant image; wide.npy 97 x 80
+ *       wire_pl.npy   a PL image: a Gaussian beam, a metal wire and its pad dark on it
+ *                     (absorbing 70 %, edges 4 x 4 supersampled), 2 % noise
+ *       wire_mask.npy the wire's label mask (1 wire, 2 pad, 0 bare) in a moving frame
+ *                     displaced by (+4.6, −2.3) px: mask(x) = label(x − d)
+ *       wire_ref_mask.npy  the label mask on the PL's grid (what --warp should give)
+ *       noise_a.npy, noise_b.npy  two unrelated white-noise images (no common texture)
  *   register_cli_make compare A B   prints the fraction of pixels where A and B differ and
  *                                   exits 1 when above 2 % (or the sizes differ). */
 #include "svpsf.h"
@@ -59,6 +65,21 @@ static int label_at(double x, double y)
     return 0;
 }
 
+/* An L-shaped wire (vertical from the top, then to the right) ending in a square pad. */
+static int wire_at(double x, double y)
+{
+    if (fabs(x - 70) < 7 && fabs(y - 52) < 7) return 2;
+    if (fabs(x - 30) < 2.5 && y < 54.5) return 1;
+    if (fabs(y - 52) < 2.5 && x > 27.5 && x < 70) return 1;
+    return 0;
+}
+
+static double gauss(uint64_t *s)
+{
+    double u = rnd(s), v = rnd(s);
+    return sqrt(-2 * log(u + 1e-300)) * cos(2 * M_PI * v);
+}
+
 static int save(const char *dir, const char *name, const svp_image *img)
 {
     char path[4096];
@@ -92,6 +113,37 @@ static int make(const char *dir)
             flat->data[i] = 42;
         }
     for (size_t i = 0; i < (size_t)(W + 1) * H; i++) wide->data[i] = (double)(i % 7);
+    svp_image *wpl, *wmask, *wref, *na, *nb;
+    if (svp_image_new(W, H, &wpl) || svp_image_new(W, H, &wmask) || svp_image_new(W, H, &wref) ||
+        svp_image_new(W, H, &na) || svp_image_new(W, H, &nb))
+        return 1;
+    uint64_t seed = 12345;
+    const double wdx = 4.6, wdy = -2.3;
+    for (int y = 0; y < H; y++)
+        for (int x = 0; x < W; x++) {
+            size_t i = (size_t)y * W + x;
+            double dark = 0; /* the fraction of the pixel the wire or pad covers */
+            for (int sy = 0; sy < 4; sy++)
+                for (int sx = 0; sx < 4; sx++)
+                    dark += wire_at(x - 0.375 + 0.25 * sx, y - 0.375 + 0.25 * sy) != 0;
+            dark /= 16;
+            const double bx = x - 0.5 * W, by = y - 0.5 * H;
+            const double beam = 1000 * exp(-(bx * bx + by * by) / (2 * 45.0 * 45.0));
+            wpl->data[i] = beam * (1 - 0.7 * dark) + 20 * gauss(&seed);
+            wmask->data[i] = wire_at(x - wdx, y - wdy);
+            wref->data[i] = wire_at(x, y);
+            na->data[i] = gauss(&seed);
+            nb->data[i] = gauss(&seed);
+        }
+    int bad_wire = save(dir, "wire_pl.npy", wpl) || save(dir, "wire_mask.npy", wmask) ||
+                   save(dir, "wire_ref_mask.npy", wref) ||
+                   save(dir, "noise_a.npy", na) || save(dir, "noise_b.npy", nb);
+    svp_image_free(wpl);
+    svp_image_free(wmask);
+    svp_image_free(wref);
+    svp_image_free(na);
+    svp_image_free(nb);
+    if (bad_wire) return 1;
     int bad = save(dir, "ref.npy", ref) || save(dir, "mov.npy", mov) ||
               save(dir, "ref_mask.npy", rm) || save(dir, "mov_mask.npy", mm) ||
               save(dir, "other.npy", other) || save(dir, "flat.npy", flat) ||

@@ -1,7 +1,8 @@
 #!/bin/sh
 # svpsf register from the command line: transform found and printed, transform files (JSON,
-# YAML), a label mask warped onto the reference grid, exit codes, and no overwrite without
-# --force. Usage: register_cli_test.sh SVPSF REGISTER_CLI_MAKE
+# YAML), a label mask warped onto the reference grid, a mask whose regions are dark in the PL
+# (inverted contrast, detected or --invert), results in doubt (exit 3), exit codes, and no
+# overwrite without --force. Usage: register_cli_test.sh SVPSF REGISTER_CLI_MAKE
 set -u
 svpsf=$1
 make=$2
@@ -85,9 +86,53 @@ expect_in err "needs a .json, .yaml or .yml name"
 run 1 register ref.npy mov.npy --method fft
 expect_in err "--method: unknown value 'fft'"
 
-# 6. unrelated images: a transform, with a warning
-run 0 register ref.npy other.npy
+# 6. unrelated images: a result in doubt, printed, exit 3, nothing written; with
+# --keep-doubtful written with a warning and flagged in the transform file
+run 3 register ref.npy other.npy -o doubt.json
+expect_in err "the phase-correlation peak is not significant"
+expect_in err "nothing written"
+expect_in out "significance"
+[ -e doubt.json ] && fail "doubt.json written by a run in doubt"
+run 0 register ref.npy other.npy -o doubt.json --keep-doubtful
 expect_in err "warning: the phase-correlation peak is not significant"
+expect_in doubt.json '"low_significance": true'
+# featureless pair (two unrelated white-noise images): exit 3, also with --warp
+run 3 register noise_a.npy noise_b.npy --warp mov_mask.npy -o never.npy
+expect_in err "noise_b.npy onto noise_a.npy: the phase-correlation peak is not significant"
+[ -e never.npy ] && fail "never.npy written by a run in doubt"
+
+# 7. a label mask whose regions are dark in the PL (a metal wire, 70 % absorbing, on a Gaussian
+# beam with 2 % noise), the mask displaced by (+4.6, -2.3) px: the inverted contrast is
+# detected and the shift recovered within 0.5 px (the mask's pixel edges alone round it by up
+# to 0.4 px); the transform file says so
+check_wire_shift() { # what
+    s=$(awk '$1 == "shift" {print $2, $3}' out)
+    echo "wire mask, $1: shift $s (rendered +4.6 -2.3)"
+    echo "$s" | awk '{ex = $1 - 4.6; ey = $2 + 2.3; exit !(ex * ex + ey * ey < 0.5 * 0.5)}' ||
+        fail "$1: shift $s is not (+4.6, -2.3) within 0.5 px"
+}
+run 0 register wire_pl.npy wire_mask.npy --transform-out wire.json --warp wire_mask.npy \
+    -o wire_warped.npy
+expect_in out "contrast    inverted (detected"
+check_wire_shift "detected"
+expect_in wire.json '"contrast": "inverted"'
+expect_in wire.json '"low_significance": false'
+"$make" compare wire_warped.npy wire_ref_mask.npy ||
+    fail "the warped wire mask differs from the mask on the PL's grid"
+run 0 register wire_pl.npy wire_mask.npy --invert
+expect_in out "contrast    inverted (--invert)"
+check_wire_shift "--invert"
+run 0 register wire_pl.npy wire_mask.npy --method ecc --motion translation
+check_wire_shift "ECC"
+# the same contrast forced: the peak is not significant (what the sign-blind search reported
+# with exit 0): exit 3
+run 3 register wire_pl.npy wire_mask.npy --no-invert
+expect_in err "not significant"
+run 1 register wire_pl.npy wire_mask.npy --invert --no-invert
+expect_in err "--invert and --no-invert: give one"
+# an ordinary pair keeps its contrast
+run 0 register ref.npy mov.npy
+expect_in out "contrast    same (detected"
 
 if [ "$failures" -ne 0 ]; then
     echo "$failures check(s) failed"

@@ -37,9 +37,10 @@ import foreign  # noqa: E402
 # (label, arguments of svpsf correct). A row whose flags the program lacks is skipped, said so.
 OPTION_SETS = [
     ("default", []),
-    ("r, 75 it", ["--method", "r"]),
-    ("r, auto iterations", ["--method", "r", "--iterations", "300", "--iterations", "auto"]),
+    ("r, 75 it, margin 0", ["--method", "r", "--margin", "0"]),
     ("r, 75 it, margin auto", ["--method", "r", "--margin", "auto"]),
+    ("r, 150 it, margin auto", ["--method", "r", "--iterations", "150", "--margin", "auto"]),
+    ("r, auto iterations", ["--method", "r", "--iterations", "300", "--iterations", "auto"]),
     ("r, 30 it, Biggs–Andrews", ["--method", "r", "--iterations", "30",
                                  "--acceleration", "biggs-andrews"]),
     ("rw, balance 1e-3", ["--method", "rw"]),

@@ -13,6 +13,16 @@
  *   bench_scene fit --size N --points P [--threads T] [--reps R]
  *       per-pixel Lorentzian fits per second (svp_odmr_fit) on the blurred cube of the same
  *       scene at N x N: median over R repetitions.
+ *   bench_scene odmr --size N --points P [--threads T] [--reps R] [--noise S] [--out DIR]
+ *       the fit of `svpsf fit-odmr` (svp_odmr_fit_maps with every map it writes: field, PL,
+ *       contrast, linewidth, their σ, R², converged) against the scene engine's call
+ *       (svp_odmr_fit with the field alone, as `svpsf simulate` makes it) on the same blurred
+ *       cube, interleaved, median over R repetitions each; also the one-line model (--lines
+ *       one: the sweep holds the upper line only). S > 0 adds Gaussian noise of σ = S √(b ·
+ *       b_peak) to every frame, b the pixel's off-resonance PL (shot-noise-like; fixed seed). Prints a hash of every map's bits (to compare thread
+ *       counts) and whether the two calls' fields are identical. With --out DIR it writes the
+ *       cube as DIR/stack.tif (float32, one page per frequency) and DIR/freq.txt (Hz) for
+ *       timing the program end to end.
  *
  * The scene: pixel 0.2 µm, a square flake of 0.6 N pixels (M_z t = 0.1 mA, standoff 100 nm,
  * B_z only), emission = Gaussian spot (FWHM 0.8 N px) x chessboard (20 px squares, levels 0.1,
@@ -39,7 +49,8 @@
 typedef struct args {
     const char *mode;
     int size, points, threads, reps, fit, rl, w, rl_iterations;
-    double balance;
+    double balance, noise;
+    const char *out;
 } args;
 
 static int fail(svp_status st, const char *what)
@@ -390,12 +401,205 @@ static int run_fit(const args *a)
     return 0;
 }
 
+/* ---- odmr: svp_odmr_fit_maps (fit-odmr) against svp_odmr_fit (the scene engine) -------------- */
+
+static void le_put(unsigned char *p, uint32_t v, int n)
+{
+    for (int k = 0; k < n; k++) p[k] = (unsigned char)(v >> (8 * k));
+}
+
+/* the cube as a little-endian multi-page float32 TIFF (one strip per page, then its
+ * directory), and the frequencies one per line */
+static int write_stack(const svp_cube *cube, const char *dir)
+{
+    const int w = cube->width, h = cube->height, n = cube->n_freq;
+    const size_t bytes = (size_t)w * h * 4, page = bytes + 2 + 12 * 10 + 4 + 1;
+    char path[4096];
+    snprintf(path, sizeof path, "%s/stack.tif", dir);
+    FILE *f = fopen(path, "wb");
+    if (!f) return 1;
+    unsigned char head[8] = {'I', 'I', 42, 0};
+    le_put(head + 4, (uint32_t)(8 + bytes + (bytes & 1)), 4); /* page 1's directory */
+    int bad = fwrite(head, 1, 8, f) != 8;
+    unsigned char *buf = malloc(page);
+    if (!buf) bad = 1;
+    size_t pos = 8;
+    for (int p = 0; p < n && !bad; p++) {
+        float *px = (float *)buf; /* little-endian host assumed (x86-64, aarch64) */
+        for (size_t k = 0; k < (size_t)w * h; k++) px[k] = (float)cube->frame[p]->data[k];
+        const size_t data = pos, ifd = pos + bytes + (bytes & 1);
+        unsigned char *d = buf + (ifd - pos);
+        memset(buf + bytes, 0, page - bytes);
+        const uint32_t e[10][3] = {{256, 3, (uint32_t)w}, {257, 3, (uint32_t)h}, {258, 3, 32},
+                                   {259, 3, 1}, {262, 3, 1}, {273, 4, (uint32_t)data},
+                                   {277, 3, 1}, {278, 3, (uint32_t)h}, {279, 4, (uint32_t)bytes},
+                                   {339, 3, 3}};
+        le_put(d, 10, 2);
+        for (int k = 0; k < 10; k++) {
+            unsigned char *q = d + 2 + 12 * k;
+            le_put(q, e[k][0], 2);
+            le_put(q + 2, e[k][1], 2);
+            le_put(q + 4, 1, 4);
+            le_put(q + 8, e[k][2], e[k][1] == 3 ? 2 : 4);
+        }
+        const size_t end = ifd + 2 + 12 * 10 + 4;
+        le_put(d + 2 + 12 * 10, p + 1 < n ? (uint32_t)(end + bytes) : 0, 4); /* next page's */
+        bad |= fwrite(buf, 1, end - pos, f) != end - pos;
+        pos = end;
+    }
+    free(buf);
+    bad |= fclose(f) != 0;
+    snprintf(path, sizeof path, "%s/freq.txt", dir);
+    f = fopen(path, "w");
+    if (!f) return 1;
+    for (int p = 0; p < n; p++) fprintf(f, "%.17g\n", cube->freq[p]);
+    bad |= fclose(f) != 0;
+    return bad;
+}
+
+/* CPU seconds of the process (all its threads) */
+static double cpu_now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+/* FNV-1a over the bits of the images */
+static uint64_t hash_images(svp_image *const *imgs, int n, uint64_t h)
+{
+    for (int i = 0; i < n; i++) {
+        if (!imgs[i]) continue;
+        const unsigned char *b = (const unsigned char *)imgs[i]->data;
+        const size_t len = (size_t)imgs[i]->width * imgs[i]->height * sizeof(double);
+        for (size_t k = 0; k < len; k++) h = (h ^ b[k]) * 0x100000001b3u;
+    }
+    return h;
+}
+
+static double gauss_noise(uint64_t *s)
+{
+    double u[2];
+    for (int k = 0; k < 2; k++) {
+        *s = *s * 6364136223846793005u + 1442695040888963407u;
+        u[k] = ((double)(*s >> 11) + 0.5) / 9007199254740992.0;
+    }
+    return sqrt(-2 * log(u[0])) * cos(2 * M_PI * u[1]);
+}
+
+static int run_odmr(const args *a)
+{
+    scene s;
+    TRY(scene_make(a->size, a->points, &s), "scene");
+    const int n = a->size;
+    const size_t np = (size_t)n * n;
+    svp_cube *cube = NULL;
+    double t_sim, t_blur;
+    TRY(blurred_cube(&s, &cube, &t_sim, &t_blur), "cube");
+    if (a->noise > 0) { /* shot-noise-like: σ = S √(b · b_peak), b the off-resonance PL */
+        double peak = 0;
+        for (size_t p = 0; p < np; p++) peak = fmax(peak, cube->frame[0]->data[p]);
+        double *sd = malloc(np * sizeof(double));
+        if (!sd) return fail(SVP_ERR_NOMEM, "alloc");
+        for (size_t p = 0; p < np; p++)
+            sd[p] = a->noise * sqrt(fmax(cube->frame[0]->data[p], 0) * peak);
+        uint64_t seed = 12345;
+        for (int f = 0; f < s.nf; f++)
+            for (size_t p = 0; p < np; p++)
+                cube->frame[f]->data[p] += sd[p] * gauss_noise(&seed);
+        free(sd);
+    }
+    if (a->out && write_stack(cube, a->out)) {
+        printf("{\"error\": \"io\", \"message\": \"cannot write %s/stack.tif\"}\n", a->out);
+        return 2;
+    }
+    enum { NM = 10 };
+    svp_image *old = NULL, *pair[NM] = {NULL}, *one[NM] = {NULL};
+    TRY(svp_image_new(n, n, &old), "alloc");
+    for (int k = 0; k < NM; k++) {
+        TRY(svp_image_new(n, n, &pair[k]), "alloc");
+        TRY(svp_image_new(n, n, &one[k]), "alloc");
+    }
+#define ODMR_MAPS(m)                                                                               \
+    {.field = m[0], .field_sigma = m[1], .baseline = m[2], .baseline_sigma = m[3],                 \
+     .contrast = m[4], .contrast_sigma = m[5], .linewidth = m[6], .linewidth_sigma = m[7],         \
+     .quality = m[8], .converged = m[9]}
+    const svp_odmr_maps maps_pair = ODMR_MAPS(pair), maps_one = ODMR_MAPS(one);
+    svp_odmr_fit_options o_pair, o_one;
+    svp_odmr_fit_defaults(&o_pair);
+    svp_odmr_fit_defaults(&o_one);
+    o_one.lines = SVP_ODMR_LINES_ONE;
+    o_one.line_sign = 1;
+    /* wall-clock and process CPU seconds (every thread's; the CPU time is what load changes
+     * least: fits per CPU-second x cores is the speed of idle cores) */
+    double *t = malloc(6 * (size_t)a->reps * sizeof(double)), *cpu = t + 3 * (size_t)a->reps;
+    if (!t) return fail(SVP_ERR_NOMEM, "alloc");
+    size_t f_old = 0, f_pair = 0, f_one = 0;
+    for (int r = 0; r < a->reps; r++) {
+        double t0 = bench_now(), c0 = cpu_now();
+        TRY(svp_odmr_fit(&s.odmr, cube, NULL, old, NULL, NULL, NULL, &f_old), "scene fit");
+        double t1 = bench_now(), c1 = cpu_now();
+        TRY(svp_odmr_fit_maps(&s.odmr, cube, &o_pair, &maps_pair, &f_pair), "fit maps (pair)");
+        double t2 = bench_now(), c2 = cpu_now();
+        TRY(svp_odmr_fit_maps(&s.odmr, cube, &o_one, &maps_one, &f_one), "fit maps (one)");
+        double t3 = bench_now(), c3 = cpu_now();
+        t[r] = t1 - t0;
+        t[a->reps + r] = t2 - t1;
+        t[2 * a->reps + r] = t3 - t2;
+        cpu[r] = c1 - c0;
+        cpu[a->reps + r] = c2 - c1;
+        cpu[2 * a->reps + r] = c3 - c2;
+    }
+    const double m_old = bench_median(t, a->reps), m_pair = bench_median(t + a->reps, a->reps),
+                 m_one = bench_median(t + 2 * a->reps, a->reps);
+    const double cpu_old = bench_median(cpu, a->reps), cpu_pair = bench_median(cpu + a->reps, a->reps);
+    const int same = memcmp(old->data, pair[0]->data, np * sizeof(double)) == 0;
+    /* errors against the true field (the bias removed), converged pixels */
+    double r_pair = 0, r_one = 0, sig = 0;
+    size_t cnt = 0;
+    for (size_t p = 0; p < np; p++) {
+        if (pair[9]->data[p] != 1 || one[9]->data[p] != 1) continue;
+        const double want = s.bz->data[p] + s.bias;
+        r_pair += (pair[0]->data[p] - want) * (pair[0]->data[p] - want);
+        r_one += (one[0]->data[p] - want) * (one[0]->data[p] - want);
+        if (isfinite(pair[1]->data[p])) sig += pair[1]->data[p] * pair[1]->data[p];
+        cnt++;
+    }
+    const double c = cnt ? (double)cnt : 1;
+    const uint64_t hash = hash_images(one, NM, hash_images(pair, NM, 0xcbf29ce484222325u));
+    printf("{\"mode\": \"odmr\", \"size\": %d, \"points\": %d, \"threads\": %d, \"reps\": %d, "
+           "\"noise\": %.6g, \"fits\": %zu, \"scene_seconds\": %.6g, \"pair_seconds\": %.6g, "
+           "\"one_seconds\": %.6g, \"scene_cpu_seconds\": %.6g, \"pair_cpu_seconds\": %.6g, "
+           "\"scene_fits_per_second\": %.6g, "
+           "\"pair_fits_per_second\": %.6g, \"one_fits_per_second\": %.6g, "
+           "\"scene_failed\": %zu, \"pair_failed\": %zu, \"one_failed\": %zu, "
+           "\"field_identical\": %s, \"maps_hash\": \"%016llx\", \"pair_rms_uT\": %.4g, "
+           "\"one_rms_uT\": %.4g, \"pair_sigma_rms_uT\": %.4g, \"maxrss_mb\": %.1f}\n",
+           n, s.nf, svp_get_threads(), a->reps, a->noise, np, m_old, m_pair, m_one, cpu_old,
+           cpu_pair,
+           (double)np / m_old, (double)np / m_pair, (double)np / m_one, f_old, f_pair, f_one,
+           same ? "true" : "false", (unsigned long long)hash, 1e6 * sqrt(r_pair / c),
+           1e6 * sqrt(r_one / c), 1e6 * sqrt(sig / c), bench_maxrss_mb());
+    fflush(stdout);
+    free(t);
+    svp_image_free(old);
+    for (int k = 0; k < NM; k++) {
+        svp_image_free(pair[k]);
+        svp_image_free(one[k]);
+    }
+    svp_cube_free(cube);
+    scene_free(&s);
+    return 0;
+}
+
 static int usage(void)
 {
     fprintf(stderr,
             "usage: bench_scene cube --size N --points P [--threads T] [--fit 0|1] [--rl 0|1]\n"
             "                        [--w 0|1] [--rl-iterations K] [--balance L]\n"
-            "       bench_scene fit --size N --points P [--threads T] [--reps R]\n");
+            "       bench_scene fit --size N --points P [--threads T] [--reps R]\n"
+            "       bench_scene odmr --size N --points P [--threads T] [--reps R] [--noise S]\n"
+            "                        [--out DIR]\n");
     return 1;
 }
 
@@ -434,11 +638,15 @@ int main(int argc, char **argv)
             a.rl_iterations = atoi(v);
         else if (!strcmp(k, "--balance"))
             a.balance = atof(v);
+        else if (!strcmp(k, "--noise"))
+            a.noise = atof(v);
+        else if (!strcmp(k, "--out"))
+            a.out = v;
         else
             return usage();
     }
     if (a.size < 64 || a.points < 12 || a.threads < 1 || a.reps < 1 || a.rl_iterations < 1 ||
-        !(a.balance >= 0))
+        !(a.balance >= 0) || !(a.noise >= 0))
         return usage();
     svp_set_threads(a.threads);
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -447,6 +655,8 @@ int main(int argc, char **argv)
         rc = run_cube(&a);
     else if (!strcmp(a.mode, "fit"))
         rc = run_fit(&a);
+    else if (!strcmp(a.mode, "odmr"))
+        rc = run_odmr(&a);
     else
         rc = usage();
     svp_fft_cleanup();

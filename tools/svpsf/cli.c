@@ -3,12 +3,14 @@
 
 #include "io/image_io.h"
 #include "io/json.h"
+#include "io/mat.h"
 #include "io/yaml.h"
 
 #include <errno.h>
 #include <yaml.h>
 #include <limits.h>
 #include <math.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -115,8 +117,35 @@ double cli_now(void)
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
 
+/* SIGTERM, SIGINT, SIGHUP, SIGQUIT: the temporary files of writes under way are removed, then
+ * the signal ends the process as it would have (docs/reliability.md, interrupted runs). */
+static void remove_temps_and_die(int sig)
+{
+    svp_io_temp_remove_all(); /* unlink() only: async-signal-safe */
+    raise(sig);               /* SA_RESETHAND: the default action now */
+}
+
+static void install_temp_cleanup(void)
+{
+    static int installed;
+    if (installed) return;
+    installed = 1;
+    static const int sigs[] = {SIGTERM, SIGINT, SIGHUP, SIGQUIT};
+    for (size_t i = 0; i < sizeof sigs / sizeof sigs[0]; i++) {
+        struct sigaction old, sa;
+        /* a signal ignored on entry (nohup, a background shell) stays ignored */
+        if (sigaction(sigs[i], NULL, &old) != 0 || old.sa_handler == SIG_IGN) continue;
+        memset(&sa, 0, sizeof sa);
+        sa.sa_handler = remove_temps_and_die;
+        sa.sa_flags = SA_RESETHAND;
+        sigemptyset(&sa.sa_mask);
+        sigaction(sigs[i], &sa, NULL);
+    }
+}
+
 void cli_run_init(cli_run *run, const char *command, int argc, char **argv, unsigned common)
 {
+    install_temp_cleanup();
     memset(run, 0, sizeof *run);
     run->command = command;
     run->argc = argc;
@@ -141,10 +170,15 @@ static void free_kvs(cli_kv *kv, int n)
 int cli_run_finish(cli_run *run, int exit_code)
 {
     if (run->stage_open) cli_stage_end(run);
+    svp_set_fft_plan_callback(NULL, NULL);
     if (run->wisdom && exit_code == CLI_EXIT_OK) {
         svp_status st = svp_fft_wisdom_save(run->wisdom);
         if (st != SVP_OK) exit_code = cli_fail(run, st, "--wisdom");
     }
+    /* measured plans are good whatever the outcome: kept for the next run */
+    cli_wisdom_cache_save(run);
+    free(run->wisdom_cache);
+    run->wisdom_cache = NULL;
     for (int i = 0; i < run->n_inputs; i++) {
         free(run->inputs[i].role);
         free(run->inputs[i].path);
@@ -208,6 +242,11 @@ int cli_fail(const cli_run *run, svp_status status, const char *context)
 {
     const char *msg = svp_last_error();
     if (!msg || !msg[0]) msg = svp_status_string(status);
+    char mfile[PATH_MAX], mvar[64];
+    int bad = 0;
+    if (context && svp_io_mat_path(context, mfile, sizeof mfile, mvar, sizeof mvar, &bad) &&
+        strstr(msg, mfile))
+        context = NULL; /* "X.mat:VAR": the message names X.mat (and the variable) */
     if (context && context[0] && !strstr(msg, context))
         cli_error(run, "%s: %s", context, msg);
     else
@@ -223,6 +262,7 @@ enum {
     OPT_THREADS,
     OPT_WISDOM,
     OPT_FFT,
+    OPT_NO_WISDOM_CACHE,
 };
 
 #define MAX_OPTIONS 64
@@ -340,6 +380,7 @@ static int apply_common(cli_run *run)
 {
     if (run->threads > 0) svp_set_threads(run->threads);
     svp_set_fft_effort(run->fft_measure ? SVP_FFT_MEASURE : SVP_FFT_ESTIMATE);
+    svp_set_fft_plan_callback(cli_plan_callback, run);
     if (run->wisdom) {
         /* the wisdom is saved at the end of a successful run: a path that cannot be written is
          * refused now, before any work or output, not after all outputs were written */
@@ -369,6 +410,10 @@ static int apply_common(cli_run *run)
         svp_status st = svp_fft_wisdom_load(run->wisdom);
         if (st != SVP_OK) return cli_fail(run, st, run->wisdom);
     }
+    /* the wisdom cache: commands that take --fft, when measuring, without --wisdom FILE */
+    if ((run->common & CLI_COMMON_FFT) && run->fft_measure && !run->wisdom &&
+        !run->no_wisdom_cache && !cli_wisdom_cache_disabled())
+        cli_wisdom_cache_open(run);
     return 0;
 }
 
@@ -389,6 +434,7 @@ int cli_next_option(cli_run *run, const struct option *own)
     if (run->common & CLI_COMMON_FFT) {
         opts[n++] = (struct option){"wisdom", required_argument, NULL, OPT_WISDOM};
         opts[n++] = (struct option){"fft", required_argument, NULL, OPT_FFT};
+        opts[n++] = (struct option){"no-wisdom-cache", no_argument, NULL, OPT_NO_WISDOM_CACHE};
     }
     opts[n] = (struct option){NULL, 0, NULL, 0};
     const char *shorts = (run->common & CLI_COMMON_OUTPUT) ? ":hqo:" : ":hq";
@@ -418,9 +464,10 @@ int cli_next_option(cli_run *run, const struct option *own)
                 return CLI_OPTION_ERROR;
             break;
         case OPT_FORMAT: {
-            static const char *const names[] = {"tif", "npy", "txt", "tiff", NULL};
+            static const char *const names[] = {"tif", "npy", "txt", "tiff", "mat", NULL};
             static const svp_file_format formats[] = {SVP_FORMAT_TIFF, SVP_FORMAT_NPY,
-                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF};
+                                                      SVP_FORMAT_TXT, SVP_FORMAT_TIFF,
+                                                      SVP_FORMAT_MAT};
             int i = 0;
             if (cli_parse_choice(run, "--format", optarg, names, &i)) return CLI_OPTION_ERROR;
             run->format = formats[i];
@@ -428,6 +475,7 @@ int cli_next_option(cli_run *run, const struct option *own)
             break;
         }
         case OPT_WISDOM: run->wisdom = optarg; break;
+        case OPT_NO_WISDOM_CACHE: run->no_wisdom_cache = 1; break;
         case OPT_FFT: {
             static const char *const names[] = {"estimate", "measure", NULL};
             int i = 0;
@@ -443,8 +491,9 @@ int cli_next_option(cli_run *run, const struct option *own)
 void cli_print_common_help(const cli_run *run, FILE *out)
 {
     if (run->common & CLI_COMMON_FORMAT)
-        fputs("  --format tif|npy|txt  format of the image outputs: float32 TIFF, float64 .npy,\n"
-              "                        or numpy.savetxt text (default tif)\n",
+        fputs("  --format tif|npy|txt|mat  format of the image outputs: float32 TIFF, float64\n"
+              "                        .npy, numpy.savetxt text, or MATLAB .mat (one variable\n"
+              "                        named after the file; default tif)\n",
               out);
     if (run->common & CLI_COMMON_OUTPUT)
         fputs("  --force               overwrite existing outputs (default: refuse, and write\n"
@@ -459,7 +508,11 @@ void cli_print_common_help(const cli_run *run, FILE *out)
                 "                        run (default %s)\n"
                 "  --wisdom FILE         load FFTW wisdom from FILE when it exists and save it\n"
                 "                        there after a successful run; FILE's folder must\n"
-                "                        exist (checked before any work) (default: none)\n",
+                "                        exist (checked before any work) (default: the cache)\n"
+                "  --no-wisdom-cache     do not load or save the FFTW wisdom cache\n"
+                "                        ($XDG_CACHE_HOME/svpsf/wisdom, else\n"
+                "                        ~/.cache/svpsf/wisdom; also SVPSF_NO_WISDOM_CACHE=1),\n"
+                "                        used when measuring without --wisdom\n",
                 run->fft_measure ? "measure" : "estimate");
     fputs("  -q, --quiet           no progress and no notes on stderr (errors still shown)\n"
           "  -h, --help            this help\n",
@@ -468,6 +521,15 @@ void cli_print_common_help(const cli_run *run, FILE *out)
 
 void cli_path_stem(const char *path, char *stem, size_t size)
 {
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    if (svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && var[0]) {
+        /* "DIR/Q.mat:Bz" -> "Q_Bz" */
+        char fstem[256];
+        cli_path_stem(file, fstem, sizeof fstem);
+        snprintf(stem, size, "%s_%s", fstem, var);
+        return;
+    }
     const char *base = strrchr(path, '/');
     base = base ? base + 1 : path;
     const char *dot = strrchr(base, '.');
@@ -498,6 +560,10 @@ const char *const cli_precision_names[] = {"double", "single", NULL};
 static long long file_size(const char *path)
 {
     struct stat st;
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    if (stat(path, &st) != 0 && svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad))
+        path = file; /* "FILE.mat:VAR" */
     return stat(path, &st) == 0 ? (long long)st.st_size : -1;
 }
 
@@ -640,6 +706,36 @@ static int parse_bytes(const char *arg, double *bytes)
     return 0;
 }
 
+/* The memory building a space-variant operator needs, estimated from below before it is built
+ * (docs/reliability.md): one spectrum per term (tent node or eigen-PSF) of a frame at least the
+ * image plus the kernel radius, twice over while they are made, the low-rank build's eigen-PSF
+ * halves, and ten images for the solvers. A representation chosen by --operator-tol is sized
+ * by the library itself (svp_variant_info.peak_bytes against max_memory). */
+static svp_status check_variant_memory(const cli_psf *psf, int width, int height)
+{
+    const svp_variant_options *v = &psf->variant;
+    const double w = width, h = height;
+    const double gx = v->grid_x < width ? v->grid_x : width;
+    const double gy = v->grid_y < height ? v->grid_y : height;
+    const int lowrank = v->representation == SVP_VARIANT_LOWRANK;
+    const double terms = lowrank ? v->rank : gx * gy;
+    double r = v->support;
+    svp_psf centre;
+    if (!(r > 0) && svp_psf_field_at(psf->field, (w - 1) / 2, (h - 1) / 2, &centre) == SVP_OK)
+        r = centre.support;
+    const double rx = r > 0 && ceil(r) < w - 1 ? ceil(r) : w - 1;
+    const double ry = r > 0 && ceil(r) < h - 1 ? ceil(r) : h - 1;
+    const double frame = (w + rx) * (h + ry);
+    double bytes = 2.0 * terms * 8.0 * frame + 10.0 * 8.0 * w * h;
+    if (lowrank) bytes += terms * (2 * rx + 1) * (ry + 1) * 8.0;
+    char what[160];
+    snprintf(what, sizeof what,
+             "building the space-variant operator (%.0f %s on a frame of at least %.0f x %.0f "
+             "pixels)",
+             terms, lowrank ? "eigen-PSFs" : "tent nodes", w + rx, h + ry);
+    return svp_io_check_memory(psf->path, what, bytes);
+}
+
 int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
                  svp_blur **out)
 {
@@ -652,6 +748,9 @@ int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_bo
                              "SVPSF_MAX_MEMORY='%s' is not a size in bytes (a number > 0, "
                              "optionally with k, M, G or T: powers of 1024)",
                              env);
+        if (vo.representation != SVP_VARIANT_AUTO &&
+            (st = check_variant_memory(psf, width, height)) != SVP_OK)
+            return cli_fail(run, st, NULL);
         st = svp_blur_new_field(psf->field, width, height, boundary, &vo, out);
         svp_variant_info in;
         if (st == SVP_OK && svp_blur_variant_info(*out, &in) == SVP_OK) {
@@ -881,6 +980,7 @@ const char *cli_format_extension(svp_file_format format)
     switch (format) {
     case SVP_FORMAT_NPY: return "npy";
     case SVP_FORMAT_TXT: return "txt";
+    case SVP_FORMAT_MAT: return "mat";
     case SVP_FORMAT_PNG16: return "png";
     default: return "tif";
     }
@@ -893,6 +993,13 @@ svp_file_format cli_format_of_path(const char *path)
     if (has_extension(path, "txt") || has_extension(path, "csv") || has_extension(path, "dat"))
         return SVP_FORMAT_TXT;
     if (has_extension(path, "png")) return SVP_FORMAT_PNG16;
+    if (has_extension(path, "mat")) return SVP_FORMAT_MAT;
+    {
+        /* "OUT.mat:VAR" names the variable */
+        char file[PATH_MAX], var[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad)) return SVP_FORMAT_MAT;
+    }
     return SVP_FORMAT_AUTO;
 }
 
@@ -1018,9 +1125,17 @@ int cli_outputs_check(cli_run *run)
     for (int i = 0; i < run->n_outputs; i++) {
         struct stat st;
         const char *path = run->outputs[i].path;
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            path = mfile; /* "OUT.mat:VAR" is written to OUT.mat */
         if (stat(path, &st) != 0) continue;
         if (S_ISDIR(st.st_mode)) return cli_error(run, "%s exists and is a folder", path);
-        if (!run->force && n_existing++ == 0) first = path;
+        if (!run->force && n_existing++ == 0) {
+            static char first_path[PATH_MAX];
+            snprintf(first_path, sizeof first_path, "%s", path);
+            first = first_path;
+        }
     }
     if (n_existing == 1)
         return cli_error(run, "%s exists (use --force to overwrite); nothing was written", first);
@@ -1312,6 +1427,14 @@ int cli_summary_write(cli_run *run, const char *path)
     svp_json_int(j, svp_get_threads());
     svp_json_key(j, "fft_planning");
     svp_json_string(j, run->fft_measure ? "measure" : "estimate");
+    svp_json_key(j, "fft_wisdom");
+    svp_json_string(j, run->wisdom ? run->wisdom : run->wisdom_cache ? run->wisdom_cache : "");
+    const char *policy_source = NULL;
+    const char *policy = cli_omp_wait_policy(&policy_source);
+    svp_json_key(j, "omp_wait_policy");
+    svp_json_string(j, policy);
+    svp_json_key(j, "omp_wait_policy_from");
+    svp_json_string(j, policy_source);
 
     svp_json_key(j, "timings_s");
     svp_json_begin_object(j);

@@ -100,7 +100,7 @@ void cli_set_program_args(int argc, char **argv);
 enum {
     CLI_COMMON_OUTPUT = 1u << 0, /* -o/--output PATH, --force */
     CLI_COMMON_FORMAT = 1u << 1, /* --format tif|npy|txt (default tif) */
-    CLI_COMMON_FFT = 1u << 2,    /* --wisdom FILE, --fft estimate|measure */
+    CLI_COMMON_FFT = 1u << 2,    /* --wisdom FILE, --fft estimate|measure, --no-wisdom-cache */
     CLI_COMMON_OUTPUT_DIR = CLI_COMMON_OUTPUT | CLI_COMMON_FORMAT | CLI_COMMON_FFT
 };
 
@@ -154,6 +154,11 @@ typedef struct cli_run {
     const char *progress_label;
     double progress_t0, progress_last_draw;
     int progress_shown, progress_last_decile;
+
+    /* the FFTW wisdom cache (cli_machine.c) */
+    int no_wisdom_cache; /* --no-wisdom-cache, or SVPSF_NO_WISDOM_CACHE set */
+    char *wisdom_cache;  /* the cache file in use; NULL when none */
+    int fft_planned;     /* FFT plans were measured in this run (the cache is saved) */
 } cli_run;
 
 /* Starts a run: records the command, applies nothing yet. `common` is a CLI_COMMON_* set. */
@@ -346,6 +351,28 @@ void cli_result_int(cli_run *run, const char *key, long long value);
  * directory, inputs with sizes, outputs, settings, results, versions, threads, timings per
  * stage, peak memory). */
 int cli_summary_write(cli_run *run, const char *path);
+
+/* ---- shared machines (cli_machine.c; docs/cli.md, "Shared machines") ---------------------- */
+
+/* Called first in main(): unless OMP_WAIT_POLICY or GOMP_SPINCOUNT is set, sets
+ * OMP_WAIT_POLICY=passive and runs the program again (/proc/self/exe, once: libgomp reads it
+ * only when it loads), so idle OpenMP threads sleep instead of spinning on cores that another
+ * program needs. Returns (and runs on) when it does nothing or the exec fails. */
+void cli_openmp_passive(char **argv);
+/* OMP_WAIT_POLICY as this process saw it ("" when unset); *source: "svpsf" (set by
+ * cli_openmp_passive), "environment", or a note that it is unset. */
+const char *cli_omp_wait_policy(const char **source);
+/* SVPSF_NO_WISDOM_CACHE set (and not "0"). */
+int cli_wisdom_cache_disabled(void);
+/* Loads the wisdom cache ($XDG_CACHE_HOME/svpsf/wisdom, else ~/.cache/svpsf/wisdom) into
+ * the process, creating its folder; sets run->wisdom_cache. A cache that does not load is
+ * warned about and replaced, never fatal. */
+void cli_wisdom_cache_open(cli_run *run);
+/* When plans were measured: merges the cache file's current content, saves atomically. */
+void cli_wisdom_cache_save(cli_run *run);
+/* svp_fft_plan_fn for svp_set_fft_plan_callback, user = the run: records that plans were
+ * measured and notes a large size on stderr (once per size; not with --quiet). */
+void cli_plan_callback(void *user, int ny, int nx, int single_precision);
 
 /* ---- field + PL map sets (forward, correct; reusable by simulate) ------------------------- */
 

@@ -110,8 +110,10 @@ static void print_help(const cli_run *run, FILE *out)
             "                        fewer iterations (docs/accuracy.md)\n"
             "  --margin auto|PX      estimate the object on the view plus PX pixels per side, the\n"
             "                        data term over the view only: light from outside the view\n"
-            "                        (zero boundary, one PSF; default 0; auto: where the PSF\n"
-            "                        falls to 1 %% of its peak, at most a quarter of the view)\n"
+            "                        (zero boundary, one PSF; default auto for r and rl-signed,\n"
+            "                        0 for rw and w; auto: where the PSF falls to 1 %% of its\n"
+            "                        peak, at most a quarter of the view, 0 where it does not\n"
+            "                        apply; --margin 0 turns it off)\n"
             "  --gain G              camera gain of the PL (counts per detected photon): the PL's\n"
             "                        shot noise var = G (PL - offset) for the automatic choices;\n"
             "                        default: estimated from the PL and reported\n"
@@ -188,7 +190,7 @@ int cmd_correct(int argc, char **argv)
     cli_maps_init(&maps);
     cli_psf psf;
     memset(&psf, 0, sizeof psf);
-    int method = 0, precision = 0, acceleration = 0, margin_auto = 0, n_sigma = 0;
+    int method = 0, precision = 0, acceleration = 0, margin_auto = -1, n_sigma = 0;
     int balance_given = 0;
     const char *sigma_paths[CLI_MAX_FIELDS] = {NULL};
     svp_image *field_sigma[CLI_MAX_FIELDS] = {NULL};
@@ -225,9 +227,8 @@ int cmd_correct(int argc, char **argv)
             opt.deconv.acceleration = (svp_rl_acceleration)acceleration;
             break;
         case OPT_MARGIN:
-            if (strcmp(optarg, "auto") == 0)
-                margin_auto = 1;
-            else
+            margin_auto = strcmp(optarg, "auto") == 0;
+            if (!margin_auto)
                 bad = cli_parse_int(&run, "--margin", optarg, 0, 100000, &opt.margin);
             break;
         case OPT_GAIN:
@@ -324,6 +325,9 @@ int cmd_correct(int argc, char **argv)
             }
     }
     if (n_sigma) opt.field_sigma = (const svp_image *const *)field_sigma;
+    /* default: auto for the RL methods (measured: docs/accuracy.md), 0 for the Wiener ones */
+    if (margin_auto < 0)
+        margin_auto = opt.method == SVP_METHOD_R || opt.method == SVP_METHOD_RL_SIGNED;
     if ((margin_auto || opt.margin > 0) && (psf.field || maps.boundary != SVP_BOUNDARY_ZERO)) {
         if (!margin_auto) {
             code = cli_error(&run, "--margin needs one PSF and the zero boundary%s",
@@ -415,6 +419,8 @@ int cmd_correct(int argc, char **argv)
             cli_result_num(&run, key, r->balance);
             snprintf(key, sizeof key, "noise_sigma_%s", name);
             cli_result_num(&run, key, r->noise_sigma);
+            snprintf(key, sizeof key, "balance_rule_%s", name);
+            cli_result_str(&run, key, r->balance_lcurve ? "lcurve" : "discrepancy");
             char what[600];
             if (k == 0)
                 snprintf(what, sizeof what, "the PL %s", maps.pl_path);
@@ -426,9 +432,13 @@ int cmd_correct(int argc, char **argv)
                 cli_result_str(&run, key, bound);
             }
             if (at < sizeof bal)
-                at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (noise sigma %g)",
-                                       at ? "," : ", balance by the discrepancy principle:",
-                                       k == 0 ? "PL" : name, r->balance, r->noise_sigma);
+                at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (%s, noise sigma %g)",
+                                       at ? "," : ", automatic balance:", k == 0 ? "PL" : name,
+                                       r->balance,
+                                       r->balance_lcurve ? "L-curve corner: the noise level is "
+                                                           "out of reach"
+                                                         : "discrepancy principle",
+                                       r->noise_sigma);
         }
         if (r->cg_steps > 0) {
             snprintf(key, sizeof key, "cg_steps_%s", name);

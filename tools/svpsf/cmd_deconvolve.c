@@ -204,7 +204,7 @@ int cmd_deconvolve(int argc, char **argv)
     if (ext_format == SVP_FORMAT_PNG16)
         return cli_run_finish(&run, cli_error(&run,
                                               "%s: PNG output would lose the values; "
-                                              "use .tif, .npy or .txt",
+                                              "use .tif, .npy, .txt or .mat",
                                               run.output));
     if (ext_format == SVP_FORMAT_AUTO)
         snprintf(out_path, sizeof out_path, "%s.%s", run.output, cli_format_extension(run.format));

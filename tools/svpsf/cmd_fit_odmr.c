@@ -241,7 +241,8 @@ int cmd_fit_odmr(int argc, char **argv)
     const int nf = stack->n_frames, w = stack->width, h = stack->height;
     const int np = opt.lines == SVP_ODMR_LINES_TWO ? 5 : 4;
     if (nf < 5 || nf <= np) {
-        code = cli_error(&run, "%s: %d frame%s: a Lorentzian fit (--lines %s) needs at least %d",
+        code = cli_error(&run, "%s: %d frame%s: a Lorentzian fit (--lines %s) needs at least %d "
+                         "(one per frequency)",
                          stack_path, nf, nf == 1 ? "" : "s", lines_names[lines],
                          np + 1 > 5 ? np + 1 : 5);
         goto cleanup;

@@ -478,6 +478,7 @@ int cmd_fit_psf(int argc, char **argv)
          * method uses to centre the kernel) */
         svp_register_options ro;
         svp_register_defaults(&ro);
+        ro.contrast = SVP_CONTRAST_SAME; /* two bright spots: never a negative */
         svp_register_result rr;
         svp_status rst = svp_register(exc, spot, &ro, &rr);
         st = svp_image_new(spot->width, spot->height, &dec);

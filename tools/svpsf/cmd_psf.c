@@ -21,7 +21,7 @@ static void print_help(const cli_run *run, FILE *out)
           "spread evenly over the field of view).\n"
           "\n"
           "  PSF.yaml              the PSF file\n"
-          "  -o, --output KERNEL   the kernel image; .tif, .npy or .txt (required)\n"
+          "  -o, --output KERNEL   the kernel image; .tif, .npy, .txt or .mat[:VAR] (required)\n"
           "  --size N              odd kernel side in pixels, 1..16385 (default: 2 ceil(support)\n"
           "                        + 1 when the file sets a support; else the diameter holding\n"
           "                        99 % of the light, 2 ceil(r99) + 1; for beta <= 1, whose\n"
@@ -81,7 +81,8 @@ int cmd_psf(int argc, char **argv)
     svp_file_format format = cli_format_of_path(run.output);
     if (format == SVP_FORMAT_AUTO || format == SVP_FORMAT_PNG16)
         return cli_run_finish(&run,
-                              cli_error(&run, "-o %s: use a .tif, .npy or .txt name", run.output));
+                              cli_error(&run, "-o %s: use a .tif, .npy, .txt or .mat name",
+                                        run.output));
 
     if ((code = cli_psf_load(&run, psf_path, &psf))) goto cleanup;
     if (!psf.is_model) {

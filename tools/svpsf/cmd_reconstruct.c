@@ -3,8 +3,10 @@
  * B_x, B_y. */
 #include "cli.h"
 
+#include "io/mat.h"
 #include "scene/scene_internal.h"
 
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -52,8 +54,10 @@ static void print_help(const cli_run *run, FILE *out)
           "  --bz FILE / --bx FILE / --by FILE   field component maps (same size)\n"
           "  --unit T|mT|uT|nT     unit of the field maps (default T)\n"
           "  --quantity magnetisation|current_from_bz|current_from_bxy   (required)\n"
-          "  --pixel-um P          pixel size in the sample plane, um (required)\n"
-          "  --standoff-nm H       source plane to the centre of the NV layer, nm (required)\n"
+          "  --pixel-um P          pixel size in the sample plane, um (required unless the\n"
+          "                        map is a QDMlab .mat file holding `step`)\n"
+          "  --standoff-nm H       source plane to the centre of the NV layer, nm (required\n"
+          "                        unless the map is a QDMlab .mat file holding `h`)\n"
           "options:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n"
           "  --nv-thickness-nm T   NV layer thickness, averaged over (default 0)\n"
@@ -180,9 +184,27 @@ int cmd_reconstruct(int argc, char **argv)
     if (quantity == 2 && paths[2])
         return cli_run_finish(&run, cli_error(&run, "--quantity current_from_bxy uses --bx, --by "
                                                     "(drop --bz, or use current_from_bz)"));
-    if (!(pixel_um > 0)) return cli_run_finish(&run, cli_error(&run, "--pixel-um is required"));
+    /* a QDMlab Bz file (.mat) holds the pixel size (`step`) and the stand-off (`h`): used when
+     * the options are not given (docs/cli.md, MATLAB / QDMlab files) */
+    for (int k = 0; k < 3 && !(pixel_um > 0 && standoff_nm > 0); k++) {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (!paths[k] || !svp_io_mat_path(paths[k], mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            continue;
+        svp_image *tmp = NULL;
+        svp_mat_info info;
+        svp_status st = svp_mat_read(paths[k], NULL, &tmp, &info);
+        svp_image_free(tmp);
+        if (st != SVP_OK) return cli_run_finish(&run, cli_fail(&run, st, paths[k]));
+        if (!(pixel_um > 0) && info.pixel_um > 0) pixel_um = info.pixel_um;
+        if (!(standoff_nm > 0) && info.standoff_um > 0) standoff_nm = info.standoff_um * 1e3;
+    }
+    if (!(pixel_um > 0))
+        return cli_run_finish(&run, cli_error(&run, "--pixel-um is required (the map file "
+                                                    "holds no pixel size)"));
     if (!(standoff_nm > 0))
-        return cli_run_finish(&run, cli_error(&run, "--standoff-nm is required"));
+        return cli_run_finish(&run, cli_error(&run, "--standoff-nm is required (the map file "
+                                                    "holds no stand-off)"));
     if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
 
     cli_stage_begin(&run, "read");

@@ -22,7 +22,10 @@ enum {
     OPT_SMOOTH,
     OPT_NO_WINDOW,
     OPT_ITERATIONS,
-    OPT_EPSILON
+    OPT_EPSILON,
+    OPT_INVERT,
+    OPT_NO_INVERT,
+    OPT_KEEP_DOUBTFUL
 };
 
 static void print_help(const cli_run *run, FILE *out)
@@ -47,7 +50,7 @@ static void print_help(const cli_run *run, FILE *out)
           "                           default translation for phase, affine for ecc\n"
           "  --warp IMAGE             warp IMAGE (in MOVING's frame, any size) onto REFERENCE's\n"
           "                           grid and write it to -o OUT\n"
-          "  -o, --output OUT         with --warp: the warped image (.tif, .npy or .txt);\n"
+          "  -o, --output OUT         with --warp: the warped image (.tif, .npy, .txt, .mat);\n"
           "                           without --warp: the transform file (.json, .yaml, .yml)\n"
           "  --transform-out FILE     the transform file (.json, .yaml or .yml)\n"
           "  --interp auto|nearest|linear\n"
@@ -64,12 +67,22 @@ static void print_help(const cli_run *run, FILE *out)
           "  --iterations N           most ECC iterations (default 100)\n"
           "  --epsilon E              ECC stops when the correlation changes by less than E\n"
           "                           between iterations (default 1e-6); not reached within N\n"
-          "                           iterations: exit 2\n",
+          "                           iterations: exit 2\n"
+          "  --invert                 MOVING's contrast is inverted: its bright regions are\n"
+          "                           dark in REFERENCE (a label mask of a metal wire on a PL\n"
+          "                           image); default: detected from the sign of the\n"
+          "                           correlation peak\n"
+          "  --no-invert              MOVING's contrast is the same as REFERENCE's (no\n"
+          "                           detection)\n"
+          "  --keep-doubtful          write a result whose peak is not significant (exit 0,\n"
+          "                           with a warning)\n",
           out);
     cli_print_common_help(run, out);
     fputs("\nA result whose phase-correlation peak is not significant (peak-to-sidelobe ratio\n"
-          "below 10: the images may not overlap or lack common texture) is written but a\n"
-          "warning is printed, and the transform file says \"low_significance\": true.\n",
+          "below 10: the images may not overlap or lack common texture) is a result in doubt:\n"
+          "it is printed, nothing is written and the exit status is 3; with --keep-doubtful it\n"
+          "is written with a warning and the transform file says \"low_significance\": true.\n"
+          "Exit status: 0 ok, 1 bad usage or input, 2 ECC did not converge, 3 not significant.\n",
           out);
 }
 
@@ -86,6 +99,7 @@ static int is_transform_path(const char *path)
 static const char *const method_names[] = {"phase", "ecc", NULL};
 static const char *const motion_names[] = {"translation", "euclidean", "affine", NULL};
 static const char *const interp_names[] = {"auto", "nearest", "linear", NULL};
+static const char *const contrast_names[] = {"auto", "same", "inverted", NULL};
 
 /* A label mask: every finite pixel an integer. */
 static int looks_like_labels(const svp_image *img)
@@ -136,6 +150,8 @@ static svp_status transform_json(const transform_doc *d, svp_json *j)
     svp_json_key_number(j, "response", r->response);
     svp_json_key_number(j, "significance", r->significance);
     svp_json_key_bool(j, "low_significance", r->low_significance);
+    svp_json_key_string(j, "contrast", r->inverted ? "inverted" : "same");
+    svp_json_key_number(j, "significance_other", r->significance_other);
     svp_json_key_int(j, "iterations", r->iterations);
     svp_json_key_int(j, "nonfinite_reference", (long long)r->nonfinite_reference);
     svp_json_key_int(j, "nonfinite_moving", (long long)r->nonfinite_moving);
@@ -146,6 +162,7 @@ static svp_status transform_json(const transform_doc *d, svp_json *j)
     svp_json_key_number(j, "whitening", o->whitening);
     svp_json_key_int(j, "iterations", o->iterations);
     svp_json_key_number(j, "epsilon", o->epsilon);
+    svp_json_key_string(j, "contrast", contrast_names[o->contrast]);
     svp_json_end_object(j);
     svp_json_key_string(j, "svpsf_version", svp_version());
     return svp_json_end_object(j);
@@ -181,6 +198,8 @@ static void transform_yaml(const transform_doc *d, svp_yaml_writer *w)
     svp_yaml_write_key_number(w, "response", r->response);
     svp_yaml_write_key_number(w, "significance", r->significance);
     svp_yaml_write_key_bool(w, "low_significance", r->low_significance);
+    svp_yaml_write_key_string(w, "contrast", r->inverted ? "inverted" : "same");
+    svp_yaml_write_key_number(w, "significance_other", r->significance_other);
     svp_yaml_write_key_int(w, "iterations", r->iterations);
     svp_yaml_write_key_int(w, "nonfinite_reference", (long long)r->nonfinite_reference);
     svp_yaml_write_key_int(w, "nonfinite_moving", (long long)r->nonfinite_moving);
@@ -191,6 +210,7 @@ static void transform_yaml(const transform_doc *d, svp_yaml_writer *w)
     svp_yaml_write_key_number(w, "whitening", o->whitening);
     svp_yaml_write_key_int(w, "iterations", o->iterations);
     svp_yaml_write_key_number(w, "epsilon", o->epsilon);
+    svp_yaml_write_key_string(w, "contrast", contrast_names[o->contrast]);
     svp_yaml_end_mapping(w);
     svp_yaml_write_key_string(w, "svpsf_version", svp_version());
     svp_yaml_end_mapping(w);
@@ -234,11 +254,15 @@ int cmd_register(int argc, char **argv)
         {"no-window", no_argument, NULL, OPT_NO_WINDOW},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
         {"epsilon", required_argument, NULL, OPT_EPSILON},
+        {"invert", no_argument, NULL, OPT_INVERT},
+        {"no-invert", no_argument, NULL, OPT_NO_INVERT},
+        {"keep-doubtful", no_argument, NULL, OPT_KEEP_DOUBTFUL},
         {NULL, 0, NULL, 0},
     };
     svp_register_options opt;
     svp_register_defaults(&opt);
-    int method = 0, motion = -1, interp = 0, border_given = 0;
+    int method = 0, motion = -1, interp = 0, border_given = 0, keep_doubtful = 0;
+    const char *contrast_option = NULL;
     double border = 0;
     const char *warp_path = NULL, *transform_path = NULL;
     svp_image *reference = NULL, *moving = NULL, *to_warp = NULL, *warped = NULL;
@@ -279,6 +303,17 @@ int cmd_register(int argc, char **argv)
         case OPT_EPSILON:
             bad = cli_parse_double_in(&run, "--epsilon", optarg, 0, 0, INFINITY, 0, &opt.epsilon);
             break;
+        case OPT_INVERT:
+        case OPT_NO_INVERT: {
+            const char *name = c == OPT_INVERT ? "--invert" : "--no-invert";
+            if (contrast_option && strcmp(contrast_option, name) != 0)
+                return cli_run_finish(&run, cli_error(&run, "%s and %s: give one", contrast_option,
+                                                      name));
+            contrast_option = name;
+            opt.contrast = c == OPT_INVERT ? SVP_CONTRAST_INVERTED : SVP_CONTRAST_SAME;
+            break;
+        }
+        case OPT_KEEP_DOUBTFUL: keep_doubtful = 1; break;
         default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
         }
         if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
@@ -311,7 +346,7 @@ int cmd_register(int argc, char **argv)
         svp_file_format f = cli_format_of_path(run.output);
         if (f == SVP_FORMAT_AUTO || f == SVP_FORMAT_PNG16)
             return cli_run_finish(&run, cli_error(&run, "-o %s: the warped image needs a .tif, "
-                                                  ".npy or .txt name",
+                                                  ".npy, .txt or .mat name",
                                                   run.output));
         warp_out = run.output;
     } else if (run.output) {
@@ -373,17 +408,37 @@ int cmd_register(int argc, char **argv)
            r.residual_rms, 100 * r.overlap, r.correlation);
     if (isfinite(r.response))
         printf("  phase peak  response %.3f, significance %.1f\n", r.response, r.significance);
+    if (opt.contrast != SVP_CONTRAST_AUTO)
+        printf("  contrast    %s (%s)\n", r.inverted ? "inverted" : "same", contrast_option);
+    else if (isfinite(r.significance_other))
+        printf("  contrast    %s (detected: the correlation's %s, significance %.1f, against "
+               "%.1f for its %s)\n",
+               r.inverted ? "inverted" : "same", r.inverted ? "trough" : "peak", r.significance,
+               r.significance_other, r.inverted ? "peak" : "trough");
     if (opt.method == SVP_REGISTER_ECC) printf("  ECC         %d iterations\n", r.iterations);
     if (r.nonfinite_reference || r.nonfinite_moving)
         printf("  NaN/Inf     %zu reference and %zu moving pixels, filled from their neighbours "
                "for the estimate and left out of the residual\n",
                r.nonfinite_reference, r.nonfinite_moving);
+    if (r.low_significance && !keep_doubtful) {
+        /* a result in doubt (docs/cli.md, exit status): printed above, nothing written */
+        cli_error(&run,
+                  "%s onto %s: the phase-correlation peak is not significant (%.1f < %g): the "
+                  "images may not overlap or share no texture, so the transform cannot be "
+                  "vouched for; nothing written (check the pair%s; --keep-doubtful writes it)",
+                  moving_path, reference_path, r.significance, opt.min_significance,
+                  opt.contrast == SVP_CONTRAST_SAME ? "; without --no-invert the contrast is "
+                                                      "detected"
+                                                    : "");
+        code = CLI_EXIT_DOUBTFUL;
+        goto cleanup;
+    }
     if (r.low_significance)
-        fprintf(stderr,
-                "svpsf register: warning: the phase-correlation peak is not significant "
-                "(%.1f < %g): the images may not overlap or share no texture; the transform is "
-                "unreliable\n",
-                r.significance, opt.min_significance);
+        cli_warn(&run,
+                 "the phase-correlation peak is not significant (%.1f < %g): the images may not "
+                 "overlap or share no texture; the transform is unreliable (--keep-doubtful: "
+                 "written)",
+                 r.significance, opt.min_significance);
 
     if (warp_path) {
         cli_stage_begin(&run, "warp");

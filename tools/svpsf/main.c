@@ -48,7 +48,7 @@ static void print_usage(FILE *out)
         fprintf(out, "  %-12s %s\n", commands[i].name, commands[i].summary);
     fputs("\n"
           "exit status: 0 ok, 1 bad usage or bad input (the message names the file and the\n"
-          "problem), 2 runtime failure.\n"
+          "problem), 2 runtime failure, 3 a result the program cannot vouch for.\n"
           "Reference: docs/cli.md, and `man svpsf`; an installed copy keeps docs/ in\n"
           "  " SVPSF_DOCDIR "\n",
           out);
@@ -66,6 +66,7 @@ static void print_version(void)
 
 int main(int argc, char **argv)
 {
+    cli_openmp_passive(argv); /* may run the program again with OMP_WAIT_POLICY=passive */
     cli_set_program_args(argc, argv);
     if (argc < 2) {
         print_usage(stderr);
