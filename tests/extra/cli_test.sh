@@ -447,7 +447,7 @@ expect_bad map_bad_mem "--max-memory|12x" forward --field Bz.txt --pl pl.txt --p
 expect_bad map_mem_refused "needs about|MB|memory limit" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --rank 4 --max-memory 64k -o bad_mem $FAST
 [ -e bad_mem ] && fail "refused --max-memory" "left bad_mem" || pass "an operator over --max-memory writes nothing"
 SVPSF_MAX_MEMORY=64k run map_mem_env forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --nodes 4 -o bad_mem $FAST
-if [ "$(cat rc.map_mem_env)" = 1 ] && grep -qF "needs about" err.map_mem_env; then
+if [ "$(cat rc.map_mem_env)" = 1 ] && grep -qF "needs" err.map_mem_env; then
     pass "SVPSF_MAX_MEMORY bounds the operator like --max-memory"
 else
     fail "SVPSF_MAX_MEMORY" "exit $(cat rc.map_mem_env): $(cat err.map_mem_env)"
