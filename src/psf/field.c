@@ -1,4 +1,4 @@
-/* PSF fields: how the PSF parameters vary over the image (PHYSICS.md §6).
+/* PSF fields: how the PSF parameters vary over the image (docs/model.md §9).
  *
  * Everything that varies is the parameter vector p = {fwhm, e1, e2, beta, halo} (svpsf.h):
  * mean FWHM, ellipticity as (e cos 2θ, e sin 2θ) so that orientation interpolates without the

@@ -1,5 +1,5 @@
 /* Levenberg–Marquardt for small dense problems, the Moffat spot fit and the PSF from an
- * excitation/emission pair (PHYSICS.md §4–5). */
+ * excitation/emission pair (docs/model.md §8). */
 #include "../core/internal.h"
 
 #include <float.h>
@@ -1456,7 +1456,7 @@ svp_status svp_spot_fit(const svp_image *spot, const svp_spot_options *options,
 }
 
 /* ========================================================================================= */
-/* PSF from an excitation/emission pair (PHYSICS.md §5)                                      */
+/* PSF from an excitation/emission pair (docs/model.md §8)                                      */
 
 void svp_pair_defaults(svp_pair_options *o)
 {

@@ -705,7 +705,7 @@ static svp_status parse_factors(struct svp_scene *s, const svp_yaml_node *list, 
 static const char *const model_names[] = {"gaussian", "lorentzian", "moffat", NULL};
 static const char *const boundary_names[] = {"zero", "mirror", "periodic", NULL};
 
-/* psf.regions (area C): PSFs under shapes, the rest of `psf` being the PSF elsewhere:
+/* psf.regions (docs/model.md §9): PSFs under shapes, the rest of `psf` being the PSF elsewhere:
  *   regions: [{under: strips|flakes|sources, fwhm_um: .., beta: .., halo: ..}, ...]  (<= 4)
  *   transition_um: blend width across region boundaries (default 0: sharp)
  *   nodes: N or [NX, NY]: tent node grid of the space-variant operator (default 8)
@@ -1007,7 +1007,7 @@ static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c,
                            : SVP_METHOD_RL_SIGNED;
     snprintf(out->name, sizeof out->name, "%s", methods[m]);
     SVP_CHECK(get_name(c, what, out->name));
-    /* the reference study's simulation settings (PHYSICS.md §3) */
+    /* the reference study's simulation settings (docs/model.md §12) */
     out->iterations = 15;
     out->balance = 1;
     out->pl_floor = 1e-3;

@@ -92,7 +92,7 @@ typedef struct scene_psf {
     svp_boundary boundary;
     char where[SCENE_WHERE];
     char describe[160]; /* "lorentzian FWHM 1 um" */
-    /* region-dependent PSF (psf.regions, area C): label k + 1 = pixels under region_under[k]
+    /* region-dependent PSF (psf.regions, docs/model.md §9): label k + 1 = pixels under region_under[k]
      * (coverage >= 0.5, later regions win), label 0 = `psf`; built at run time as a regions
      * field blended over transition_px and a tent operator on nodes_x x nodes_y nodes */
     int n_regions;
