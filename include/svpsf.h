@@ -833,7 +833,7 @@ SVP_API svp_status svp_affine_invert(const double affine[6], double inverse[6]);
 /* ---------------------------------------------------------------------------------------- */
 /* Fitting: Levenberg–Marquardt, PSF spot fits, PSF maps                                     */
 /* @@section fit */
-/* ---- Levenberg–Marquardt for small dense problems (src/psf/fit.c) ------------------------
+/* ---- Levenberg–Marquardt for small dense problems (src/lm/lm.c) --------------------------
  * Minimises χ² = Σ_i w_i (y_i − f_i(θ))² over θ (n_params ≤ SVP_LM_MAX_PARAMS values) in the
  * shape of GSL's multifit_nlinear (problem, workspace, init / iterate / finish, driver) but
  * never aborting: every failure is a status with a message. Classic LM with Marquardt
