@@ -309,16 +309,21 @@ static svp_status check_spot_options(const svp_spot_options *o)
     return SVP_OK;
 }
 
-/* Everything one spot fit allocates. */
+/* Everything one spot fit allocates, and what its stages pass on. */
 typedef struct spot_work {
     int w, h;
     size_t N;
+    const double *data;       /* the spot image */
     unsigned char *use;       /* 1 = in the fit */
     unsigned char *integrate; /* per pixel */
     int *index;               /* used pixels */
     double *y;                /* their values */
     double *scratch;
     svp_lm_workspace *ws;
+    /* from the stages before the fit */
+    double bg0, sigma_mad, var_bg; /* background, its MAD noise, the variance used */
+    int known_noise;               /* a noise model is given (else the MAD) */
+    double sat_level;              /* saturation level (INFINITY: none) */
 } spot_work;
 
 static void spot_work_free(spot_work *sw)
@@ -364,58 +369,41 @@ static svp_status spot_solve(spot_work *sw, spot_model *sm, const svp_spot_optio
     return svp_lm_solve(sw->ws, &prob, &o->lm, t, lmr, cov);
 }
 
-/* The fit; used_out (may be NULL, else w·h bytes) receives 1 for the pixels of the final
- * fit, 0 for the excluded ones (non-finite, saturated, hot, clipped). */
-static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *options,
-                                svp_spot_result *res, svp_image *model_image,
-                                svp_image *residual, unsigned char *used_out)
-{
-    if (!spot || !spot->data || !res)
-        return svp_fail(SVP_ERR_INVALID, "spot fit: spot image and result are required");
-    svp_spot_options o;
-    if (options)
-        o = *options;
-    else
-        svp_spot_defaults(&o);
-    SVP_CHECK(check_spot_options(&o));
-    const int w = spot->width, h = spot->height;
-    if (w < 5 || h < 5)
-        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image is too small (at "
-                        "least 5 x 5 pixels)", w, h);
-    if (model_image) SVP_CHECK(svp_image_same_size(spot, model_image, "spot", "model image"));
-    if (residual) SVP_CHECK(svp_image_same_size(spot, residual, "spot", "residual image"));
-    memset(res, 0, sizeof *res);
-    res->model = o.model;
+/* axis ratio up to e^2.5 ≈ 12 */
+#define SPOT_E_MAX 2.5
 
-    svp_status st = SVP_OK;
-    spot_work sw;
-    memset(&sw, 0, sizeof sw);
-    sw.w = w;
-    sw.h = h;
-    sw.N = (size_t)w * h;
-    const size_t N = sw.N;
-    const double *data = spot->data;
-    sw.use = calloc(N, 1);
-    sw.integrate = calloc(N, 1);
-    sw.index = malloc(N * sizeof(int));
-    sw.y = malloc(N * sizeof(double));
-    sw.scratch = malloc(N * sizeof(double));
-    if (!sw.use || !sw.integrate || !sw.index || !sw.y || !sw.scratch) {
-        st = svp_fail(SVP_ERR_NOMEM, "spot fit: out of memory for a %d x %d image", w, h);
-        goto cleanup;
-    }
+/* Stage 1: the work arrays, and the finite pixels as the first mask. */
+static svp_status spot_prepare(spot_work *sw, const svp_image *spot)
+{
+    const int w = spot->width, h = spot->height;
+    sw->w = w;
+    sw->h = h;
+    sw->N = (size_t)w * h;
+    sw->data = spot->data;
+    const size_t N = sw->N;
+    sw->use = calloc(N, 1);
+    sw->integrate = calloc(N, 1);
+    sw->index = malloc(N * sizeof(int));
+    sw->y = malloc(N * sizeof(double));
+    sw->scratch = malloc(N * sizeof(double));
+    if (!sw->use || !sw->integrate || !sw->index || !sw->y || !sw->scratch)
+        return svp_fail(SVP_ERR_NOMEM, "spot fit: out of memory for a %d x %d image", w, h);
     size_t n_finite = 0;
     for (size_t i = 0; i < N; i++) {
-        sw.use[i] = isfinite(data[i]) != 0;
-        n_finite += sw.use[i];
+        sw->use[i] = isfinite(sw->data[i]) != 0;
+        n_finite += sw->use[i];
     }
-    if (n_finite < 25) {
-        st = svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image has %zu finite "
-                      "pixels (at least 25 needed)", w, h, n_finite);
-        goto cleanup;
-    }
+    if (n_finite < 25)
+        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image has %zu finite "
+                        "pixels (at least 25 needed)", w, h, n_finite);
+    return SVP_OK;
+}
 
-    /* Background and its noise from the border ring (median, MAD). */
+/* Stage 2: background and its noise from the border ring (median, MAD). */
+static void spot_background(spot_work *sw, const svp_spot_options *o)
+{
+    const int w = sw->w, h = sw->h;
+    const double *data = sw->data;
     int ring = (w < h ? w : h) / 10;
     if (ring < 1) ring = 1;
     size_t nb = 0;
@@ -423,69 +411,89 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
         for (int x = 0; x < w; x++) {
             if (x >= ring && x < w - ring && y >= ring && y < h - ring) continue;
             double v = data[(size_t)y * w + x];
-            if (isfinite(v)) sw.scratch[nb++] = v;
+            if (isfinite(v)) sw->scratch[nb++] = v;
         }
     if (nb < 4) {
-        for (size_t i = 0; i < N; i++)
-            if (sw.use[i]) sw.scratch[nb++] = data[i];
+        for (size_t i = 0; i < sw->N; i++)
+            if (sw->use[i]) sw->scratch[nb++] = data[i];
     }
-    double bg0 = svp_median(sw.scratch, nb);
-    for (size_t i = 0; i < nb; i++) sw.scratch[i] = fabs(sw.scratch[i] - bg0);
-    double sigma_mad = 1.4826 * svp_median(sw.scratch, nb);
-    const int known_noise = o.noise.gain > 0 || o.noise.sigma_bg > 0 || o.noise.excess > 0;
-    double var_bg = known_noise ? svp_noise_variance(&o.noise, bg0) : sigma_mad * sigma_mad;
+    double bg0 = svp_median(sw->scratch, nb);
+    for (size_t i = 0; i < nb; i++) sw->scratch[i] = fabs(sw->scratch[i] - bg0);
+    double sigma_mad = 1.4826 * svp_median(sw->scratch, nb);
+    sw->bg0 = bg0;
+    sw->sigma_mad = sigma_mad;
+    sw->known_noise = o->noise.gain > 0 || o->noise.sigma_bg > 0 || o->noise.excess > 0;
+    sw->var_bg = sw->known_noise ? svp_noise_variance(&o->noise, bg0) : sigma_mad * sigma_mad;
+}
 
-    /* Saturation: a given level, or a plateau of >= 3 pixels equal to the maximum. */
+/* Stage 3: saturation: a given level, or a plateau of >= 3 pixels equal to the maximum. */
+static void spot_exclude_saturated(spot_work *sw, const svp_spot_options *o, svp_spot_result *res)
+{
+    const size_t N = sw->N;
+    const double *data = sw->data;
     double vmax = -INFINITY;
     for (size_t i = 0; i < N; i++)
-        if (sw.use[i] && data[i] > vmax) vmax = data[i];
+        if (sw->use[i] && data[i] > vmax) vmax = data[i];
     double sat_level = INFINITY;
-    if (o.saturation > 0) {
-        sat_level = o.saturation;
-    } else if (o.saturation == 0) {
+    if (o->saturation > 0) {
+        sat_level = o->saturation;
+    } else if (o->saturation == 0) {
         int n_max = 0;
         for (size_t i = 0; i < N; i++)
-            if (sw.use[i] && data[i] == vmax) n_max++;
-        if (n_max >= 3 && vmax > bg0 + o.min_snr * sqrt(var_bg)) sat_level = vmax;
+            if (sw->use[i] && data[i] == vmax) n_max++;
+        if (n_max >= 3 && vmax > sw->bg0 + o->min_snr * sqrt(sw->var_bg)) sat_level = vmax;
     }
     for (size_t i = 0; i < N; i++)
-        if (sw.use[i] && data[i] >= sat_level) {
-            sw.use[i] = 0;
+        if (sw->use[i] && data[i] >= sat_level) {
+            sw->use[i] = 0;
             res->n_saturated++;
         }
+    sw->sat_level = sat_level;
+}
 
-    /* Hot pixels: far above the brightest of their 8 neighbours, by ratio and significance. */
-    if (o.hot_pixels) {
-        for (int y = 0; y < h; y++)
-            for (int x = 0; x < w; x++) {
-                size_t i = (size_t)y * w + x;
-                if (!sw.use[i]) continue;
-                double nbmax = -INFINITY;
-                int count = 0;
-                for (int dy = -1; dy <= 1; dy++)
-                    for (int dx = -1; dx <= 1; dx++) {
-                        int xx = x + dx, yy = y + dy;
-                        if ((dx == 0 && dy == 0) || xx < 0 || yy < 0 || xx >= w || yy >= h)
-                            continue;
-                        double v = data[(size_t)yy * w + xx];
-                        if (!isfinite(v)) continue;
-                        if (v > nbmax) nbmax = v;
-                        count++;
-                    }
-                if (count < 3) continue;
-                double v = data[i];
-                double sig = known_noise ? sqrt(svp_noise_variance(&o.noise, nbmax))
-                                         : sigma_mad;
-                if (v - bg0 > o.hot_ratio * fmax(nbmax - bg0, 0.0) &&
-                    v - nbmax > o.hot_sigma * sig) {
-                    sw.scratch[res->n_hot] = (double)i; /* mark after the scan */
-                    res->n_hot++;
+/* Stage 4: hot pixels: far above the brightest of their 8 neighbours, by ratio and
+ * significance. */
+static void spot_exclude_hot(spot_work *sw, const svp_spot_options *o, svp_spot_result *res)
+{
+    const int w = sw->w, h = sw->h;
+    const double *data = sw->data;
+    const double bg0 = sw->bg0;
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            size_t i = (size_t)y * w + x;
+            if (!sw->use[i]) continue;
+            double nbmax = -INFINITY;
+            int count = 0;
+            for (int dy = -1; dy <= 1; dy++)
+                for (int dx = -1; dx <= 1; dx++) {
+                    int xx = x + dx, yy = y + dy;
+                    if ((dx == 0 && dy == 0) || xx < 0 || yy < 0 || xx >= w || yy >= h)
+                        continue;
+                    double v = data[(size_t)yy * w + xx];
+                    if (!isfinite(v)) continue;
+                    if (v > nbmax) nbmax = v;
+                    count++;
                 }
+            if (count < 3) continue;
+            double v = data[i];
+            double sig = sw->known_noise ? sqrt(svp_noise_variance(&o->noise, nbmax))
+                                         : sw->sigma_mad;
+            if (v - bg0 > o->hot_ratio * fmax(nbmax - bg0, 0.0) &&
+                v - nbmax > o->hot_sigma * sig) {
+                sw->scratch[res->n_hot] = (double)i; /* mark after the scan */
+                res->n_hot++;
             }
-        for (int k = 0; k < res->n_hot; k++) sw.use[(size_t)sw.scratch[k]] = 0;
-    }
+        }
+    for (int k = 0; k < res->n_hot; k++) sw->use[(size_t)sw->scratch[k]] = 0;
+}
 
-    /* The peak: the brightest 3×3 mean of used pixels. */
+/* Stage 5: the peak, the brightest 3×3 mean of used pixels; an error when it does not stand
+ * min_snr above the background. */
+static svp_status spot_find_peak(const spot_work *sw, const svp_spot_options *o, int *px_out,
+                                 int *py_out)
+{
+    const int w = sw->w, h = sw->h;
+    const double *data = sw->data;
     double peak3 = -INFINITY;
     int px = -1, py = -1;
     for (int y = 0; y < h; y++)
@@ -497,7 +505,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
                     int xx = x + dx, yy = y + dy;
                     if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
                     size_t j = (size_t)yy * w + xx;
-                    if (!sw.use[j]) continue;
+                    if (!sw->use[j]) continue;
                     s += data[j];
                     c++;
                 }
@@ -507,35 +515,44 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
                 py = y;
             }
         }
-    double snr = (peak3 - bg0) / sqrt(var_bg / 9.0);
-    if (px < 0 || !(peak3 - bg0 > 0) || !(snr >= o.min_snr)) {
-        st = svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d image holds no spot: its "
-                      "brightest 3x3 mean stands %.2g sigma above the background %.6g (at "
-                      "least min_snr = %g needed)", w, h, isfinite(snr) ? snr : 0.0, bg0,
-                      o.min_snr);
-        goto cleanup;
-    }
+    const double bg0 = sw->bg0;
+    double snr = (peak3 - bg0) / sqrt(sw->var_bg / 9.0);
+    if (px < 0 || !(peak3 - bg0 > 0) || !(snr >= o->min_snr))
+        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d image holds no spot: its "
+                        "brightest 3x3 mean stands %.2g sigma above the background %.6g (at "
+                        "least min_snr = %g needed)", w, h, isfinite(snr) ? snr : 0.0, bg0,
+                        o->min_snr);
+    *px_out = px;
+    *py_out = py;
+    return SVP_OK;
+}
 
-    /* Initial guess from moments. */
-    double t[N_SPOT_PARAMS];
+/* Stage 6: the starting parameters from moments around the peak (px, py). */
+static void spot_start(const spot_work *sw, const svp_spot_options *o, int px, int py,
+                       int n_saturated, double t[N_SPOT_PARAMS])
+{
+    const int w = sw->w, h = sw->h;
+    const size_t N = sw->N;
+    const double *data = sw->data;
+    const double bg0 = sw->bg0;
     double amp0 = -INFINITY;
     for (int dy = -1; dy <= 1; dy++)
         for (int dx = -1; dx <= 1; dx++) {
             int xx = px + dx, yy = py + dy;
             if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
             size_t j = (size_t)yy * w + xx;
-            if (sw.use[j] && data[j] > amp0) amp0 = data[j];
+            if (sw->use[j] && data[j] > amp0) amp0 = data[j];
         }
     amp0 -= bg0;
     /* a saturated peak is at least the saturation level (only when pixels were cut: a level
      * above every pixel says nothing about the peak and must not move the start) */
-    if (isfinite(sat_level) && res->n_saturated > 0) amp0 = fmax(amp0, sat_level - bg0);
+    if (isfinite(sw->sat_level) && n_saturated > 0) amp0 = fmax(amp0, sw->sat_level - bg0);
     int n_half = 0;
     for (size_t i = 0; i < N; i++)
         if (isfinite(data[i]) && data[i] - bg0 >= 0.5 * amp0) n_half++;
     double F0 = sqrt(4.0 * n_half / M_PI);
     F0 = fmin(fmax(F0, 1.0), 0.5 * (w < h ? w : h));
-    double cx = isfinite(o.x0) ? o.x0 : px, cy = isfinite(o.y0) ? o.y0 : py;
+    double cx = isfinite(o->x0) ? o->x0 : px, cy = isfinite(o->y0) ? o->y0 : py;
     {
         double R = fmax(2.0, 1.5 * F0), s0 = 0, sx = 0, sy = 0;
         for (int pass = 0; pass < 2; pass++) {
@@ -545,7 +562,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
                 for (int x = 0; x < w; x++) {
                     size_t i = (size_t)y * w + x;
                     double dx = x - cx, dy = y - cy;
-                    if (!sw.use[i] || dx * dx + dy * dy > R * R) continue;
+                    if (!sw->use[i] || dx * dx + dy * dy > R * R) continue;
                     double v = data[i] - bg0;
                     if (v <= 0) continue;
                     s0 += v;
@@ -558,7 +575,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
             if (!(s0 > 0)) break;
             double mx = sx / s0, my = sy / s0;
             double mxx = sxx / s0 - mx * mx, myy = syy / s0 - my * my, mxy = sxy / s0 - mx * my;
-            if (pass == 0 && !isfinite(o.x0)) {
+            if (pass == 0 && !isfinite(o->x0)) {
                 cx += mx;
                 cy += my;
                 continue;
@@ -578,11 +595,15 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     t[P_X0] = fmin(fmax(cx, 0.0), w - 1.0);
     t[P_Y0] = fmin(fmax(cy, 0.0), h - 1.0);
     t[P_FWHM] = F0;
-    t[P_BETA] = o.model == SVP_PSF_MOFFAT ? o.beta : o.model == SVP_PSF_LORENTZIAN ? 1.0 : 0.0;
+    t[P_BETA] = o->model == SVP_PSF_MOFFAT ? o->beta : o->model == SVP_PSF_LORENTZIAN ? 1.0 : 0.0;
     t[P_BG] = bg0;
-    if (!o.elliptical) t[P_E1] = t[P_E2] = 0;
+    if (!o->elliptical) t[P_E1] = t[P_E2] = 0;
+}
 
-    double lo[N_SPOT_PARAMS], hi[N_SPOT_PARAMS];
+/* Stage 7: the parameters' bounds (β fixed at its start unless a free Moffat). */
+static void spot_bounds(const svp_spot_options *o, int w, int h, const double *t, double *lo,
+                        double *hi)
+{
     lo[P_AMP] = 0;
     hi[P_AMP] = INFINITY;
     lo[P_X0] = -0.5;
@@ -591,99 +612,105 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     hi[P_Y0] = h - 0.5;
     lo[P_FWHM] = 0.3;
     hi[P_FWHM] = 2.0 * (w > h ? w : h);
-    const double e_max = 2.5; /* axis ratio up to e^2.5 ≈ 12 */
-    lo[P_E1] = lo[P_E2] = o.elliptical ? -e_max : 0.0;
-    hi[P_E1] = hi[P_E2] = o.elliptical ? e_max : 0.0;
-    if (o.model == SVP_PSF_MOFFAT && !o.fix_beta) {
-        lo[P_BETA] = o.beta_min;
-        hi[P_BETA] = o.beta_max;
+    lo[P_E1] = lo[P_E2] = o->elliptical ? -SPOT_E_MAX : 0.0;
+    hi[P_E1] = hi[P_E2] = o->elliptical ? SPOT_E_MAX : 0.0;
+    if (o->model == SVP_PSF_MOFFAT && !o->fix_beta) {
+        lo[P_BETA] = o->beta_min;
+        hi[P_BETA] = o->beta_max;
     } else {
         lo[P_BETA] = hi[P_BETA] = t[P_BETA];
     }
     lo[P_BG] = -INFINITY;
     hi[P_BG] = INFINITY;
+}
 
-    st = svp_lm_workspace_new(N_SPOT_PARAMS, (int)N, &sw.ws);
-    if (st != SVP_OK) goto cleanup;
-    spot_model sm;
-    memset(&sm, 0, sizeof sm);
-    sm.model = o.model;
-    sm.width = w;
-    sm.integrate = sw.integrate;
+/* Stage 8b: κ-σ clipping of the normalised residuals z of the last fit, worst first: only
+ * pixels above max(κ, max|z| / 2) go in one round, so one spike cannot drag good pixels out
+ * with it. Many moderate outliers mean the model does not fit (POOR_FIT), not that pixels are
+ * bad: then nothing is clipped. Returns 1 when pixels were removed (fit again). */
+static int spot_clip(spot_work *sw, const svp_spot_options *o, const svp_lm_result *lmr,
+                     svp_spot_result *res)
+{
+    const int m = svp_lm_n_points(sw->ws);
+    const double *r = svp_lm_residuals(sw->ws); /* √w (f − y) */
+    double scale = sw->known_noise ? 1.0 : sqrt(fmax(lmr->chi2_red, 1e-300));
+    double zmax = 0;
+    int n_out = 0;
+    for (int k = 0; k < m; k++) {
+        double z = fabs(r[k]) / scale;
+        zmax = fmax(zmax, z);
+        n_out += z > o->clip_kappa;
+    }
+    int systematic = n_out > 5 && n_out > m / 50 && zmax < 4 * o->clip_kappa;
+    if (n_out == 0 || systematic) return 0;
+    double thr = fmax(o->clip_kappa, 0.5 * zmax);
+    int removed = 0;
+    for (int k = 0; k < m; k++) removed += fabs(r[k]) / scale > thr;
+    if (m - removed < 2 * N_SPOT_PARAMS) return 0;
+    for (int k = 0; k < m; k++)
+        if (fabs(r[k]) / scale > thr) sw->use[sw->index[k]] = 0;
+    res->n_clipped += removed;
+    return 1;
+}
+
+/* Stage 8: the fit, repeated while the quadrature is refined or pixels are clipped; then,
+ * when β crawled along its bound (the sin transform flattens there) until the iterations ran
+ * out, once more with β held at the bound. Returns the LM status (OK or NUMERIC) in *fit_st,
+ * a hard error as the result. */
+static svp_status spot_fit_loop(spot_work *sw, spot_model *sm, const svp_spot_options *o,
+                                double *t, double *lo, double *hi, svp_lm_result *lmr,
+                                double *cov, svp_spot_result *res, svp_status *fit_st_out,
+                                int *beta_pinned)
+{
+    const int w = sw->w, h = sw->h;
     int order = 2;
-    if (o.pixel_integration && t[P_FWHM] * exp(-0.5 * hypot(t[P_E1], t[P_E2])) < 2.0)
+    if (o->pixel_integration && t[P_FWHM] * exp(-0.5 * hypot(t[P_E1], t[P_E2])) < 2.0)
         order = 4;
-    set_quadrature(&sm, order);
-    mark_integration(sw.integrate, w, h, t, o.pixel_integration);
+    set_quadrature(sm, order);
+    mark_integration(sw->integrate, w, h, t, o->pixel_integration);
 
-    svp_lm_result lmr;
-    double cov[N_SPOT_PARAMS * N_SPOT_PARAMS];
     svp_status fit_st = SVP_OK;
     int clip_rounds = 0;
     for (;;) {
-        fit_st = spot_solve(&sw, &sm, &o, lo, hi, known_noise, t, &lmr, cov, data);
-        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC) {
-            st = svp_fail_context(fit_st, "spot fit");
-            goto cleanup;
-        }
+        fit_st = spot_solve(sw, sm, o, lo, hi, sw->known_noise, t, lmr, cov, sw->data);
+        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC)
+            return svp_fail_context(fit_st, "spot fit");
         int refit = 0;
         /* A narrow result needs the finer quadrature (switched once, never back). */
         double fmin_fit = t[P_FWHM] * exp(-0.5 * hypot(t[P_E1], t[P_E2]));
-        if (o.pixel_integration && order == 2 && fmin_fit < 2.0) {
+        if (o->pixel_integration && order == 2 && fmin_fit < 2.0) {
             order = 4;
-            set_quadrature(&sm, order);
+            set_quadrature(sm, order);
             refit = 1;
         }
-        /* κ-σ clipping of the normalised residuals z of the last fit, worst first: only
-         * pixels above max(κ, max|z| / 2) go in one round, so one spike cannot drag good
-         * pixels out with it. Many moderate outliers mean the model does not fit (POOR_FIT),
-         * not that pixels are bad: then nothing is clipped. */
-        if (o.clip_kappa > 0 && clip_rounds < o.clip_iterations && fit_st == SVP_OK) {
-            const int m = svp_lm_n_points(sw.ws);
-            const double *r = svp_lm_residuals(sw.ws); /* √w (f − y) */
-            double scale = known_noise ? 1.0 : sqrt(fmax(lmr.chi2_red, 1e-300));
-            double zmax = 0;
-            int n_out = 0;
-            for (int k = 0; k < m; k++) {
-                double z = fabs(r[k]) / scale;
-                zmax = fmax(zmax, z);
-                n_out += z > o.clip_kappa;
-            }
-            int systematic = n_out > 5 && n_out > m / 50 && zmax < 4 * o.clip_kappa;
-            if (n_out > 0 && !systematic) {
-                double thr = fmax(o.clip_kappa, 0.5 * zmax);
-                int removed = 0;
-                for (int k = 0; k < m; k++) removed += fabs(r[k]) / scale > thr;
-                if (m - removed >= 2 * N_SPOT_PARAMS) {
-                    for (int k = 0; k < m; k++)
-                        if (fabs(r[k]) / scale > thr) sw.use[sw.index[k]] = 0;
-                    res->n_clipped += removed;
-                    clip_rounds++;
-                    refit = 1;
-                }
-            }
+        if (o->clip_kappa > 0 && clip_rounds < o->clip_iterations && fit_st == SVP_OK &&
+            spot_clip(sw, o, lmr, res)) {
+            clip_rounds++;
+            refit = 1;
         }
         if (!refit) break;
-        mark_integration(sw.integrate, w, h, t, o.pixel_integration);
+        mark_integration(sw->integrate, w, h, t, o->pixel_integration);
     }
 
-    /* β crawling along its bound (the sin transform flattens there) can exhaust the
-     * iterations: finish with β held at the bound, and say so. */
-    int beta_pinned = 0;
-    if (fit_st == SVP_ERR_NUMERIC && o.model == SVP_PSF_MOFFAT && !o.fix_beta &&
-        (t[P_BETA] <= 1.02 * o.beta_min || t[P_BETA] >= 0.98 * o.beta_max)) {
-        double bound = t[P_BETA] <= 1.02 * o.beta_min ? o.beta_min : o.beta_max;
+    *beta_pinned = 0;
+    if (fit_st == SVP_ERR_NUMERIC && o->model == SVP_PSF_MOFFAT && !o->fix_beta &&
+        (t[P_BETA] <= 1.02 * o->beta_min || t[P_BETA] >= 0.98 * o->beta_max)) {
+        double bound = t[P_BETA] <= 1.02 * o->beta_min ? o->beta_min : o->beta_max;
         lo[P_BETA] = hi[P_BETA] = t[P_BETA] = bound;
-        fit_st = spot_solve(&sw, &sm, &o, lo, hi, known_noise, t, &lmr, cov, data);
-        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC) {
-            st = svp_fail_context(fit_st, "spot fit");
-            goto cleanup;
-        }
-        beta_pinned = 1;
+        fit_st = spot_solve(sw, sm, o, lo, hi, sw->known_noise, t, lmr, cov, sw->data);
+        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC)
+            return svp_fail_context(fit_st, "spot fit");
+        *beta_pinned = 1;
         cov[P_BETA * 9] = INFINITY;
     }
+    *fit_st_out = fit_st;
+    return SVP_OK;
+}
 
-    /* Results. */
+/* Stage 9: the reported parameters and their 1σ errors from the fit's (t, cov). */
+static void spot_results(const svp_spot_options *o, const double *t, const double *cov,
+                         svp_spot_result *res)
+{
     const double F = t[P_FWHM], g1 = t[P_E1], g2 = t[P_E2], g = hypot(g1, g2);
     res->amplitude = t[P_AMP];
     res->x0 = t[P_X0];
@@ -705,97 +732,161 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     }
     res->e1 = tau * g1;
     res->e2 = tau * g2;
-    res->beta = o.model == SVP_PSF_GAUSSIAN ? 0.0 : t[P_BETA];
+    res->beta = o->model == SVP_PSF_GAUSSIAN ? 0.0 : t[P_BETA];
     res->background = t[P_BG];
-    memcpy(res->covariance, cov, sizeof cov);
-    {
-        const double *C = cov;
-        double grad[N_SPOT_PARAMS];
-        res->amplitude_err = sqrt_or_inf(C[P_AMP * 9]);
-        res->x0_err = sqrt_or_inf(C[P_X0 * 9]);
-        res->y0_err = sqrt_or_inf(C[P_Y0 * 9]);
-        memset(grad, 0, sizeof grad);
-        grad[P_FWHM] = cosh(0.5 * g);
-        if (g > 0) {
-            grad[P_E1] = 0.5 * F * sinh(0.5 * g) * g1 / g;
-            grad[P_E2] = 0.5 * F * sinh(0.5 * g) * g2 / g;
-        }
-        res->fwhm_err = sqrt_or_inf(propagate(C, grad));
-        memset(grad, 0, sizeof grad);
-        grad[P_E1] = tau + g1 * g1 * dtau_g;
-        grad[P_E2] = g1 * g2 * dtau_g;
-        res->e1_err = sqrt_or_inf(propagate(C, grad));
-        memset(grad, 0, sizeof grad);
-        grad[P_E1] = g1 * g2 * dtau_g;
-        grad[P_E2] = tau + g2 * g2 * dtau_g;
-        res->e2_err = sqrt_or_inf(propagate(C, grad));
-        res->beta_err = sqrt_or_inf(C[P_BETA * 9]);
-        res->background_err = sqrt_or_inf(C[P_BG * 9]);
-        double ux = g > 0 ? g1 / g : M_SQRT1_2, uy = g > 0 ? g2 / g : M_SQRT1_2;
-        for (int s = 0; s < 2; s++) {
-            double sign = s == 0 ? 1.0 : -1.0;
-            double fa = s == 0 ? res->fwhm_major : res->fwhm_minor;
-            memset(grad, 0, sizeof grad);
-            grad[P_FWHM] = fa / F;
-            grad[P_E1] = sign * 0.5 * fa * ux;
-            grad[P_E2] = sign * 0.5 * fa * uy;
-            double e = sqrt_or_inf(propagate(C, grad));
-            if (s == 0)
-                res->fwhm_major_err = e;
-            else
-                res->fwhm_minor_err = e;
-        }
-        memset(grad, 0, sizeof grad);
-        if (g > 0) {
-            grad[P_E1] = -0.5 * g2 / (g * g);
-            grad[P_E2] = 0.5 * g1 / (g * g);
-            res->angle_err = sqrt_or_inf(propagate(C, grad));
-        } else {
-            res->angle_err = INFINITY;
-        }
-        if (!o.elliptical) res->angle_err = 0;
-        /* r0 (σ for a Gaussian) and ∂r0/∂β = r0 kβ / 2 from the fitted shape (kβ = 0 Gaussian) */
-        spot_shape sh;
-        spot_shape_setup(o.model, t, &sh);
-        memset(grad, 0, sizeof grad);
-        res->r0 = svp_psf_fwhm_to_r0(F, sh.beta);
-        grad[P_FWHM] = res->r0 / F;
-        grad[P_BETA] = 0.5 * res->r0 * sh.kbeta;
-        res->r0_err = sqrt_or_inf(propagate(C, grad));
+    memcpy(res->covariance, cov, sizeof res->covariance);
+    const double *C = cov;
+    double grad[N_SPOT_PARAMS];
+    res->amplitude_err = sqrt_or_inf(C[P_AMP * 9]);
+    res->x0_err = sqrt_or_inf(C[P_X0 * 9]);
+    res->y0_err = sqrt_or_inf(C[P_Y0 * 9]);
+    memset(grad, 0, sizeof grad);
+    grad[P_FWHM] = cosh(0.5 * g);
+    if (g > 0) {
+        grad[P_E1] = 0.5 * F * sinh(0.5 * g) * g1 / g;
+        grad[P_E2] = 0.5 * F * sinh(0.5 * g) * g2 / g;
     }
-    res->chi2 = lmr.chi2;
-    res->chi2_red = lmr.chi2_red;
-    res->dof = lmr.dof;
-    res->iterations = lmr.iterations;
-    res->n_used = svp_lm_n_points(sw.ws);
+    res->fwhm_err = sqrt_or_inf(propagate(C, grad));
+    memset(grad, 0, sizeof grad);
+    grad[P_E1] = tau + g1 * g1 * dtau_g;
+    grad[P_E2] = g1 * g2 * dtau_g;
+    res->e1_err = sqrt_or_inf(propagate(C, grad));
+    memset(grad, 0, sizeof grad);
+    grad[P_E1] = g1 * g2 * dtau_g;
+    grad[P_E2] = tau + g2 * g2 * dtau_g;
+    res->e2_err = sqrt_or_inf(propagate(C, grad));
+    res->beta_err = sqrt_or_inf(C[P_BETA * 9]);
+    res->background_err = sqrt_or_inf(C[P_BG * 9]);
+    double ux = g > 0 ? g1 / g : M_SQRT1_2, uy = g > 0 ? g2 / g : M_SQRT1_2;
+    for (int s = 0; s < 2; s++) {
+        double sign = s == 0 ? 1.0 : -1.0;
+        double fa = s == 0 ? res->fwhm_major : res->fwhm_minor;
+        memset(grad, 0, sizeof grad);
+        grad[P_FWHM] = fa / F;
+        grad[P_E1] = sign * 0.5 * fa * ux;
+        grad[P_E2] = sign * 0.5 * fa * uy;
+        double e = sqrt_or_inf(propagate(C, grad));
+        if (s == 0)
+            res->fwhm_major_err = e;
+        else
+            res->fwhm_minor_err = e;
+    }
+    memset(grad, 0, sizeof grad);
+    if (g > 0) {
+        grad[P_E1] = -0.5 * g2 / (g * g);
+        grad[P_E2] = 0.5 * g1 / (g * g);
+        res->angle_err = sqrt_or_inf(propagate(C, grad));
+    } else {
+        res->angle_err = INFINITY;
+    }
+    if (!o->elliptical) res->angle_err = 0;
+    /* r0 (σ for a Gaussian) and ∂r0/∂β = r0 kβ / 2 from the fitted shape (kβ = 0 Gaussian) */
+    spot_shape sh;
+    spot_shape_setup(o->model, t, &sh);
+    memset(grad, 0, sizeof grad);
+    res->r0 = svp_psf_fwhm_to_r0(F, sh.beta);
+    grad[P_FWHM] = res->r0 / F;
+    grad[P_BETA] = 0.5 * res->r0 * sh.kbeta;
+    res->r0_err = sqrt_or_inf(propagate(C, grad));
+}
+
+/* Stage 10: fit statistics and the flags. */
+static void spot_flags(const spot_work *sw, const svp_spot_options *o, const double *t,
+                       const double *lo, const double *hi, const svp_lm_result *lmr,
+                       svp_status fit_st, int beta_pinned, svp_spot_result *res)
+{
+    const int w = sw->w, h = sw->h;
+    const double F = t[P_FWHM], g = hypot(t[P_E1], t[P_E2]);
+    res->chi2 = lmr->chi2;
+    res->chi2_red = lmr->chi2_red;
+    res->dof = lmr->dof;
+    res->iterations = lmr->iterations;
+    res->n_used = svp_lm_n_points(sw->ws);
     double bd = fmin(fmin(res->x0 + 0.5, w - 0.5 - res->x0), fmin(res->y0 + 0.5, h - 0.5 - res->y0));
     res->border_distance = bd;
     if (fit_st == SVP_ERR_NUMERIC) res->flags |= SVP_SPOT_NOT_CONVERGED;
-    if (bd < o.border_fwhm * res->fwhm_major) res->flags |= SVP_SPOT_NEAR_BORDER;
+    if (bd < o->border_fwhm * res->fwhm_major) res->flags |= SVP_SPOT_NEAR_BORDER;
     if (res->n_saturated) res->flags |= SVP_SPOT_SATURATED;
     if (res->n_hot) res->flags |= SVP_SPOT_HOT_PIXELS;
     if (res->n_clipped) res->flags |= SVP_SPOT_CLIPPED;
-    if (!lmr.covariance_ok) res->flags |= SVP_SPOT_NO_ERRORS;
-    if (o.model == SVP_PSF_MOFFAT && !o.fix_beta &&
-        (beta_pinned || (lmr.at_bound >> P_BETA & 1) || t[P_BETA] <= 1.02 * o.beta_min ||
-         t[P_BETA] >= 0.98 * o.beta_max))
+    if (!lmr->covariance_ok) res->flags |= SVP_SPOT_NO_ERRORS;
+    if (o->model == SVP_PSF_MOFFAT && !o->fix_beta &&
+        (beta_pinned || (lmr->at_bound >> P_BETA & 1) || t[P_BETA] <= 1.02 * o->beta_min ||
+         t[P_BETA] >= 0.98 * o->beta_max))
         res->flags |= SVP_SPOT_BETA_AT_BOUND;
-    if ((lmr.at_bound >> P_FWHM & 1) || F <= 1.02 * lo[P_FWHM] || F >= 0.98 * hi[P_FWHM] ||
-        g >= 0.98 * e_max)
+    if ((lmr->at_bound >> P_FWHM & 1) || F <= 1.02 * lo[P_FWHM] || F >= 0.98 * hi[P_FWHM] ||
+        g >= 0.98 * SPOT_E_MAX)
         res->flags |= SVP_SPOT_WIDTH_AT_BOUND;
-    if (known_noise && res->chi2_red > o.chi2_red_max) res->flags |= SVP_SPOT_POOR_FIT;
+    if (sw->known_noise && res->chi2_red > o->chi2_red_max) res->flags |= SVP_SPOT_POOR_FIT;
+}
 
-    /* Encircled energy within a disc (the flux of β ≤ 1 diverges over the plane). */
-    res->ee_radius = o.ee_radius > 0 ? o.ee_radius : 0.5 * (w < h ? w : h);
-    {
-        svp_psf psf;
-        svp_spot_result_psf(res, &psf);
-        const double fr[3] = {0.5, 0.8, 0.95};
-        double *dst[3] = {&res->ee50, &res->ee80, &res->ee95};
-        for (int k = 0; k < 3; k++)
-            if (svp_psf_encircled_radius(&psf, fr[k], res->ee_radius, dst[k]) != SVP_OK)
-                *dst[k] = 0;
-    }
+/* Stage 11: encircled energy within a disc (the flux of β ≤ 1 diverges over the plane). */
+static void spot_encircled(const svp_spot_options *o, int w, int h, svp_spot_result *res)
+{
+    res->ee_radius = o->ee_radius > 0 ? o->ee_radius : 0.5 * (w < h ? w : h);
+    svp_psf psf;
+    svp_spot_result_psf(res, &psf);
+    const double fr[3] = {0.5, 0.8, 0.95};
+    double *dst[3] = {&res->ee50, &res->ee80, &res->ee95};
+    for (int k = 0; k < 3; k++)
+        if (svp_psf_encircled_radius(&psf, fr[k], res->ee_radius, dst[k]) != SVP_OK) *dst[k] = 0;
+}
+
+/* The fit, stage by stage; used_out (may be NULL, else w·h bytes) receives 1 for the pixels
+ * of the final fit, 0 for the excluded ones (non-finite, saturated, hot, clipped). */
+static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *options,
+                                svp_spot_result *res, svp_image *model_image,
+                                svp_image *residual, unsigned char *used_out)
+{
+    if (!spot || !spot->data || !res)
+        return svp_fail(SVP_ERR_INVALID, "spot fit: spot image and result are required");
+    svp_spot_options o;
+    if (options)
+        o = *options;
+    else
+        svp_spot_defaults(&o);
+    SVP_CHECK(check_spot_options(&o));
+    const int w = spot->width, h = spot->height;
+    if (w < 5 || h < 5)
+        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image is too small (at "
+                        "least 5 x 5 pixels)", w, h);
+    if (model_image) SVP_CHECK(svp_image_same_size(spot, model_image, "spot", "model image"));
+    if (residual) SVP_CHECK(svp_image_same_size(spot, residual, "spot", "residual image"));
+    memset(res, 0, sizeof *res);
+    res->model = o.model;
+
+    spot_work sw;
+    memset(&sw, 0, sizeof sw);
+    const size_t N = (size_t)w * h;
+    const double *data = spot->data;
+    double t[N_SPOT_PARAMS], lo[N_SPOT_PARAMS], hi[N_SPOT_PARAMS];
+    double cov[N_SPOT_PARAMS * N_SPOT_PARAMS];
+    svp_lm_result lmr;
+    spot_model sm;
+    memset(&sm, 0, sizeof sm);
+    svp_status fit_st = SVP_OK;
+    int px = -1, py = -1, beta_pinned = 0;
+    svp_status st = spot_prepare(&sw, spot);
+    if (st != SVP_OK) goto cleanup;
+    spot_background(&sw, &o);
+    spot_exclude_saturated(&sw, &o, res);
+    if (o.hot_pixels) spot_exclude_hot(&sw, &o, res);
+    st = spot_find_peak(&sw, &o, &px, &py);
+    if (st != SVP_OK) goto cleanup;
+    spot_start(&sw, &o, px, py, res->n_saturated, t);
+    spot_bounds(&o, w, h, t, lo, hi);
+
+    st = svp_lm_workspace_new(N_SPOT_PARAMS, (int)N, &sw.ws);
+    if (st != SVP_OK) goto cleanup;
+    sm.model = o.model;
+    sm.width = w;
+    sm.integrate = sw.integrate;
+    st = spot_fit_loop(&sw, &sm, &o, t, lo, hi, &lmr, cov, res, &fit_st, &beta_pinned);
+    if (st != SVP_OK) goto cleanup;
+
+    spot_results(&o, t, cov, res);
+    spot_flags(&sw, &o, t, lo, hi, &lmr, fit_st, beta_pinned, res);
+    spot_encircled(&o, w, h, res);
 
     if (model_image || residual) {
         for (size_t i = 0; i < N; i++) sw.index[i] = (int)i; /* the fit's integration map */
@@ -811,8 +902,9 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     if ((res->flags & SVP_SPOT_NEAR_BORDER) && o.refuse_near_border) {
         st = svp_fail(SVP_ERR_INVALID, "spot fit: the spot centre (%.2f, %.2f) lies %.2f px "
                       "from the edge of the %d x %d image, closer than %g FWHM (%.2f px): too "
-                      "little of its profile is inside the image", res->x0, res->y0, bd, w, h,
-                      o.border_fwhm, o.border_fwhm * res->fwhm_major);
+                      "little of its profile is inside the image", res->x0, res->y0,
+                      res->border_distance, w, h, o.border_fwhm,
+                      o.border_fwhm * res->fwhm_major);
         goto cleanup;
     }
     if (fit_st == SVP_ERR_NUMERIC) {
