@@ -5,7 +5,7 @@ Lists every function longer than the limit (default 150 lines, signature to clos
 the given directories. A long function passes when the comment right above it (or in its first
 lines) says why it is one piece: the words "one piece" in that comment.
 
-  funclen.py [--limit N] [--strict DIR ...] [--all] DIR...
+  funclen.py [--limit N] [--strict DIR ...] [--all] [--self-test] DIR...
 
 --strict DIR  exit 1 when a long function under DIR has no such comment (the other
               directories are only reported)
@@ -106,13 +106,44 @@ def sources(dirs):
                     yield os.path.join(root, f)
 
 
+def self_test(limit):
+    """functions() on a made-up file: lengths, names, the "one piece" comment, and a
+    brace-initialised table that is no function. Returns the number of failed cases."""
+    import tempfile
+    body = lambda n: ''.join(f'    x += {i};\n' for i in range(n))
+    text = ('static const int table[] = {\n    1,\n    2,\n};\n\n'
+            '/* A long function. */\nint too_long(int x)\n{\n' + body(limit) + '    return x;\n}\n\n'
+            '/* One piece: a made-up reason. */\nint explained(int x)\n{\n' + body(limit) +
+            '    return x;\n}\n\nstatic int short_one(int x) { return x; }\n')
+    with tempfile.NamedTemporaryFile('w', suffix='.c', delete=False) as f:
+        f.write(text)
+    try:
+        got = {name: (last - first + 1, reason) for name, first, last, reason in functions(f.name)}
+    finally:
+        os.unlink(f.name)
+    want = {'too_long': (limit + 4, False), 'explained': (limit + 4, True), 'short_one': (1, False)}
+    failed = 0
+    for name, w in want.items():
+        ok = got.get(name) == w
+        failed += not ok
+        print(f'self-test {"ok" if ok else "FAILED"}: {name}: {got.get(name)}, expected {w}')
+    if 'table' in got:
+        failed += 1
+        print('self-test FAILED: the initialised table counted as a function')
+    return failed
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('dirs', nargs='+')
     ap.add_argument('--limit', type=int, default=150)
     ap.add_argument('--strict', action='append', default=[])
     ap.add_argument('--all', action='store_true')
+    ap.add_argument('--self-test', action='store_true',
+                    help='first check the parser on a made-up file')
     a = ap.parse_args()
+    if a.self_test and self_test(a.limit):
+        return 1
     rows = []
     for path in sources(a.dirs):
         for name, first, last, reason in functions(path):

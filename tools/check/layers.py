@@ -2,7 +2,7 @@
 """The layers of svpsf (docs/architecture.md) checked against the code.
 
   layers.py [--root DIR] [--doc docs/architecture.md] [--objects BUILDDIR]
-            [--core-lib LIB] [--report]
+            [--core-lib LIB] [--report] [--self-test]
 
 Reads the layer list (the ```layers block of docs/architecture.md: rank, module, directory,
 library), then
@@ -178,19 +178,10 @@ def check_core_lib(lib):
     return bad
 
 
-def main():
-    here = os.path.dirname(os.path.abspath(__file__))
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('--root', default=os.path.normpath(os.path.join(here, '..', '..')))
-    ap.add_argument('--doc', default=None)
-    ap.add_argument('--objects')
-    ap.add_argument('--core-lib')
-    ap.add_argument('--report', action='store_true', help='never exit 1')
-    a = ap.parse_args()
-    root = a.root
-    layers = read_layers(a.doc or os.path.join(root, 'docs', 'architecture.md'))
+def check_includes(root, layers):
+    """(module include graph, violations) of every #include "..." under the listed
+    directories."""
     rank = {name: r for r, name, _, _ in layers}
-
     violations = []
     graph = collections.defaultdict(set)
     for src in sources(root, layers):
@@ -208,6 +199,61 @@ def main():
             if rank[other[1]] >= rank[me[1]]:
                 violations.append(f'{src}: includes "{inc}" ({other[1]}, rank {rank[other[1]]}) '
                                   f'from {me[1]} (rank {me[0]})')
+    return graph, violations
+
+
+def self_test():
+    """The include check on small made-up trees: it must flag a lower layer including a
+    higher one and two modules of one rank including each other, and pass the allowed
+    direction. Returns the number of failed cases."""
+    import tempfile
+    doc = ('```layers\n0 low src/low\n1 mid src/mid\n1 side src/side\n2 high src/high\n```\n')
+    cases = [  # (file, include, expected violations)
+        ('src/high/a.c', '../low/low.h', 0),
+        ('src/high/a.c', '../mid/mid.h', 0),
+        ('src/low/a.c', '../high/high.h', 1),
+        ('src/low/a.c', '../mid/mid.h', 1),
+        ('src/mid/a.c', '../side/side.h', 1),
+        ('src/mid/a.c', 'mid.h', 0),
+    ]
+    failed = 0
+    for path, inc, want in cases:
+        with tempfile.TemporaryDirectory() as root:
+            os.makedirs(os.path.join(root, 'docs'))
+            with open(os.path.join(root, 'docs', 'architecture.md'), 'w') as f:
+                f.write(doc)
+            for m in ('low', 'mid', 'side', 'high'):
+                os.makedirs(os.path.join(root, 'src', m))
+                open(os.path.join(root, 'src', m, m + '.h'), 'w').close()
+            with open(os.path.join(root, path), 'w') as f:
+                f.write(f'#include "{inc}"\nint f(void) {{ return 0; }}\n')
+            layers = read_layers(os.path.join(root, 'docs', 'architecture.md'))
+            _, v = check_includes(root, layers)
+            ok = len(v) == want
+            failed += not ok
+            print(f'self-test {"ok" if ok else "FAILED"}: {path} includes "{inc}": '
+                  f'{len(v)} violation(s), expected {want}')
+    return failed
+
+
+def main():
+    here = os.path.dirname(os.path.abspath(__file__))
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--root', default=os.path.normpath(os.path.join(here, '..', '..')))
+    ap.add_argument('--doc', default=None)
+    ap.add_argument('--objects')
+    ap.add_argument('--core-lib')
+    ap.add_argument('--report', action='store_true', help='never exit 1')
+    ap.add_argument('--self-test', action='store_true',
+                    help='first check the include check itself on made-up trees')
+    a = ap.parse_args()
+    if a.self_test and self_test():
+        return 1
+    root = a.root
+    layers = read_layers(a.doc or os.path.join(root, 'docs', 'architecture.md'))
+    rank = {name: r for r, name, _, _ in layers}
+
+    graph, violations = check_includes(root, layers)
     print_graph('include graph (module -> modules whose headers it includes):', graph)
     cyc = sccs(graph)
     print(f'include cycles between modules: {len(cyc)}' +
