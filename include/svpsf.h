@@ -518,7 +518,7 @@ SVP_API svp_status svp_inverse_transform(svp_blur *blur, const svp_image *pl_app
                                          svp_image *pl_true, svp_image *const *field_true,
                                          svp_image *validity, size_t *n_missing);
 
-/* Closed-form inverse for a halo-only PSF p = (1 − α) δ + α / A (PHYSICS.md §2, exact for any
+/* Closed-form inverse for a halo-only PSF p = (1 − α) δ + α / A (docs/model.md §4, exact for any
  * PL): Ĩ = (1 − α) I + α <Ĩ>, B̃Ĩ = (1 − α) BI + α <B̃Ĩ>, so
  * B = (B̃Ĩ − α <B̃Ĩ>) / (Ĩ − α <Ĩ>) (eq. 7), means over the whole image. With uniform PL:
  * ΔB = ΔB̃ / (1 − α). Where the denominator is <= 1e-10 · max|Ĩ| (no light) B = 0. α must be
@@ -664,7 +664,7 @@ SVP_API svp_status svp_psf_field_read(const char *path, svp_psf_field **out, dou
 SVP_API svp_status svp_psf_field_write(const char *path, const svp_psf_field *field,
                                        double pixel_um, const char *provenance, int overwrite);
 
-/* The space-variant operator (PHYSICS.md §6): H x = Σ_k p_k ⊛ (w_k (1 − α) ⊙ x) + <α x>_FOV,
+/* The space-variant operator (docs/model.md §9): H x = Σ_k p_k ⊛ (w_k (1 − α) ⊙ x) + <α x>_FOV,
  * α the field's per-pixel halo (exact, not interpolated), p_k normalised core kernels.
  *  - tent: K = gx x gy nodes at x_i = i (width − 1) / (gx − 1) (the centre when gx = 1),
  *    bilinear hat weights w_k >= 0 summing to 1 at every pixel; p_k = the field's PSF at node k.
@@ -946,7 +946,7 @@ SVP_API svp_status svp_affine_invert(const double affine[6], double inverse[6]);
 /* ---------------------------------------------------------------------------------------- */
 /* Fitting: Levenberg–Marquardt, PSF spot fits, PSF maps                                     */
 /* @@section fit */
-/* ---- Levenberg–Marquardt for small dense problems (src/psf/fit.c) ------------------------
+/* ---- Levenberg–Marquardt for small dense problems (src/lm/lm.c) --------------------------
  * Minimises χ² = Σ_i w_i (y_i − f_i(θ))² over θ (n_params ≤ SVP_LM_MAX_PARAMS values) in the
  * shape of GSL's multifit_nlinear (problem, workspace, init / iterate / finish, driver) but
  * never aborting: every failure is a status with a message. Classic LM with Marquardt
@@ -1074,7 +1074,7 @@ SVP_API svp_status svp_lm_solve(svp_lm_workspace *ws, const svp_lm_problem *prob
 /* "small step", "small gradient", ... */
 SVP_API const char *svp_lm_stop_string(svp_lm_stop stop);
 
-/* ---- Spot fits (PHYSICS.md §4): elliptical Moffat, Gaussian, Lorentzian -----------------
+/* ---- Spot fits (docs/model.md §8): elliptical Moffat, Gaussian, Lorentzian -----------------
  * Model of pixel (x, y) (pixel centres at integer coordinates, x = column):
  *   f = background + amplitude · P(q),  q = dᵀ M d / s²,  d = (x − x0, y − y0),
  *   Moffat P = (1 + q)^(−β), s = r0(F, β);  Gaussian P = exp(−q/2), s = σ(F);
@@ -1181,7 +1181,7 @@ SVP_API svp_status svp_spot_fit(const svp_image *spot, const svp_spot_options *o
  * svp_psf_render reproduces the fitted model, halo 0, support 0). */
 SVP_API void svp_spot_result_psf(const svp_spot_result *result, svp_psf *psf);
 
-/* ---- PSF from an excitation/emission pair (PHYSICS.md §5) -------------------------------
+/* ---- PSF from an excitation/emission pair (docs/model.md §8) -------------------------------
  * I_PL = I_G ⊛ p: both spots are fitted directly; the excitation spot (background removed,
  * negatives set to 0, restricted to a disc around its fitted centre) is the kernel of a
  * Richardson–Lucy deconvolution of the emission spot (background removed; saturated and hot
@@ -1488,7 +1488,7 @@ SVP_API svp_status svp_raster_disk(svp_image *image, double cx, double cy, doubl
 
 /* ---- source fields ------------------------------------------------------------------------ */
 
-/* Stray field of a thin magnetic flake by the Fourier method (PHYSICS.md §7). moment is the
+/* Stray field of a thin magnetic flake by the Fourier method (docs/model.md §11). moment is the
  * areal magnetisation m_z = M_z t in A on the sensor's pixel grid (e.g. 1e-3 for M_z = 1 MA/m,
  * t = 1 nm; build it with svp_raster_* or from a mask image times M_z t). Zero outside the
  * image: the canvas is padded with zeros to at least pad_factor times the image size in each
@@ -1506,7 +1506,7 @@ SVP_API svp_status svp_flake_field(const svp_image *moment, double thickness_m,
                                    const svp_sensor *sensor, int pad_factor, svp_image *bx,
                                    svp_image *by, svp_image *bz);
 
-/* An infinitely long flat strip of current (PHYSICS.md §7). */
+/* An infinitely long flat strip of current (docs/model.md §11). */
 typedef struct svp_strip {
     double width_m;       /* w, metres (> 0); default 40e-6 */
     double sheet_current; /* J, A/m (current per unit width, along the strip); default 200 */
@@ -1536,7 +1536,7 @@ SVP_API svp_status svp_strip_current(const svp_strip *strip, double pixel_m, svp
 SVP_API svp_status svp_field_project(const svp_image *bx, const svp_image *by,
                                      const svp_image *bz, const double axis[3], svp_image *out);
 
-/* ---- source reconstruction (PHYSICS.md §7) ------------------------------------------------- */
+/* ---- source reconstruction (docs/model.md §11) ------------------------------------------------- */
 
 typedef enum svp_pad_mode {
     SVP_PAD_TAPER = 0, /* default: the map continues from its edge values, cosine-tapered to its
@@ -1574,7 +1574,7 @@ SVP_API svp_status svp_reconstruct_magnetisation(const svp_image *bz,
 /* Sheet current density (A/m) from B_z (T), in the frame above (right-handed, rows down):
  *   J_x(k) = +i (ky/k) α W B_z(k),   J_y(k) = −i (kx/k) α W B_z(k),   α = 2 / (μ0 f(k)),
  * the same for either sensor side; k = 0 set to 0 (a uniform current makes no B_z). NOTE:
- * PHYSICS.md §7 writes the opposite signs, which belong to a left-handed frame (x right, y down,
+ * some references write the opposite signs, which belong to a left-handed frame (x right, y down,
  * z towards the viewer); the tests pin these against the strip's closed form. The Fourier
  * inversion needs the whole field: for a wire that crosses the view, the 1/x tails of B_z
  * outside it are missing and J is underestimated by roughly 4w/(π² L) (strip width w, view L):
@@ -1598,7 +1598,7 @@ SVP_API svp_status svp_inplane_from_bz(const svp_image *bz, const svp_recon_opti
 SVP_API svp_status svp_current_divergence(const svp_image *jx, const svp_image *jy,
                                           double pixel_m, svp_image *div);
 
-/* ---- ODMR spectra (PHYSICS.md §1–2) ---------------------------------------------------------- */
+/* ---- ODMR spectra (docs/model.md §10) ---------------------------------------------------------- */
 
 /* A spectral cube: n_freq frames I(x, y, freq[f]), each an svp_image (frame-major, so every
  * frame can be blurred with svp_blur_apply). */

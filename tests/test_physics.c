@@ -171,7 +171,7 @@ static void test_strip_y_orientation(void **state)
     svp_image_free(bz);
 }
 
-/* The strip's closed form at a plane, written here from PHYSICS.md §7 (current along +y). */
+/* The strip's closed form at a plane, written here from docs/model.md §11, eq. 16 (current along +y). */
 static void strip_plane(double xi, double w, double J, double h, double *bxv, double *bzv)
 {
     double a = 0.5 * w;
@@ -301,7 +301,7 @@ static void test_flake_fourier_vs_closed_form(void **state)
         if (worst_far > 2e-3 || worst_all > 0.1)
             fail_msg("side %d: Fourier flake field differs from the exact one: %g (far), %g",
                      side, worst_far, worst_all);
-        /* PHYSICS §7 signs, M_z > 0: B_z > 0 just inside an edge, < 0 just outside; the same on
+        /* docs/model.md §11 signs, M_z > 0: B_z > 0 just inside an edge, < 0 just outside; the same on
          * both sides. In-plane: above (+z), B_x points outwards across the right edge. */
         int yc = (int)(0.5 * (fl_y1 + fl_y2)), xr = (int)(fl_x2 + 0.5);
         if (!(at(b[2], xr - 2, yc) > 0 && at(b[2], xr + 2, yc) < 0))

@@ -1,4 +1,4 @@
-/* Registration (issue 4 item 5, issue 5 item 3): phase correlation and ECC against scenes
+/* Registration (svp_register, docs/api.md): phase correlation and ECC against scenes
  * rendered analytically at known transforms, the coordinate convention, warping of label
  * masks, and bad input. Measured numbers are printed (print_message) and stated in comments;
  * the asserted tolerances are the issue's. */
@@ -187,7 +187,7 @@ static void test_direction(void **state)
     svp_image_free(back);
 }
 
-/* Issue 5 item 3: an excitation spot (Moffat beta 3.3, FWHM 3 px: Gaussian-like) and the
+/* Pair images: an excitation spot (Moffat beta 3.3, FWHM 3 px: Gaussian-like) and the
  * wider emission spot (beta 1.1, FWHM 5 px) of the same focus, offset by a sub-pixel shift.
  * The spots differ in shape but both are symmetric, so the cross-power phase is the shift's.
  * Measured: window off 1.2e-5 px, window on 1.7e-2 px (asserted 0.05): for isolated spots on a

@@ -155,7 +155,7 @@ static void test_defaults(void **state)
     assert_null(o.deconv.progress);
 }
 
-/* ---- limit cases (PHYSICS.md §2) ---------------------------------------------------------- */
+/* ---- limit cases (docs/model.md §2 and §4) ---------------------------------------------------------- */
 
 /* p = δ → B̃ = B and Ĩ = I; and T⁻¹ with Wiener at balance 0 is then the identity too. */
 static void test_delta_psf_is_identity(void **state)

@@ -1,4 +1,4 @@
-/* Space-variant PSFs (issue 4): PSF fields, the tent / low-rank operators against the exact
+/* Space-variant PSFs (docs/model.md §9): PSF fields, the tent / low-rank operators against the exact
  * per-source sum, flux, adjointness, agreement with the invariant operator, second-order
  * convergence with the node grid, CG Tikhonov, T⁻¹ round trips and hard cases. */
 #include "test_helpers.h"

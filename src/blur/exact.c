@@ -1,4 +1,4 @@
-/* The exact per-source reference operator (PHYSICS.md §6), no approximation:
+/* The exact per-source reference operator (docs/model.md §9), no approximation:
  *   Ĩ(o) = Σ_s [(1 − α_s) k_s(o − s) + α_s / N] I(s)
  * k_s the core kernel of the field's PSF at source pixel s, sampled and truncated like
  * svp_psf_render (pixel integration for small FWHM, disc support) and normalised to unit sum

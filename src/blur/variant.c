@@ -1,4 +1,4 @@
-/* The space-variant blur operator (PHYSICS.md §6): tent-weighted overlap-add and low rank.
+/* The space-variant blur operator (docs/model.md §9, eq. 12): tent-weighted overlap-add and low rank.
  *
  * Both are H x = Σ_k P_k ⊛ (c_k ⊙ s ⊙ x) + <α x>_FOV with one shared FFT frame:
  *   tent:     P_k the normalised core kernel of the field at node k, c_k the bilinear hat of

@@ -1,4 +1,4 @@
-/* Image registration (issue 4 item 5; issue 5 item 3): the transform that maps reference pixel
+/* Image registration (docs/cli.md, svpsf register and fit-psf): the transform that maps reference pixel
  * coordinates to moving pixel coordinates, by phase correlation (translation, here, with the
  * library's cached FFTs) or by ECC (OpenCV findTransformECC, io/image_io.cpp), and svp_warp to
  * bring a moving image or label mask onto the reference grid. Conventions: include/svpsf.h,

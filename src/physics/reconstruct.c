@@ -1,4 +1,4 @@
-/* Source reconstruction by Fourier inversion (PHYSICS.md §7): magnetisation from B_z, current
+/* Source reconstruction by Fourier inversion (docs/model.md §11): magnetisation from B_z, current
  * density from B_z or from the in-plane field, the in-plane field from B_z, and ∇·J.
  * Frame and signs: include/svpsf.h, section physics (right-handed, rows down, sensor on +z for
  * side = +1); every sign is pinned by tests/test_physics.c against closed forms. */

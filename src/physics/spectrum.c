@@ -1,4 +1,4 @@
-/* ODMR spectral cubes (PHYSICS.md §1–2): the two-Lorentzian model and per-pixel estimators. The
+/* ODMR spectral cubes (docs/model.md §10): the two-Lorentzian model and per-pixel estimators. The
  * cube is frame-major (one svp_image per frequency) so each frame can be blurred by the blur
  * operators; an estimator streams the frames and keeps per-pixel sums, which is also what
  * makes the centroid exactly linear-fractional (eq. 3). */

@@ -1,6 +1,7 @@
-/* Levenberg–Marquardt for small dense problems, the Moffat spot fit and the PSF from an
- * excitation/emission pair (PHYSICS.md §4–5). */
-#include "../core/internal.h"
+/* Spot fits: the elliptical Moffat, Gaussian and Lorentzian spot models fitted by the
+ * Levenberg–Marquardt of src/lm/lm.c, and the kernel a fitted spot makes (docs/model.md §8). */
+#include "spot_internal.h"
+#include "../lm/lm_internal.h"
 
 #include <float.h>
 #include <lapacke.h>
@@ -8,631 +9,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-
-/* ========================================================================================= */
-/* Levenberg–Marquardt                                                                       */
-
-enum { BOUND_NONE = 0, BOUND_BOTH = 1, BOUND_LOWER = 2, BOUND_UPPER = 3 };
-
-struct svp_lm_workspace {
-    int cap_params, cap_points;
-    svp_lm_problem prob;
-    svp_lm_options opt;
-    int n, m, nf; /* parameters, points, free parameters */
-    int weights_from_model;
-    int free_idx[SVP_LM_MAX_PARAMS];
-    int kind[SVP_LM_MAX_PARAMS]; /* per free parameter */
-    double lo[SVP_LM_MAX_PARAMS], hi[SVP_LM_MAX_PARAMS];
-    double x[SVP_LM_MAX_PARAMS], x_trial[SVP_LM_MAX_PARAMS];
-    double x_start[SVP_LM_MAX_PARAMS];
-    double u[SVP_LM_MAX_PARAMS], u_trial[SVP_LM_MAX_PARAMS], dxdu[SVP_LM_MAX_PARAMS];
-    double D[SVP_LM_MAX_PARAMS], tau[SVP_LM_MAX_PARAMS], delta[SVP_LM_MAX_PARAMS];
-    double *f, *f_trial, *sw, *r; /* m each: model, trial model, √w, √w (f − y) */
-    double *jac;                  /* m × n row-major, from the model (or differences) */
-    double *J;                    /* m × nf column-major: √w ∂f/∂u */
-    double *QR;                   /* m × nf column-major: J's QR factors */
-    double *qtr;                  /* m: Qᵀ r */
-    double *A, *b;                /* (2 nf) × nf and 2 nf: the damped subproblem */
-    double *cov;                  /* n × n */
-    double *work;
-    int lwork;
-    double chi2, lambda, nu, last_step;
-    int iter, nev, initialized;
-    svp_lm_stop stop;
-};
-
-void svp_lm_defaults(svp_lm_options *o)
-{
-    o->max_iterations = 200;
-    o->xtol = 1e-8;
-    o->gtol = 1e-10;
-    o->ftol = 1e-8;
-    o->lambda_init = 1e-3;
-    o->fd_step = sqrt(DBL_EPSILON);
-    o->covariance = SVP_LM_COV_AUTO;
-}
-
-double svp_noise_variance(const svp_noise_model *noise, double p)
-{
-    double v = noise->sigma_bg * noise->sigma_bg;
-    if (noise->gain > 0) v += fmax(p, 1.0 / noise->gain) / noise->gain;
-    if (noise->excess > 0) v += (noise->excess * p) * (noise->excess * p);
-    return v > 0 ? v : 1.0;
-}
-
-const char *svp_lm_stop_string(svp_lm_stop stop)
-{
-    switch (stop) {
-    case SVP_LM_RUNNING: return "running";
-    case SVP_LM_XTOL: return "small step";
-    case SVP_LM_GTOL: return "small gradient";
-    case SVP_LM_FTOL: return "small chi-square change";
-    case SVP_LM_ROUNDOFF: return "no further decrease at machine precision";
-    case SVP_LM_MAX_ITER: return "maximum number of iterations reached";
-    case SVP_LM_STUCK: return "no decreasing step although the gradient is not small";
-    }
-    return "unknown";
-}
-
-void svp_lm_workspace_free(svp_lm_workspace *ws)
-{
-    if (!ws) return;
-    free(ws->f);
-    free(ws->f_trial);
-    free(ws->sw);
-    free(ws->r);
-    free(ws->jac);
-    free(ws->J);
-    free(ws->QR);
-    free(ws->qtr);
-    free(ws->A);
-    free(ws->b);
-    free(ws->cov);
-    free(ws->work);
-    free(ws);
-}
-
-svp_status svp_lm_workspace_new(int max_params, int max_points, svp_lm_workspace **out)
-{
-    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_lm_workspace_new: out is NULL");
-    *out = NULL;
-    if (max_params < 1 || max_params > SVP_LM_MAX_PARAMS)
-        return svp_fail(SVP_ERR_INVALID, "LM workspace: max_params must be in 1..%d, got %d",
-                        SVP_LM_MAX_PARAMS, max_params);
-    if (max_points < 1)
-        return svp_fail(SVP_ERR_INVALID, "LM workspace: max_points must be >= 1, got %d",
-                        max_points);
-    svp_lm_workspace *ws = calloc(1, sizeof *ws);
-    if (!ws) return svp_fail(SVP_ERR_NOMEM, "LM workspace: out of memory");
-    const size_t m = (size_t)max_points, n = (size_t)max_params;
-    ws->cap_params = max_params;
-    ws->cap_points = max_points;
-    ws->f = malloc(m * sizeof(double));
-    ws->f_trial = malloc(m * sizeof(double));
-    ws->sw = malloc(m * sizeof(double));
-    ws->r = malloc(m * sizeof(double));
-    ws->qtr = malloc(m * sizeof(double));
-    ws->jac = malloc(m * n * sizeof(double));
-    ws->J = malloc(m * n * sizeof(double));
-    ws->QR = malloc(m * n * sizeof(double));
-    ws->A = malloc(2 * n * n * sizeof(double));
-    ws->b = malloc(2 * n * sizeof(double));
-    ws->cov = malloc(n * n * sizeof(double));
-    if (!ws->f || !ws->f_trial || !ws->sw || !ws->r || !ws->qtr || !ws->jac || !ws->J ||
-        !ws->QR || !ws->A || !ws->b || !ws->cov) {
-        svp_lm_workspace_free(ws);
-        return svp_fail(SVP_ERR_NOMEM, "LM workspace for %d parameters x %d points: out of "
-                        "memory", max_params, max_points);
-    }
-    /* LAPACK work sizes for the largest problem, queried once: iterate never allocates. The
-     * column-major _work interfaces call LAPACK directly (no transposed copies). */
-    double q1 = 0, q2 = 0, q3 = 0;
-    lapack_int mm = max_points, nn = max_params, m2 = 2 * max_params;
-    if (mm < nn) mm = nn;
-    LAPACKE_dgeqrf_work(LAPACK_COL_MAJOR, mm, nn, ws->QR, mm, ws->tau, &q1, -1);
-    LAPACKE_dormqr_work(LAPACK_COL_MAJOR, 'L', 'T', mm, 1, nn, ws->QR, mm, ws->tau, ws->qtr, mm,
-                        &q2, -1);
-    LAPACKE_dgels_work(LAPACK_COL_MAJOR, 'N', m2, nn, 1, ws->A, m2, ws->b, m2, &q3, -1);
-    double q = fmax(fmax(q1, q2), fmax(q3, (double)(4 * max_params)));
-    ws->lwork = (int)q + 64;
-    ws->work = malloc((size_t)ws->lwork * sizeof(double));
-    if (!ws->work) {
-        svp_lm_workspace_free(ws);
-        return svp_fail(SVP_ERR_NOMEM, "LM workspace: out of memory");
-    }
-    *out = ws;
-    return SVP_OK;
-}
-
-static double softplus(double u) { return u > 30 ? u + log1p(exp(-u)) : log1p(exp(u)); }
-static double softplus_inv(double s) { return s > 30 ? s + log(-expm1(-s)) : log(expm1(s)); }
-static double sigmoid(double u) { return 1.0 / (1.0 + exp(-u)); }
-
-/* x from u for free parameter k; also dx/du. */
-static double to_external(const svp_lm_workspace *ws, int k, double u, double *dxdu)
-{
-    int j = ws->free_idx[k];
-    double lo = ws->lo[j], hi = ws->hi[j];
-    switch (ws->kind[k]) {
-    case BOUND_BOTH:
-        if (dxdu) *dxdu = 0.5 * (hi - lo) * cos(u);
-        return lo + 0.5 * (hi - lo) * (1.0 + sin(u));
-    case BOUND_LOWER:
-        if (dxdu) *dxdu = sigmoid(u);
-        return lo + softplus(u);
-    case BOUND_UPPER:
-        if (dxdu) *dxdu = -sigmoid(u);
-        return hi - softplus(u);
-    default:
-        if (dxdu) *dxdu = 1.0;
-        return u;
-    }
-}
-
-/* u from x (x strictly inside the bounds: init nudges it there). */
-static double to_internal(const svp_lm_workspace *ws, int k, double x)
-{
-    int j = ws->free_idx[k];
-    double lo = ws->lo[j], hi = ws->hi[j];
-    switch (ws->kind[k]) {
-    case BOUND_BOTH: {
-        double s = 2.0 * (x - lo) / (hi - lo) - 1.0;
-        return asin(fmax(-1.0, fmin(1.0, s)));
-    }
-    case BOUND_LOWER: return softplus_inv(x - lo);
-    case BOUND_UPPER: return softplus_inv(hi - x);
-    default: return x;
-    }
-}
-
-static void set_external(svp_lm_workspace *ws, const double *u, double *x, double *dxdu)
-{
-    for (int k = 0; k < ws->nf; k++) x[ws->free_idx[k]] = to_external(ws, k, u[k], &dxdu[k]);
-}
-
-static int all_finite(const double *v, size_t n)
-{
-    for (size_t i = 0; i < n; i++)
-        if (!isfinite(v[i])) return 0;
-    return 1;
-}
-
-/* Model values (and the Jacobian when jac != NULL): 0 on success. */
-static int evaluate(svp_lm_workspace *ws, const double *x, double *f, double *jac)
-{
-    ws->nev++;
-    const svp_lm_problem *p = &ws->prob;
-    if (p->model(p->user, x, ws->n, ws->m, f, jac) != 0) return -1;
-    if (!all_finite(f, (size_t)ws->m)) return -1;
-    if (jac) {
-        for (int i = 0; i < ws->m; i++)
-            for (int k = 0; k < ws->nf; k++)
-                if (!isfinite(jac[(size_t)i * ws->n + ws->free_idx[k]])) return -1;
-    }
-    return 0;
-}
-
-/* Forward differences in θ (backward at an upper bound), columns of free parameters only;
- * ws->f must hold f(x). Uses f_trial as scratch. */
-static int finite_differences(svp_lm_workspace *ws)
-{
-    const int n = ws->n, m = ws->m;
-    double xt[SVP_LM_MAX_PARAMS];
-    memcpy(xt, ws->x, (size_t)n * sizeof(double));
-    for (int k = 0; k < ws->nf; k++) {
-        int j = ws->free_idx[k];
-        double scale = fmax(fmax(fabs(ws->x[j]), fabs(ws->x_start[j])), 1e-3);
-        double h = ws->opt.fd_step * scale;
-        if (ws->x[j] + h > ws->hi[j]) h = -h;
-        volatile double xh = ws->x[j] + h; /* the step actually taken, exactly representable */
-        h = xh - ws->x[j];
-        xt[j] = xh;
-        if (evaluate(ws, xt, ws->f_trial, NULL) != 0) return -1;
-        xt[j] = ws->x[j];
-        for (int i = 0; i < m; i++) ws->jac[(size_t)i * n + j] = (ws->f_trial[i] - ws->f[i]) / h;
-    }
-    return 0;
-}
-
-/* From f (and jac) at the current x: weights, residuals, χ², the scaled Jacobian J, D. */
-static void update_linearisation(svp_lm_workspace *ws)
-{
-    const svp_lm_problem *p = &ws->prob;
-    const int m = ws->m, n = ws->n;
-    double chi2 = 0;
-    for (int i = 0; i < m; i++) {
-        if (p->sigma)
-            ws->sw[i] = 1.0 / p->sigma[i];
-        else if (ws->weights_from_model)
-            ws->sw[i] = 1.0 / sqrt(svp_noise_variance(&p->noise, ws->f[i]));
-        else
-            ws->sw[i] = 1.0;
-        double y = p->data ? p->data[i] : 0.0;
-        ws->r[i] = ws->sw[i] * (ws->f[i] - y);
-        chi2 += ws->r[i] * ws->r[i];
-    }
-    ws->chi2 = chi2;
-    for (int k = 0; k < ws->nf; k++) {
-        int j = ws->free_idx[k];
-        double *col = ws->J + (size_t)k * m, norm2 = 0;
-        for (int i = 0; i < m; i++) {
-            col[i] = ws->sw[i] * ws->jac[(size_t)i * n + j] * ws->dxdu[k];
-            norm2 += col[i] * col[i];
-        }
-        /* Marquardt scaling, monotone as in MINPACK so the trust region cannot collapse on a
-         * column that vanishes temporarily (a sin-bounded parameter passing its bound). */
-        double d = sqrt(norm2);
-        if (d > ws->D[k]) ws->D[k] = d;
-        if (!(ws->D[k] > 0)) ws->D[k] = 1.0;
-    }
-}
-
-/* Model and Jacobian at ws->x into f and jac. */
-static int linearise(svp_lm_workspace *ws)
-{
-    if (ws->prob.analytic_jacobian) {
-        if (evaluate(ws, ws->x, ws->f, ws->jac) != 0) return -1;
-    } else {
-        if (finite_differences(ws) != 0) return -1;
-    }
-    return 0;
-}
-
-svp_status svp_lm_init(svp_lm_workspace *ws, const svp_lm_problem *problem,
-                       const svp_lm_options *options, const double *params0)
-{
-    if (!ws || !problem || !params0)
-        return svp_fail(SVP_ERR_INVALID, "svp_lm_init: workspace, problem and params0 are "
-                        "required");
-    ws->initialized = 0;
-    const svp_lm_problem *p = problem;
-    if (p->n_params < 1 || p->n_params > ws->cap_params)
-        return svp_fail(SVP_ERR_INVALID, "LM: n_params = %d outside the workspace's 1..%d",
-                        p->n_params, ws->cap_params);
-    if (p->n_points < 1 || p->n_points > ws->cap_points)
-        return svp_fail(SVP_ERR_INVALID, "LM: n_points = %d outside the workspace's 1..%d",
-                        p->n_points, ws->cap_points);
-    if (!p->model) return svp_fail(SVP_ERR_INVALID, "LM: the problem has no model function");
-    if (options) {
-        ws->opt = *options;
-        if (ws->opt.max_iterations < 0 || !(ws->opt.xtol >= 0) || !(ws->opt.gtol >= 0) ||
-            !(ws->opt.ftol >= 0) || !(ws->opt.lambda_init > 0) || !(ws->opt.fd_step > 0))
-            return svp_fail(SVP_ERR_INVALID, "LM options out of range: max_iterations %d, xtol "
-                            "%g, gtol %g, ftol %g, lambda_init %g, fd_step %g (need >= 0, "
-                            "lambda_init and fd_step > 0)", ws->opt.max_iterations,
-                            ws->opt.xtol, ws->opt.gtol, ws->opt.ftol, ws->opt.lambda_init,
-                            ws->opt.fd_step);
-    } else {
-        svp_lm_defaults(&ws->opt);
-    }
-    const svp_noise_model *nm = &p->noise;
-    if (!(nm->sigma_bg >= 0) || !(nm->gain >= 0) || !(nm->excess >= 0) ||
-        !isfinite(nm->sigma_bg + nm->gain + nm->excess))
-        return svp_fail(SVP_ERR_INVALID, "LM noise model: sigma_bg %g, gain %g, excess %g "
-                        "must be finite and >= 0", nm->sigma_bg, nm->gain, nm->excess);
-    ws->prob = *p;
-    ws->n = p->n_params;
-    ws->m = p->n_points;
-    ws->weights_from_model = !p->sigma && (nm->sigma_bg > 0 || nm->gain > 0 || nm->excess > 0);
-    if (p->sigma) {
-        for (int i = 0; i < ws->m; i++)
-            if (!(p->sigma[i] > 0) || !isfinite(p->sigma[i]))
-                return svp_fail(SVP_ERR_INVALID, "LM: sigma[%d] = %g must be positive and "
-                                "finite", i, p->sigma[i]);
-    }
-    if (p->data) {
-        for (int i = 0; i < ws->m; i++)
-            if (!isfinite(p->data[i]))
-                return svp_fail(SVP_ERR_INVALID, "LM: data[%d] is not finite", i);
-    }
-    ws->nf = 0;
-    for (int j = 0; j < ws->n; j++) {
-        double lo = p->lower ? p->lower[j] : -INFINITY;
-        double hi = p->upper ? p->upper[j] : INFINITY;
-        if (isnan(lo) || isnan(hi) || lo > hi || lo == INFINITY || hi == -INFINITY)
-            return svp_fail(SVP_ERR_INVALID, "LM: bounds of parameter %d are [%g, %g]", j, lo,
-                            hi);
-        if (!isfinite(params0[j]))
-            return svp_fail(SVP_ERR_INVALID, "LM: initial parameter %d is not finite", j);
-        ws->lo[j] = lo;
-        ws->hi[j] = hi;
-        double x = fmin(fmax(params0[j], lo), hi);
-        if (lo == hi) {
-            ws->x[j] = lo;
-            continue;
-        }
-        int k = ws->nf++;
-        ws->free_idx[k] = j;
-        ws->kind[k] = isfinite(lo) && isfinite(hi) ? BOUND_BOTH
-                      : isfinite(lo)               ? BOUND_LOWER
-                      : isfinite(hi)               ? BOUND_UPPER
-                                                   : BOUND_NONE;
-        /* Start strictly inside: at a bound the transform's derivative is 0 and the
-         * parameter could never move. */
-        if (ws->kind[k] == BOUND_BOTH) {
-            double margin = 1e-3 * (hi - lo);
-            x = fmin(fmax(x, lo + margin), hi - margin);
-        } else if (ws->kind[k] == BOUND_LOWER) {
-            x = fmax(x, lo + 1e-6 * fmax(1.0, fabs(lo)));
-        } else if (ws->kind[k] == BOUND_UPPER) {
-            x = fmin(x, hi - 1e-6 * fmax(1.0, fabs(hi)));
-        }
-        ws->x[j] = x;
-    }
-    if (ws->m < ws->nf)
-        return svp_fail(SVP_ERR_INVALID, "LM: %d points cannot determine %d free parameters",
-                        ws->m, ws->nf);
-    memcpy(ws->x_start, ws->x, (size_t)ws->n * sizeof(double));
-    memcpy(ws->x_trial, ws->x, (size_t)ws->n * sizeof(double));
-    for (int k = 0; k < ws->nf; k++) {
-        ws->u[k] = to_internal(ws, k, ws->x[ws->free_idx[k]]);
-        to_external(ws, k, ws->u[k], &ws->dxdu[k]);
-        ws->D[k] = 0;
-    }
-    ws->nev = 0;
-    ws->iter = 0;
-    ws->stop = SVP_LM_RUNNING;
-    ws->lambda = ws->opt.lambda_init;
-    ws->nu = 2.0;
-    ws->last_step = 0;
-    if (evaluate(ws, ws->x, ws->f, ws->prob.analytic_jacobian ? ws->jac : NULL) != 0)
-        return svp_fail(SVP_ERR_INVALID, "LM: the model cannot be evaluated (or is not finite)"
-                        " at the initial parameters");
-    if (!ws->prob.analytic_jacobian && finite_differences(ws) != 0)
-        return svp_fail(SVP_ERR_INVALID, "LM: the model cannot be evaluated near the initial "
-                        "parameters (finite differences)");
-    update_linearisation(ws);
-    if (ws->nf == 0) ws->stop = SVP_LM_XTOL;
-    ws->initialized = 1;
-    return SVP_OK;
-}
-
-void svp_lm_params(const svp_lm_workspace *ws, double *params)
-{
-    memcpy(params, ws->x, (size_t)ws->n * sizeof(double));
-}
-
-static double norm2_scaled(const double *D, const double *v, int n)
-{
-    double s = 0;
-    for (int k = 0; k < n; k++) s += (D[k] * v[k]) * (D[k] * v[k]);
-    return sqrt(s);
-}
-
-svp_status svp_lm_iterate(svp_lm_workspace *ws, svp_lm_stop *stop)
-{
-    if (!ws || !ws->initialized)
-        return svp_fail(SVP_ERR_INVALID, "svp_lm_iterate: workspace not initialised");
-    if (stop) *stop = ws->stop;
-    if (ws->stop != SVP_LM_RUNNING) return SVP_OK;
-    const int m = ws->m, nf = ws->nf, n2 = 2 * nf;
-    const double *y = ws->prob.data;
-    if (ws->chi2 == 0) {
-        ws->stop = SVP_LM_GTOL;
-        if (stop) *stop = ws->stop;
-        return SVP_OK;
-    }
-
-    /* QR of J once per iteration; every trial λ then costs a (2 nf × nf) QR only. */
-    memcpy(ws->QR, ws->J, (size_t)m * nf * sizeof(double));
-    memcpy(ws->qtr, ws->r, (size_t)m * sizeof(double));
-    lapack_int info = LAPACKE_dgeqrf_work(LAPACK_COL_MAJOR, m, nf, ws->QR, m, ws->tau, ws->work,
-                                          ws->lwork);
-    if (info == 0)
-        info = LAPACKE_dormqr_work(LAPACK_COL_MAJOR, 'L', 'T', m, 1, nf, ws->QR, m, ws->tau,
-                                   ws->qtr, m, ws->work, ws->lwork);
-    if (info != 0)
-        return svp_fail(SVP_ERR_INTERNAL, "LM: LAPACK QR failed (info %d)", (int)info);
-
-    /* Gradient test: the cosine between each column of J and the residual vector. */
-    double rnorm = sqrt(ws->chi2), gmax = 0;
-    for (int k = 0; k < nf; k++) {
-        const double *col = ws->J + (size_t)k * m;
-        double g = 0, cn = 0;
-        for (int i = 0; i < m; i++) {
-            g += col[i] * ws->r[i];
-            cn += col[i] * col[i];
-        }
-        if (cn > 0) gmax = fmax(gmax, fabs(g) / (sqrt(cn) * rnorm));
-    }
-    if (gmax <= ws->opt.gtol) {
-        ws->stop = SVP_LM_GTOL;
-        if (stop) *stop = ws->stop;
-        return SVP_OK;
-    }
-
-    for (int attempt = 0; attempt < 100; attempt++) {
-        /* min ‖J δ + r‖² + λ ‖D δ‖²  ⇔  [R; √λ D] δ = [−Qᵀr; 0] in the least-squares sense. */
-        double sl = sqrt(ws->lambda);
-        for (int k = 0; k < nf; k++) {
-            double *col = ws->A + (size_t)k * n2;
-            for (int i = 0; i < nf; i++) col[i] = i <= k ? ws->QR[(size_t)k * m + i] : 0.0;
-            for (int i = 0; i < nf; i++) col[nf + i] = i == k ? sl * ws->D[k] : 0.0;
-            ws->b[k] = -ws->qtr[k];
-            ws->b[nf + k] = 0.0;
-        }
-        info = LAPACKE_dgels_work(LAPACK_COL_MAJOR, 'N', n2, nf, 1, ws->A, n2, ws->b, n2,
-                                  ws->work, ws->lwork);
-        if (info < 0)
-            return svp_fail(SVP_ERR_INTERNAL, "LM: LAPACK dgels failed (info %d)", (int)info);
-        double pred = -1;
-        int ok = info == 0;
-        if (ok) {
-            memcpy(ws->delta, ws->b, (size_t)nf * sizeof(double));
-            /* predicted decrease of the linear model: ‖Qᵀr‖² − ‖Qᵀr + R δ‖² (first nf rows) */
-            double a0 = 0, a1 = 0;
-            for (int i = 0; i < nf; i++) {
-                double t = ws->qtr[i];
-                for (int k = i; k < nf; k++) t += ws->QR[(size_t)k * m + i] * ws->delta[k];
-                a0 += ws->qtr[i] * ws->qtr[i];
-                a1 += t * t;
-            }
-            pred = a0 - a1;
-            for (int k = 0; k < nf; k++) ws->u_trial[k] = ws->u[k] + ws->delta[k];
-            double dxdu_trial[SVP_LM_MAX_PARAMS];
-            set_external(ws, ws->u_trial, ws->x_trial, dxdu_trial);
-            ok = evaluate(ws, ws->x_trial, ws->f_trial, NULL) == 0;
-        }
-        double chi2_trial = INFINITY;
-        if (ok) {
-            chi2_trial = 0;
-            for (int i = 0; i < m; i++) {
-                double t = ws->sw[i] * (ws->f_trial[i] - (y ? y[i] : 0.0));
-                chi2_trial += t * t;
-            }
-        }
-        double step = ok ? norm2_scaled(ws->D, ws->delta, nf) : INFINITY;
-        double unorm = norm2_scaled(ws->D, ws->u, nf);
-        if (ok && chi2_trial < ws->chi2) {
-            double chi2_old = ws->chi2;
-            double rho = pred > 0 ? (chi2_old - chi2_trial) / pred : 0;
-            /* Nielsen's update of the damping */
-            double t = 2 * rho - 1;
-            ws->lambda *= fmax(1.0 / 3.0, 1.0 - t * t * t);
-            ws->nu = 2.0;
-            memcpy(ws->u, ws->u_trial, (size_t)nf * sizeof(double));
-            set_external(ws, ws->u, ws->x, ws->dxdu);
-            memcpy(ws->f, ws->f_trial, (size_t)m * sizeof(double));
-            if (linearise(ws) != 0)
-                return svp_fail(SVP_ERR_NUMERIC, "LM: the Jacobian is not finite at an "
-                                "accepted point (iteration %d)", ws->iter + 1);
-            update_linearisation(ws);
-            ws->iter++;
-            ws->last_step = step;
-            if (step <= ws->opt.xtol * (unorm + ws->opt.xtol))
-                ws->stop = SVP_LM_XTOL;
-            else if (chi2_old - chi2_trial <= ws->opt.ftol * chi2_old &&
-                     pred <= ws->opt.ftol * chi2_old)
-                ws->stop = SVP_LM_FTOL;
-            if (stop) *stop = ws->stop;
-            return SVP_OK;
-        }
-        /* Rejected. At machine precision the model can no longer tell the points apart. */
-        if (ok && (pred <= 4 * DBL_EPSILON * ws->chi2 || step <= 4 * DBL_EPSILON * unorm)) {
-            ws->stop = SVP_LM_ROUNDOFF;
-            if (stop) *stop = ws->stop;
-            return SVP_OK;
-        }
-        ws->lambda *= ws->nu;
-        ws->nu *= 2.0;
-        if (ws->lambda > 1e300) break;
-    }
-    ws->stop = SVP_LM_STUCK;
-    if (stop) *stop = ws->stop;
-    return svp_fail(SVP_ERR_NUMERIC, "LM: no step decreases chi-square %.6g at iteration %d "
-                    "(the largest gradient cosine is %.3g): the model is not smooth or its "
-                    "Jacobian is wrong", ws->chi2, ws->iter, gmax);
-}
-
-svp_status svp_lm_finish(svp_lm_workspace *ws, double *params, svp_lm_result *result,
-                         double *covariance)
-{
-    if (!ws || !ws->initialized)
-        return svp_fail(SVP_ERR_INVALID, "svp_lm_finish: workspace not initialised");
-    const int n = ws->n, m = ws->m;
-    if (params) svp_lm_params(ws, params);
-    svp_lm_result res;
-    memset(&res, 0, sizeof res);
-    res.chi2 = ws->chi2;
-    res.dof = m - ws->nf;
-    res.chi2_red = res.dof > 0 ? ws->chi2 / res.dof : 0.0;
-    res.iterations = ws->iter;
-    res.evaluations = ws->nev;
-    res.stop = ws->stop;
-
-    /* Covariance from the Jacobian in θ (not u): at a bound the transform's derivative
-     * vanishes, so such parameters are held fixed and reported with infinite variance. */
-    int cols[SVP_LM_MAX_PARAMS], nc = 0;
-    for (int k = 0; k < ws->nf; k++) {
-        int j = ws->free_idx[k];
-        double range = ws->hi[j] - ws->lo[j];
-        double x = ws->x[j];
-        int at = 0;
-        if (ws->kind[k] == BOUND_BOTH)
-            at = x - ws->lo[j] <= 1e-4 * range || ws->hi[j] - x <= 1e-4 * range;
-        else if (ws->kind[k] == BOUND_LOWER)
-            at = x - ws->lo[j] <= 1e-6 * fmax(1.0, fabs(ws->lo[j]));
-        else if (ws->kind[k] == BOUND_UPPER)
-            at = ws->hi[j] - x <= 1e-6 * fmax(1.0, fabs(ws->hi[j]));
-        if (at)
-            res.at_bound |= 1ull << j;
-        else
-            cols[nc++] = j;
-    }
-    double *C = ws->cov;
-    memset(C, 0, (size_t)n * n * sizeof(double));
-    res.covariance_ok = 1;
-    if (nc > 0) {
-        for (int c = 0; c < nc; c++) {
-            double *col = ws->QR + (size_t)c * m;
-            for (int i = 0; i < m; i++)
-                col[i] = ws->sw[i] * ws->jac[(size_t)i * n + cols[c]];
-        }
-        lapack_int info = LAPACKE_dgeqrf_work(LAPACK_COL_MAJOR, m, nc, ws->QR, m, ws->tau,
-                                              ws->work, ws->lwork);
-        double dmax = 0, dmin = INFINITY;
-        for (int c = 0; c < nc; c++) {
-            double d = fabs(ws->QR[(size_t)c * m + c]);
-            dmax = fmax(dmax, d);
-            dmin = fmin(dmin, d);
-        }
-        /* (JᵀWJ)⁻¹ = (RᵀR)⁻¹: dpotri on the triangular factor R. */
-        double *Rinv = ws->A; /* nc × nc, lda nc */
-        for (int c = 0; c < nc; c++)
-            for (int i = 0; i < nc; i++)
-                Rinv[(size_t)c * nc + i] = i <= c ? ws->QR[(size_t)c * m + i] : 0.0;
-        if (info != 0 || !(dmin > 1e-13 * dmax) ||
-            LAPACKE_dpotri_work(LAPACK_COL_MAJOR, 'U', nc, Rinv, nc) != 0) {
-            res.covariance_ok = 0;
-        } else {
-            double scale = 1.0;
-            int unit = !ws->prob.sigma && !ws->weights_from_model;
-            if (ws->opt.covariance == SVP_LM_COV_SCALED ||
-                (ws->opt.covariance == SVP_LM_COV_AUTO && unit))
-                scale = res.dof > 0 ? res.chi2_red : 1.0;
-            for (int a = 0; a < nc; a++)
-                for (int b2 = 0; b2 < nc; b2++) {
-                    int lo = a < b2 ? a : b2, hi = a < b2 ? b2 : a;
-                    double v = Rinv[(size_t)hi * nc + lo] * scale;
-                    C[(size_t)cols[a] * n + cols[b2]] = v;
-                }
-        }
-    }
-    for (int k = 0; k < ws->nf; k++) {
-        int j = ws->free_idx[k];
-        if (!res.covariance_ok || (res.at_bound >> j & 1)) C[(size_t)j * n + j] = INFINITY;
-    }
-    if (!res.covariance_ok)
-        for (int a = 0; a < n; a++)
-            for (int b2 = 0; b2 < n; b2++)
-                if (a != b2) C[(size_t)a * n + b2] = 0.0;
-    if (covariance) memcpy(covariance, C, (size_t)n * n * sizeof(double));
-    if (result) *result = res;
-    return SVP_OK;
-}
-
-svp_status svp_lm_solve(svp_lm_workspace *ws, const svp_lm_problem *problem,
-                        const svp_lm_options *options, double *params, svp_lm_result *result,
-                        double *covariance)
-{
-    SVP_CHECK(svp_lm_init(ws, problem, options, params));
-    svp_status st = SVP_OK;
-    svp_lm_stop stop = ws->stop;
-    while (stop == SVP_LM_RUNNING && ws->iter < ws->opt.max_iterations) {
-        st = svp_lm_iterate(ws, &stop);
-        if (st != SVP_OK) break;
-    }
-    if (st == SVP_OK && stop == SVP_LM_RUNNING) {
-        ws->stop = stop = SVP_LM_MAX_ITER;
-        st = SVP_ERR_NUMERIC;
-        svp_lm_finish(ws, params, result, covariance);
-        return svp_fail(SVP_ERR_NUMERIC, "LM did not converge after %d iterations (chi-square "
-                        "%.6g, last scaled step %.3g, xtol %g)", ws->iter, ws->chi2,
-                        ws->last_step, ws->opt.xtol);
-    }
-    svp_status fst = svp_lm_finish(ws, params, result, covariance);
-    return st != SVP_OK ? st : fst;
-}
 
 /* ========================================================================================= */
 /* Spot fits                                                                                 */
@@ -933,16 +309,21 @@ static svp_status check_spot_options(const svp_spot_options *o)
     return SVP_OK;
 }
 
-/* Everything one spot fit allocates. */
+/* Everything one spot fit allocates, and what its stages pass on. */
 typedef struct spot_work {
     int w, h;
     size_t N;
+    const double *data;       /* the spot image */
     unsigned char *use;       /* 1 = in the fit */
     unsigned char *integrate; /* per pixel */
     int *index;               /* used pixels */
     double *y;                /* their values */
     double *scratch;
     svp_lm_workspace *ws;
+    /* from the stages before the fit */
+    double bg0, sigma_mad, var_bg; /* background, its MAD noise, the variance used */
+    int known_noise;               /* a noise model is given (else the MAD) */
+    double sat_level;              /* saturation level (INFINITY: none) */
 } spot_work;
 
 static void spot_work_free(spot_work *sw)
@@ -988,58 +369,41 @@ static svp_status spot_solve(spot_work *sw, spot_model *sm, const svp_spot_optio
     return svp_lm_solve(sw->ws, &prob, &o->lm, t, lmr, cov);
 }
 
-/* The fit; used_out (may be NULL, else w·h bytes) receives 1 for the pixels of the final
- * fit, 0 for the excluded ones (non-finite, saturated, hot, clipped). */
-static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *options,
-                                svp_spot_result *res, svp_image *model_image,
-                                svp_image *residual, unsigned char *used_out)
-{
-    if (!spot || !spot->data || !res)
-        return svp_fail(SVP_ERR_INVALID, "spot fit: spot image and result are required");
-    svp_spot_options o;
-    if (options)
-        o = *options;
-    else
-        svp_spot_defaults(&o);
-    SVP_CHECK(check_spot_options(&o));
-    const int w = spot->width, h = spot->height;
-    if (w < 5 || h < 5)
-        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image is too small (at "
-                        "least 5 x 5 pixels)", w, h);
-    if (model_image) SVP_CHECK(svp_image_same_size(spot, model_image, "spot", "model image"));
-    if (residual) SVP_CHECK(svp_image_same_size(spot, residual, "spot", "residual image"));
-    memset(res, 0, sizeof *res);
-    res->model = o.model;
+/* axis ratio up to e^2.5 ≈ 12 */
+#define SPOT_E_MAX 2.5
 
-    svp_status st = SVP_OK;
-    spot_work sw;
-    memset(&sw, 0, sizeof sw);
-    sw.w = w;
-    sw.h = h;
-    sw.N = (size_t)w * h;
-    const size_t N = sw.N;
-    const double *data = spot->data;
-    sw.use = calloc(N, 1);
-    sw.integrate = calloc(N, 1);
-    sw.index = malloc(N * sizeof(int));
-    sw.y = malloc(N * sizeof(double));
-    sw.scratch = malloc(N * sizeof(double));
-    if (!sw.use || !sw.integrate || !sw.index || !sw.y || !sw.scratch) {
-        st = svp_fail(SVP_ERR_NOMEM, "spot fit: out of memory for a %d x %d image", w, h);
-        goto cleanup;
-    }
+/* Stage 1: the work arrays, and the finite pixels as the first mask. */
+static svp_status spot_prepare(spot_work *sw, const svp_image *spot)
+{
+    const int w = spot->width, h = spot->height;
+    sw->w = w;
+    sw->h = h;
+    sw->N = (size_t)w * h;
+    sw->data = spot->data;
+    const size_t N = sw->N;
+    sw->use = calloc(N, 1);
+    sw->integrate = calloc(N, 1);
+    sw->index = malloc(N * sizeof(int));
+    sw->y = malloc(N * sizeof(double));
+    sw->scratch = malloc(N * sizeof(double));
+    if (!sw->use || !sw->integrate || !sw->index || !sw->y || !sw->scratch)
+        return svp_fail(SVP_ERR_NOMEM, "spot fit: out of memory for a %d x %d image", w, h);
     size_t n_finite = 0;
     for (size_t i = 0; i < N; i++) {
-        sw.use[i] = isfinite(data[i]) != 0;
-        n_finite += sw.use[i];
+        sw->use[i] = isfinite(sw->data[i]) != 0;
+        n_finite += sw->use[i];
     }
-    if (n_finite < 25) {
-        st = svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image has %zu finite "
-                      "pixels (at least 25 needed)", w, h, n_finite);
-        goto cleanup;
-    }
+    if (n_finite < 25)
+        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image has %zu finite "
+                        "pixels (at least 25 needed)", w, h, n_finite);
+    return SVP_OK;
+}
 
-    /* Background and its noise from the border ring (median, MAD). */
+/* Stage 2: background and its noise from the border ring (median, MAD). */
+static void spot_background(spot_work *sw, const svp_spot_options *o)
+{
+    const int w = sw->w, h = sw->h;
+    const double *data = sw->data;
     int ring = (w < h ? w : h) / 10;
     if (ring < 1) ring = 1;
     size_t nb = 0;
@@ -1047,69 +411,89 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
         for (int x = 0; x < w; x++) {
             if (x >= ring && x < w - ring && y >= ring && y < h - ring) continue;
             double v = data[(size_t)y * w + x];
-            if (isfinite(v)) sw.scratch[nb++] = v;
+            if (isfinite(v)) sw->scratch[nb++] = v;
         }
     if (nb < 4) {
-        for (size_t i = 0; i < N; i++)
-            if (sw.use[i]) sw.scratch[nb++] = data[i];
+        for (size_t i = 0; i < sw->N; i++)
+            if (sw->use[i]) sw->scratch[nb++] = data[i];
     }
-    double bg0 = svp_median(sw.scratch, nb);
-    for (size_t i = 0; i < nb; i++) sw.scratch[i] = fabs(sw.scratch[i] - bg0);
-    double sigma_mad = 1.4826 * svp_median(sw.scratch, nb);
-    const int known_noise = o.noise.gain > 0 || o.noise.sigma_bg > 0 || o.noise.excess > 0;
-    double var_bg = known_noise ? svp_noise_variance(&o.noise, bg0) : sigma_mad * sigma_mad;
+    double bg0 = svp_median(sw->scratch, nb);
+    for (size_t i = 0; i < nb; i++) sw->scratch[i] = fabs(sw->scratch[i] - bg0);
+    double sigma_mad = 1.4826 * svp_median(sw->scratch, nb);
+    sw->bg0 = bg0;
+    sw->sigma_mad = sigma_mad;
+    sw->known_noise = o->noise.gain > 0 || o->noise.sigma_bg > 0 || o->noise.excess > 0;
+    sw->var_bg = sw->known_noise ? svp_noise_variance(&o->noise, bg0) : sigma_mad * sigma_mad;
+}
 
-    /* Saturation: a given level, or a plateau of >= 3 pixels equal to the maximum. */
+/* Stage 3: saturation: a given level, or a plateau of >= 3 pixels equal to the maximum. */
+static void spot_exclude_saturated(spot_work *sw, const svp_spot_options *o, svp_spot_result *res)
+{
+    const size_t N = sw->N;
+    const double *data = sw->data;
     double vmax = -INFINITY;
     for (size_t i = 0; i < N; i++)
-        if (sw.use[i] && data[i] > vmax) vmax = data[i];
+        if (sw->use[i] && data[i] > vmax) vmax = data[i];
     double sat_level = INFINITY;
-    if (o.saturation > 0) {
-        sat_level = o.saturation;
-    } else if (o.saturation == 0) {
+    if (o->saturation > 0) {
+        sat_level = o->saturation;
+    } else if (o->saturation == 0) {
         int n_max = 0;
         for (size_t i = 0; i < N; i++)
-            if (sw.use[i] && data[i] == vmax) n_max++;
-        if (n_max >= 3 && vmax > bg0 + o.min_snr * sqrt(var_bg)) sat_level = vmax;
+            if (sw->use[i] && data[i] == vmax) n_max++;
+        if (n_max >= 3 && vmax > sw->bg0 + o->min_snr * sqrt(sw->var_bg)) sat_level = vmax;
     }
     for (size_t i = 0; i < N; i++)
-        if (sw.use[i] && data[i] >= sat_level) {
-            sw.use[i] = 0;
+        if (sw->use[i] && data[i] >= sat_level) {
+            sw->use[i] = 0;
             res->n_saturated++;
         }
+    sw->sat_level = sat_level;
+}
 
-    /* Hot pixels: far above the brightest of their 8 neighbours, by ratio and significance. */
-    if (o.hot_pixels) {
-        for (int y = 0; y < h; y++)
-            for (int x = 0; x < w; x++) {
-                size_t i = (size_t)y * w + x;
-                if (!sw.use[i]) continue;
-                double nbmax = -INFINITY;
-                int count = 0;
-                for (int dy = -1; dy <= 1; dy++)
-                    for (int dx = -1; dx <= 1; dx++) {
-                        int xx = x + dx, yy = y + dy;
-                        if ((dx == 0 && dy == 0) || xx < 0 || yy < 0 || xx >= w || yy >= h)
-                            continue;
-                        double v = data[(size_t)yy * w + xx];
-                        if (!isfinite(v)) continue;
-                        if (v > nbmax) nbmax = v;
-                        count++;
-                    }
-                if (count < 3) continue;
-                double v = data[i];
-                double sig = known_noise ? sqrt(svp_noise_variance(&o.noise, nbmax))
-                                         : sigma_mad;
-                if (v - bg0 > o.hot_ratio * fmax(nbmax - bg0, 0.0) &&
-                    v - nbmax > o.hot_sigma * sig) {
-                    sw.scratch[res->n_hot] = (double)i; /* mark after the scan */
-                    res->n_hot++;
+/* Stage 4: hot pixels: far above the brightest of their 8 neighbours, by ratio and
+ * significance. */
+static void spot_exclude_hot(spot_work *sw, const svp_spot_options *o, svp_spot_result *res)
+{
+    const int w = sw->w, h = sw->h;
+    const double *data = sw->data;
+    const double bg0 = sw->bg0;
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            size_t i = (size_t)y * w + x;
+            if (!sw->use[i]) continue;
+            double nbmax = -INFINITY;
+            int count = 0;
+            for (int dy = -1; dy <= 1; dy++)
+                for (int dx = -1; dx <= 1; dx++) {
+                    int xx = x + dx, yy = y + dy;
+                    if ((dx == 0 && dy == 0) || xx < 0 || yy < 0 || xx >= w || yy >= h)
+                        continue;
+                    double v = data[(size_t)yy * w + xx];
+                    if (!isfinite(v)) continue;
+                    if (v > nbmax) nbmax = v;
+                    count++;
                 }
+            if (count < 3) continue;
+            double v = data[i];
+            double sig = sw->known_noise ? sqrt(svp_noise_variance(&o->noise, nbmax))
+                                         : sw->sigma_mad;
+            if (v - bg0 > o->hot_ratio * fmax(nbmax - bg0, 0.0) &&
+                v - nbmax > o->hot_sigma * sig) {
+                sw->scratch[res->n_hot] = (double)i; /* mark after the scan */
+                res->n_hot++;
             }
-        for (int k = 0; k < res->n_hot; k++) sw.use[(size_t)sw.scratch[k]] = 0;
-    }
+        }
+    for (int k = 0; k < res->n_hot; k++) sw->use[(size_t)sw->scratch[k]] = 0;
+}
 
-    /* The peak: the brightest 3×3 mean of used pixels. */
+/* Stage 5: the peak, the brightest 3×3 mean of used pixels; an error when it does not stand
+ * min_snr above the background. */
+static svp_status spot_find_peak(const spot_work *sw, const svp_spot_options *o, int *px_out,
+                                 int *py_out)
+{
+    const int w = sw->w, h = sw->h;
+    const double *data = sw->data;
     double peak3 = -INFINITY;
     int px = -1, py = -1;
     for (int y = 0; y < h; y++)
@@ -1121,7 +505,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
                     int xx = x + dx, yy = y + dy;
                     if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
                     size_t j = (size_t)yy * w + xx;
-                    if (!sw.use[j]) continue;
+                    if (!sw->use[j]) continue;
                     s += data[j];
                     c++;
                 }
@@ -1131,35 +515,44 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
                 py = y;
             }
         }
-    double snr = (peak3 - bg0) / sqrt(var_bg / 9.0);
-    if (px < 0 || !(peak3 - bg0 > 0) || !(snr >= o.min_snr)) {
-        st = svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d image holds no spot: its "
-                      "brightest 3x3 mean stands %.2g sigma above the background %.6g (at "
-                      "least min_snr = %g needed)", w, h, isfinite(snr) ? snr : 0.0, bg0,
-                      o.min_snr);
-        goto cleanup;
-    }
+    const double bg0 = sw->bg0;
+    double snr = (peak3 - bg0) / sqrt(sw->var_bg / 9.0);
+    if (px < 0 || !(peak3 - bg0 > 0) || !(snr >= o->min_snr))
+        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d image holds no spot: its "
+                        "brightest 3x3 mean stands %.2g sigma above the background %.6g (at "
+                        "least min_snr = %g needed)", w, h, isfinite(snr) ? snr : 0.0, bg0,
+                        o->min_snr);
+    *px_out = px;
+    *py_out = py;
+    return SVP_OK;
+}
 
-    /* Initial guess from moments. */
-    double t[N_SPOT_PARAMS];
+/* Stage 6: the starting parameters from moments around the peak (px, py). */
+static void spot_start(const spot_work *sw, const svp_spot_options *o, int px, int py,
+                       int n_saturated, double t[N_SPOT_PARAMS])
+{
+    const int w = sw->w, h = sw->h;
+    const size_t N = sw->N;
+    const double *data = sw->data;
+    const double bg0 = sw->bg0;
     double amp0 = -INFINITY;
     for (int dy = -1; dy <= 1; dy++)
         for (int dx = -1; dx <= 1; dx++) {
             int xx = px + dx, yy = py + dy;
             if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
             size_t j = (size_t)yy * w + xx;
-            if (sw.use[j] && data[j] > amp0) amp0 = data[j];
+            if (sw->use[j] && data[j] > amp0) amp0 = data[j];
         }
     amp0 -= bg0;
     /* a saturated peak is at least the saturation level (only when pixels were cut: a level
      * above every pixel says nothing about the peak and must not move the start) */
-    if (isfinite(sat_level) && res->n_saturated > 0) amp0 = fmax(amp0, sat_level - bg0);
+    if (isfinite(sw->sat_level) && n_saturated > 0) amp0 = fmax(amp0, sw->sat_level - bg0);
     int n_half = 0;
     for (size_t i = 0; i < N; i++)
         if (isfinite(data[i]) && data[i] - bg0 >= 0.5 * amp0) n_half++;
     double F0 = sqrt(4.0 * n_half / M_PI);
     F0 = fmin(fmax(F0, 1.0), 0.5 * (w < h ? w : h));
-    double cx = isfinite(o.x0) ? o.x0 : px, cy = isfinite(o.y0) ? o.y0 : py;
+    double cx = isfinite(o->x0) ? o->x0 : px, cy = isfinite(o->y0) ? o->y0 : py;
     {
         double R = fmax(2.0, 1.5 * F0), s0 = 0, sx = 0, sy = 0;
         for (int pass = 0; pass < 2; pass++) {
@@ -1169,7 +562,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
                 for (int x = 0; x < w; x++) {
                     size_t i = (size_t)y * w + x;
                     double dx = x - cx, dy = y - cy;
-                    if (!sw.use[i] || dx * dx + dy * dy > R * R) continue;
+                    if (!sw->use[i] || dx * dx + dy * dy > R * R) continue;
                     double v = data[i] - bg0;
                     if (v <= 0) continue;
                     s0 += v;
@@ -1182,7 +575,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
             if (!(s0 > 0)) break;
             double mx = sx / s0, my = sy / s0;
             double mxx = sxx / s0 - mx * mx, myy = syy / s0 - my * my, mxy = sxy / s0 - mx * my;
-            if (pass == 0 && !isfinite(o.x0)) {
+            if (pass == 0 && !isfinite(o->x0)) {
                 cx += mx;
                 cy += my;
                 continue;
@@ -1202,11 +595,15 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     t[P_X0] = fmin(fmax(cx, 0.0), w - 1.0);
     t[P_Y0] = fmin(fmax(cy, 0.0), h - 1.0);
     t[P_FWHM] = F0;
-    t[P_BETA] = o.model == SVP_PSF_MOFFAT ? o.beta : o.model == SVP_PSF_LORENTZIAN ? 1.0 : 0.0;
+    t[P_BETA] = o->model == SVP_PSF_MOFFAT ? o->beta : o->model == SVP_PSF_LORENTZIAN ? 1.0 : 0.0;
     t[P_BG] = bg0;
-    if (!o.elliptical) t[P_E1] = t[P_E2] = 0;
+    if (!o->elliptical) t[P_E1] = t[P_E2] = 0;
+}
 
-    double lo[N_SPOT_PARAMS], hi[N_SPOT_PARAMS];
+/* Stage 7: the parameters' bounds (β fixed at its start unless a free Moffat). */
+static void spot_bounds(const svp_spot_options *o, int w, int h, const double *t, double *lo,
+                        double *hi)
+{
     lo[P_AMP] = 0;
     hi[P_AMP] = INFINITY;
     lo[P_X0] = -0.5;
@@ -1215,98 +612,105 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     hi[P_Y0] = h - 0.5;
     lo[P_FWHM] = 0.3;
     hi[P_FWHM] = 2.0 * (w > h ? w : h);
-    const double e_max = 2.5; /* axis ratio up to e^2.5 ≈ 12 */
-    lo[P_E1] = lo[P_E2] = o.elliptical ? -e_max : 0.0;
-    hi[P_E1] = hi[P_E2] = o.elliptical ? e_max : 0.0;
-    if (o.model == SVP_PSF_MOFFAT && !o.fix_beta) {
-        lo[P_BETA] = o.beta_min;
-        hi[P_BETA] = o.beta_max;
+    lo[P_E1] = lo[P_E2] = o->elliptical ? -SPOT_E_MAX : 0.0;
+    hi[P_E1] = hi[P_E2] = o->elliptical ? SPOT_E_MAX : 0.0;
+    if (o->model == SVP_PSF_MOFFAT && !o->fix_beta) {
+        lo[P_BETA] = o->beta_min;
+        hi[P_BETA] = o->beta_max;
     } else {
         lo[P_BETA] = hi[P_BETA] = t[P_BETA];
     }
     lo[P_BG] = -INFINITY;
     hi[P_BG] = INFINITY;
+}
 
-    st = svp_lm_workspace_new(N_SPOT_PARAMS, (int)N, &sw.ws);
-    if (st != SVP_OK) goto cleanup;
-    spot_model sm;
-    memset(&sm, 0, sizeof sm);
-    sm.model = o.model;
-    sm.width = w;
-    sm.integrate = sw.integrate;
+/* Stage 8b: κ-σ clipping of the normalised residuals z of the last fit, worst first: only
+ * pixels above max(κ, max|z| / 2) go in one round, so one spike cannot drag good pixels out
+ * with it. Many moderate outliers mean the model does not fit (POOR_FIT), not that pixels are
+ * bad: then nothing is clipped. Returns 1 when pixels were removed (fit again). */
+static int spot_clip(spot_work *sw, const svp_spot_options *o, const svp_lm_result *lmr,
+                     svp_spot_result *res)
+{
+    const int m = svp_lm_n_points(sw->ws);
+    const double *r = svp_lm_residuals(sw->ws); /* √w (f − y) */
+    double scale = sw->known_noise ? 1.0 : sqrt(fmax(lmr->chi2_red, 1e-300));
+    double zmax = 0;
+    int n_out = 0;
+    for (int k = 0; k < m; k++) {
+        double z = fabs(r[k]) / scale;
+        zmax = fmax(zmax, z);
+        n_out += z > o->clip_kappa;
+    }
+    int systematic = n_out > 5 && n_out > m / 50 && zmax < 4 * o->clip_kappa;
+    if (n_out == 0 || systematic) return 0;
+    double thr = fmax(o->clip_kappa, 0.5 * zmax);
+    int removed = 0;
+    for (int k = 0; k < m; k++) removed += fabs(r[k]) / scale > thr;
+    if (m - removed < 2 * N_SPOT_PARAMS) return 0;
+    for (int k = 0; k < m; k++)
+        if (fabs(r[k]) / scale > thr) sw->use[sw->index[k]] = 0;
+    res->n_clipped += removed;
+    return 1;
+}
+
+/* Stage 8: the fit, repeated while the quadrature is refined or pixels are clipped; then,
+ * when β crawled along its bound (the sin transform flattens there) until the iterations ran
+ * out, once more with β held at the bound. Returns the LM status (OK or NUMERIC) in *fit_st,
+ * a hard error as the result. */
+static svp_status spot_fit_loop(spot_work *sw, spot_model *sm, const svp_spot_options *o,
+                                double *t, double *lo, double *hi, svp_lm_result *lmr,
+                                double *cov, svp_spot_result *res, svp_status *fit_st_out,
+                                int *beta_pinned)
+{
+    const int w = sw->w, h = sw->h;
     int order = 2;
-    if (o.pixel_integration && t[P_FWHM] * exp(-0.5 * hypot(t[P_E1], t[P_E2])) < 2.0)
+    if (o->pixel_integration && t[P_FWHM] * exp(-0.5 * hypot(t[P_E1], t[P_E2])) < 2.0)
         order = 4;
-    set_quadrature(&sm, order);
-    mark_integration(sw.integrate, w, h, t, o.pixel_integration);
+    set_quadrature(sm, order);
+    mark_integration(sw->integrate, w, h, t, o->pixel_integration);
 
-    svp_lm_result lmr;
-    double cov[N_SPOT_PARAMS * N_SPOT_PARAMS];
     svp_status fit_st = SVP_OK;
     int clip_rounds = 0;
     for (;;) {
-        fit_st = spot_solve(&sw, &sm, &o, lo, hi, known_noise, t, &lmr, cov, data);
-        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC) {
-            st = svp_fail_context(fit_st, "spot fit");
-            goto cleanup;
-        }
+        fit_st = spot_solve(sw, sm, o, lo, hi, sw->known_noise, t, lmr, cov, sw->data);
+        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC)
+            return svp_fail_context(fit_st, "spot fit");
         int refit = 0;
         /* A narrow result needs the finer quadrature (switched once, never back). */
         double fmin_fit = t[P_FWHM] * exp(-0.5 * hypot(t[P_E1], t[P_E2]));
-        if (o.pixel_integration && order == 2 && fmin_fit < 2.0) {
+        if (o->pixel_integration && order == 2 && fmin_fit < 2.0) {
             order = 4;
-            set_quadrature(&sm, order);
+            set_quadrature(sm, order);
             refit = 1;
         }
-        /* κ-σ clipping of the normalised residuals z of the last fit, worst first: only
-         * pixels above max(κ, max|z| / 2) go in one round, so one spike cannot drag good
-         * pixels out with it. Many moderate outliers mean the model does not fit (POOR_FIT),
-         * not that pixels are bad: then nothing is clipped. */
-        if (o.clip_kappa > 0 && clip_rounds < o.clip_iterations && fit_st == SVP_OK) {
-            const svp_lm_workspace *ws = sw.ws;
-            double scale = known_noise ? 1.0 : sqrt(fmax(lmr.chi2_red, 1e-300));
-            double zmax = 0;
-            int n_out = 0;
-            for (int k = 0; k < ws->m; k++) {
-                double z = fabs(ws->r[k]) / scale; /* r = √w (f − y) */
-                zmax = fmax(zmax, z);
-                n_out += z > o.clip_kappa;
-            }
-            int systematic = n_out > 5 && n_out > ws->m / 50 && zmax < 4 * o.clip_kappa;
-            if (n_out > 0 && !systematic) {
-                double thr = fmax(o.clip_kappa, 0.5 * zmax);
-                int removed = 0;
-                for (int k = 0; k < ws->m; k++) removed += fabs(ws->r[k]) / scale > thr;
-                if (ws->m - removed >= 2 * N_SPOT_PARAMS) {
-                    for (int k = 0; k < ws->m; k++)
-                        if (fabs(ws->r[k]) / scale > thr) sw.use[sw.index[k]] = 0;
-                    res->n_clipped += removed;
-                    clip_rounds++;
-                    refit = 1;
-                }
-            }
+        if (o->clip_kappa > 0 && clip_rounds < o->clip_iterations && fit_st == SVP_OK &&
+            spot_clip(sw, o, lmr, res)) {
+            clip_rounds++;
+            refit = 1;
         }
         if (!refit) break;
-        mark_integration(sw.integrate, w, h, t, o.pixel_integration);
+        mark_integration(sw->integrate, w, h, t, o->pixel_integration);
     }
 
-    /* β crawling along its bound (the sin transform flattens there) can exhaust the
-     * iterations: finish with β held at the bound, and say so. */
-    int beta_pinned = 0;
-    if (fit_st == SVP_ERR_NUMERIC && o.model == SVP_PSF_MOFFAT && !o.fix_beta &&
-        (t[P_BETA] <= 1.02 * o.beta_min || t[P_BETA] >= 0.98 * o.beta_max)) {
-        double bound = t[P_BETA] <= 1.02 * o.beta_min ? o.beta_min : o.beta_max;
+    *beta_pinned = 0;
+    if (fit_st == SVP_ERR_NUMERIC && o->model == SVP_PSF_MOFFAT && !o->fix_beta &&
+        (t[P_BETA] <= 1.02 * o->beta_min || t[P_BETA] >= 0.98 * o->beta_max)) {
+        double bound = t[P_BETA] <= 1.02 * o->beta_min ? o->beta_min : o->beta_max;
         lo[P_BETA] = hi[P_BETA] = t[P_BETA] = bound;
-        fit_st = spot_solve(&sw, &sm, &o, lo, hi, known_noise, t, &lmr, cov, data);
-        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC) {
-            st = svp_fail_context(fit_st, "spot fit");
-            goto cleanup;
-        }
-        beta_pinned = 1;
+        fit_st = spot_solve(sw, sm, o, lo, hi, sw->known_noise, t, lmr, cov, sw->data);
+        if (fit_st != SVP_OK && fit_st != SVP_ERR_NUMERIC)
+            return svp_fail_context(fit_st, "spot fit");
+        *beta_pinned = 1;
         cov[P_BETA * 9] = INFINITY;
     }
+    *fit_st_out = fit_st;
+    return SVP_OK;
+}
 
-    /* Results. */
+/* Stage 9: the reported parameters and their 1σ errors from the fit's (t, cov). */
+static void spot_results(const svp_spot_options *o, const double *t, const double *cov,
+                         svp_spot_result *res)
+{
     const double F = t[P_FWHM], g1 = t[P_E1], g2 = t[P_E2], g = hypot(g1, g2);
     res->amplitude = t[P_AMP];
     res->x0 = t[P_X0];
@@ -1328,97 +732,161 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     }
     res->e1 = tau * g1;
     res->e2 = tau * g2;
-    res->beta = o.model == SVP_PSF_GAUSSIAN ? 0.0 : t[P_BETA];
+    res->beta = o->model == SVP_PSF_GAUSSIAN ? 0.0 : t[P_BETA];
     res->background = t[P_BG];
-    memcpy(res->covariance, cov, sizeof cov);
-    {
-        const double *C = cov;
-        double grad[N_SPOT_PARAMS];
-        res->amplitude_err = sqrt_or_inf(C[P_AMP * 9]);
-        res->x0_err = sqrt_or_inf(C[P_X0 * 9]);
-        res->y0_err = sqrt_or_inf(C[P_Y0 * 9]);
-        memset(grad, 0, sizeof grad);
-        grad[P_FWHM] = cosh(0.5 * g);
-        if (g > 0) {
-            grad[P_E1] = 0.5 * F * sinh(0.5 * g) * g1 / g;
-            grad[P_E2] = 0.5 * F * sinh(0.5 * g) * g2 / g;
-        }
-        res->fwhm_err = sqrt_or_inf(propagate(C, grad));
-        memset(grad, 0, sizeof grad);
-        grad[P_E1] = tau + g1 * g1 * dtau_g;
-        grad[P_E2] = g1 * g2 * dtau_g;
-        res->e1_err = sqrt_or_inf(propagate(C, grad));
-        memset(grad, 0, sizeof grad);
-        grad[P_E1] = g1 * g2 * dtau_g;
-        grad[P_E2] = tau + g2 * g2 * dtau_g;
-        res->e2_err = sqrt_or_inf(propagate(C, grad));
-        res->beta_err = sqrt_or_inf(C[P_BETA * 9]);
-        res->background_err = sqrt_or_inf(C[P_BG * 9]);
-        double ux = g > 0 ? g1 / g : M_SQRT1_2, uy = g > 0 ? g2 / g : M_SQRT1_2;
-        for (int s = 0; s < 2; s++) {
-            double sign = s == 0 ? 1.0 : -1.0;
-            double fa = s == 0 ? res->fwhm_major : res->fwhm_minor;
-            memset(grad, 0, sizeof grad);
-            grad[P_FWHM] = fa / F;
-            grad[P_E1] = sign * 0.5 * fa * ux;
-            grad[P_E2] = sign * 0.5 * fa * uy;
-            double e = sqrt_or_inf(propagate(C, grad));
-            if (s == 0)
-                res->fwhm_major_err = e;
-            else
-                res->fwhm_minor_err = e;
-        }
-        memset(grad, 0, sizeof grad);
-        if (g > 0) {
-            grad[P_E1] = -0.5 * g2 / (g * g);
-            grad[P_E2] = 0.5 * g1 / (g * g);
-            res->angle_err = sqrt_or_inf(propagate(C, grad));
-        } else {
-            res->angle_err = INFINITY;
-        }
-        if (!o.elliptical) res->angle_err = 0;
-        /* r0 (σ for a Gaussian) and ∂r0/∂β = r0 kβ / 2 from the fitted shape (kβ = 0 Gaussian) */
-        spot_shape sh;
-        spot_shape_setup(o.model, t, &sh);
-        memset(grad, 0, sizeof grad);
-        res->r0 = svp_psf_fwhm_to_r0(F, sh.beta);
-        grad[P_FWHM] = res->r0 / F;
-        grad[P_BETA] = 0.5 * res->r0 * sh.kbeta;
-        res->r0_err = sqrt_or_inf(propagate(C, grad));
+    memcpy(res->covariance, cov, sizeof res->covariance);
+    const double *C = cov;
+    double grad[N_SPOT_PARAMS];
+    res->amplitude_err = sqrt_or_inf(C[P_AMP * 9]);
+    res->x0_err = sqrt_or_inf(C[P_X0 * 9]);
+    res->y0_err = sqrt_or_inf(C[P_Y0 * 9]);
+    memset(grad, 0, sizeof grad);
+    grad[P_FWHM] = cosh(0.5 * g);
+    if (g > 0) {
+        grad[P_E1] = 0.5 * F * sinh(0.5 * g) * g1 / g;
+        grad[P_E2] = 0.5 * F * sinh(0.5 * g) * g2 / g;
     }
-    res->chi2 = lmr.chi2;
-    res->chi2_red = lmr.chi2_red;
-    res->dof = lmr.dof;
-    res->iterations = lmr.iterations;
-    res->n_used = sw.ws->m;
+    res->fwhm_err = sqrt_or_inf(propagate(C, grad));
+    memset(grad, 0, sizeof grad);
+    grad[P_E1] = tau + g1 * g1 * dtau_g;
+    grad[P_E2] = g1 * g2 * dtau_g;
+    res->e1_err = sqrt_or_inf(propagate(C, grad));
+    memset(grad, 0, sizeof grad);
+    grad[P_E1] = g1 * g2 * dtau_g;
+    grad[P_E2] = tau + g2 * g2 * dtau_g;
+    res->e2_err = sqrt_or_inf(propagate(C, grad));
+    res->beta_err = sqrt_or_inf(C[P_BETA * 9]);
+    res->background_err = sqrt_or_inf(C[P_BG * 9]);
+    double ux = g > 0 ? g1 / g : M_SQRT1_2, uy = g > 0 ? g2 / g : M_SQRT1_2;
+    for (int s = 0; s < 2; s++) {
+        double sign = s == 0 ? 1.0 : -1.0;
+        double fa = s == 0 ? res->fwhm_major : res->fwhm_minor;
+        memset(grad, 0, sizeof grad);
+        grad[P_FWHM] = fa / F;
+        grad[P_E1] = sign * 0.5 * fa * ux;
+        grad[P_E2] = sign * 0.5 * fa * uy;
+        double e = sqrt_or_inf(propagate(C, grad));
+        if (s == 0)
+            res->fwhm_major_err = e;
+        else
+            res->fwhm_minor_err = e;
+    }
+    memset(grad, 0, sizeof grad);
+    if (g > 0) {
+        grad[P_E1] = -0.5 * g2 / (g * g);
+        grad[P_E2] = 0.5 * g1 / (g * g);
+        res->angle_err = sqrt_or_inf(propagate(C, grad));
+    } else {
+        res->angle_err = INFINITY;
+    }
+    if (!o->elliptical) res->angle_err = 0;
+    /* r0 (σ for a Gaussian) and ∂r0/∂β = r0 kβ / 2 from the fitted shape (kβ = 0 Gaussian) */
+    spot_shape sh;
+    spot_shape_setup(o->model, t, &sh);
+    memset(grad, 0, sizeof grad);
+    res->r0 = svp_psf_fwhm_to_r0(F, sh.beta);
+    grad[P_FWHM] = res->r0 / F;
+    grad[P_BETA] = 0.5 * res->r0 * sh.kbeta;
+    res->r0_err = sqrt_or_inf(propagate(C, grad));
+}
+
+/* Stage 10: fit statistics and the flags. */
+static void spot_flags(const spot_work *sw, const svp_spot_options *o, const double *t,
+                       const double *lo, const double *hi, const svp_lm_result *lmr,
+                       svp_status fit_st, int beta_pinned, svp_spot_result *res)
+{
+    const int w = sw->w, h = sw->h;
+    const double F = t[P_FWHM], g = hypot(t[P_E1], t[P_E2]);
+    res->chi2 = lmr->chi2;
+    res->chi2_red = lmr->chi2_red;
+    res->dof = lmr->dof;
+    res->iterations = lmr->iterations;
+    res->n_used = svp_lm_n_points(sw->ws);
     double bd = fmin(fmin(res->x0 + 0.5, w - 0.5 - res->x0), fmin(res->y0 + 0.5, h - 0.5 - res->y0));
     res->border_distance = bd;
     if (fit_st == SVP_ERR_NUMERIC) res->flags |= SVP_SPOT_NOT_CONVERGED;
-    if (bd < o.border_fwhm * res->fwhm_major) res->flags |= SVP_SPOT_NEAR_BORDER;
+    if (bd < o->border_fwhm * res->fwhm_major) res->flags |= SVP_SPOT_NEAR_BORDER;
     if (res->n_saturated) res->flags |= SVP_SPOT_SATURATED;
     if (res->n_hot) res->flags |= SVP_SPOT_HOT_PIXELS;
     if (res->n_clipped) res->flags |= SVP_SPOT_CLIPPED;
-    if (!lmr.covariance_ok) res->flags |= SVP_SPOT_NO_ERRORS;
-    if (o.model == SVP_PSF_MOFFAT && !o.fix_beta &&
-        (beta_pinned || (lmr.at_bound >> P_BETA & 1) || t[P_BETA] <= 1.02 * o.beta_min ||
-         t[P_BETA] >= 0.98 * o.beta_max))
+    if (!lmr->covariance_ok) res->flags |= SVP_SPOT_NO_ERRORS;
+    if (o->model == SVP_PSF_MOFFAT && !o->fix_beta &&
+        (beta_pinned || (lmr->at_bound >> P_BETA & 1) || t[P_BETA] <= 1.02 * o->beta_min ||
+         t[P_BETA] >= 0.98 * o->beta_max))
         res->flags |= SVP_SPOT_BETA_AT_BOUND;
-    if ((lmr.at_bound >> P_FWHM & 1) || F <= 1.02 * lo[P_FWHM] || F >= 0.98 * hi[P_FWHM] ||
-        g >= 0.98 * e_max)
+    if ((lmr->at_bound >> P_FWHM & 1) || F <= 1.02 * lo[P_FWHM] || F >= 0.98 * hi[P_FWHM] ||
+        g >= 0.98 * SPOT_E_MAX)
         res->flags |= SVP_SPOT_WIDTH_AT_BOUND;
-    if (known_noise && res->chi2_red > o.chi2_red_max) res->flags |= SVP_SPOT_POOR_FIT;
+    if (sw->known_noise && res->chi2_red > o->chi2_red_max) res->flags |= SVP_SPOT_POOR_FIT;
+}
 
-    /* Encircled energy within a disc (the flux of β ≤ 1 diverges over the plane). */
-    res->ee_radius = o.ee_radius > 0 ? o.ee_radius : 0.5 * (w < h ? w : h);
-    {
-        svp_psf psf;
-        svp_spot_result_psf(res, &psf);
-        const double fr[3] = {0.5, 0.8, 0.95};
-        double *dst[3] = {&res->ee50, &res->ee80, &res->ee95};
-        for (int k = 0; k < 3; k++)
-            if (svp_psf_encircled_radius(&psf, fr[k], res->ee_radius, dst[k]) != SVP_OK)
-                *dst[k] = 0;
-    }
+/* Stage 11: encircled energy within a disc (the flux of β ≤ 1 diverges over the plane). */
+static void spot_encircled(const svp_spot_options *o, int w, int h, svp_spot_result *res)
+{
+    res->ee_radius = o->ee_radius > 0 ? o->ee_radius : 0.5 * (w < h ? w : h);
+    svp_psf psf;
+    svp_spot_result_psf(res, &psf);
+    const double fr[3] = {0.5, 0.8, 0.95};
+    double *dst[3] = {&res->ee50, &res->ee80, &res->ee95};
+    for (int k = 0; k < 3; k++)
+        if (svp_psf_encircled_radius(&psf, fr[k], res->ee_radius, dst[k]) != SVP_OK) *dst[k] = 0;
+}
+
+/* The fit, stage by stage; used_out (may be NULL, else w·h bytes) receives 1 for the pixels
+ * of the final fit, 0 for the excluded ones (non-finite, saturated, hot, clipped). */
+static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *options,
+                                svp_spot_result *res, svp_image *model_image,
+                                svp_image *residual, unsigned char *used_out)
+{
+    if (!spot || !spot->data || !res)
+        return svp_fail(SVP_ERR_INVALID, "spot fit: spot image and result are required");
+    svp_spot_options o;
+    if (options)
+        o = *options;
+    else
+        svp_spot_defaults(&o);
+    SVP_CHECK(check_spot_options(&o));
+    const int w = spot->width, h = spot->height;
+    if (w < 5 || h < 5)
+        return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image is too small (at "
+                        "least 5 x 5 pixels)", w, h);
+    if (model_image) SVP_CHECK(svp_image_same_size(spot, model_image, "spot", "model image"));
+    if (residual) SVP_CHECK(svp_image_same_size(spot, residual, "spot", "residual image"));
+    memset(res, 0, sizeof *res);
+    res->model = o.model;
+
+    spot_work sw;
+    memset(&sw, 0, sizeof sw);
+    const size_t N = (size_t)w * h;
+    const double *data = spot->data;
+    double t[N_SPOT_PARAMS], lo[N_SPOT_PARAMS], hi[N_SPOT_PARAMS];
+    double cov[N_SPOT_PARAMS * N_SPOT_PARAMS];
+    svp_lm_result lmr;
+    spot_model sm;
+    memset(&sm, 0, sizeof sm);
+    svp_status fit_st = SVP_OK;
+    int px = -1, py = -1, beta_pinned = 0;
+    svp_status st = spot_prepare(&sw, spot);
+    if (st != SVP_OK) goto cleanup;
+    spot_background(&sw, &o);
+    spot_exclude_saturated(&sw, &o, res);
+    if (o.hot_pixels) spot_exclude_hot(&sw, &o, res);
+    st = spot_find_peak(&sw, &o, &px, &py);
+    if (st != SVP_OK) goto cleanup;
+    spot_start(&sw, &o, px, py, res->n_saturated, t);
+    spot_bounds(&o, w, h, t, lo, hi);
+
+    st = svp_lm_workspace_new(N_SPOT_PARAMS, (int)N, &sw.ws);
+    if (st != SVP_OK) goto cleanup;
+    sm.model = o.model;
+    sm.width = w;
+    sm.integrate = sw.integrate;
+    st = spot_fit_loop(&sw, &sm, &o, t, lo, hi, &lmr, cov, res, &fit_st, &beta_pinned);
+    if (st != SVP_OK) goto cleanup;
+
+    spot_results(&o, t, cov, res);
+    spot_flags(&sw, &o, t, lo, hi, &lmr, fit_st, beta_pinned, res);
+    spot_encircled(&o, w, h, res);
 
     if (model_image || residual) {
         for (size_t i = 0; i < N; i++) sw.index[i] = (int)i; /* the fit's integration map */
@@ -1434,8 +902,9 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     if ((res->flags & SVP_SPOT_NEAR_BORDER) && o.refuse_near_border) {
         st = svp_fail(SVP_ERR_INVALID, "spot fit: the spot centre (%.2f, %.2f) lies %.2f px "
                       "from the edge of the %d x %d image, closer than %g FWHM (%.2f px): too "
-                      "little of its profile is inside the image", res->x0, res->y0, bd, w, h,
-                      o.border_fwhm, o.border_fwhm * res->fwhm_major);
+                      "little of its profile is inside the image", res->x0, res->y0,
+                      res->border_distance, w, h, o.border_fwhm,
+                      o.border_fwhm * res->fwhm_major);
         goto cleanup;
     }
     if (fit_st == SVP_ERR_NUMERIC) {
@@ -1455,23 +924,14 @@ svp_status svp_spot_fit(const svp_image *spot, const svp_spot_options *options,
     return spot_fit_impl(spot, options, res, model_image, residual, NULL);
 }
 
-/* ========================================================================================= */
-/* PSF from an excitation/emission pair (PHYSICS.md §5)                                      */
-
-void svp_pair_defaults(svp_pair_options *o)
+svp_status svp_spot_fit_used(const svp_image *spot, const svp_spot_options *options,
+                             svp_spot_result *res, unsigned char *used)
 {
-    svp_spot_defaults(&o->spot);
-    o->iterations = 75;
-    o->kernel_radius = 0.0;
-    o->kernel_from_fit = 0;
-    o->boundary = SVP_BOUNDARY_ZERO;
+    return spot_fit_impl(spot, options, res, NULL, NULL, used);
 }
 
-/* The excitation kernel: a (2R+1)² image centred on the rounded fitted centre; measured
- * (background removed, negatives 0) or the fitted model without background, inside a disc. */
-static svp_status excitation_kernel(const svp_image *ex, const svp_spot_result *fit,
-                                    const svp_spot_options *so, int R, int from_fit,
-                                    svp_image **out)
+svp_status svp_spot_kernel(const svp_image *ex, const svp_spot_result *fit,
+                           const svp_spot_options *so, int R, int from_fit, svp_image **out)
 {
     *out = NULL;
     svp_image *k = NULL;
@@ -1516,101 +976,4 @@ static svp_status excitation_kernel(const svp_image *ex, const svp_spot_result *
         }
     *out = k;
     return SVP_OK;
-}
-
-svp_status svp_psf_from_pair(const svp_image *excitation, const svp_image *emission,
-                             const svp_pair_options *options, svp_pair_result *result,
-                             svp_image *deconvolved)
-{
-    if (!excitation || !emission || !result)
-        return svp_fail(SVP_ERR_INVALID, "PSF from pair: excitation, emission and result are "
-                        "required");
-    svp_pair_options o;
-    if (options)
-        o = *options;
-    else
-        svp_pair_defaults(&o);
-    if (o.iterations < 1)
-        return svp_fail(SVP_ERR_INVALID, "PSF from pair: RL iterations must be >= 1, got %d",
-                        o.iterations);
-    if (!(o.kernel_radius >= 0) || !isfinite(o.kernel_radius))
-        return svp_fail(SVP_ERR_INVALID, "PSF from pair: kernel_radius must be >= 0, got %g",
-                        o.kernel_radius);
-    SVP_CHECK(svp_image_same_size(excitation, emission, "excitation image", "emission image"));
-    if (deconvolved)
-        SVP_CHECK(svp_image_same_size(emission, deconvolved, "emission image",
-                                      "deconvolved image"));
-    memset(result, 0, sizeof *result);
-    const int w = emission->width, h = emission->height;
-    const size_t N = (size_t)w * h;
-    svp_status st;
-    svp_image *kernel = NULL, *y = NULL, *x = NULL;
-    unsigned char *used = NULL;
-    svp_blur *blur = NULL;
-
-    st = svp_spot_fit(excitation, &o.spot, &result->excitation, NULL, NULL);
-    if (st != SVP_OK) return svp_fail_context(st, "PSF from pair: excitation spot");
-    used = malloc(N);
-    if (!used) return svp_fail(SVP_ERR_NOMEM, "PSF from pair: out of memory");
-    st = spot_fit_impl(emission, &o.spot, &result->direct, NULL, NULL, used);
-    if (st != SVP_OK) {
-        st = svp_fail_context(st, "PSF from pair: emission spot");
-        goto cleanup;
-    }
-    result->offset_x = result->direct.x0 - result->excitation.x0;
-    result->offset_y = result->direct.y0 - result->excitation.y0;
-
-    int R = (int)ceil(o.kernel_radius > 0 ? o.kernel_radius
-                                          : 3.0 * result->excitation.fwhm_major);
-    int Rmax = ((w < h ? w : h) - 1) / 2;
-    if (R > Rmax) R = Rmax;
-    if (R < 1) R = 1;
-    st = excitation_kernel(excitation, &result->excitation, &o.spot, R, o.kernel_from_fit,
-                           &kernel);
-    if (st != SVP_OK) goto cleanup;
-    st = svp_blur_new_kernel(kernel, R, R, 1, w, h, o.boundary, &blur);
-    if (st != SVP_OK) {
-        st = svp_fail_context(st, "PSF from pair: excitation kernel");
-        goto cleanup;
-    }
-
-    /* The emission spot without its background; pixels the direct fit could not use
-     * (saturated, hot, clipped, non-finite) are missing data for RL (NaN). */
-    st = svp_image_new(w, h, &y);
-    if (st == SVP_OK) st = svp_image_new(w, h, &x);
-    if (st != SVP_OK) goto cleanup;
-    for (size_t i = 0; i < N; i++)
-        y->data[i] = used[i] ? fmax(emission->data[i] - result->direct.background, 0.0) : NAN;
-    svp_deconv_options d;
-    svp_deconv_defaults(&d);
-    d.iterations = o.iterations;
-    st = svp_deconv_rl(blur, y, &d, x);
-    if (st != SVP_OK) {
-        st = svp_fail_context(st, "PSF from pair: Richardson-Lucy deconvolution of the "
-                              "emission spot by the excitation spot");
-        goto cleanup;
-    }
-    if (deconvolved) memcpy(deconvolved->data, x->data, N * sizeof(double));
-    {
-        /* The deconvolved spot is not Poisson data: unit weights, errors from the scatter. */
-        svp_spot_options so = o.spot;
-        so.noise.sigma_bg = so.noise.gain = so.noise.excess = 0.0;
-        so.saturation = -1.0;
-        so.hot_pixels = 0;
-        so.x0 = so.y0 = NAN;
-        st = svp_spot_fit(x, &so, &result->deconvolved, NULL, NULL);
-        if (st != SVP_OK) {
-            st = svp_fail_context(st, "PSF from pair: fit of the deconvolved emission spot");
-            goto cleanup;
-        }
-    }
-    result->deconvolved_ok = 1;
-    st = SVP_OK;
-cleanup:
-    svp_blur_free(blur);
-    svp_image_free(kernel);
-    svp_image_free(y);
-    svp_image_free(x);
-    free(used);
-    return st;
 }

@@ -311,6 +311,119 @@ static int choose_degree(const poly_data *d, const svp_map_options *o, double *s
     return best;
 }
 
+/* The buffers of a polynomial map (n spots). */
+typedef struct poly_work {
+    double *basis, *y, *sw, *A, *b, *zs;
+    int *idx;
+    unsigned char *mask;
+} poly_work;
+
+/* The polynomial surface of parameter q: its values and 1/σ per spot, the degree (given, or
+ * by cross-validation) and the weighted fit, repeated while outliers are clipped; then the
+ * report's degree, n_used, chi2_red and rms. */
+static svp_status poly_fit_param(const svp_psf_sample *samples, int n, const svp_map_options *op,
+                                 svp_map_report *rep, int q, poly_work *pw, double *coeffs)
+{
+    const svp_map_options o = *op;
+    const double *basis = pw->basis;
+    double *y = pw->y, *sw = pw->sw, *zs = pw->zs;
+    int *idx = pw->idx;
+    unsigned char *mask = pw->mask;
+    for (int i = 0; i < n; i++) {
+        double v[NP], e[NP];
+        sample_values(&samples[i].fit, v, e);
+        y[i] = v[q];
+        /* a floor on σ keeps one over-precise spot from owning the surface */
+        sw[i] = 1.0 / fmax(e[q], 1e-9 * fmax(fabs(v[q]), 1.0));
+    }
+    poly_data d = {0, basis, idx, y, sw, pw->A, pw->b};
+    int deg = -1;
+    for (int round = 0; round <= o.clip_iterations; round++) {
+        d.n = 0;
+        for (int i = 0; i < n; i++)
+            if (rep->reject[(size_t)i * NP + q] == SVP_MAP_KEPT) idx[d.n++] = i;
+        if (d.n < 2) {
+            int counts[5] = {0};
+            for (int i = 0; i < n; i++) counts[rep->reject[(size_t)i * NP + q]]++;
+            return svp_fail(SVP_ERR_INVALID, "PSF map: only %d of %d spots usable for %s "
+                            "(rejected: %d flagged, %d invalid, %d outside, %d outliers); at "
+                            "least 2 needed", d.n, n, param_names[q], counts[1], counts[2],
+                            counts[3], counts[4]);
+        }
+        if (o.degree >= 0) {
+            deg = o.degree;
+            while (deg > 0 && svp_psf_field_poly_terms(deg) > d.n) deg--;
+        } else {
+            deg = choose_degree(&d, &o, rep->cv_score[q], mask);
+            if (deg < 0) deg = 0;
+        }
+        int nt = svp_psf_field_poly_terms(deg);
+        memset(mask, 1, (size_t)d.n);
+        if (wls_fit(&d, mask, nt, coeffs) != 0)
+            return svp_fail(SVP_ERR_NUMERIC, "PSF map: the least-squares surface of degree %d "
+                            "for %s failed (%d spots)", deg, param_names[q], d.n);
+        if (o.clip_kappa <= 0 || round == o.clip_iterations || d.n <= nt + 1) break;
+        /* outliers: z beyond κ times the robust scale (never below 1 σ) */
+        for (int k = 0; k < d.n; k++) {
+            int i = idx[k];
+            zs[k] = fabs((y[i] - poly_eval(basis + (size_t)i * MAX_TERMS, coeffs, nt)) * sw[i]);
+        }
+        double *tmp = pw->A; /* free while not fitting */
+        memcpy(tmp, zs, (size_t)d.n * sizeof(double));
+        double scale = fmax(1.0, 1.4826 * svp_median(tmp, (size_t)d.n));
+        int removed = 0;
+        for (int k = 0; k < d.n; k++) {
+            if (zs[k] > o.clip_kappa * scale) {
+                int i = idx[k];
+                rep->reject[(size_t)i * NP + q] = SVP_MAP_REJECT_OUTLIER;
+                double res = y[i] - poly_eval(basis + (size_t)i * MAX_TERMS, coeffs, nt);
+                rep->reject_z[(size_t)i * NP + q] = res * sw[i];
+                removed++;
+            }
+        }
+        if (!removed) break;
+    }
+    rep->degree[q] = deg;
+    int nt = svp_psf_field_poly_terms(deg);
+    double chi2 = 0, ss = 0;
+    for (int k = 0; k < d.n; k++) {
+        int i = idx[k];
+        double res = y[i] - poly_eval(basis + (size_t)i * MAX_TERMS, coeffs, nt);
+        chi2 += res * res * sw[i] * sw[i];
+        ss += res * res;
+    }
+    rep->n_used[q] = d.n;
+    rep->chi2_red[q] = d.n > nt ? chi2 / (d.n - nt) : 0.0;
+    rep->rms[q] = sqrt(ss / d.n);
+    return SVP_OK;
+}
+
+/* The poly field of the fitted surfaces (every parameter at the largest degree; lower
+ * degrees are a prefix, the unmapped parameters constant). */
+static svp_status poly_field(const svp_map_report *rep, const svp_map_options *o, int width,
+                             int height, double coeffs[NP][MAX_TERMS], svp_psf_field **field)
+{
+    int dmax = 0;
+    for (int q = 0; q < NP; q++)
+        if (rep->degree[q] > dmax) dmax = rep->degree[q];
+    const int nt = svp_psf_field_poly_terms(dmax);
+    double *c = calloc((size_t)NP * nt, sizeof(double));
+    if (!c) return svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
+    for (int q = 0; q < NP; q++) {
+        if (rep->mapped[q]) {
+            /* terms are ordered by total degree: a lower degree is a prefix */
+            memcpy(c + (size_t)q * nt, coeffs[q],
+                   (size_t)svp_psf_field_poly_terms(rep->degree[q]) * sizeof(double));
+        }
+    }
+    c[(size_t)SVP_FIELD_HALO * nt] = o->halo;
+    if (!rep->mapped[SVP_FIELD_BETA]) c[(size_t)SVP_FIELD_BETA * nt] = unmapped_beta(rep);
+    const svp_psf base = map_base(rep, o);
+    svp_status st = svp_psf_field_new_poly(&base, width, height, dmax, c, field);
+    free(c);
+    return st != SVP_OK ? svp_fail_context(st, "PSF map") : SVP_OK;
+}
+
 svp_status svp_psf_map_poly(const svp_psf_sample *samples, int n, int width, int height,
                             const svp_map_options *options, svp_psf_field **field,
                             svp_map_report **report)
@@ -325,142 +438,42 @@ svp_status svp_psf_map_poly(const svp_psf_sample *samples, int n, int width, int
     SVP_CHECK(check_options(&o));
     svp_status st = SVP_OK;
     svp_map_report *rep = calloc(1, sizeof *rep);
-    double *basis = NULL, *y = NULL, *sw = NULL, *A = NULL, *b = NULL, *zs = NULL;
-    int *idx = NULL;
-    unsigned char *mask = NULL;
+    poly_work pw;
+    memset(&pw, 0, sizeof pw);
     if (!rep) return svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
     st = screen_samples(samples, n, width, height, &o, rep);
     if (st != SVP_OK) goto cleanup;
 
-    basis = malloc((size_t)n * MAX_TERMS * sizeof(double));
-    y = malloc((size_t)n * sizeof(double));
-    sw = malloc((size_t)n * sizeof(double));
-    A = malloc((size_t)(n > MAX_TERMS ? n : MAX_TERMS) * MAX_TERMS * sizeof(double));
-    b = malloc((size_t)(n > MAX_TERMS ? n : MAX_TERMS) * sizeof(double));
-    zs = malloc((size_t)n * sizeof(double));
-    idx = malloc((size_t)n * sizeof(int));
-    mask = malloc((size_t)n);
-    if (!basis || !y || !sw || !A || !b || !zs || !idx || !mask) {
+    pw.basis = malloc((size_t)n * MAX_TERMS * sizeof(double));
+    pw.y = malloc((size_t)n * sizeof(double));
+    pw.sw = malloc((size_t)n * sizeof(double));
+    pw.A = malloc((size_t)(n > MAX_TERMS ? n : MAX_TERMS) * MAX_TERMS * sizeof(double));
+    pw.b = malloc((size_t)(n > MAX_TERMS ? n : MAX_TERMS) * sizeof(double));
+    pw.zs = malloc((size_t)n * sizeof(double));
+    pw.idx = malloc((size_t)n * sizeof(int));
+    pw.mask = malloc((size_t)n);
+    if (!pw.basis || !pw.y || !pw.sw || !pw.A || !pw.b || !pw.zs || !pw.idx || !pw.mask) {
         st = svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory for %d spots", n);
         goto cleanup;
     }
     for (int i = 0; i < n; i++)
         svp_psf_field_poly_basis(MAX_DEGREE, width, height, samples[i].x, samples[i].y,
-                                 basis + (size_t)i * MAX_TERMS);
+                                 pw.basis + (size_t)i * MAX_TERMS);
 
     double coeffs[NP][MAX_TERMS];
     memset(coeffs, 0, sizeof coeffs);
-    for (int q = 0; q < NP; q++) {
-        if (!rep->mapped[q]) continue;
-        for (int i = 0; i < n; i++) {
-            double v[NP], e[NP];
-            sample_values(&samples[i].fit, v, e);
-            y[i] = v[q];
-            /* a floor on σ keeps one over-precise spot from owning the surface */
-            sw[i] = 1.0 / fmax(e[q], 1e-9 * fmax(fabs(v[q]), 1.0));
-        }
-        poly_data d = {0, basis, idx, y, sw, A, b};
-        int deg = -1;
-        for (int round = 0; round <= o.clip_iterations; round++) {
-            d.n = 0;
-            for (int i = 0; i < n; i++)
-                if (rep->reject[(size_t)i * NP + q] == SVP_MAP_KEPT) idx[d.n++] = i;
-            if (d.n < 2) {
-                int counts[5] = {0};
-                for (int i = 0; i < n; i++) counts[rep->reject[(size_t)i * NP + q]]++;
-                st = svp_fail(SVP_ERR_INVALID, "PSF map: only %d of %d spots usable for %s "
-                              "(rejected: %d flagged, %d invalid, %d outside, %d outliers); at "
-                              "least 2 needed", d.n, n, param_names[q], counts[1], counts[2],
-                              counts[3], counts[4]);
-                goto cleanup;
-            }
-            if (o.degree >= 0) {
-                deg = o.degree;
-                while (deg > 0 && svp_psf_field_poly_terms(deg) > d.n) deg--;
-            } else {
-                deg = choose_degree(&d, &o, rep->cv_score[q], mask);
-                if (deg < 0) deg = 0;
-            }
-            int nt = svp_psf_field_poly_terms(deg);
-            memset(mask, 1, (size_t)d.n);
-            if (wls_fit(&d, mask, nt, coeffs[q]) != 0) {
-                st = svp_fail(SVP_ERR_NUMERIC, "PSF map: the least-squares surface of degree %d "
-                              "for %s failed (%d spots)", deg, param_names[q], d.n);
-                goto cleanup;
-            }
-            if (o.clip_kappa <= 0 || round == o.clip_iterations || d.n <= nt + 1) break;
-            /* outliers: z beyond κ times the robust scale (never below 1 σ) */
-            for (int k = 0; k < d.n; k++) {
-                int i = idx[k];
-                zs[k] = fabs((y[i] - poly_eval(basis + (size_t)i * MAX_TERMS, coeffs[q], nt)) *
-                             sw[i]);
-            }
-            double *tmp = A; /* free while not fitting */
-            memcpy(tmp, zs, (size_t)d.n * sizeof(double));
-            double scale = fmax(1.0, 1.4826 * svp_median(tmp, (size_t)d.n));
-            int removed = 0;
-            for (int k = 0; k < d.n; k++) {
-                if (zs[k] > o.clip_kappa * scale) {
-                    int i = idx[k];
-                    rep->reject[(size_t)i * NP + q] = SVP_MAP_REJECT_OUTLIER;
-                    double res = y[i] - poly_eval(basis + (size_t)i * MAX_TERMS, coeffs[q], nt);
-                    rep->reject_z[(size_t)i * NP + q] = res * sw[i];
-                    removed++;
-                }
-            }
-            if (!removed) break;
-        }
-        rep->degree[q] = deg;
-        int nt = svp_psf_field_poly_terms(deg);
-        double chi2 = 0, ss = 0;
-        for (int k = 0; k < d.n; k++) {
-            int i = idx[k];
-            double res = y[i] - poly_eval(basis + (size_t)i * MAX_TERMS, coeffs[q], nt);
-            chi2 += res * res * sw[i] * sw[i];
-            ss += res * res;
-        }
-        rep->n_used[q] = d.n;
-        rep->chi2_red[q] = d.n > nt ? chi2 / (d.n - nt) : 0.0;
-        rep->rms[q] = sqrt(ss / d.n);
-    }
-
-    if (field) {
-        int dmax = 0;
-        for (int q = 0; q < NP; q++)
-            if (rep->degree[q] > dmax) dmax = rep->degree[q];
-        const int nt = svp_psf_field_poly_terms(dmax);
-        double *c = calloc((size_t)NP * nt, sizeof(double));
-        if (!c) {
-            st = svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
-            goto cleanup;
-        }
-        for (int q = 0; q < NP; q++) {
-            if (rep->mapped[q]) {
-                /* terms are ordered by total degree: a lower degree is a prefix */
-                memcpy(c + (size_t)q * nt, coeffs[q],
-                       (size_t)svp_psf_field_poly_terms(rep->degree[q]) * sizeof(double));
-            }
-        }
-        c[(size_t)SVP_FIELD_HALO * nt] = o.halo;
-        if (!rep->mapped[SVP_FIELD_BETA]) c[(size_t)SVP_FIELD_BETA * nt] = unmapped_beta(rep);
-        const svp_psf base = map_base(rep, &o);
-        st = svp_psf_field_new_poly(&base, width, height, dmax, c, field);
-        free(c);
-        if (st != SVP_OK) {
-            st = svp_fail_context(st, "PSF map");
-            goto cleanup;
-        }
-    }
-    st = SVP_OK;
+    for (int q = 0; q < NP && st == SVP_OK; q++)
+        if (rep->mapped[q]) st = poly_fit_param(samples, n, &o, rep, q, &pw, coeffs[q]);
+    if (st == SVP_OK && field) st = poly_field(rep, &o, width, height, coeffs, field);
 cleanup:
-    free(basis);
-    free(y);
-    free(sw);
-    free(A);
-    free(b);
-    free(zs);
-    free(idx);
-    free(mask);
+    free(pw.basis);
+    free(pw.y);
+    free(pw.sw);
+    free(pw.A);
+    free(pw.b);
+    free(pw.zs);
+    free(pw.idx);
+    free(pw.mask);
     if (st == SVP_OK && report)
         *report = rep;
     else
@@ -557,6 +570,143 @@ static double pair_p(const svp_region_stats *a, const svp_region_stats *b,
     return fmin(1.0, pmin * nq);
 }
 
+/* Each spot's label (−1: none; a spot on a pixel whose label is out of range is rejected). */
+static void regions_label_spots(const svp_psf_sample *samples, int n, const int *labels,
+                                int width, int height, int n_labels, svp_map_report *rep,
+                                int *label_of)
+{
+    for (int i = 0; i < n; i++) {
+        label_of[i] = -1;
+        int *code = rep->reject + (size_t)i * NP;
+        if (code[SVP_FIELD_FWHM] == SVP_MAP_REJECT_OUTSIDE ||
+            code[SVP_FIELD_FWHM] == SVP_MAP_REJECT_FLAGS)
+            continue;
+        long xi = lround(samples[i].x), yi = lround(samples[i].y);
+        if (xi < 0 || yi < 0 || xi >= width || yi >= height) continue;
+        int l = labels[(size_t)yi * width + xi];
+        if (l < 0 || l >= n_labels) {
+            for (int q = 0; q < NP; q++) code[q] = SVP_MAP_REJECT_OUTSIDE;
+            continue;
+        }
+        label_of[i] = l;
+    }
+}
+
+/* Outliers within each region: beyond κ robust σ of the region's median (>= 5 spots). */
+static void regions_clip(const svp_psf_sample *samples, int n, int n_labels, double kappa,
+                         const int *label_of, double *tmp, svp_map_report *rep)
+{
+    for (int l = 0; l < n_labels; l++)
+        for (int q = 0; q < NP; q++) {
+            if (!rep->mapped[q]) continue;
+            int c = 0;
+            for (int i = 0; i < n; i++)
+                if (label_of[i] == l && rep->reject[(size_t)i * NP + q] == SVP_MAP_KEPT) {
+                    double v[NP], e[NP];
+                    sample_values(&samples[i].fit, v, e);
+                    tmp[c++] = v[q];
+                }
+            if (c < 5) continue;
+            double med = svp_median(tmp, (size_t)c);
+            for (int k = 0; k < c; k++) tmp[k] = fabs(tmp[k] - med);
+            double mad = 1.4826 * svp_median(tmp, (size_t)c);
+            if (!(mad > 0)) continue;
+            for (int i = 0; i < n; i++) {
+                if (label_of[i] != l || rep->reject[(size_t)i * NP + q] != SVP_MAP_KEPT)
+                    continue;
+                double v[NP], e[NP];
+                sample_values(&samples[i].fit, v, e);
+                double z = (v[q] - med) / mad;
+                if (fabs(z) > kappa) {
+                    rep->reject[(size_t)i * NP + q] = SVP_MAP_REJECT_OUTLIER;
+                    rep->reject_z[(size_t)i * NP + q] = z;
+                }
+            }
+        }
+}
+
+/* Greedy merging of the regions' groups: the most similar pair first, while not
+ * significantly different (p > alpha); then the groups compacted and renumbered.
+ * regions[l].group holds each label's group. */
+static svp_status regions_merge(const svp_psf_sample *samples, int n, int n_labels, double alpha,
+                                const int *label_of, int *member, svp_map_report *rep)
+{
+    for (int l = 0; l < n_labels; l++) rep->regions[l].group = l;
+    svp_region_stats *g = rep->groups; /* indexed by group id (= a label) during merging */
+    for (int l = 0; l < n_labels; l++) g[l] = rep->regions[l];
+    unsigned char *alive = malloc((size_t)n_labels);
+    int *newid = malloc((size_t)n_labels * sizeof(int));
+    if (!alive || !newid) {
+        free(alive);
+        free(newid);
+        return svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
+    }
+    memset(alive, 1, (size_t)n_labels);
+    for (;;) {
+        int ba = -1, bb = -1;
+        double bp = -1;
+        for (int a = 0; a < n_labels; a++) {
+            if (!alive[a]) continue;
+            for (int b2 = a + 1; b2 < n_labels; b2++) {
+                if (!alive[b2]) continue;
+                double p = pair_p(&g[a], &g[b2], rep);
+                if (p > bp) {
+                    bp = p;
+                    ba = a;
+                    bb = b2;
+                }
+            }
+        }
+        if (ba < 0 || !(bp > alpha)) break;
+        for (int l = 0; l < n_labels; l++)
+            if (rep->regions[l].group == bb) rep->regions[l].group = ba;
+        alive[bb] = 0;
+        for (int i = 0; i < n; i++)
+            member[i] = label_of[i] >= 0 ? rep->regions[label_of[i]].group : -1;
+        group_stats(samples, n, member, ba, rep, &g[ba]);
+        g[ba].label = ba;
+    }
+    int k = 0;
+    for (int l = 0; l < n_labels; l++) {
+        newid[l] = -1;
+        if (alive[l]) {
+            newid[l] = k;
+            g[k] = g[l];
+            g[k].group = k;
+            k++;
+        }
+    }
+    for (int l = 0; l < n_labels; l++) rep->regions[l].group = newid[rep->regions[l].group];
+    rep->n_groups = k;
+    free(newid);
+    free(alive);
+    return SVP_OK;
+}
+
+/* Each label's PSF: its group's mean; the mean of all spots where a group has none. */
+static svp_status regions_psfs(const svp_psf_sample *samples, int n, int n_labels,
+                               const svp_map_options *o, const int *label_of, int *member,
+                               const svp_map_report *rep, svp_psf *psfs)
+{
+    svp_region_stats all;
+    for (int i = 0; i < n; i++) member[i] = label_of[i] >= 0 ? 0 : -1;
+    group_stats(samples, n, member, 0, rep, &all);
+    if (all.count < 1)
+        return svp_fail(SVP_ERR_INVALID, "PSF map: none of the %d spots is usable (all "
+                        "flagged, invalid or outside the labelled field)", n);
+    const svp_psf base = map_base(rep, o);
+    for (int l = 0; l < n_labels; l++) {
+        const svp_region_stats *gs = &rep->groups[rep->regions[l].group];
+        const svp_region_stats *src = gs->count > 0 ? gs : &all;
+        double p[NP];
+        for (int q = 0; q < NP; q++) p[q] = rep->mapped[q] ? src->mean[q] : 0.0;
+        if (!rep->mapped[SVP_FIELD_BETA]) p[SVP_FIELD_BETA] = unmapped_beta(rep);
+        p[SVP_FIELD_HALO] = o->halo;
+        svp_psf_from_params(&base, p, &psfs[l]);
+    }
+    return SVP_OK;
+}
+
 svp_status svp_psf_map_regions(const svp_psf_sample *samples, int n, const int *labels,
                                int width, int height, int n_labels,
                                const svp_map_options *options, svp_psf_field **field,
@@ -594,51 +744,8 @@ svp_status svp_psf_map_regions(const svp_psf_sample *samples, int n, const int *
         st = svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory for %d regions", n_labels);
         goto cleanup;
     }
-    for (int i = 0; i < n; i++) {
-        label_of[i] = -1;
-        int *code = rep->reject + (size_t)i * NP;
-        if (code[SVP_FIELD_FWHM] == SVP_MAP_REJECT_OUTSIDE ||
-            code[SVP_FIELD_FWHM] == SVP_MAP_REJECT_FLAGS)
-            continue;
-        long xi = lround(samples[i].x), yi = lround(samples[i].y);
-        if (xi < 0 || yi < 0 || xi >= width || yi >= height) continue;
-        int l = labels[(size_t)yi * width + xi];
-        if (l < 0 || l >= n_labels) {
-            for (int q = 0; q < NP; q++) code[q] = SVP_MAP_REJECT_OUTSIDE;
-            continue;
-        }
-        label_of[i] = l;
-    }
-    /* Outliers within each region: beyond κ robust σ of the region's median (>= 5 spots). */
-    if (o.clip_kappa > 0) {
-        for (int l = 0; l < n_labels; l++)
-            for (int q = 0; q < NP; q++) {
-                if (!rep->mapped[q]) continue;
-                int c = 0;
-                for (int i = 0; i < n; i++)
-                    if (label_of[i] == l && rep->reject[(size_t)i * NP + q] == SVP_MAP_KEPT) {
-                        double v[NP], e[NP];
-                        sample_values(&samples[i].fit, v, e);
-                        tmp[c++] = v[q];
-                    }
-                if (c < 5) continue;
-                double med = svp_median(tmp, (size_t)c);
-                for (int k = 0; k < c; k++) tmp[k] = fabs(tmp[k] - med);
-                double mad = 1.4826 * svp_median(tmp, (size_t)c);
-                if (!(mad > 0)) continue;
-                for (int i = 0; i < n; i++) {
-                    if (label_of[i] != l || rep->reject[(size_t)i * NP + q] != SVP_MAP_KEPT)
-                        continue;
-                    double v[NP], e[NP];
-                    sample_values(&samples[i].fit, v, e);
-                    double z = (v[q] - med) / mad;
-                    if (fabs(z) > o.clip_kappa) {
-                        rep->reject[(size_t)i * NP + q] = SVP_MAP_REJECT_OUTLIER;
-                        rep->reject_z[(size_t)i * NP + q] = z;
-                    }
-                }
-            }
-    }
+    regions_label_spots(samples, n, labels, width, height, n_labels, rep, label_of);
+    if (o.clip_kappa > 0) regions_clip(samples, n, n_labels, o.clip_kappa, label_of, tmp, rep);
     for (int l = 0; l < n_labels; l++) {
         group_stats(samples, n, label_of, l, rep, &rep->regions[l]);
         rep->regions[l].label = l;
@@ -647,96 +754,13 @@ svp_status svp_psf_map_regions(const svp_psf_sample *samples, int n, const int *
         for (int b2 = 0; b2 < n_labels; b2++)
             rep->p_value[(size_t)a * n_labels + b2] =
                 a == b2 ? 1.0 : pair_p(&rep->regions[a], &rep->regions[b2], rep);
-
-    /* Greedy merging: the most similar pair of groups first, while not significantly
-     * different. group_of[label] lives in regions[l].group. */
-    for (int l = 0; l < n_labels; l++) rep->regions[l].group = l;
-    svp_region_stats *g = rep->groups; /* indexed by group id (= a label) during merging */
-    for (int l = 0; l < n_labels; l++) g[l] = rep->regions[l];
-    unsigned char *alive = malloc((size_t)n_labels);
-    if (!alive) {
-        st = svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
-        goto cleanup;
-    }
-    memset(alive, 1, (size_t)n_labels);
-    for (;;) {
-        int ba = -1, bb = -1;
-        double bp = -1;
-        for (int a = 0; a < n_labels; a++) {
-            if (!alive[a]) continue;
-            for (int b2 = a + 1; b2 < n_labels; b2++) {
-                if (!alive[b2]) continue;
-                double p = pair_p(&g[a], &g[b2], rep);
-                if (p > bp) {
-                    bp = p;
-                    ba = a;
-                    bb = b2;
-                }
-            }
-        }
-        if (ba < 0 || !(bp > o.alpha)) break;
-        for (int l = 0; l < n_labels; l++)
-            if (rep->regions[l].group == bb) rep->regions[l].group = ba;
-        alive[bb] = 0;
-        for (int i = 0; i < n; i++)
-            member[i] = label_of[i] >= 0 ? rep->regions[label_of[i]].group : -1;
-        group_stats(samples, n, member, ba, rep, &g[ba]);
-        g[ba].label = ba;
-    }
-    /* Compact the groups and renumber. */
-    {
-        int *newid = malloc((size_t)n_labels * sizeof(int));
-        if (!newid) {
-            free(alive);
-            st = svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
-            goto cleanup;
-        }
-        int k = 0;
-        for (int l = 0; l < n_labels; l++) {
-            newid[l] = -1;
-            if (alive[l]) {
-                newid[l] = k;
-                g[k] = g[l];
-                g[k].group = k;
-                k++;
-            }
-        }
-        for (int l = 0; l < n_labels; l++) rep->regions[l].group = newid[rep->regions[l].group];
-        rep->n_groups = k;
-        free(newid);
-    }
-    free(alive);
-
-    /* Each label's PSF: its group's mean; the mean of all spots where a group has none. */
-    {
-        svp_region_stats all;
-        for (int i = 0; i < n; i++) member[i] = label_of[i] >= 0 ? 0 : -1;
-        group_stats(samples, n, member, 0, rep, &all);
-        if (all.count < 1) {
-            st = svp_fail(SVP_ERR_INVALID, "PSF map: none of the %d spots is usable (all "
-                          "flagged, invalid or outside the labelled field)", n);
-            goto cleanup;
-        }
-        const svp_psf base = map_base(rep, &o);
-        for (int l = 0; l < n_labels; l++) {
-            const svp_region_stats *gs = &g[rep->regions[l].group];
-            const svp_region_stats *src = gs->count > 0 ? gs : &all;
-            double p[NP];
-            for (int q = 0; q < NP; q++) p[q] = rep->mapped[q] ? src->mean[q] : 0.0;
-            if (!rep->mapped[SVP_FIELD_BETA]) p[SVP_FIELD_BETA] = unmapped_beta(rep);
-            p[SVP_FIELD_HALO] = o.halo;
-            svp_psf_from_params(&base, p, &psfs[l]);
-        }
-    }
-    if (field) {
+    st = regions_merge(samples, n, n_labels, o.alpha, label_of, member, rep);
+    if (st == SVP_OK) st = regions_psfs(samples, n, n_labels, &o, label_of, member, rep, psfs);
+    if (st == SVP_OK && field) {
         st = svp_psf_field_new_regions(width, height, labels, n_labels, psfs, o.transition,
                                        field);
-        if (st != SVP_OK) {
-            st = svp_fail_context(st, "PSF map");
-            goto cleanup;
-        }
+        if (st != SVP_OK) st = svp_fail_context(st, "PSF map");
     }
-    st = SVP_OK;
 cleanup:
     free(label_of);
     free(member);

@@ -1,5 +1,5 @@
 /* Tikhonov deconvolution for any operator by preconditioned conjugate gradients on the normal
- * equations (the Wiener–Hunt analogue for space-variant H, PHYSICS.md §3 and §6):
+ * equations (the Wiener–Hunt analogue for space-variant H, docs/model.md §6 and §9):
  *   (Hᵀ M H + λ LᵀL) x = Hᵀ M y,
  * M the 0/1 mask of finite data, L the 5-point Laplacian with H's boundary (a symmetric matrix
  * in all three modes: Dirichlet for zero, Neumann for mirror, circulant for periodic). The

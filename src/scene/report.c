@@ -107,16 +107,12 @@ static void text_at(cairo_t *cr, double x, double y, const char *s, double ax, d
 
 /* ---- map figures ------------------------------------------------------------------------ */
 
-svp_status scene_map_figure(const char *path, const svp_image *img, double display_scale, double lo,
-                            double hi, int diverging, const char *title, const char *bar_label,
-                            double pixel_um, int overwrite)
+/* The map in colour (display units over [lo, hi]) as a cairo surface of its own size. */
+static svp_status map_surface(const char *path, const svp_image *img, double display_scale,
+                              double lo, double hi, int diverging, cairo_surface_t **out)
 {
     const int w = img->width, h = img->height;
     const size_t n = (size_t)w * h;
-    if (!(hi > lo)) {
-        lo = diverging ? -1 : 0;
-        hi = 1;
-    }
     double *vals = malloc(n * sizeof *vals);
     unsigned char *rgb = malloc(3 * n);
     if (!vals || !rgb) {
@@ -148,29 +144,115 @@ svp_status scene_map_figure(const char *path, const svp_image *img, double displ
     }
     cairo_surface_mark_dirty(map);
     free(rgb);
+    *out = map;
+    return SVP_OK;
+}
+
+/* The widest tick label of a colour bar over [lo, hi] with ticks every step (12 px font). */
+static double tick_label_width(double lo, double hi, double step)
+{
+    double tick_w = 0;
+    cairo_surface_t *probe = cairo_image_surface_create(CAIRO_FORMAT_RGB24, 1, 1);
+    cairo_t *pc = cairo_create(probe);
+    cairo_select_font_face(pc, FONT, CAIRO_FONT_SLANT_NORMAL, CAIRO_FONT_WEIGHT_NORMAL);
+    cairo_set_font_size(pc, 12);
+    for (double t = ceil(lo / step - 1e-9) * step; t <= hi + 1e-9 * step; t += step) {
+        char tl[32];
+        cairo_text_extents_t e;
+        format_tick(tl, sizeof tl, t, step);
+        cairo_text_extents(pc, tl, &e);
+        tick_w = fmax(tick_w, e.x_advance);
+    }
+    cairo_destroy(pc);
+    cairo_surface_destroy(probe);
+    return tick_w;
+}
+
+/* A scale bar of a 1-2-5 length near a fifth of the view, at the lower left of the map (left,
+ * top, map height mh; zoom figure px per image px). */
+static void draw_scale_bar(cairo_t *cr, int w, double pixel_um, double zoom, double left,
+                           double top, double mh)
+{
+    double width_um = w * pixel_um;
+    double bar_um = nice_number(width_um / 5, 1);
+    if (bar_um > width_um / 2) bar_um /= 2;
+    double bar_px = bar_um / pixel_um * zoom;
+    char label[64];
+    if (bar_um >= 1)
+        snprintf(label, sizeof label, "%g \xc2\xb5m", bar_um);
+    else
+        snprintf(label, sizeof label, "%g nm", bar_um * 1e3);
+    cairo_set_font_size(cr, 13);
+    cairo_text_extents_t te;
+    cairo_text_extents(cr, label, &te);
+    double bx = left + 12, by = top + mh - 14;
+    double box_w = fmax(bar_px, te.width) + 12;
+    cairo_set_source_rgba(cr, 1, 1, 1, 0.75);
+    cairo_rectangle(cr, bx - 6, by - te.height - 14, box_w, te.height + 22);
+    cairo_fill(cr);
+    cairo_set_source_rgb(cr, 0, 0, 0);
+    cairo_rectangle(cr, bx, by - 4, bar_px, 5);
+    cairo_fill(cr);
+    text_at(cr, bx + 0.5 * bar_px, by - 8, label, 0.5, 1);
+}
+
+/* The colour bar (hi at the top) at x0, from top over mh, its ticks every step and the
+ * quantity's label rotated along it (tick_w: the widest tick label). */
+static void draw_colour_bar(cairo_t *cr, double x0, double top, double mh, double bar_w,
+                            double lo, double hi, int diverging, double step, double tick_w,
+                            const char *bar_label)
+{
+    const int nbar = 256;
+    double barv[256];
+    unsigned char barc[3 * 256];
+    for (int i = 0; i < nbar; i++) barv[i] = hi - (hi - lo) * (i + 0.5) / nbar;
+    if (svp_io_colormap_rgb(barv, nbar, lo, hi, diverging, barc) != SVP_OK) return;
+    for (int i = 0; i < nbar; i++) {
+        cairo_set_source_rgb(cr, barc[3 * i] / 255.0, barc[3 * i + 1] / 255.0,
+                             barc[3 * i + 2] / 255.0);
+        cairo_rectangle(cr, x0, top + mh * i / nbar, bar_w, mh / nbar + 0.6);
+        cairo_fill(cr);
+    }
+    cairo_set_source_rgb(cr, 0, 0, 0);
+    cairo_rectangle(cr, x0 - 0.5, top - 0.5, bar_w + 1, mh + 1);
+    cairo_stroke(cr);
+    cairo_set_font_size(cr, 12);
+    for (double t = ceil(lo / step - 1e-9) * step; t <= hi + 1e-9 * step; t += step) {
+        double y = top + mh * (hi - t) / (hi - lo);
+        cairo_move_to(cr, x0 + bar_w, y);
+        cairo_line_to(cr, x0 + bar_w + 5, y);
+        cairo_stroke(cr);
+        char tl[32];
+        format_tick(tl, sizeof tl, t, step);
+        text_at(cr, x0 + bar_w + 8, y, tl, 0, 0.5);
+    }
+    /* the quantity and unit, rotated along the bar */
+    cairo_save(cr);
+    cairo_set_font_size(cr, 13);
+    cairo_translate(cr, x0 + bar_w + 8 + tick_w + 5 + 12 + 9, top + mh / 2);
+    cairo_rotate(cr, -M_PI / 2);
+    text_at(cr, 0, 0, bar_label, 0.5, 0.5);
+    cairo_restore(cr);
+}
+
+svp_status scene_map_figure(const char *path, const svp_image *img, double display_scale, double lo,
+                            double hi, int diverging, const char *title, const char *bar_label,
+                            double pixel_um, int overwrite)
+{
+    const int w = img->width, h = img->height;
+    if (!(hi > lo)) {
+        lo = diverging ? -1 : 0;
+        hi = 1;
+    }
+    cairo_surface_t *map = NULL;
+    SVP_CHECK(map_surface(path, img, display_scale, lo, hi, diverging, &map));
 
     /* layout: the map scaled to 560 px on its long side */
     const double zoom = 560.0 / (w > h ? w : h);
     const double mw = w * zoom, mh = h * zoom;
     const double left = 20, top = 48, bar_gap = 16, bar_w = 18, bottom = 20;
     /* room for the tick labels and the rotated quantity label */
-    double bar_step = tick_step(lo, hi, 6), tick_w = 0;
-    {
-        cairo_surface_t *probe = cairo_image_surface_create(CAIRO_FORMAT_RGB24, 1, 1);
-        cairo_t *pc = cairo_create(probe);
-        cairo_select_font_face(pc, FONT, CAIRO_FONT_SLANT_NORMAL, CAIRO_FONT_WEIGHT_NORMAL);
-        cairo_set_font_size(pc, 12);
-        for (double t = ceil(lo / bar_step - 1e-9) * bar_step; t <= hi + 1e-9 * bar_step;
-             t += bar_step) {
-            char tl[32];
-            cairo_text_extents_t e;
-            format_tick(tl, sizeof tl, t, bar_step);
-            cairo_text_extents(pc, tl, &e);
-            tick_w = fmax(tick_w, e.x_advance);
-        }
-        cairo_destroy(pc);
-        cairo_surface_destroy(probe);
-    }
+    const double bar_step = tick_step(lo, hi, 6), tick_w = tick_label_width(lo, hi, bar_step);
     const double right = 8 + 5 + tick_w + 12 + 18 + 10;
     const int fw = (int)ceil(left + mw + bar_gap + bar_w + right);
     const int fh = (int)ceil(top + mh + bottom);
@@ -200,64 +282,9 @@ svp_status scene_map_figure(const char *path, const svp_image *img, double displ
     cairo_set_font_size(cr, 16);
     text_at(cr, left, 24, title, 0, 0.5);
 
-    /* scale bar: a 1-2-5 length near a fifth of the view */
-    double width_um = w * pixel_um;
-    double bar_um = nice_number(width_um / 5, 1);
-    if (bar_um > width_um / 2) bar_um /= 2;
-    double bar_px = bar_um / pixel_um * zoom;
-    char label[64];
-    if (bar_um >= 1)
-        snprintf(label, sizeof label, "%g \xc2\xb5m", bar_um);
-    else
-        snprintf(label, sizeof label, "%g nm", bar_um * 1e3);
-    cairo_set_font_size(cr, 13);
-    cairo_text_extents_t te;
-    cairo_text_extents(cr, label, &te);
-    double bx = left + 12, by = top + mh - 14;
-    double box_w = fmax(bar_px, te.width) + 12;
-    cairo_set_source_rgba(cr, 1, 1, 1, 0.75);
-    cairo_rectangle(cr, bx - 6, by - te.height - 14, box_w, te.height + 22);
-    cairo_fill(cr);
-    cairo_set_source_rgb(cr, 0, 0, 0);
-    cairo_rectangle(cr, bx, by - 4, bar_px, 5);
-    cairo_fill(cr);
-    text_at(cr, bx + 0.5 * bar_px, by - 8, label, 0.5, 1);
-
-    /* colour bar: hi at the top */
-    const int nbar = 256;
-    double barv[256];
-    unsigned char barc[3 * 256];
-    for (int i = 0; i < nbar; i++) barv[i] = hi - (hi - lo) * (i + 0.5) / nbar;
-    if (svp_io_colormap_rgb(barv, nbar, lo, hi, diverging, barc) == SVP_OK) {
-        double x0 = left + mw + bar_gap;
-        for (int i = 0; i < nbar; i++) {
-            cairo_set_source_rgb(cr, barc[3 * i] / 255.0, barc[3 * i + 1] / 255.0,
-                                 barc[3 * i + 2] / 255.0);
-            cairo_rectangle(cr, x0, top + mh * i / nbar, bar_w, mh / nbar + 0.6);
-            cairo_fill(cr);
-        }
-        cairo_set_source_rgb(cr, 0, 0, 0);
-        cairo_rectangle(cr, x0 - 0.5, top - 0.5, bar_w + 1, mh + 1);
-        cairo_stroke(cr);
-        double step = bar_step;
-        cairo_set_font_size(cr, 12);
-        for (double t = ceil(lo / step - 1e-9) * step; t <= hi + 1e-9 * step; t += step) {
-            double y = top + mh * (hi - t) / (hi - lo);
-            cairo_move_to(cr, x0 + bar_w, y);
-            cairo_line_to(cr, x0 + bar_w + 5, y);
-            cairo_stroke(cr);
-            char tl[32];
-            format_tick(tl, sizeof tl, t, step);
-            text_at(cr, x0 + bar_w + 8, y, tl, 0, 0.5);
-        }
-        /* the quantity and unit, rotated along the bar */
-        cairo_save(cr);
-        cairo_set_font_size(cr, 13);
-        cairo_translate(cr, x0 + bar_w + 8 + tick_w + 5 + 12 + 9, top + mh / 2);
-        cairo_rotate(cr, -M_PI / 2);
-        text_at(cr, 0, 0, bar_label, 0.5, 0.5);
-        cairo_restore(cr);
-    }
+    draw_scale_bar(cr, w, pixel_um, zoom, left, top, mh);
+    draw_colour_bar(cr, left + mw + bar_gap, top, mh, bar_w, lo, hi, diverging, bar_step, tick_w,
+                    bar_label);
     return finish_png(fig, cr, path, overwrite);
 }
 
@@ -278,12 +305,19 @@ static const double palette[][3] = {{0, 0, 0},          {0.84, 0.15, 0.16}, {0.1
                                     {0.55, 0.34, 0.29}, {0.89, 0.47, 0.76}, {0.5, 0.5, 0.5},
                                     {0.74, 0.74, 0.13}};
 
-static svp_status plot_write(const char *path, const char *title, const char *xlabel,
-                             const char *ylabel, const plot_series *ser, int ns, int overwrite)
+/* A plot's area in the figure (left l, top t, size pw × ph) and its data ranges. */
+typedef struct plot_frame {
+    double l, t, pw, ph;
+    double x0, x1, y0, y1;
+} plot_frame;
+
+static double plot_px(const plot_frame *f, double v) { return f->l + f->pw * (v - f->x0) / (f->x1 - f->x0); }
+static double plot_py(const plot_frame *f, double v) { return f->t + f->ph * (f->y1 - v) / (f->y1 - f->y0); }
+
+/* The data ranges of the series, padded and rounded to ys (the y tick step, returned with xs). */
+static void plot_ranges(const plot_series *ser, int ns, plot_frame *f, double *xs_out,
+                        double *ys_out)
 {
-    const int fw = 780, fh = 500;
-    const double l = 86, r = 24, t = 46, b = 62;
-    const double pw = fw - l - r, ph = fh - t - b;
     double x0 = INFINITY, x1 = -INFINITY, y0 = INFINITY, y1 = -INFINITY;
     for (int k = 0; k < ns; k++) {
         int nx = ser[k].step ? ser[k].n + 1 : ser[k].n;
@@ -303,51 +337,56 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
     double ys = tick_step(y0, y1, 7), xs = tick_step(x0, x1, 9);
     y0 = floor(y0 / ys + 1e-9) * ys;
     y1 = ceil(y1 / ys - 1e-9) * ys;
-    cairo_surface_t *fig = cairo_image_surface_create(CAIRO_FORMAT_RGB24, fw, fh);
-    cairo_t *cr = cairo_create(fig);
-    cairo_set_source_rgb(cr, 1, 1, 1);
-    cairo_paint(cr);
-    cairo_select_font_face(cr, FONT, CAIRO_FONT_SLANT_NORMAL, CAIRO_FONT_WEIGHT_NORMAL);
-#define PX(v) (l + pw * ((v)-x0) / (x1 - x0))
-#define PY(v) (t + ph * (y1 - (v)) / (y1 - y0))
-    /* grid and ticks */
+    f->x0 = x0, f->x1 = x1, f->y0 = y0, f->y1 = y1;
+    *xs_out = xs;
+    *ys_out = ys;
+}
+
+/* Grid lines, ticks and their labels every xs and ys, and the zero line. */
+static void plot_grid(cairo_t *cr, const plot_frame *f, double xs, double ys)
+{
+    const double l = f->l, t = f->t, pw = f->pw, ph = f->ph;
     cairo_set_font_size(cr, 12);
     cairo_set_line_width(cr, 1);
-    for (double v = ceil(x0 / xs - 1e-9) * xs; v <= x1 + 1e-9 * xs; v += xs) {
+    for (double v = ceil(f->x0 / xs - 1e-9) * xs; v <= f->x1 + 1e-9 * xs; v += xs) {
         cairo_set_source_rgb(cr, 0.9, 0.9, 0.9);
-        cairo_move_to(cr, PX(v), t);
-        cairo_line_to(cr, PX(v), t + ph);
+        cairo_move_to(cr, plot_px(f, v), t);
+        cairo_line_to(cr, plot_px(f, v), t + ph);
         cairo_stroke(cr);
         cairo_set_source_rgb(cr, 0, 0, 0);
-        cairo_move_to(cr, PX(v), t + ph);
-        cairo_line_to(cr, PX(v), t + ph + 5);
+        cairo_move_to(cr, plot_px(f, v), t + ph);
+        cairo_line_to(cr, plot_px(f, v), t + ph + 5);
         cairo_stroke(cr);
         char tl[32];
         format_tick(tl, sizeof tl, v, xs);
-        text_at(cr, PX(v), t + ph + 9, tl, 0.5, 0);
+        text_at(cr, plot_px(f, v), t + ph + 9, tl, 0.5, 0);
     }
-    for (double v = y0; v <= y1 + 1e-9 * ys; v += ys) {
+    for (double v = f->y0; v <= f->y1 + 1e-9 * ys; v += ys) {
         cairo_set_source_rgb(cr, 0.9, 0.9, 0.9);
-        cairo_move_to(cr, l, PY(v));
-        cairo_line_to(cr, l + pw, PY(v));
+        cairo_move_to(cr, l, plot_py(f, v));
+        cairo_line_to(cr, l + pw, plot_py(f, v));
         cairo_stroke(cr);
         cairo_set_source_rgb(cr, 0, 0, 0);
-        cairo_move_to(cr, l - 5, PY(v));
-        cairo_line_to(cr, l, PY(v));
+        cairo_move_to(cr, l - 5, plot_py(f, v));
+        cairo_line_to(cr, l, plot_py(f, v));
         cairo_stroke(cr);
         char tl[32];
         format_tick(tl, sizeof tl, v, ys);
-        text_at(cr, l - 8, PY(v), tl, 1, 0.5);
+        text_at(cr, l - 8, plot_py(f, v), tl, 1, 0.5);
     }
-    if (y0 < 0 && y1 > 0) { /* the zero line */
+    if (f->y0 < 0 && f->y1 > 0) { /* the zero line */
         cairo_set_source_rgb(cr, 0.6, 0.6, 0.6);
-        cairo_move_to(cr, l, PY(0));
-        cairo_line_to(cr, l + pw, PY(0));
+        cairo_move_to(cr, l, plot_py(f, 0));
+        cairo_line_to(cr, l + pw, plot_py(f, 0));
         cairo_stroke(cr);
     }
-    /* series, clipped to the plot area */
+}
+
+/* The series (dots, lines or steps; NaN breaks a line), clipped to the plot area. */
+static void plot_draw_series(cairo_t *cr, const plot_frame *f, const plot_series *ser, int ns)
+{
     cairo_save(cr);
-    cairo_rectangle(cr, l, t, pw, ph);
+    cairo_rectangle(cr, f->l, f->t, f->pw, f->ph);
     cairo_clip(cr);
     cairo_set_line_join(cr, CAIRO_LINE_JOIN_ROUND);
     for (int k = 0; k < ns; k++) {
@@ -358,7 +397,7 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
             for (int i = 0; i < s->n; i++) {
                 if (!isfinite(s->y[i])) continue;
                 cairo_new_sub_path(cr);
-                cairo_arc(cr, PX(s->x[i]), PY(s->y[i]), 2.8, 0, 2 * M_PI);
+                cairo_arc(cr, plot_px(f, s->x[i]), plot_py(f, s->y[i]), 2.8, 0, 2 * M_PI);
             }
             cairo_fill(cr);
             continue;
@@ -369,38 +408,21 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
                 pen = 0;
                 continue;
             }
-            if (s->step) {
-                if (!pen)
-                    cairo_move_to(cr, PX(s->x[i]), PY(s->y[i]));
-                else
-                    cairo_line_to(cr, PX(s->x[i]), PY(s->y[i]));
-                cairo_line_to(cr, PX(s->x[i + 1]), PY(s->y[i]));
-            } else {
-                if (!pen)
-                    cairo_move_to(cr, PX(s->x[i]), PY(s->y[i]));
-                else
-                    cairo_line_to(cr, PX(s->x[i]), PY(s->y[i]));
-            }
+            if (!pen)
+                cairo_move_to(cr, plot_px(f, s->x[i]), plot_py(f, s->y[i]));
+            else
+                cairo_line_to(cr, plot_px(f, s->x[i]), plot_py(f, s->y[i]));
+            if (s->step) cairo_line_to(cr, plot_px(f, s->x[i + 1]), plot_py(f, s->y[i]));
             pen = 1;
         }
         cairo_stroke(cr);
     }
     cairo_restore(cr);
-    /* frame, labels, title */
-    cairo_set_source_rgb(cr, 0, 0, 0);
-    cairo_set_line_width(cr, 1);
-    cairo_rectangle(cr, l, t, pw, ph);
-    cairo_stroke(cr);
-    cairo_set_font_size(cr, 14);
-    text_at(cr, l + pw / 2, fh - 14, xlabel, 0.5, 1);
-    cairo_save(cr);
-    cairo_translate(cr, 18, t + ph / 2);
-    cairo_rotate(cr, -M_PI / 2);
-    text_at(cr, 0, 0, ylabel, 0.5, 0.5);
-    cairo_restore(cr);
-    cairo_set_font_size(cr, 15);
-    text_at(cr, l, 24, title, 0, 0.5);
-    /* legend, top right inside the plot */
+}
+
+/* The legend, top right inside the plot. */
+static void plot_legend(cairo_t *cr, const plot_frame *f, const plot_series *ser, int ns)
+{
     cairo_set_font_size(cr, 12);
     double lw = 0;
     for (int k = 0; k < ns; k++) {
@@ -408,7 +430,7 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
         cairo_text_extents(cr, ser[k].label, &e);
         lw = fmax(lw, e.x_advance);
     }
-    double lx = l + pw - lw - 46, ly = t + 8;
+    double lx = f->l + f->pw - lw - 46, ly = f->t + 8;
     cairo_set_source_rgba(cr, 1, 1, 1, 0.85);
     cairo_rectangle(cr, lx - 6, ly - 4, lw + 46, 18.0 * ns + 6);
     cairo_fill(cr);
@@ -427,8 +449,39 @@ static svp_status plot_write(const char *path, const char *title, const char *xl
         cairo_set_source_rgb(cr, 0, 0, 0);
         text_at(cr, lx + 34, yy, ser[k].label, 0, 0.5);
     }
-#undef PX
-#undef PY
+}
+
+static svp_status plot_write(const char *path, const char *title, const char *xlabel,
+                             const char *ylabel, const plot_series *ser, int ns, int overwrite)
+{
+    const int fw = 780, fh = 500;
+    plot_frame f;
+    f.l = 86, f.t = 46;
+    f.pw = fw - f.l - 24, f.ph = fh - f.t - 62; /* right margin 24, bottom 62 */
+    double xs, ys;
+    plot_ranges(ser, ns, &f, &xs, &ys);
+    cairo_surface_t *fig = cairo_image_surface_create(CAIRO_FORMAT_RGB24, fw, fh);
+    cairo_t *cr = cairo_create(fig);
+    cairo_set_source_rgb(cr, 1, 1, 1);
+    cairo_paint(cr);
+    cairo_select_font_face(cr, FONT, CAIRO_FONT_SLANT_NORMAL, CAIRO_FONT_WEIGHT_NORMAL);
+    plot_grid(cr, &f, xs, ys);
+    plot_draw_series(cr, &f, ser, ns);
+    /* frame, labels, title */
+    cairo_set_source_rgb(cr, 0, 0, 0);
+    cairo_set_line_width(cr, 1);
+    cairo_rectangle(cr, f.l, f.t, f.pw, f.ph);
+    cairo_stroke(cr);
+    cairo_set_font_size(cr, 14);
+    text_at(cr, f.l + f.pw / 2, fh - 14, xlabel, 0.5, 1);
+    cairo_save(cr);
+    cairo_translate(cr, 18, f.t + f.ph / 2);
+    cairo_rotate(cr, -M_PI / 2);
+    text_at(cr, 0, 0, ylabel, 0.5, 0.5);
+    cairo_restore(cr);
+    cairo_set_font_size(cr, 15);
+    text_at(cr, f.l, 24, title, 0, 0.5);
+    plot_legend(cr, &f, ser, ns);
     return finish_png(fig, cr, path, overwrite);
 }
 

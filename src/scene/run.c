@@ -20,126 +20,6 @@
  * σ_B = (4 / (3√3)) Γ / (γ C √N)  (Barry et al., Rev. Mod. Phys. 92, 015004 (2020), eq. 34). */
 #define ODMR_NOISE_FACTOR 0.7698003589195010
 
-/* ---- the result ---------------------------------------------------------------------------- */
-
-static char *dup_text(const char *s)
-{
-    size_t n = strlen(s);
-    char *c = malloc(n + 1);
-    if (c) memcpy(c, s, n + 1);
-    return c;
-}
-
-svp_status scene_result_put(svp_scene_result *r, const char *name, svp_image *img)
-{
-    for (int i = 0; i < r->n_maps; i++)
-        if (strcmp(r->map_names[i], name) == 0) {
-            svp_image_free(r->maps[i]);
-            r->maps[i] = img;
-            return SVP_OK;
-        }
-    if (r->n_maps == r->cap_maps) {
-        int cap = r->cap_maps ? 2 * r->cap_maps : 64;
-        char **names = realloc(r->map_names, (size_t)cap * sizeof *names);
-        if (!names) goto nomem;
-        r->map_names = names;
-        svp_image **maps = realloc(r->maps, (size_t)cap * sizeof *maps);
-        if (!maps) goto nomem;
-        r->maps = maps;
-        r->cap_maps = cap;
-    }
-    r->map_names[r->n_maps] = dup_text(name);
-    if (!r->map_names[r->n_maps]) goto nomem;
-    r->maps[r->n_maps++] = img;
-    return SVP_OK;
-nomem:
-    svp_image_free(img);
-    return svp_fail(SVP_ERR_NOMEM, "out of memory (scene map %s)", name);
-}
-
-svp_image *scene_result_new_map(svp_scene_result *r, const char *name, int w, int h)
-{
-    svp_image *img = NULL;
-    if (svp_image_new(w, h, &img) != SVP_OK) return NULL;
-    if (scene_result_put(r, name, img) != SVP_OK) return NULL;
-    return img;
-}
-
-svp_image *scene_result_get(const svp_scene_result *r, const char *name)
-{
-    for (int i = 0; i < r->n_maps; i++)
-        if (strcmp(r->map_names[i], name) == 0) return r->maps[i];
-    return NULL;
-}
-
-svp_status scene_result_set(svp_scene_result *r, const char *key, double value)
-{
-    for (int i = 0; i < r->n_values; i++)
-        if (strcmp(r->keys[i], key) == 0) {
-            r->values[i] = value;
-            return SVP_OK;
-        }
-    if (r->n_values == r->cap_values) {
-        int cap = r->cap_values ? 2 * r->cap_values : 256;
-        char **keys = realloc(r->keys, (size_t)cap * sizeof *keys);
-        if (!keys) return svp_fail(SVP_ERR_NOMEM, "out of memory");
-        r->keys = keys;
-        double *values = realloc(r->values, (size_t)cap * sizeof *values);
-        if (!values) return svp_fail(SVP_ERR_NOMEM, "out of memory");
-        r->values = values;
-        r->cap_values = cap;
-    }
-    if (!(r->keys[r->n_values] = dup_text(key))) return svp_fail(SVP_ERR_NOMEM, "out of memory");
-    r->values[r->n_values++] = value;
-    return SVP_OK;
-}
-
-void svp_scene_result_free(svp_scene_result *r)
-{
-    if (!r) return;
-    for (int i = 0; i < r->n_maps; i++) {
-        free(r->map_names[i]);
-        svp_image_free(r->maps[i]);
-    }
-    free(r->map_names);
-    free(r->maps);
-    for (int i = 0; i < r->n_values; i++) free(r->keys[i]);
-    free(r->keys);
-    free(r->values);
-    free(r->seconds);
-    free(r);
-}
-
-double svp_scene_result_stage_seconds(const svp_scene_result *r, int index)
-{
-    return r && index >= 0 && index < r->n_stages ? r->seconds[index] : 0;
-}
-
-const svp_image *svp_scene_result_map(const svp_scene_result *r, const char *name)
-{
-    return r && name ? scene_result_get(r, name) : NULL;
-}
-
-int svp_scene_result_value(const svp_scene_result *r, const char *key, double *value)
-{
-    if (!r || !key) return 0;
-    for (int i = 0; i < r->n_values; i++)
-        if (strcmp(r->keys[i], key) == 0) {
-            if (value) *value = r->values[i];
-            return 1;
-        }
-    return 0;
-}
-
-int svp_scene_result_n_values(const svp_scene_result *r) { return r ? r->n_values : 0; }
-
-const char *svp_scene_result_value_at(const svp_scene_result *r, int index, double *value)
-{
-    if (!r || index < 0 || index >= r->n_values) return NULL;
-    if (value) *value = r->values[index];
-    return r->keys[index];
-}
-
 void svp_scene_defaults(svp_scene_options *o)
 {
     memset(o, 0, sizeof *o);
@@ -930,8 +810,9 @@ static svp_status stage_compare(run_ctx *c)
 
 /* ---- corrections ---------------------------------------------------------------------------- */
 
-static svp_status stage_correct(run_ctx *c, int k)
+static svp_status stage_correct(run_ctx *c)
 {
+    const int k = c->s->plan[c->stage].index;
     const svp_scene *s = c->s;
     const scene_correct *cr = &s->correct[k];
     const int w = s->view_w, h = s->view_h;
@@ -988,8 +869,9 @@ static svp_status stage_correct(run_ctx *c, int k)
 
 /* ---- reconstruction ------------------------------------------------------------------------ */
 
-static svp_status stage_reconstruct(run_ctx *c, int r)
+static svp_status stage_reconstruct(run_ctx *c)
 {
+    const int r = c->s->plan[c->stage].index;
     const svp_scene *s = c->s;
     const scene_recon *rc = &s->recon[r];
     const int w = s->view_w, h = s->view_h;
@@ -1167,11 +1049,11 @@ static svp_status write_summary(run_ctx *c, double total)
     svp_json_begin_object(j);
     for (int i = 0; i < s->n_stages; i++) {
         int first = 1;
-        for (int k = 0; k < i; k++) first &= strcmp(s->plan[k].name, s->plan[i].name) != 0;
+        for (int k = 0; k < i; k++) first &= s->plan[k].stage != s->plan[i].stage;
         if (!first) continue;
         double sum = 0;
         for (int k = i; k < s->n_stages; k++)
-            if (strcmp(s->plan[k].name, s->plan[i].name) == 0) sum += c->r->seconds[k];
+            if (s->plan[k].stage == s->plan[i].stage) sum += c->r->seconds[k];
         svp_json_key_number(j, s->plan[i].name, sum);
     }
     svp_json_key_number(j, "total", total);
@@ -1243,34 +1125,48 @@ static svp_status stage_write(run_ctx *c)
 
 /* ---- the driver ----------------------------------------------------------------------------- */
 
-static svp_status run_stage(run_ctx *c, int i, int *n_correct, int *n_recon)
+/* The geometry was fixed at load; the drift runs inside the cube loop (timed there). */
+static svp_status stage_grid(run_ctx *c)
 {
-    const char *name = c->s->plan[i].name;
-    if (!strcmp(name, "grid")) return SVP_OK; /* the geometry was fixed at load */
-    if (!strcmp(name, "sources")) return stage_sources(c);
-    if (!strcmp(name, "projection")) return stage_projection(c);
-    if (!strcmp(name, "emission")) return stage_emission(c);
-    if (!strcmp(name, "operator")) return stage_operator(c);
-    if (!strcmp(name, "forward")) return stage_forward(c);
-    if (!strcmp(name, "cube")) return stage_cube(c);
-    if (!strcmp(name, "drift")) return SVP_OK; /* inside the cube loop */
-    if (!strcmp(name, "estimate")) return stage_estimate(c);
-    if (!strcmp(name, "crop")) return stage_crop(c);
-    if (!strcmp(name, "noise")) return stage_noise(c);
-    if (!strcmp(name, "compare")) return stage_compare(c);
-    if (!strcmp(name, "correct")) return stage_correct(c, (*n_correct)++);
-    if (!strcmp(name, "reconstruct")) return stage_reconstruct(c, (*n_recon)++);
-    if (!strcmp(name, "metrics")) {
-        SVP_CHECK(scene_make_masks(c->s, c->r));
-        c->have_analysis = 1;
-        return scene_analyse(c->s, c->r, &c->analysis);
-    }
-    if (!strcmp(name, "figures"))
-        return c->o->write ? scene_figures(c->s, c->r, &c->analysis, c->out_dir, c->o->overwrite,
-                                           inner_progress, c)
-                           : SVP_OK;
-    if (!strcmp(name, "write")) return stage_write(c);
-    return svp_fail(SVP_ERR_INTERNAL, "scene: unknown stage '%s'", name);
+    (void)c;
+    return SVP_OK;
+}
+
+static svp_status stage_drift(run_ctx *c)
+{
+    (void)c;
+    return SVP_OK;
+}
+
+static svp_status stage_metrics(run_ctx *c)
+{
+    SVP_CHECK(scene_make_masks(c->s, c->r));
+    c->have_analysis = 1;
+    return scene_analyse(c->s, c->r, &c->analysis);
+}
+
+static svp_status stage_figures(run_ctx *c)
+{
+    return c->o->write ? scene_figures(c->s, c->r, &c->analysis, c->out_dir, c->o->overwrite,
+                                       inner_progress, c)
+                       : SVP_OK;
+}
+
+/* The stage table: the function of every scene_stage (names and order: SCENE_STAGES in
+ * scene_internal.h). */
+typedef svp_status (*stage_fn)(run_ctx *c);
+static const stage_fn stage_table[SCENE_STAGE_COUNT] = {
+#define SCENE_STAGE_FN(e, name, fn) [SCENE_STAGE_##e] = fn,
+    SCENE_STAGES(SCENE_STAGE_FN)
+#undef SCENE_STAGE_FN
+};
+
+static svp_status run_stage(run_ctx *c, int i)
+{
+    scene_stage st = c->s->plan[i].stage;
+    if ((unsigned)st >= SCENE_STAGE_COUNT || !stage_table[st])
+        return svp_fail(SVP_ERR_INTERNAL, "scene: unknown stage %d", (int)st);
+    return stage_table[st](c);
 }
 
 svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scene_options *options,
@@ -1307,12 +1203,12 @@ svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scen
     c.drift_stage = c.noise_stage = -1;
     c.t_run = now_s();
     svp_status st = r->seconds ? SVP_OK : svp_fail(SVP_ERR_NOMEM, "out of memory");
-    int n_correct = 0, n_recon = 0, cube_stage = -1, estimate_stage = -1;
+    int cube_stage = -1, estimate_stage = -1;
     for (int i = 0; i < s->n_stages; i++) {
-        if (!strcmp(s->plan[i].name, "drift")) c.drift_stage = i;
-        if (!strcmp(s->plan[i].name, "noise")) c.noise_stage = i;
-        if (!strcmp(s->plan[i].name, "cube")) cube_stage = i;
-        if (!strcmp(s->plan[i].name, "estimate")) estimate_stage = i;
+        if (s->plan[i].stage == SCENE_STAGE_DRIFT) c.drift_stage = i;
+        if (s->plan[i].stage == SCENE_STAGE_NOISE) c.noise_stage = i;
+        if (s->plan[i].stage == SCENE_STAGE_CUBE) cube_stage = i;
+        if (s->plan[i].stage == SCENE_STAGE_ESTIMATE) estimate_stage = i;
     }
     /* without a margin the view is the canvas: the crop is a copy, not a stage */
     for (int i = 0; i < s->n_stages && st == SVP_OK; i++) {
@@ -1324,11 +1220,11 @@ svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scen
         }
         SVP_CHECK(progress(&c, 0));
         double t0 = now_s();
-        st = run_stage(&c, i, &n_correct, &n_recon);
+        st = run_stage(&c, i);
         r->seconds[i] += now_s() - t0;
         if (st == SVP_OK && s->margin_px == 0 && !c.cropped &&
-            (!strcmp(s->plan[i].name, "forward") || !strcmp(s->plan[i].name, "estimate") ||
-             (!strcmp(s->plan[i].name, "cube") && estimate_stage < 0)))
+            (s->plan[i].stage == SCENE_STAGE_FORWARD || s->plan[i].stage == SCENE_STAGE_ESTIMATE ||
+             (s->plan[i].stage == SCENE_STAGE_CUBE && estimate_stage < 0)))
             st = stage_crop(&c);
         if (st == SVP_OK && i == s->n_stages - 1) {
             /* the cube loop's inner parts, moved to their own stages */

@@ -10,6 +10,7 @@
 #define SVP_SCENE_INTERNAL_H
 
 #include "../core/internal.h"
+#include "result.h"
 
 #include <stdint.h>
 
@@ -92,7 +93,7 @@ typedef struct scene_psf {
     svp_boundary boundary;
     char where[SCENE_WHERE];
     char describe[160]; /* "lorentzian FWHM 1 um" */
-    /* region-dependent PSF (psf.regions, area C): label k + 1 = pixels under region_under[k]
+    /* region-dependent PSF (psf.regions, docs/model.md §9): label k + 1 = pixels under region_under[k]
      * (coverage >= 0.5, later regions win), label 0 = `psf`; built at run time as a regions
      * field blended over transition_px and a tent operator on nodes_x x nodes_y nodes */
     int n_regions;
@@ -156,8 +157,52 @@ typedef struct scene_cut {
 } scene_cut;
 
 /* ---- the scene ----------------------------------------------------------------------------- */
+/* The stages a plan may hold (docs/scenes.md describes each; plan.c puts them in order for a
+ * scene): one row per stage, X(ENUM, "name", function). The name is the plan's, the report's
+ * and summary.json's; the function (static in run.c, the only place that expands the third
+ * column) runs the stage. */
+#define SCENE_STAGES(X)                                                                          \
+    X(GRID, "grid", stage_grid)                                                                  \
+    X(SOURCES, "sources", stage_sources)                                                         \
+    X(PROJECTION, "projection", stage_projection)                                                \
+    X(EMISSION, "emission", stage_emission)                                                      \
+    X(OPERATOR, "operator", stage_operator)                                                      \
+    X(FORWARD, "forward", stage_forward)                                                         \
+    X(CUBE, "cube", stage_cube)                                                                  \
+    X(DRIFT, "drift", stage_drift)                                                               \
+    X(ESTIMATE, "estimate", stage_estimate)                                                      \
+    X(CROP, "crop", stage_crop)                                                                  \
+    X(NOISE, "noise", stage_noise)                                                               \
+    X(COMPARE, "compare", stage_compare)                                                         \
+    X(CORRECT, "correct", stage_correct)                                                         \
+    X(RECONSTRUCT, "reconstruct", stage_reconstruct)                                             \
+    X(METRICS, "metrics", stage_metrics)                                                         \
+    X(FIGURES, "figures", stage_figures)                                                         \
+    X(WRITE, "write", stage_write)
+
+typedef enum scene_stage {
+#define SCENE_STAGE_ENUM(e, name, fn) SCENE_STAGE_##e,
+    SCENE_STAGES(SCENE_STAGE_ENUM)
+#undef SCENE_STAGE_ENUM
+        SCENE_STAGE_COUNT
+} scene_stage;
+
+static inline const char *scene_stage_name(scene_stage stage)
+{
+    switch (stage) {
+#define SCENE_STAGE_NAME(e, name, fn)                                                            \
+    case SCENE_STAGE_##e: return name;
+        SCENE_STAGES(SCENE_STAGE_NAME)
+#undef SCENE_STAGE_NAME
+    case SCENE_STAGE_COUNT: break;
+    }
+    return "?";
+}
+
 typedef struct scene_stage_entry {
-    char name[32];
+    scene_stage stage;
+    int index;     /* correct, reconstruct: which correction / reconstruction of the scene */
+    char name[32]; /* scene_stage_name(stage), for the public view (svp_scene_stage) */
     char detail[200];
 } scene_stage_entry;
 
@@ -271,30 +316,23 @@ static inline double scene_j_px(const struct svp_scene *s, double y_um)
     return y_um / s->pixel_um + 0.5 * (s->canvas_h - 1);
 }
 
+/* Whether the scene measures field component comp (0 x, 1 y, 2 z, 3 nv). */
+static inline int scene_has_component(const struct svp_scene *s, int comp)
+{
+    for (int k = 0; k < s->n_fields; k++)
+        if (s->field_comp[k] == comp) return 1;
+    return 0;
+}
+
+/* The scene file's names of svp_psf_model and svp_boundary values (NULL-terminated). */
+#define SCENE_PSF_MODEL_NAMES {"gaussian", "lorentzian", "moffat", NULL}
+#define SCENE_BOUNDARY_NAMES {"zero", "mirror", "periodic", NULL}
+
 /* Names of field components ("x", "y", "z", "nv"). */
 const char *scene_component_name(int comp);
 
-/* Compiles the plan of a parsed scene (scene.c). */
+/* Compiles the plan of a parsed scene (plan.c). */
 svp_status scene_compile_plan(struct svp_scene *s);
-
-/* ---- the result of a run ------------------------------------------------------------------ */
-struct svp_scene_result {
-    int n_stages;
-    double *seconds; /* per plan stage */
-    int n_maps, cap_maps;
-    char **map_names;
-    svp_image **maps;
-    int n_values, cap_values;
-    char **keys;
-    double *values;
-};
-
-/* Takes ownership of img (replacing a map of the same name). */
-svp_status scene_result_put(struct svp_scene_result *r, const char *name, svp_image *img);
-/* A new zero map registered under name; NULL (and a message) on failure. */
-svp_image *scene_result_new_map(struct svp_scene_result *r, const char *name, int w, int h);
-svp_image *scene_result_get(const struct svp_scene_result *r, const char *name);
-svp_status scene_result_set(struct svp_scene_result *r, const char *key, double value);
 
 /* ---- metrics (metrics.c) and figures (report.c) ------------------------------------------- */
 typedef struct scene_hist {

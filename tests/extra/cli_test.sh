@@ -365,7 +365,7 @@ run no_args
 [ "$(cat rc.no_args)" = 1 ] && grep -q usage err.no_args && pass "no command: usage on stderr, exit 1" || fail "no command" "exit $(cat rc.no_args)"
 
 # =============================================================================================
-# ---- PSF maps (issue 4, area C): forward / correct with a space-variant PSF-map file --------
+# ---- PSF maps (docs/model.md §9): forward / correct with a space-variant PSF-map file --------
 # =============================================================================================
 # kind uniform = the plain PSF file; a grid whose nodes are all that PSF = the invariant operator
 printf 'pixel_um: 0.5\nmodel: moffat\nkind: uniform\npsf: {fwhm_um: 1.0, beta: 2.5}\n' >map_uniform.yaml

@@ -52,6 +52,33 @@ if flags=$(pkg-config --define-variable=prefix="$R" --cflags --libs svpsf); then
 else
     bad "pkg-config does not find svpsf in $L/pkgconfig"
 fi
+# the numerics alone: the same example (it calls only the core) built with
+# `pkg-config svpsf_core`, run against the installed libsvpsf_core, which loads no OpenCV,
+# cairo or YAML library (docs/architecture.md §Layers)
+if flags=$(pkg-config --define-variable=prefix="$R" --cflags --libs svpsf_core); then
+    # shellcheck disable=SC2086
+    if ${CC:-cc} -std=c11 -o "$T/example_core" "$EXAMPLE" $flags -lm 2>"$T/cc.log"; then
+        if LD_LIBRARY_PATH="$L" OMP_NUM_THREADS=2 "$T/example_core" >"$T/ex.out" 2>&1; then
+            ok "the example links libsvpsf_core alone and runs: $(tail -n 1 "$T/ex.out")"
+        else
+            bad "the example on libsvpsf_core failed: $(cat "$T/ex.out")"
+        fi
+        libs=$(LD_LIBRARY_PATH="$L" ldd "$T/example_core" | awk '{print $1}' | tr '\n' ' ')
+        case $libs in
+            *libsvpsf_core.so.*) ;;
+            *) bad "the core example does not load libsvpsf_core: $libs" ;;
+        esac
+        case $libs in
+            *opencv* | *cairo* | *yaml* | *fontconfig* | *"libsvpsf.so"*)
+                bad "the core example loads more than the numerics: $libs" ;;
+            *) ok "the core example loads no OpenCV, cairo, YAML or libsvpsf" ;;
+        esac
+    else
+        bad "the example does not build against svpsf_core: $(cat "$T/cc.log")"
+    fi
+else
+    bad "pkg-config does not find svpsf_core in $L/pkgconfig"
+fi
 [ "$(pkg-config --modversion svpsf)" = "$(LD_LIBRARY_PATH="$L" "$R/bin/svpsf" --version | awk 'NR == 1 {print $2}')" ] &&
     ok "pkg-config version = svpsf --version" || bad "pkg-config and svpsf --version disagree"
 

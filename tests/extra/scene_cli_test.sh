@@ -124,7 +124,7 @@ if printf '%s\n' "$out" | grep -Eq '^ *[0-9]+\. +(cube|noise|estimate|drift) '; 
 fi
 
 # =============================================================================================
-# ---- region-dependent PSFs in scenes (issue 4, area C) --------------------------------------
+# ---- region-dependent PSFs in scenes (docs/model.md §9) --------------------------------------
 # =============================================================================================
 # The shipped region scene plans a space-variant operator and both corrections.
 out=$("$SVPSF" simulate "$SCENES/device-wire-region-psf.yaml" --dry-run 2>&1)

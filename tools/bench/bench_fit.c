@@ -1,4 +1,4 @@
-/* Benchmark of PSF spot fits and PSF maps (issue 5). One JSON object per line on stdout.
+/* Benchmark of PSF spot fits and PSF maps (docs/model.md §8). One JSON object per line on stdout.
  *
  *   bench_fit spots --size N [--count K] [--threads T] [--reps R]
  *       K Poisson Moffat spots of N x N px (elliptical, FWHM ~ N/6, beta 2.5, peak 5000 photons

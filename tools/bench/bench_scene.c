@@ -1,4 +1,4 @@
-/* Benchmarks of the scenes issue (issue 3; docs/performance.md, section "scene").
+/* Benchmarks of the scenes (docs/performance.md, section "scene").
  *
  *   bench_scene cube --size N --points P [--threads T] [--fit 0|1] [--rl 0|1] [--w 0|1]
  *                    [--rl-iterations K] [--balance L]

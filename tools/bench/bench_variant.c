@@ -1,4 +1,4 @@
-/* Benchmark of the space-variant operator (issue 4): what accuracy costs in time. One JSON
+/* Benchmark of the space-variant operator (docs/model.md §9): what accuracy costs in time. One JSON
  * object per line on stdout.
  *
  *   bench_variant apply --size N --variation mild|strong [--exact 0|1] [--reps R]

@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Benchmark section: PSF spot fits per second and a PSF map from 100 spots end to end (issue 5).
+"""Benchmark section: PSF spot fits per second and a PSF map from 100 spots end to end.
 
 usage: section_fit.py [--build DIR] [--quick] [--threads 1,2]
 
@@ -68,7 +68,7 @@ def main():
             cli[t] = best
 
     out = []
-    out.append("## PSF fitting and mapping (issue 5)\n")
+    out.append("## PSF fitting and mapping\n")
     out.append("Method: `tools/bench/bench_fit` draws Poisson Moffat spots (elliptical, FWHM ≈ "
                "size/6 px, β 2–3, peak 5000 photons over 100), fits them with `svp_spot_fit` "
                "(defaults: elliptical Moffat, Poisson weights, pixel integration, hot-pixel and "

@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Benchmark section: Richardson–Lucy, scikit-image and T⁻¹ with a space-invariant PSF (issue 2).
+"""Benchmark section: Richardson–Lucy, scikit-image and T⁻¹ with a space-invariant PSF.
 
 usage: section_restore.py [--build DIR] [--quick] [--threads 2,1] [--no-skimage]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Benchmark section: closed form vs the full ODMR cube, and per-pixel Lorentzian fits (issue 3).
+"""Benchmark section: closed form vs the full ODMR cube, and per-pixel Lorentzian fits.
 
 usage: section_scene.py [--build DIR] [--quick]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Benchmark section: space-variant PSFs, what accuracy costs in time (issue 4).
+"""Benchmark section: space-variant PSFs, what accuracy costs in time.
 
 usage: section_variant.py [--build DIR] [--quick]
 
@@ -115,7 +115,7 @@ def main():
     plot = run_lines(plot_args)
     failed += [r for r in plot if "error" in r]
 
-    out = ["## Space-variant PSFs: what accuracy costs in time (issue 4)\n"]
+    out = ["## Space-variant PSFs: what accuracy costs in time\n"]
     out.append(
         "Method: `tools/bench/bench_variant`. Fields: Moffat FWHM and β linear in position, "
         "*strong* = FWHM 3 → 6 px across x (2×) and β 3 → 1.1 down y, *mild* = FWHM 4.3 → 4.7 "

@@ -1,7 +1,7 @@
 /* svpsf demo: a built-in example that needs no input files. A synthetic field map under a
  * chequered, spot-lit PL map is blurred by a Lorentzian PSF (T, eq. 3) and corrected with R&W
  * (T⁻¹, eq. 4); the errors in the lit regions before and after are printed.
- * (Issue 3 replaces this with a full scene; it is kept in its own file for that reason.) */
+ * (`svpsf simulate` runs full scenes; this quick example is kept in its own file on purpose.) */
 #include "cli.h"
 
 #include "io/image_io.h"

@@ -1,5 +1,5 @@
 /* svpsf fit-psf: fit a Moffat (Gaussian, Lorentzian) PSF to a spot image, or derive the PSF
- * from an excitation/emission spot pair (PHYSICS.md §4-5); write a PSF file that --psf of
+ * from an excitation/emission spot pair (docs/model.md §8); write a PSF file that --psf of
  * forward/correct/deconvolve accepts, figures and a summary. */
 #include "cli.h"
 

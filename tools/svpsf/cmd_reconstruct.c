@@ -1,4 +1,4 @@
-/* svpsf reconstruct: source reconstruction from measured field maps (PHYSICS.md §7, the physics
+/* svpsf reconstruct: source reconstruction from measured field maps (docs/model.md §11, the physics
  * section of svpsf.h): areal magnetisation from B_z, sheet current density from B_z or from
  * B_x, B_y. */
 #include "cli.h"
@@ -41,7 +41,7 @@ static void print_help(const cli_run *run, FILE *out)
           "       svpsf reconstruct --quantity current_from_bz --bz Bz.tif ...\n"
           "       svpsf reconstruct --quantity current_from_bxy --bx Bx.tif [--by By.tif] ...\n"
           "\n"
-          "Source reconstruction by the Fourier method (PHYSICS.md §7): the areal magnetisation\n"
+          "Source reconstruction by the Fourier method (docs/model.md §11): the areal magnetisation\n"
           "m_z = M_z t (A) from B_z, or the sheet current density J (A/m) from B_z or from the\n"
           "in-plane field. A radial Hann window W = (1 + cos(pi k / k_c)) / 2 (k_c = 2 pi /\n"
           "standoff by default) tames the e^(kh) gain; the maps are padded (x2, tapered) against\n"
