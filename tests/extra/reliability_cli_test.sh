@@ -138,6 +138,14 @@ expect_refused "PSF-map operator over SVPSF_MAX_MEMORY=64M" \
     "map200.yaml: building the space-variant operator (64 tent nodes on a frame of at least 399 x 399 pixels) needs 158.5 MiB of memory, more than the 64.0 MiB allowed" \
     forward --field f200.txt --pl f200.txt --psf map200.yaml --nodes 8x8 -o fwd200 --fft estimate
 [ -e fwd200 ] && fail "no output after a refusal" "fwd200 exists"
+# one PSF (no support: the whole view): the kernel, three frames of at least 399 x 399 and
+# twelve 200 x 200 images, about 8.5 MiB, over 2M; the inputs themselves fit
+printf 'pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.4, beta: 1.5}\n' >one200.yaml
+SVPSF_MAX_MEMORY=2M
+expect_refused "invariant operator over SVPSF_MAX_MEMORY=2M" \
+    "one200.yaml: the blur operator and its deconvolutions (a frame of at least 399 x 399 pixels) needs 8.5 MiB of memory, more than the 2.0 MiB allowed" \
+    correct --field f200.txt --pl f200.txt --psf one200.yaml --margin 0 -o cor200 --fft estimate
+[ -e cor200 ] && fail "no output after a refusal" "cor200 exists"
 SVPSF_MAX_MEMORY=lots
 expect_refused "SVPSF_MAX_MEMORY=lots" "SVPSF_MAX_MEMORY=lots is not a memory size" $DEC z.txt
 unset SVPSF_MAX_MEMORY

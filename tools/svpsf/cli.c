@@ -736,9 +736,38 @@ static svp_status check_variant_memory(const cli_psf *psf, int width, int height
     return svp_io_check_memory(psf->path, what, bytes);
 }
 
+/* The memory an invariant operator and the deconvolutions on it need, estimated from below
+ * before anything is built (docs/reliability.md): the rendered kernel (every offset its support
+ * reaches, at most the view's), the OTF and two FFT work frames of at least the image plus that
+ * radius, and twelve images for the solvers (RL's iterate, ratio and acceleration buffers, the
+ * maps in and out). */
+static svp_status check_invariant_memory(const cli_psf *psf, int width, int height)
+{
+    const double w = width, h = height;
+    double rx = w - 1, ry = h - 1;
+    if (psf->is_model && psf->model.support > 0) {
+        rx = fmin(rx, ceil(psf->model.support));
+        ry = fmin(ry, ceil(psf->model.support));
+    } else if (!psf->is_model && psf->kernel_raw) {
+        rx = fmin(rx, psf->kernel_raw->width / 2);
+        ry = fmin(ry, psf->kernel_raw->height / 2);
+    }
+    const double frame = (w + rx) * (h + ry);
+    const double bytes = 8.0 * (2 * rx + 1) * (2 * ry + 1) + 8.0 * frame * 3 + 12.0 * 8.0 * w * h;
+    char what[160];
+    snprintf(what, sizeof what,
+             "the blur operator and its deconvolutions (a frame of at least %.0f x %.0f pixels)",
+             w + rx, h + ry);
+    return svp_io_check_memory(psf->path, what, bytes);
+}
+
 int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
                  svp_blur **out)
 {
+    if (!psf->field) {
+        svp_status mst = check_invariant_memory(psf, width, height);
+        if (mst != SVP_OK) return cli_fail(run, mst, NULL);
+    }
     svp_status st;
     if (psf->field) {
         svp_variant_options vo = psf->variant;
