@@ -761,6 +761,58 @@ static const var_info *default_var(const mat_file *f, int stack)
     return n_candidates == 1 ? only : NULL;
 }
 
+/* The variable to read (var, else the default for an image or a stack), checked to be a real
+ * numeric, non-empty array of 2 (or, for a stack, 3) dimensions. */
+static svp_status pick_var(mat_file *f, const char *file, const char *var, int stack,
+                           const var_info **out)
+{
+    const var_info *v;
+    svp_status st = SVP_OK;
+    char list[1024];
+    *out = NULL;
+    if (var && *var) {
+        v = find_var(f, var);
+        if (!v) {
+            st = svp_fail(SVP_ERR_FORMAT, "%s: no variable '%s' (the file holds: %s)", file, var,
+                          var_list(f, list, sizeof list));
+            return st;
+        }
+    } else {
+        v = default_var(f, stack);
+        if (!v) {
+            st = svp_fail(SVP_ERR_FORMAT,
+                          "%s: no variable to read by default (Bz, B111ferro, B111para%s, or the "
+                          "only 2-D numeric array); name one as %s:VAR (the file holds: %s)",
+                          file, stack ? ", the only 3-D array, imgStack1" : "", file,
+                          var_list(f, list, sizeof list));
+            return st;
+        }
+    }
+    const char *bad = not_numeric(v);
+    if (bad) {
+        st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s is %s: expected a real numeric array",
+                      file, v->name, bad);
+        return st;
+    }
+    if (!v->dims_ok || v->rank > 3) {
+        st = svp_fail(SVP_ERR_FORMAT,
+                      "%s: variable %s has %d dimensions: expected a 2-D image%s", file,
+                      v->name, v->rank, stack ? " or a 3-D stack" : "");
+        return st;
+    }
+    if (v->n == 0) {
+        if (v->rank == 3)
+            st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s is empty (%zu x %zu x %zu)", file,
+                          v->name, v->dims[0], v->dims[1], v->dims[2]);
+        else
+            st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s is empty (%zu x %zu)", file, v->name,
+                          v->dims[0], v->dims[1]);
+        return st;
+    }
+    *out = v;
+    return SVP_OK;
+}
+
 svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_image ***frames,
                            int *n_frames, svp_mat_info *info_out)
 {
@@ -772,52 +824,14 @@ svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_ima
     SVP_CHECK(mat_file_open(file, &f));
     info.n_variables = f.n_vars;
     svp_status st = SVP_OK;
-    char list[1024], why[300];
+    char why[300];
     matvar_t *m = NULL;
     svp_image **out = NULL;
     int n_out = 0;
 
-    const var_info *v;
-    if (var && *var) {
-        v = find_var(&f, var);
-        if (!v) {
-            st = svp_fail(SVP_ERR_FORMAT, "%s: no variable '%s' (the file holds: %s)", file, var,
-                          var_list(&f, list, sizeof list));
-            goto done;
-        }
-    } else {
-        v = default_var(&f, stack);
-        if (!v) {
-            st = svp_fail(SVP_ERR_FORMAT,
-                          "%s: no variable to read by default (Bz, B111ferro, B111para%s, or the "
-                          "only 2-D numeric array); name one as %s:VAR (the file holds: %s)",
-                          file, stack ? ", the only 3-D array, imgStack1" : "", file,
-                          var_list(&f, list, sizeof list));
-            goto done;
-        }
-    }
+    const var_info *v = NULL;
+    if ((st = pick_var(&f, file, var, stack, &v)) != SVP_OK) goto done;
     snprintf(info.variable, sizeof info.variable, "%s", v->name);
-    const char *bad = not_numeric(v);
-    if (bad) {
-        st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s is %s: expected a real numeric array",
-                      file, v->name, bad);
-        goto done;
-    }
-    if (!v->dims_ok || v->rank > 3) {
-        st = svp_fail(SVP_ERR_FORMAT,
-                      "%s: variable %s has %d dimensions: expected a 2-D image%s", file,
-                      v->name, v->rank, stack ? " or a 3-D stack" : "");
-        goto done;
-    }
-    if (v->n == 0) {
-        if (v->rank == 3)
-            st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s is empty (%zu x %zu x %zu)", file,
-                          v->name, v->dims[0], v->dims[1], v->dims[2]);
-        else
-            st = svp_fail(SVP_ERR_FORMAT, "%s: variable %s is empty (%zu x %zu)", file, v->name,
-                          v->dims[0], v->dims[1]);
-        goto done;
-    }
     {
         /* libmatio reads a private copy holding this variable and the scalars used with it */
         static const char *const extras[] = {"step", "h", "imgNumRows", "imgNumCols"};
