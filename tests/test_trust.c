@@ -247,6 +247,46 @@ static void test_accelerated_rl(void **state)
 
 /* ---- automatic choices near the error-minimising one ------------------------------------- */
 
+/* The noise tests' object: a 16 px chessboard of 1 and 2 plus a Gaussian bump. */
+static void checker_bump(svp_image *x)
+{
+    const int w = x->width, h = x->height;
+    for (int j = 0; j < h; j++)
+        for (int i = 0; i < w; i++)
+            x->data[(size_t)j * w + i] =
+                1.0 + ((i / 16 + j / 16) % 2) +
+                2 * exp(-((i - 50) * (i - 50) + (j - 40) * (j - 40)) / 30.0);
+}
+
+/* y = clean + white Gaussian noise of deviation sigma (Box–Muller from two uniforms). */
+static void add_noise(const svp_image *clean, double sigma, uint64_t seed, svp_image *y)
+{
+    for (size_t i = 0; i < (size_t)clean->width * clean->height; i++) {
+        double u1 = test_rand(&seed), u2 = test_rand(&seed);
+        y->data[i] = clean->data[i] + sigma * sqrt(-2 * log(u1 + 1e-300)) * cos(2 * M_PI * u2);
+    }
+}
+
+/* The Wiener balance of least rms error against x_true on the grid 10^-7 .. 10^0 by half
+ * decades: returns that error, the balance in *best_lambda (x is overwritten). */
+static double wiener_grid_best(svp_blur *op, const svp_image *y, const svp_image *x_true,
+                               const unsigned char *mask, svp_image *x, double *best_lambda)
+{
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    double best_e = INFINITY;
+    for (double t = -7; t <= 0.01; t += 0.5) {
+        o.balance = pow(10, t);
+        ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
+        const double e = rms_error(x, x_true, mask);
+        if (e < best_e) {
+            best_e = e;
+            *best_lambda = o.balance;
+        }
+    }
+    return best_e;
+}
+
 /* Data with known Gaussian noise σ at three levels: the discrepancy principle's balance lies
  * within a factor 30 of the balance that minimises the true error (on a grid of half-decades;
  * measured 7.4x-9.4x larger: the principle errs towards smoothing) with an error at most 1.5x
@@ -260,34 +300,18 @@ static void test_auto_choices_near_optimal(void **state)
     svp_blur *op = moffat_op(4.0, 2.0, w, h, SVP_BOUNDARY_ZERO);
     svp_image *x_true = test_image(w, h), *clean = test_image(w, h), *y = test_image(w, h);
     svp_image *x = test_image(w, h);
-    for (int j = 0; j < h; j++)
-        for (int i = 0; i < w; i++)
-            x_true->data[(size_t)j * w + i] =
-                1.0 + ((i / 16 + j / 16) % 2) + 2 * exp(-((i - 50) * (i - 50) + (j - 40) * (j - 40)) / 30.0);
+    checker_bump(x_true);
     ASSERT_OK(svp_blur_apply(op, x_true, clean));
     unsigned char *all = malloc((size_t)w * h);
     memset(all, 1, (size_t)w * h);
     const double sigmas[3] = {0.003, 0.01, 0.03};
     for (int s = 0; s < 3; s++) {
-        uint64_t seed = 17 + (uint64_t)s;
-        for (size_t i = 0; i < (size_t)w * h; i++) {
-            /* Box–Muller from two uniforms */
-            double u1 = test_rand(&seed), u2 = test_rand(&seed);
-            y->data[i] = clean->data[i] + sigmas[s] * sqrt(-2 * log(u1 + 1e-300)) * cos(2 * M_PI * u2);
-        }
+        add_noise(clean, sigmas[s], 17 + (uint64_t)s, y);
         /* Wiener: the grid's best against the discrepancy choice */
         svp_deconv_options o;
         svp_deconv_defaults(&o);
-        double best_lambda = 0, best_e = INFINITY;
-        for (double t = -7; t <= 0.01; t += 0.5) {
-            o.balance = pow(10, t);
-            ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
-            const double e = rms_error(x, x_true, all);
-            if (e < best_e) {
-                best_e = e;
-                best_lambda = o.balance;
-            }
-        }
+        double best_lambda = 0;
+        const double best_e = wiener_grid_best(op, y, x_true, all, x, &best_lambda);
         double lambda = 0, sigma_used = 0;
         ASSERT_OK(svp_wiener_balance_discrepancy(op, y, sigmas[s], &lambda, &sigma_used));
         o.balance = lambda;
@@ -349,32 +373,16 @@ static void test_lcurve_fallback(void **state)
     const int w = 96, h = 96;
     svp_blur *op = moffat_op(4.0, 2.0, w, h, SVP_BOUNDARY_ZERO);
     svp_image *x_true = test_image(w, h), *y = test_image(w, h), *x = test_image(w, h);
-    for (int j = 0; j < h; j++)
-        for (int i = 0; i < w; i++)
-            x_true->data[(size_t)j * w + i] =
-                1.0 + ((i / 16 + j / 16) % 2) +
-                2 * exp(-((i - 50) * (i - 50) + (j - 40) * (j - 40)) / 30.0);
-    ASSERT_OK(svp_blur_apply(op, x_true, y));
+    checker_bump(x_true);
+    ASSERT_OK(svp_blur_apply(op, x_true, x));
     const double sigma = 0.01;
-    uint64_t seed = 5;
-    for (size_t i = 0; i < (size_t)w * h; i++) {
-        double u1 = test_rand(&seed), u2 = test_rand(&seed);
-        y->data[i] += sigma * sqrt(-2 * log(u1 + 1e-300)) * cos(2 * M_PI * u2);
-    }
+    add_noise(x, sigma, 5, y);
     unsigned char *all = malloc((size_t)w * h);
     memset(all, 1, (size_t)w * h);
     svp_deconv_options o;
     svp_deconv_defaults(&o);
-    double best_lambda = 0, best_e = INFINITY;
-    for (double t = -7; t <= 0.01; t += 0.5) {
-        o.balance = pow(10, t);
-        ASSERT_OK(svp_deconv_wiener(op, y, &o, x));
-        const double e = rms_error(x, x_true, all);
-        if (e < best_e) {
-            best_e = e;
-            best_lambda = o.balance;
-        }
-    }
+    double best_lambda = 0;
+    const double best_e = wiener_grid_best(op, y, x_true, all, x, &best_lambda);
     double lambda = 0, used = 0;
     int at_bound = 0, lcurve = 0;
     /* without the fallback: the search ends on its lower bound */
