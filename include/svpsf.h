@@ -272,6 +272,12 @@ SVP_API svp_status svp_blur_apply(svp_blur *blur, const svp_image *x, svp_image 
 SVP_API svp_status svp_blur_adjoint(svp_blur *blur, const svp_image *y, svp_image *x);
 /* Bytes held by the operator (OTFs and work buffers). */
 SVP_API size_t svp_blur_memory(const svp_blur *blur);
+/* H and Hᵀ of this operator in single precision (single 1: float FFTs, fftw3f, on the same
+ * frames; the float spectra are made on first use and kept, counted by svp_blur_memory) or
+ * double (0). Invariant, tent and low-rank operators; agreement with double: docs/model.md §9.
+ * SVP_ERR_UNSUPPORTED for the exact operator, and for returning to double an operator built
+ * with svp_variant_options.single_precision. */
+SVP_API svp_status svp_blur_set_precision(svp_blur *blur, int single);
 
 /* ---------------------------------------------------------------------------------------- */
 /* Deconvolution (the ⊘ of eq. 4)                                                            */
@@ -326,12 +332,12 @@ typedef struct svp_deconv_options {
     void *progress_user;
     int cg_max_steps;          /* zero-boundary Wiener: CG step cap; default 400 */
     svp_deconv_report *report; /* optional out (svp_deconv_wiener fills it); default NULL */
-    int single_precision;      /* RL with a space-invariant operator: 1 = its convolutions
-                                  transform in single precision (float FFTW), 1.4-2.4x faster,
-                                  results within about 1e-6 of the peak of double's; the
-                                  iteration itself stays double. 0 (default): double.
-                                  SVP_ERR_UNSUPPORTED with a space-variant operator. Wiener
-                                  ignores it. */
+    int single_precision;      /* RL: 1 = the operator's convolutions transform in single
+                                  precision (float FFTW, svp_blur_set_precision for this call),
+                                  1.4-2.4x faster, results within about 1e-6 of the peak of
+                                  double's; the iteration itself stays double. 0 (default):
+                                  double. Invariant, tent and low-rank operators
+                                  (SVP_ERR_UNSUPPORTED with the exact one). Wiener ignores it. */
     svp_rl_acceleration acceleration; /* RL: default SVP_RL_PLAIN */
     int auto_stop;             /* RL: 1 = iterations is a cap; stop at the discrepancy
                                   principle (χ² per finite datum ≤ 1) or when χ² falls by less
@@ -715,6 +721,9 @@ typedef struct svp_variant_options {
     double max_memory;     /* bytes the operator may hold, its build included; 0 (default) = the
                               machine's physical memory. Checked before anything large is
                               allocated: SVP_ERR_INVALID naming the bytes needed */
+    int single_precision;  /* 1: the terms' spectra kept in float only (half the memory) and H,
+                              Hᵀ transformed in float (fftw3f) on the same frames, always; the
+                              build itself is double (docs/model.md §9). Default 0 */
 } svp_variant_options;
 
 /* What svp_blur_new_field built (svp_blur_variant_info). estimated_error: the relative

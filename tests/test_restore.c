@@ -573,8 +573,9 @@ static void test_variant_operator(void **state)
 }
 
 /* Single precision: float transforms inside RL agree with double to float round-off, for every
- * boundary, a wide Lorentzian kernel, a halo and missing pixels; H and Hᵀ stay adjoint to float
- * precision; threads change nothing beyond it; a space-variant operator is refused. Measured
+ * boundary, a wide Lorentzian kernel, a halo and missing pixels, and for the tent and low-rank
+ * space-variant operators; H and Hᵀ stay adjoint to float precision; threads change nothing
+ * beyond it; the exact per-source operator is refused. Measured
  * max |single − double| / max |double|: 2e-7 – 8e-7 after 1 iteration, 1e-6 – 3e-6 after 10,
  * 8e-6 – 2e-5 after 100, 6e-5 – 1.6e-4 after 1000 (RL's late iterations amplify what the float
  * round-off adds; bound 5e-7 per iteration + 1e-6). */
@@ -641,18 +642,50 @@ static void test_rl_single_precision(void **state)
         opt.single_precision = 0;
         svp_blur_free(op);
     }
-    /* a space-variant operator: refused, with the reason */
+    /* space-variant operators (a smooth Moffat map, whole-field support): tent and low rank
+     * run RL in single precision within the same bound and return to double; the exact
+     * per-source operator is refused, with the reason */
     svp_psf psf;
     svp_psf_defaults(&psf);
+    psf.model = SVP_PSF_MOFFAT;
     psf.fwhm = 3;
+    psf.beta = 2;
+    const int nt = svp_psf_field_poly_terms(1); /* 1, u, v */
+    double c[SVP_FIELD_NPARAM * 3] = {0};
+    c[SVP_FIELD_FWHM * nt + 0] = 3.0;
+    c[SVP_FIELD_FWHM * nt + 1] = 0.8;
+    c[SVP_FIELD_BETA * nt + 0] = 2.0;
+    c[SVP_FIELD_BETA * nt + 2] = -0.5;
+    c[SVP_FIELD_HALO * nt + 0] = 0.02;
     svp_psf_field *field = NULL;
-    svp_blur *op_var = NULL;
-    ASSERT_OK(svp_psf_field_new_uniform(&psf, w, h, &field));
-    ASSERT_OK(svp_blur_new_field(field, w, h, SVP_BOUNDARY_PERIODIC, NULL, &op_var));
+    ASSERT_OK(svp_psf_field_new_poly(&psf, w, h, 1, c, &field));
+    for (int kind = 0; kind < 2; kind++) {
+        svp_variant_options vo;
+        svp_variant_defaults(&vo);
+        vo.representation = kind ? SVP_VARIANT_LOWRANK : SVP_VARIANT_TENT;
+        vo.grid_x = vo.grid_y = 4;
+        vo.rank = 4;
+        vo.samples_x = vo.samples_y = 6;
+        svp_blur *op_var = NULL;
+        ASSERT_OK(svp_blur_new_field(field, w, h, modes[kind + 1], &vo, &op_var));
+        ASSERT_OK(svp_blur_apply(op_var, x_true, y));
+        opt.single_precision = 0;
+        ASSERT_OK(svp_deconv_rl(op_var, y, &opt, xd));
+        opt.single_precision = 1;
+        ASSERT_OK(svp_deconv_rl(op_var, y, &opt, xs));
+        assert_int_equal(op_var->single, 0); /* the call restores double */
+        const double rel = test_max_abs_diff(xs, xd) / test_max_abs(xd);
+        print_message("%s, %s: single vs double RL (%d iterations) %.3g\n",
+                      kind ? "low rank 4" : "tent 4x4", mode_names[kind + 1], opt.iterations, rel);
+        assert_true(rel > 0 && rel < 5e-7 * opt.iterations + 1e-6);
+        svp_blur_free(op_var);
+    }
+    svp_blur *op_ex = NULL;
+    ASSERT_OK(svp_blur_new_exact(field, w, h, SVP_BOUNDARY_PERIODIC, 0, &op_ex));
     opt.single_precision = 1;
-    assert_int_equal(svp_deconv_rl(op_var, y, &opt, xs), SVP_ERR_UNSUPPORTED);
-    assert_non_null(strstr(svp_last_error(), "space-invariant"));
-    svp_blur_free(op_var);
+    assert_int_equal(svp_deconv_rl(op_ex, y, &opt, xs), SVP_ERR_UNSUPPORTED);
+    assert_non_null(strstr(svp_last_error(), "invariant, tent and low-rank"));
+    svp_blur_free(op_ex);
     svp_psf_field_free(field);
     svp_image_free(x_true);
     svp_image_free(y);

@@ -387,6 +387,89 @@ static void test_adjoint_identity(void **state)
     svp_psf_field_free(f);
 }
 
+/* Single precision (svp_variant_set_single, svp_variant_options.single_precision): tent
+ * (unpruned real spectra, row-pruned complex ones, one node) and low rank (with and without
+ * the halo, every boundary) with float transforms agree with the double operator within
+ * 2·10⁻⁶ of the largest value, for H and Hᵀ (docs/model.md §9); an operator built in single
+ * precision gives the same values as one switched to it, holds less memory (more than one
+ * term) and cannot return to double; the exact operator refuses. */
+static void test_single_precision(void **state)
+{
+    (void)state;
+    const int w = 40, h = 36;
+    double worst = 0;
+    for (int halo = 0; halo < 2; halo++) {
+        svp_psf_field *f = poly_field(w, h, halo ? 0 : 6, 1.5, halo);
+        svp_image *x = test_random_image(w, h, 31), *yv = test_random_image(w, h, 32);
+        svp_image *hd = test_image(w, h), *hs = test_image(w, h), *hb = test_image(w, h);
+        svp_image *td = test_image(w, h), *ts = test_image(w, h), *tb = test_image(w, h);
+        for (int m = 0; m < 3; m++) {
+            for (int kind = 0; kind < 5; kind++) {
+                svp_variant_options o;
+                const char *name;
+                switch (kind) {
+                case 0: o = tent_options(1), name = "tent 1x1"; break;
+                case 1: o = tent_options(3), o.grid_y = 2, name = "tent 3x2"; break;
+                case 2: o = tent_options(12), name = "tent 12x12 (pruned)"; break;
+                case 3: o = lowrank_options(5, 3, 1), name = "low rank 3"; break;
+                default: o = lowrank_options(4, 16, 0), name = "low rank 16 (full)";
+                }
+                svp_blur *op = NULL, *ob = NULL;
+                ASSERT_OK(svp_blur_new_field(f, w, h, modes[m], &o, &op));
+                ASSERT_OK(svp_blur_apply(op, x, hd));
+                ASSERT_OK(svp_blur_adjoint(op, yv, td));
+                const size_t mem_double = svp_blur_memory(op);
+                ASSERT_OK(svp_blur_set_single(op, 1));
+                ASSERT_OK(svp_blur_apply(op, x, hs));
+                ASSERT_OK(svp_blur_adjoint(op, yv, ts));
+                const double e1 = test_max_abs_diff(hs, hd) / test_max_abs(hd);
+                const double e2 = test_max_abs_diff(ts, td) / test_max_abs(td);
+                if (!(e1 <= 2e-6 && e2 <= 2e-6 && e1 > 0))
+                    fail_msg("%s, %s, halo %d: single vs double %.3g (H), %.3g (Ht)", name,
+                             mode_names[m], halo, e1, e2);
+                worst = fmax(worst, fmax(e1, e2));
+                /* adjointness holds to float round-off */
+                const double a = test_dot(hs, yv), bb = test_dot(x, ts);
+                if (!(fabs(a - bb) <= 1e-5 * fabs(a)))
+                    fail_msg("%s, %s: <Hx,y> = %.9g, <x,Hty> = %.9g", name, mode_names[m], a, bb);
+                /* back to double: the double values again, exactly */
+                ASSERT_OK(svp_blur_set_single(op, 0));
+                ASSERT_OK(svp_blur_apply(op, x, hb));
+                assert_true(test_max_abs_diff(hb, hd) == 0);
+                /* built in single precision: the same float operator, less memory */
+                o.single_precision = 1;
+                ASSERT_OK(svp_blur_new_field(f, w, h, modes[m], &o, &ob));
+                ASSERT_OK(svp_blur_apply(ob, x, hb));
+                ASSERT_OK(svp_blur_adjoint(ob, yv, tb));
+                assert_true(test_max_abs_diff(hb, hs) == 0);
+                assert_true(test_max_abs_diff(tb, ts) == 0);
+                if (kind > 0 && !(svp_blur_memory(ob) < mem_double)) /* one term: no saving */
+                    fail_msg("%s, %s: %zu bytes in single, %zu in double", name, mode_names[m],
+                             svp_blur_memory(ob), mem_double);
+                assert_int_equal(svp_blur_set_single(ob, 0), SVP_ERR_UNSUPPORTED);
+                assert_non_null(strstr(svp_last_error(), "built in single precision"));
+                svp_blur_free(ob);
+                svp_blur_free(op);
+            }
+        }
+        svp_blur *ex = NULL;
+        ASSERT_OK(svp_blur_new_exact(f, w, h, SVP_BOUNDARY_ZERO, 0, &ex));
+        assert_int_equal(svp_blur_set_single(ex, 1), SVP_ERR_UNSUPPORTED);
+        svp_blur_free(ex);
+        svp_image_free(x);
+        svp_image_free(yv);
+        svp_image_free(hd);
+        svp_image_free(hs);
+        svp_image_free(hb);
+        svp_image_free(td);
+        svp_image_free(ts);
+        svp_image_free(tb);
+        svp_psf_field_free(f);
+    }
+    print_message("single vs double, tent and low rank, 40 x 36: at most %.2g of the peak\n",
+                  worst);
+}
+
 /* Point-symmetric PSFs (elliptical Moffats here) give real term spectra, stored as such: tent
  * grids that are not row-pruned, and low rank at every rank — its eigen-PSFs of (numerically)
  * zero singular value are projected onto the symmetric ones, which changes the operator by
@@ -1324,6 +1407,7 @@ int main(void)
         cmocka_unit_test(test_adjoint_identity),
         cmocka_unit_test(test_uniform_and_identical_regions),
         cmocka_unit_test(test_real_spectra),
+        cmocka_unit_test(test_single_precision),
         cmocka_unit_test(test_second_order_convergence),
         cmocka_unit_test(test_low_rank),
         cmocka_unit_test(test_lowrank_gram),

@@ -144,7 +144,7 @@ struct svp_blur {
     double *work_r_image; /* width x height work image */
     /* the solvers' workspace (restore/: Wiener filters, gains, frames; CG counts) */
     svp_blur_cache restore;
-    /* Single precision (svp_blur_set_single, invariant operators only): H and Hᵀ transform
+    /* Single precision (svp_blur_set_single; tent and low rank: svp_variant_set_single): H and Hᵀ transform
      * in float on the same frame (row-pruned like `pruned` in zero mode); the buffers and the
      * OTF / (nx ny) in float are made on first use and kept. */
     int single;
@@ -161,9 +161,14 @@ struct svp_blur {
  * the OTF / (nx ny), spectrum_out(.., 0) (plus the halo). */
 void svp_blur_spectrum_in(svp_blur *b, const double *restrict image, int adjoint_side);
 /* Single-precision H and Hᵀ for invariant operators: on (1) makes the float plans, buffers and
- * OTF if needed; off (0) returns to double (buffers kept). SVP_ERR_UNSUPPORTED for space-variant
- * operators. Results agree with double to about 1e-6 of the largest value. */
+ * OTF if needed; off (0) returns to double (buffers kept). Space-variant operators: see
+ * svp_variant_set_single. Results agree with double to about 1e-6 of the largest value. */
 svp_status svp_blur_set_single(svp_blur *b, int on);
+/* The same for tent and low rank (variant.c): float term spectra (made from the double ones on
+ * first use and kept; an operator built with svp_variant_options.single_precision holds only
+ * the float ones and cannot return to double: SVP_ERR_UNSUPPORTED), float transforms on the
+ * same frames. SVP_ERR_UNSUPPORTED for the exact operator. */
+svp_status svp_variant_set_single(svp_blur *b, int on);
 void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
 
 /* The parts of tent / low rank / exact operators that other files of blur/ share. */

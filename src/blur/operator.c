@@ -501,13 +501,11 @@ void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side
 svp_status svp_blur_set_single(svp_blur *b, int on)
 {
     if (!b) return svp_fail(SVP_ERR_INVALID, "svp_blur_set_single: the operator is NULL");
+    if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_set_single(b, on);
     if (!on) {
         b->single = 0;
         return SVP_OK;
     }
-    if (b->kind != SVP_BLUR_INVARIANT)
-        return svp_fail(SVP_ERR_UNSUPPORTED, "single precision is available for space-invariant "
-                                             "operators only");
     const svp_frame *f = &b->frame;
     if (!b->rows_f) {
         /* zero mode: only the image's rows are non-zero in, and kept out */
@@ -542,6 +540,11 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
     }
     b->single = 1;
     return SVP_OK;
+}
+
+svp_status svp_blur_set_precision(svp_blur *blur, int single)
+{
+    return svp_blur_set_single(blur, single != 0);
 }
 
 /* H (adjoint 0) or Hᵀ (1) of an invariant operator with float transforms: the image goes into

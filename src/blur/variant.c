@@ -81,6 +81,16 @@ struct svp_variant_data {
     double *blk;
     int blk_threads;
     fftw_complex *spec2; /* ny x ncx: the second spectrum of a pair (K > 1) */
+    /* Single precision (svp_variant_set_single): the term spectra in float (otf_f[k]: ny x ncx
+     * floats when f_real, else ny x ncx complex floats), made on first use and kept; the float
+     * frame rows (rows_max x nx), a term's spectrum and the accumulator; the float plans of
+     * the image's rows (h rows) and of a pruned tent's window (v->rows rows). double_gone: built
+     * in single precision, the double spectra and buffers were freed. */
+    float **otf_f;
+    int f_real, double_gone, rows_max;
+    float *fr_f;
+    fftwf_complex *spec_f, *acc_f;
+    const svp_fftf_rows *rows_img, *rows_win;
 };
 
 void svp_variant_defaults(svp_variant_options *o)
@@ -458,8 +468,294 @@ static void accumulate_spectra(svp_variant_data *v, int k, int pair, int assign,
 }
 #undef SVP_ACCUMULATE
 
+/* ---- single precision -------------------------------------------------------------------- */
+
+/* Float H and Hᵀ of tent / low rank (docs/model.md §9): the same frames, weights, row copies
+ * and pruning as the double path, with fftw3f transforms of whole row sets instead of the fused
+ * blocks: each term's weighted rows are made in double a block at a time (extend_rows,
+ * fill_rows), stored as float, transformed (rows, then the row copies of the margins, then
+ * the columns) and multiplied into a float accumulator; back the same way. The adjoint turns
+ * each term's float rows into double a block at a time and weights them into the double frame
+ * accumulator (accumulate_rows, fold_scaled): only the transforms and spectral products are in
+ * float. */
+
+/* Window rows 0 .. rows − 1 of term k's weighted frame (window row t = frame row
+ * (start + t) mod ny) into v->fr_f. */
+static void single_load(svp_blur *b, const double *x, int k, int start, int rows)
+{
+    svp_variant_data *v = b->variant;
+    const int nx = b->frame.nx, B = SVP_FFT_BLOCK, bx = v->block->bx;
+    const int nblk = (rows + B - 1) / B;
+#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
+    for (int ib = 0; ib < nblk; ib++) {
+        const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
+        double *ex = thread_block(v, 2), *blk = thread_block(v, 0);
+        extend_rows(b, x, start, t0, nb, ex, bx);
+        fill_rows(b, x, k, start, t0, nb, ex, blk, bx);
+        for (int t = 0; t < nb; t++) {
+            float *restrict o = v->fr_f + (size_t)(t0 + t) * nx;
+            const double *restrict in = blk + (size_t)t * bx;
+            for (int q = 0; q < nx; q++) o[q] = (float)in[q];
+        }
+    }
+}
+
+/* v->spec_f = the spectrum of term k's weighted frame. */
+static void single_term_spectrum(svp_blur *b, const double *x, int k)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int ny = f->ny, ncx = f->ncx, h = b->height;
+    const svp_fftf_rows *p = v->pruned ? v->rows_win : v->rows_img;
+    fftwf_complex *s = v->spec_f;
+    const size_t row_bytes = (size_t)ncx * sizeof(fftwf_complex);
+    single_load(b, x, k, v->pruned ? v->start[k] : f->off_y, p->rows);
+    fftwf_execute_dft_r2c(p->rows_r2c, v->fr_f, s);
+    if (v->pruned) {
+        if (p->rows < ny) memset(s + (size_t)p->rows * ncx, 0, (size_t)(ny - p->rows) * row_bytes);
+    } else {
+        /* the image's rows to their frame rows; a margin row copies its source row */
+        if (f->off_y) memmove(s + (size_t)f->off_y * ncx, s, (size_t)h * row_bytes);
+        for (int fy = 0; fy < ny; fy++) {
+            const int y = f->src_y[fy];
+            if (y >= 0 && fy == f->off_y + y) continue;
+            if (y < 0)
+                memset(s + (size_t)fy * ncx, 0, row_bytes);
+            else
+                memcpy(s + (size_t)fy * ncx, s + (size_t)(f->off_y + y) * ncx, row_bytes);
+        }
+    }
+    fftwf_execute_dft(p->cols_fwd, s, s);
+}
+
+/* out (assign: =, else +=) otf_f[k] · in (conjugate: conj(otf_f[k]) · in), ns values; one
+ * loop per case so that each vectorises. */
+static void single_product(const svp_variant_data *v, int k, const float *restrict in,
+                           float *restrict out, size_t ns, int assign, int conjugate)
+{
+    const float *restrict o = v->otf_f[k];
+    const int big = ns > SVP_PARALLEL_MIN / 2;
+    if (v->f_real && assign) {
+#pragma omp parallel for schedule(static) if (big)
+        for (size_t i = 0; i < ns; i++) {
+            out[2 * i] = o[i] * in[2 * i];
+            out[2 * i + 1] = o[i] * in[2 * i + 1];
+        }
+    } else if (v->f_real) {
+#pragma omp parallel for schedule(static) if (big)
+        for (size_t i = 0; i < ns; i++) {
+            out[2 * i] += o[i] * in[2 * i];
+            out[2 * i + 1] += o[i] * in[2 * i + 1];
+        }
+    } else {
+        const float sg = conjugate ? -1.0f : 1.0f;
+        if (assign) {
+#pragma omp parallel for schedule(static) if (big)
+            for (size_t i = 0; i < ns; i++) {
+                const float pr = o[2 * i], pi = sg * o[2 * i + 1];
+                out[2 * i] = pr * in[2 * i] - pi * in[2 * i + 1];
+                out[2 * i + 1] = pr * in[2 * i + 1] + pi * in[2 * i];
+            }
+        } else {
+#pragma omp parallel for schedule(static) if (big)
+            for (size_t i = 0; i < ns; i++) {
+                const float pr = o[2 * i], pi = sg * o[2 * i + 1];
+                out[2 * i] += pr * in[2 * i] - pi * in[2 * i + 1];
+                out[2 * i + 1] += pr * in[2 * i + 1] + pi * in[2 * i];
+            }
+        }
+    }
+}
+
+static svp_status variant_apply_single(svp_blur *b, const double *restrict x, double *restrict y)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const size_t ns = (size_t)f->ny * f->ncx;
+    const int w = b->width, h = b->height, nx = f->nx;
+    SVP_CHECK(ensure_blocks(v, omp_get_max_threads()));
+    for (int k = 0; k < v->n_terms; k++) {
+        single_term_spectrum(b, x, k);
+        single_product(v, k, (const float *)v->spec_f, (float *)v->acc_f, ns, k == 0, 0);
+    }
+    /* back: the columns, the image's rows moved to the top, their rows, cropped into y */
+    const svp_fftf_rows *p = v->rows_img;
+    fftwf_execute_dft(p->cols_bwd, v->acc_f, v->acc_f);
+    if (f->off_y)
+        memmove(v->acc_f, v->acc_f + (size_t)f->off_y * f->ncx,
+                (size_t)h * f->ncx * sizeof(fftwf_complex));
+    fftwf_execute_dft_c2r(p->rows_c2r, v->acc_f, v->fr_f);
+#pragma omp parallel for schedule(static) if ((size_t)h * nx > SVP_PARALLEL_MIN)
+    for (int t = 0; t < h; t++) {
+        const float *restrict in = v->fr_f + (size_t)t * nx + f->off_x;
+        double *restrict out = y + (size_t)t * w;
+        for (int q = 0; q < w; q++) out[q] = (double)in[q];
+    }
+    if (v->alpha) svp_halo_scatter(v->alpha, (size_t)w * h, x, y, b->work_r_image);
+    return SVP_OK;
+}
+
+/* v->acc_f = the spectrum of C y (the image embedded in the frame). */
+static void single_embed_spectrum(svp_blur *b, const double *restrict y)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const int w = b->width, h = b->height, nx = f->nx, ncx = f->ncx, ny = f->ny;
+    const svp_fftf_rows *p = v->rows_img;
+    fftwf_complex *s = v->acc_f;
+#pragma omp parallel for schedule(static) if ((size_t)h * nx > SVP_PARALLEL_MIN)
+    for (int t = 0; t < h; t++) {
+        float *restrict o = v->fr_f + (size_t)t * nx;
+        const double *restrict in = y + (size_t)t * w;
+        memset(o, 0, (size_t)nx * sizeof(float));
+        for (int q = 0; q < w; q++) o[f->off_x + q] = (float)in[q];
+    }
+    fftwf_execute_dft_r2c(p->rows_r2c, v->fr_f, s);
+    const size_t row_bytes = (size_t)ncx * sizeof(fftwf_complex);
+    if (f->off_y) {
+        memmove(s + (size_t)f->off_y * ncx, s, (size_t)h * row_bytes);
+        memset(s, 0, (size_t)f->off_y * row_bytes);
+    }
+    memset(s + (size_t)(f->off_y + h) * ncx, 0, (size_t)(ny - f->off_y - h) * row_bytes);
+    fftwf_execute_dft(p->cols_fwd, s, s);
+}
+
+static svp_status variant_adjoint_single(svp_blur *b, const double *restrict y,
+                                         double *restrict x)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const size_t ns = (size_t)f->ny * f->ncx;
+    const int ny = f->ny, ncx = f->ncx, nx = f->nx, h = b->height, B = SVP_FFT_BLOCK;
+    const int bx = v->block->bx;
+    SVP_CHECK(ensure_blocks(v, omp_get_max_threads()));
+    single_embed_spectrum(b, y);
+    memset(v->row_on, 0, (size_t)ny);
+    const svp_fftf_rows *p = v->pruned ? v->rows_win : v->rows_img;
+    fftwf_complex *s = v->spec_f;
+    for (int k = 0; k < v->n_terms; k++) {
+        single_product(v, k, (const float *)v->acc_f, (float *)s, ns, 1, 1);
+        fftwf_execute_dft(p->cols_bwd, s, s);
+        if (!v->pruned) {
+            /* margin rows onto their source rows (fold_spectrum_rows), the image's rows up */
+            for (int fy = 0; fy < ny; fy++) {
+                const int yy = f->src_y[fy];
+                if (yy < 0 || fy == f->off_y + yy) continue;
+                float *restrict to = (float *)(s + (size_t)(f->off_y + yy) * ncx);
+                const float *restrict from = (const float *)(s + (size_t)fy * ncx);
+                for (int i = 0; i < 2 * ncx; i++) to[i] += from[i];
+            }
+            if (f->off_y)
+                memmove(s, s + (size_t)f->off_y * ncx, (size_t)h * ncx * sizeof(fftwf_complex));
+        }
+        fftwf_execute_dft_c2r(p->rows_c2r, s, v->fr_f);
+        const int rows = p->rows, start = v->pruned ? v->start[k] : f->off_y;
+        const int nblk = (rows + B - 1) / B;
+#pragma omp parallel for schedule(static) if ((size_t)rows * nx > SVP_PARALLEL_MIN)
+        for (int ib = 0; ib < nblk; ib++) {
+            const int t0 = ib * B, nb = rows - t0 < B ? rows - t0 : B;
+            double *z = thread_block(v, 0);
+            for (int t = 0; t < nb; t++) {
+                const float *restrict in = v->fr_f + (size_t)(t0 + t) * nx;
+                double *restrict o = z + (size_t)t * bx;
+                for (int q = 0; q < nx; q++) o[q] = (double)in[q];
+            }
+            accumulate_rows(b, k, start, t0, nb, z, NULL, bx);
+        }
+    }
+    fold_scaled(b, v->ext, v->row_on, x);
+    if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
+    return SVP_OK;
+}
+
+/* The float spectra (from the double ones), buffers and plans, once. */
+static svp_status single_setup(svp_blur *b)
+{
+    svp_variant_data *v = b->variant;
+    const svp_frame *f = &b->frame;
+    const size_t ns = (size_t)f->ny * f->ncx;
+    const int K = v->n_terms;
+    if (!v->otf_f) {
+        v->f_real = v->otf_re != NULL;
+        v->otf_f = calloc((size_t)K, sizeof *v->otf_f);
+        if (!v->otf_f) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
+        for (int k = 0; k < K; k++) {
+            const size_t nv = v->f_real ? ns : 2 * ns;
+            float *o = v->otf_f[k] = svp_alloc(nv * sizeof(float));
+            if (!o) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
+            const double *d = v->f_real ? v->otf_re[k] : (const double *)v->otf[k];
+            for (size_t i = 0; i < nv; i++) o[i] = (float)d[i];
+        }
+    }
+    if (!v->fr_f) {
+        SVP_CHECK(svp_fftf_rows_get(f->ny, f->nx, b->height, &v->rows_img));
+        v->rows_win = v->rows_img;
+        if (v->pruned) SVP_CHECK(svp_fftf_rows_get(f->ny, f->nx, v->rows, &v->rows_win));
+        v->rows_max = v->rows_win->rows > b->height ? v->rows_win->rows : b->height;
+        v->fr_f = svp_alloc((size_t)v->rows_max * f->nx * sizeof(float));
+        v->spec_f = svp_alloc(ns * sizeof(fftwf_complex));
+        v->acc_f = svp_alloc(ns * sizeof(fftwf_complex));
+        if (!v->fr_f || !v->spec_f || !v->acc_f)
+            return svp_fail(SVP_ERR_NOMEM, "out of memory for the %d x %d float frame", f->nx,
+                            f->ny);
+    }
+    return SVP_OK;
+}
+
+svp_status svp_variant_set_single(svp_blur *b, int on)
+{
+    if (b->kind != SVP_BLUR_TENT && b->kind != SVP_BLUR_LOWRANK)
+        return svp_fail(SVP_ERR_UNSUPPORTED, "single precision is available for the invariant, "
+                                             "tent and low-rank operators");
+    svp_variant_data *v = b->variant;
+    if (!on) {
+        if (v->double_gone)
+            return svp_fail(SVP_ERR_UNSUPPORTED, "the operator was built in single precision: "
+                                                 "its double spectra were not kept");
+        b->single = 0;
+        return SVP_OK;
+    }
+    SVP_CHECK(single_setup(b));
+    b->single = 1;
+    return SVP_OK;
+}
+
+/* Built in single precision: the float spectra replace the double ones (a term at a time, so
+ * the build's peak does not grow), and the double path's spectral buffers go. */
+static svp_status drop_double(svp_blur *b)
+{
+    svp_variant_data *v = b->variant;
+    const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
+    const int K = v->n_terms;
+    svp_free(v->acc);
+    svp_free(v->spec2);
+    v->acc = NULL;
+    v->spec2 = NULL;
+    v->f_real = v->otf_re != NULL;
+    v->otf_f = calloc((size_t)K, sizeof *v->otf_f);
+    if (!v->otf_f) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
+    for (int k = 0; k < K; k++) {
+        const size_t nv = v->f_real ? ns : 2 * ns;
+        float *o = v->otf_f[k] = svp_alloc(nv * sizeof(float));
+        if (!o) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
+        const double *d = v->f_real ? v->otf_re[k] : (const double *)v->otf[k];
+        for (size_t i = 0; i < nv; i++) o[i] = (float)d[i];
+        if (v->otf) svp_free(v->otf[k]);
+        if (v->otf_re) svp_free(v->otf_re[k]);
+        if (v->otf) v->otf[k] = NULL;
+        if (v->otf_re) v->otf_re[k] = NULL;
+    }
+    free(v->otf);
+    free(v->otf_re);
+    v->otf = NULL;
+    v->otf_re = NULL;
+    v->double_gone = 1;
+    return svp_variant_set_single(b, 1);
+}
+
 static svp_status variant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
+    if (b->single) return variant_apply_single(b, x, y);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
     const size_t ns = (size_t)f->ny * f->ncx;
@@ -523,6 +819,7 @@ static void fold_spectrum_rows(const svp_frame *f, fftw_complex *restrict s)
 
 static svp_status variant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
+    if (b->single) return variant_adjoint_single(b, y, x);
     svp_variant_data *v = b->variant;
     svp_frame *f = &b->frame;
     const svp_fft_block *p = v->block;
@@ -610,6 +907,12 @@ static void variant_release(svp_blur *b)
         if (v->otf_re)
             for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_re[k]);
         free(v->otf_re);
+        if (v->otf_f)
+            for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_f[k]);
+        free(v->otf_f);
+        svp_free(v->fr_f);
+        svp_free(v->spec_f);
+        svp_free(v->acc_f);
         svp_free(v->acc);
         svp_free(v->scale);
         svp_free(v->alpha);
@@ -660,8 +963,14 @@ static size_t variant_memory(const svp_blur *b)
     const size_t spectrum = (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex);
     bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
     if (v) {
-        bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* node spectra */
-        bytes += spectrum; /* accumulator (work_c counted by frame) */
+        if (!v->double_gone) {
+            bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* spectra */
+            bytes += spectrum; /* accumulator (work_c counted by frame) */
+        }
+        if (v->otf_f) /* float spectra */
+            bytes += (size_t)v->n_terms * (v->f_real ? spectrum / 4 : spectrum / 2);
+        if (v->fr_f) /* float frame rows, a term's spectrum and the accumulator */
+            bytes += (size_t)v->rows_max * b->frame.nx * sizeof(float) + spectrum;
         bytes += n * sizeof(double) * ((v->scale != NULL) + (v->alpha != NULL));
         bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
         if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
@@ -1610,6 +1919,7 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
                          : build_lowrank_gram(b, &o, support, rx, ry);
     if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
+    if (st == SVP_OK && o.single_precision) st = drop_double(b);
     if (st != SVP_OK) {
         svp_blur_free(b);
         return st;

@@ -14,6 +14,8 @@
  * convolution leaves round-off of ~1e-16 · max Ĩ where the true Ĩ is 0; dividing by that would
  * return noise, so the threshold sits 1e6 above it and far below any PL a camera records. */
 #define FORWARD_PL_TINY 1e-10
+/* The same for an operator in single precision, whose round-off is ~1e-7 · max Ĩ. */
+#define FORWARD_PL_TINY_SINGLE 1e-5
 /* Halo correction: denominators Ĩ − α<Ĩ> at or below HALO_DEN_TINY · max|Ĩ| carry no light
  * (the subtraction itself leaves round-off of ~1e-16 · max|Ĩ|). */
 #define HALO_DEN_TINY 1e-10
@@ -224,7 +226,8 @@ svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
     for (size_t i = 0; i < n; i++)
         if (!(pl_app[i] > 0)) pl_app[i] = 0.0;
     const double pl_max = svp_max(pl_app, n);
-    const double dark = pl_max > 0 ? FORWARD_PL_TINY * pl_max : INFINITY;
+    const double tiny = blur->single ? FORWARD_PL_TINY_SINGLE : FORWARD_PL_TINY;
+    const double dark = pl_max > 0 ? tiny * pl_max : INFINITY;
 
     /* B̃_c Ĩ = H(B_c I) (eq. 3a), one application per component. */
     for (int c = 0; c < n_fields; c++) {

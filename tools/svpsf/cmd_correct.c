@@ -129,7 +129,7 @@ static void print_help(const cli_run *run, FILE *out)
             "  --precision double|single  the Richardson-Lucy convolutions of rw, r and\n"
             "                        rl-signed in double (default) or single precision (float\n"
             "                        FFTs: 1.4-2.4x faster, within about 1e-5 of the peak at\n"
-            "                        100 iterations); one PSF only, not a space-variant map\n"
+            "                        100 iterations); a map's operator too (docs/cli.md)\n"
             "  --balance L|auto      Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
             "                        (default %g); auto: each Wiener deconvolution (of the PL\n"
             "                        for w, of field x PL for rw and w) picks its own by the\n"
@@ -288,13 +288,9 @@ int cmd_correct(int argc, char **argv)
                                                     "Lucy: not with --method w"));
     opt.deconv.single_precision = precision == 1;
     if ((code = cli_maps_open(&run, &maps, &psf))) goto cleanup;
-    if (precision == 1 && psf.field) { /* refused before the map's operator is built */
-        code = cli_error(&run,
-                         "%s: --precision single needs one PSF; this is a space-variant PSF "
-                         "map",
-                         psf.path);
-        goto cleanup;
-    }
+    /* a map's operator in single precision keeps only float spectra (half their memory) when
+     * RL is its only user; rw's Wiener step (CG) keeps the double ones */
+    if (precision == 1 && psf.field) psf.variant.single_precision = opt.method != SVP_METHOD_RW;
 
     const int w = maps.pl->width, h = maps.pl->height;
     const size_t n = (size_t)w * h;
