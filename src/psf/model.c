@@ -184,7 +184,26 @@ static int auto_subsample(const svp_psf *psf)
     return fmin < 2.0 ? 9 : 1;
 }
 
-/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out). */
+/* Pixel (dx, dy) of the unnormalised kernel: the profile at the pixel's centre, or its mean over
+ * ns x ns sub-pixels where it curves within a pixel (r2 <= sub_radius2). */
+static inline double render_pixel(const profile_eval *e, int ns, double sub_radius2, double dx,
+                                  double dy, double r2)
+{
+    if (ns > 1 && r2 <= sub_radius2) {
+        double acc = 0;
+        for (int j = 0; j < ns; j++) {
+            double sy = dy - 0.5 + (j + 0.5) / ns;
+            for (int i = 0; i < ns; i++) acc += profile_at(e, dx - 0.5 + (i + 0.5) / ns, sy);
+        }
+        return acc / (ns * ns);
+    }
+    return profile_at(e, dx, dy);
+}
+
+/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out). An
+ * unrotated profile (sin θ = 0: u = ±dx, v = dy exactly) has k(−dx) = k(dx) bit for bit at the
+ * pixel centres: the right half of the row copies the left one there (the sub-pixel means are
+ * summed in another order, so they are computed). */
 static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry, int y,
                        double *restrict out)
 {
@@ -193,25 +212,17 @@ static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry
     const double fwhm_max = psf->fwhm_minor > psf->fwhm ? psf->fwhm_minor : psf->fwhm;
     const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
     const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
-    const int w = 2 * rx + 1;
+    const int w = 2 * rx + 1, mirror = e->s == 0.0;
     double dy = y - ry;
     for (int x = 0; x < w; x++) {
         double dx = x - rx;
         double r2 = dx * dx + dy * dy;
-        double v = 0;
-        if (r2 <= support2) {
-            if (ns > 1 && r2 <= sub_radius2) {
-                double acc = 0;
-                for (int j = 0; j < ns; j++) {
-                    double sy = dy - 0.5 + (j + 0.5) / ns;
-                    for (int i = 0; i < ns; i++) acc += profile_at(e, dx - 0.5 + (i + 0.5) / ns, sy);
-                }
-                v = acc / (ns * ns);
-            } else {
-                v = profile_at(e, dx, dy);
-            }
-        }
-        out[x] = v;
+        if (!(r2 <= support2))
+            out[x] = 0;
+        else if (mirror && x > rx && !(ns > 1 && r2 <= sub_radius2))
+            out[x] = out[2 * rx - x];
+        else
+            out[x] = render_pixel(e, ns, sub_radius2, dx, dy, r2);
     }
 }
 
