@@ -1583,105 +1583,144 @@ static void gram_accumulate(const double *const *a, int S, size_t n, double *res
     }
 }
 
-/* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
- * kernel matrix A: G = Aᵀ A = V Λ Vᵀ (LAPACKE_dsyevr), then the left singular vectors
- * u_r = A v_r / σ_r, σ_r = √λ_r (the same eigen-PSFs and coefficients σ_r v_r as the SVD, up to
- * sign). The kernels are point-symmetric (every PSF model is), so only their rows 0 .. ry are
- * rendered (row ry's centre counted once, every other pixel twice); both passes stream them
- * in blocks of GRAM_ROWS rows for all samples at once (gram_accumulate into the Gram matrix,
- * then the eigen-PSFs' halves as combinations of the samples): no kernel matrix is held whole,
- * and the cost is O(S² · kernel pixels / 2) in cache-blocked vector loops. The first pass
- * renders the kernels unnormalised (their sums are not known yet): G of the normalised,
- * mean-centred kernels K_j / s_j − K̄ follows from the raw Gram and the sums exactly, C D G D C
- * (D = diag(1/s), C = I − 11ᵀ/S), which costs about log10(|K|² / |K − K̄|²) digits. The
- * blocks' partial Gram matrices are summed in a fixed order (deterministic for any thread
- * count). A term with λ <= 0 keeps e = A v, coefficient v (its product, the one that
- * matters, is the same). */
-static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, double support,
-                                     int rx, int ry)
+/* The Gram build's state (build_lowrank_gram's stages): S samples, R terms (Q of them from
+ * eigenvectors), kernels of radius rx, ry of which the hr = ry + 1 rows are rendered, in nblk
+ * blocks of GRAM_ROWS rows (bp pixels), the pass-1 partial Gram matrices of `chunks` chunks
+ * (Sp x Sp each), and the arrays named at gram_alloc. */
+typedef struct gram_build {
+    int S, Sp, R, Q, centred, rx, ry, kw, kh, hr, nblk, chunks, threads;
+    size_t m, half, bp;
+    svp_psf *psf;
+    double *blk, *part, *zeros, *cval, *psum, *g, *z, *lam, *sum, *zx, *eh, *flux;
+    const double **rowp;
+    lapack_int *isuppz;
+} gram_build;
+
+static void gram_free(gram_build *gb)
 {
-    svp_variant_data *v = b->variant;
-    const int S = v->gx * v->gy, R = o->rank, centred = o->lowrank_mean != 0, Q = R - centred;
-    const int kw = 2 * rx + 1, kh = 2 * ry + 1, hr = ry + 1; /* rows rendered */
-    const size_t m = (size_t)kw * kh, half = (size_t)hr * kw;
-    const int nblk = (hr + GRAM_ROWS - 1) / GRAM_ROWS;
-    const size_t bp = (size_t)GRAM_ROWS * kw; /* pixels per block */
-    const int threads = omp_get_max_threads();
+    free(gb->psf);
+    free(gb->blk);
+    free(gb->part);
+    free(gb->rowp);
+    free(gb->zeros);
+    free(gb->cval);
+    free(gb->psum);
+    free(gb->g);
+    free(gb->z);
+    free(gb->lam);
+    free(gb->sum);
+    free(gb->zx);
+    free(gb->eh);
+    free(gb->flux);
+    free(gb->isuppz);
+}
+
+static svp_status gram_alloc(gram_build *gb, const svp_variant_data *v,
+                             const svp_variant_options *o, int rx, int ry)
+{
+    memset(gb, 0, sizeof *gb);
+    const int S = gb->S = v->gx * v->gy, R = gb->R = o->rank;
+    gb->centred = o->lowrank_mean != 0;
+    gb->Q = R - gb->centred;
+    gb->rx = rx;
+    gb->ry = ry;
+    gb->kw = 2 * rx + 1;
+    gb->kh = 2 * ry + 1;
+    gb->hr = ry + 1; /* rows rendered */
+    gb->m = (size_t)gb->kw * gb->kh;
+    gb->half = (size_t)gb->hr * gb->kw;
+    gb->nblk = (gb->hr + GRAM_ROWS - 1) / GRAM_ROWS;
+    gb->bp = (size_t)GRAM_ROWS * gb->kw; /* pixels per block */
+    gb->threads = omp_get_max_threads();
     int chunks = (int)(GRAM_PARTIAL_BYTES / ((size_t)S * S * sizeof(double) + 1));
     if (chunks < 1) chunks = 1;
     if (chunks > 16) chunks = 16;
-    if (chunks > nblk) chunks = nblk;
-    if (Q > S) return svp_fail(SVP_ERR_INVALID, "low rank %d exceeds the %d samples", R, S);
-    svp_status st = SVP_OK;
-    svp_psf *psf = malloc((size_t)S * sizeof *psf);
-    double *blk = malloc((size_t)threads * S * bp * sizeof(double));
-    const int Sp = (S + 3) & ~3; /* padded to the Gram kernel's tiles */
-    double *part = calloc((size_t)chunks * Sp * Sp, sizeof(double));
-    const double **rowp = malloc((size_t)threads * Sp * sizeof *rowp);
-    double *zeros = calloc(bp, sizeof(double)), *cval = calloc((size_t)S, sizeof(double));
-    double *psum = calloc((size_t)nblk * S, sizeof(double));
-    double *g = malloc((size_t)S * S * sizeof(double)), *z = malloc((size_t)S * S * sizeof(double));
-    double *lam = malloc((size_t)S * sizeof(double)), *sum = calloc((size_t)S, sizeof(double));
-    double *zx = malloc((size_t)S * (R + 1) * sizeof(double));
-    double *eh = malloc((size_t)(R > 0 ? R : 1) * half * sizeof(double));
-    double *flux = calloc((size_t)R, sizeof(double));
-    lapack_int *isuppz = malloc(2 * (size_t)S * sizeof(lapack_int));
-    svp_image *whole = NULL;
-    if (!psf || !blk || !part || !rowp || !zeros || !cval || !psum || !g || !z || !lam || !sum || !zx || !eh || !flux ||
-        !isuppz) {
-        st = svp_fail(SVP_ERR_NOMEM,
-                      "out of memory for the low-rank build (%d samples of %d x %d pixels)", S,
-                      kw, kh);
-        goto cleanup;
-    }
-    st = sample_psfs(b, support, psf);
-    if (st == SVP_OK) st = svp_image_new(kw, kh, &whole);
-    if (st != SVP_OK) goto cleanup;
-    /* Pass 1: raw Gram and sums. Weight 2 on rows < ry and on row ry left of the centre
-     * (a contiguous prefix of the rendered pixels), 1 at the centre, 0 right of it: the
-     * chunks' partials hold the prefix's unweighted sums, the centre is added at the end. */
+    if (chunks > gb->nblk) chunks = gb->nblk;
+    gb->chunks = chunks;
+    if (gb->Q > S) return svp_fail(SVP_ERR_INVALID, "low rank %d exceeds the %d samples", R, S);
+    const int Sp = gb->Sp = (S + 3) & ~3; /* padded to the Gram kernel's tiles */
+    gb->psf = malloc((size_t)S * sizeof *gb->psf);
+    gb->blk = malloc((size_t)gb->threads * S * gb->bp * sizeof(double));
+    gb->part = calloc((size_t)chunks * Sp * Sp, sizeof(double));
+    gb->rowp = malloc((size_t)gb->threads * Sp * sizeof *gb->rowp);
+    gb->zeros = calloc(gb->bp, sizeof(double));
+    gb->cval = calloc((size_t)S, sizeof(double));
+    gb->psum = calloc((size_t)gb->nblk * S, sizeof(double));
+    gb->g = malloc((size_t)S * S * sizeof(double));
+    gb->z = malloc((size_t)S * S * sizeof(double));
+    gb->lam = malloc((size_t)S * sizeof(double));
+    gb->sum = calloc((size_t)S, sizeof(double));
+    gb->zx = malloc((size_t)S * (R + 1) * sizeof(double));
+    gb->eh = malloc((size_t)(R > 0 ? R : 1) * gb->half * sizeof(double));
+    gb->flux = calloc((size_t)R, sizeof(double));
+    gb->isuppz = malloc(2 * (size_t)S * sizeof(lapack_int));
+    if (!gb->psf || !gb->blk || !gb->part || !gb->rowp || !gb->zeros || !gb->cval || !gb->psum ||
+        !gb->g || !gb->z || !gb->lam || !gb->sum || !gb->zx || !gb->eh || !gb->flux ||
+        !gb->isuppz)
+        return svp_fail(SVP_ERR_NOMEM,
+                        "out of memory for the low-rank build (%d samples of %d x %d pixels)", S,
+                        gb->kw, gb->kh);
+    return SVP_OK;
+}
+
+/* Pass 1: the raw Gram matrix (lower triangle, into g) and the kernels' sums. Weight 2 on rows
+ * < ry and on row ry left of the centre (a contiguous prefix of the rendered pixels), 1 at the
+ * centre, 0 right of it: the chunks' partials hold the prefix's unweighted sums, the centre is
+ * added at the end; chunks and blocks are summed in a fixed order. */
+static void gram_raw(gram_build *gb)
+{
+    const int S = gb->S, Sp = gb->Sp, rx = gb->rx, ry = gb->ry, kw = gb->kw, hr = gb->hr;
+    const int nblk = gb->nblk, chunks = gb->chunks;
     const size_t p2 = (size_t)ry * kw + rx; /* pixels of weight 2 */
 #pragma omp parallel for schedule(static, 1)
     for (int c = 0; c < chunks; c++) {
-        double *a = blk + (size_t)omp_get_thread_num() * S * bp;
-        const double **rows = rowp + (size_t)omp_get_thread_num() * Sp;
-        double *gc = part + (size_t)c * Sp * Sp;
+        double *a = gb->blk + (size_t)omp_get_thread_num() * S * gb->bp;
+        const double **rows = gb->rowp + (size_t)omp_get_thread_num() * Sp;
+        double *gc = gb->part + (size_t)c * Sp * Sp;
         for (int ib = c; ib < nblk; ib += chunks) {
             const int y0 = ib * GRAM_ROWS, nr = hr - y0 < GRAM_ROWS ? hr - y0 : GRAM_ROWS;
             const size_t np = (size_t)nr * kw, p0 = (size_t)y0 * kw;
             const size_t n2 = p2 > p0 ? (p2 - p0 < np ? p2 - p0 : np) : 0;
             const int centre = n2 < np && p0 + n2 == p2;
-            for (int j = 0; j < Sp; j++) rows[j] = j < S ? a + (size_t)j * np : zeros;
+            for (int j = 0; j < Sp; j++) rows[j] = j < S ? a + (size_t)j * np : gb->zeros;
             for (int j = 0; j < S; j++) {
                 double *aj = a + (size_t)j * np;
-                svp_psf_render_rows(&psf[j], rx, ry, y0, nr, aj);
+                svp_psf_render_rows(&gb->psf[j], rx, ry, y0, nr, aj);
                 double acc = 0;
                 for (size_t i = 0; i < n2; i++) acc += aj[i];
                 acc *= 2;
                 if (centre) {
                     acc += aj[n2];
-                    cval[j] = aj[n2];
+                    gb->cval[j] = aj[n2];
                 }
-                psum[(size_t)ib * S + j] = acc;
+                gb->psum[(size_t)ib * S + j] = acc;
             }
             if (n2 > 0) gram_accumulate(rows, Sp, n2, gc);
         }
     }
+    double *g = gb->g;
     memset(g, 0, (size_t)S * S * sizeof(double));
     for (int c = 0; c < chunks; c++)
         for (int j = 0; j < S; j++)
-            for (int i = j; i < S; i++) g[(size_t)j * S + i] += part[((size_t)c * Sp + j) * Sp + i];
+            for (int i = j; i < S; i++)
+                g[(size_t)j * S + i] += gb->part[((size_t)c * Sp + j) * Sp + i];
     for (int j = 0; j < S; j++)
         for (int i = j; i < S; i++)
-            g[(size_t)j * S + i] = 2 * g[(size_t)j * S + i] + cval[i] * cval[j];
+            g[(size_t)j * S + i] = 2 * g[(size_t)j * S + i] + gb->cval[i] * gb->cval[j];
     for (int ib = 0; ib < nblk; ib++)
-        for (int j = 0; j < S; j++) sum[j] += psum[(size_t)ib * S + j];
+        for (int j = 0; j < S; j++) gb->sum[j] += gb->psum[(size_t)ib * S + j];
+}
+
+/* The Gram matrix of the normalised (and, centred, mean-free) kernels, D G D then C G C, and
+ * its eigen-decomposition (eigenvalues ascending in lam, vectors in z); v->kernel_norm2. */
+static svp_status gram_eigen(gram_build *gb, svp_variant_data *v)
+{
+    const int S = gb->S;
+    double *g = gb->g, *sum = gb->sum, *lam = gb->lam;
     for (int j = 0; j < S; j++)
-        if (!(sum[j] > 0) || !isfinite(sum[j])) {
-            st = svp_fail(SVP_ERR_NUMERIC, "PSF kernel has no flux on its %d x %d support", kw,
-                          kh);
-            goto cleanup;
-        }
+        if (!(sum[j] > 0) || !isfinite(sum[j]))
+            return svp_fail(SVP_ERR_NUMERIC, "PSF kernel has no flux on its %d x %d support",
+                            gb->kw, gb->kh);
     /* normalise (D G D) and fill the upper triangle */
     for (int j = 0; j < S; j++)
         for (int i = j; i < S; i++) {
@@ -1690,7 +1729,7 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
         }
     v->kernel_norm2 = 0;
     for (int j = 0; j < S; j++) v->kernel_norm2 += g[(size_t)j * S + j];
-    if (centred) { /* C G C */
+    if (gb->centred) { /* C G C */
         double tot = 0;
         for (int i = 0; i < S; i++) {
             double r = 0;
@@ -1704,34 +1743,36 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
     }
     lapack_int found = 0;
     lapack_int info = LAPACKE_dsyevr(LAPACK_COL_MAJOR, 'V', 'A', 'L', S, g, S, 0, 0, 0, 0, 0.0,
-                                     &found, lam, z, S, isuppz);
-    if (info != 0 || found != S) {
-        st = svp_fail(SVP_ERR_NUMERIC,
-                      "low rank: the eigen-decomposition of the sampled PSFs' Gram matrix failed "
-                      "(LAPACK dsyevr info %d)",
-                      (int)info);
-        goto cleanup;
-    }
-    /* descending eigenvalues for the error estimate */
+                                     &found, lam, gb->z, S, gb->isuppz);
+    if (info != 0 || found != S)
+        return svp_fail(SVP_ERR_NUMERIC,
+                        "low rank: the eigen-decomposition of the sampled PSFs' Gram matrix "
+                        "failed (LAPACK dsyevr info %d)",
+                        (int)info);
+    return SVP_OK;
+}
+
+/* The eigenvalues (descending, v->eig), the coefficients (v->coef) and the combination weights
+ * zx of pass 2: column 0 gives the mean (1 / (S s_j)), column 1 + q the q-th vector / (s_j σ_q);
+ * lam then holds Σ_j z_jq / σ_q per term (the mean's share of a centred term). */
+static svp_status gram_terms(gram_build *gb, svp_variant_data *v)
+{
+    const int S = gb->S, R = gb->R, Q = gb->Q, centred = gb->centred;
     v->eig = malloc((size_t)S * sizeof(double));
     v->coef = malloc((size_t)R * S * sizeof(double));
     v->otf = calloc((size_t)R, sizeof *v->otf);
-    if (!v->eig || !v->coef || !v->otf) {
-        st = svp_fail(SVP_ERR_NOMEM, "out of memory for %d eigen-PSFs", R);
-        goto cleanup;
-    }
+    if (!v->eig || !v->coef || !v->otf)
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for %d eigen-PSFs", R);
     v->n_eig = S;
-    for (int q = 0; q < S; q++) v->eig[q] = lam[S - 1 - q];
-    /* Pass 2: eigen-PSF halves E = A_raw zx (then minus the mean times Σ z for centred terms):
-     * column 0 of zx gives the mean (1 / (S s_j)), column 1 + q the q-th vector / (s_j σ_q). */
-    double *zsum = lam; /* reuse: Σ_j z_jq / σ_q per term */
-    for (int j = 0; j < S; j++) zx[j] = 1.0 / ((double)S * sum[j]);
+    for (int q = 0; q < S; q++) v->eig[q] = gb->lam[S - 1 - q];
+    double *zsum = gb->lam, *zx = gb->zx;
+    for (int j = 0; j < S; j++) zx[j] = 1.0 / ((double)S * gb->sum[j]);
     for (int q = 0; q < Q; q++) {
-        const double *zq = z + (size_t)(S - 1 - q) * S;
+        const double *zq = gb->z + (size_t)(S - 1 - q) * S;
         const double l = v->eig[q], sg = l > 0 ? sqrt(l) : 1.0;
         double zs = 0;
         for (int j = 0; j < S; j++) {
-            zx[(size_t)(1 + q) * S + j] = zq[j] / (sum[j] * sg);
+            zx[(size_t)(1 + q) * S + j] = zq[j] / (gb->sum[j] * sg);
             v->coef[(size_t)(q + centred) * S + j] = l > 0 ? sg * zq[j] : zq[j];
             zs += zq[j] / sg;
         }
@@ -1740,22 +1781,30 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
     if (centred)
         for (int j = 0; j < S; j++) v->coef[j] = 1.0;
     v->n_terms = R;
-    /* eh: term r's half at eh + r half; the mean (centred) is term 0 */
-    const int cols = Q + 1;
+    return SVP_OK;
+}
+
+/* Pass 2: eigen-PSF halves E = A_raw zx (minus the mean times Σ z for centred terms) into eh,
+ * term r's half at eh + r half (the mean, centred, is term 0). */
+static void gram_halves(gram_build *gb)
+{
+    const int S = gb->S, rx = gb->rx, ry = gb->ry, kw = gb->kw, hr = gb->hr;
+    const int cols = gb->Q + 1, centred = gb->centred;
     const int skip = centred ? 0 : 1; /* plain: the mean column is not stored */
 #pragma omp parallel for schedule(static)
-    for (int ib = 0; ib < nblk; ib++) {
-        double *a = blk + (size_t)omp_get_thread_num() * S * bp;
+    for (int ib = 0; ib < gb->nblk; ib++) {
+        double *a = gb->blk + (size_t)omp_get_thread_num() * S * gb->bp;
         const int y0 = ib * GRAM_ROWS, nr = hr - y0 < GRAM_ROWS ? hr - y0 : GRAM_ROWS;
         const size_t np = (size_t)nr * kw, p0 = (size_t)y0 * kw;
-        for (int j = 0; j < S; j++) svp_psf_render_rows(&psf[j], rx, ry, y0, nr, a + (size_t)j * np);
+        for (int j = 0; j < S; j++)
+            svp_psf_render_rows(&gb->psf[j], rx, ry, y0, nr, a + (size_t)j * np);
         /* e_q = Σ_j zx_jq a_j over pixel chunks that stay in cache */
         enum { CH = 512 };
         for (size_t c0 = 0; c0 < np; c0 += CH) {
             const size_t cn = np - c0 < CH ? np - c0 : CH;
             for (int q = skip; q < cols; q++) {
-                double *restrict e = eh + (size_t)(q - skip) * half + p0 + c0;
-                const double *zq = zx + (size_t)q * S;
+                double *restrict e = gb->eh + (size_t)(q - skip) * gb->half + p0 + c0;
+                const double *zq = gb->zx + (size_t)q * S;
                 memset(e, 0, cn * sizeof(double));
                 for (int j = 0; j < S; j++) {
                     const double zj = zq[j];
@@ -1763,41 +1812,59 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
                     for (size_t i = 0; i < cn; i++) e[i] += zj * aj[i];
                 }
                 if (centred && q > 0) {
-                    const double *restrict mean = eh + p0 + c0;
-                    const double zs = zsum[q - 1];
+                    const double *restrict mean = gb->eh + p0 + c0;
+                    const double zs = gb->lam[q - 1];
                     for (size_t i = 0; i < cn; i++) e[i] -= zs * mean[i];
                 }
             }
         }
     }
+}
+
+/* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
+ * kernel matrix A: G = Aᵀ A = V Λ Vᵀ (LAPACKE_dsyevr), then the left singular vectors
+ * u_r = A v_r / σ_r, σ_r = √λ_r (the same eigen-PSFs and coefficients σ_r v_r as the SVD, up to
+ * sign). The kernels are point-symmetric (every PSF model is), so only their rows 0 .. ry are
+ * rendered (row ry's centre counted once, every other pixel twice); both passes stream them
+ * in blocks of GRAM_ROWS rows for all samples at once (gram_raw: gram_accumulate into the Gram
+ * matrix; gram_halves: the eigen-PSFs' halves as combinations of the samples): no kernel
+ * matrix is held whole, and the cost is O(S² · kernel pixels / 2) in cache-blocked vector
+ * loops. The first pass renders the kernels unnormalised (their sums are not known yet): G of
+ * the normalised, mean-centred kernels K_j / s_j − K̄ follows from the raw Gram and the sums
+ * exactly, C D G D C (D = diag(1/s), C = I − 11ᵀ/S), which costs about log10(|K|² / |K − K̄|²)
+ * digits (gram_eigen). The blocks' partial Gram matrices are summed in a fixed order
+ * (deterministic for any thread count). A term with λ <= 0 keeps e = A v, coefficient v (its
+ * product, the one that matters, is the same). */
+static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, double support,
+                                     int rx, int ry)
+{
+    svp_variant_data *v = b->variant;
+    gram_build gb;
+    svp_image *whole = NULL;
+    svp_status st = gram_alloc(&gb, v, o, rx, ry);
+    if (st == SVP_OK) st = sample_psfs(b, support, gb.psf);
+    if (st == SVP_OK) st = svp_image_new(gb.kw, gb.kh, &whole);
+    if (st == SVP_OK) {
+        gram_raw(&gb);
+        st = gram_eigen(&gb, v);
+    }
+    if (st == SVP_OK) st = gram_terms(&gb, v);
+    if (st == SVP_OK) gram_halves(&gb);
     /* whole eigen-PSFs (point-symmetric: k[i] = k[m − 1 − i]) and their spectra */
+    const int R = gb.R, kw = gb.kw;
+    const size_t m = gb.m;
     for (int r = 0; r < R && st == SVP_OK; r++) {
-        const double *e = eh + (size_t)r * half;
+        const double *e = gb.eh + (size_t)r * gb.half;
         double *k = whole->data;
         memcpy(k, e, ((size_t)ry * kw + rx + 1) * sizeof(double));
         for (size_t i = (size_t)ry * kw + rx + 1; i < m; i++) k[i] = k[m - 1 - i];
-        flux[r] = svp_sum(k, m);
+        gb.flux[r] = svp_sum(k, m);
         st = term_otf(b, whole, rx, ry, &v->otf[r]);
         if (st == SVP_OK)
             st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / R);
     }
-    if (st == SVP_OK && o->renormalise) st = lowrank_renormalise(b, R, flux);
-cleanup:
-    free(psf);
-    free(blk);
-    free(part);
-    free(rowp);
-    free(zeros);
-    free(cval);
-    free(psum);
-    free(g);
-    free(z);
-    free(lam);
-    free(sum);
-    free(zx);
-    free(eh);
-    free(flux);
-    free(isuppz);
+    if (st == SVP_OK && o->renormalise) st = lowrank_renormalise(b, R, gb.flux);
+    gram_free(&gb);
     svp_image_free(whole);
     return st;
 }
