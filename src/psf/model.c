@@ -184,26 +184,77 @@ static int auto_subsample(const svp_psf *psf)
     return fmin < 2.0 ? 9 : 1;
 }
 
-/* Pixel (dx, dy) of the unnormalised kernel: the profile at the pixel's centre, or its mean over
- * ns x ns sub-pixels where it curves within a pixel (r2 <= sub_radius2). */
-static inline double render_pixel(const profile_eval *e, int ns, double sub_radius2, double dx,
-                                  double dy, double r2)
+/* Pixel (dx, dy) of the unnormalised kernel where the profile curves within a pixel: its mean
+ * over ns x ns sub-pixels. */
+static double render_subsampled(const profile_eval *e, int ns, double dx, double dy)
 {
-    if (ns > 1 && r2 <= sub_radius2) {
-        double acc = 0;
-        for (int j = 0; j < ns; j++) {
-            double sy = dy - 0.5 + (j + 0.5) / ns;
-            for (int i = 0; i < ns; i++) acc += profile_at(e, dx - 0.5 + (i + 0.5) / ns, sy);
-        }
-        return acc / (ns * ns);
+    double acc = 0;
+    for (int j = 0; j < ns; j++) {
+        double sy = dy - 0.5 + (j + 0.5) / ns;
+        for (int i = 0; i < ns; i++) acc += profile_at(e, dx - 0.5 + (i + 0.5) / ns, sy);
     }
-    return profile_at(e, dx, dy);
+    return acc / (ns * ns);
 }
 
-/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out). An
- * unrotated profile (sin θ = 0: u = ±dx, v = dy exactly) has k(−dx) = k(dx) bit for bit at the
- * pixel centres: the right half of the row copies the left one there (the sub-pixel means are
- * summed in another order, so they are computed). */
+/* q = (ρ / scale)² → the profile, n values in place (the pixel-centre values of render_row).
+ * With glibc's vector math (libmvec) exp and log1p run four (AVX2) or two at a time; every
+ * value goes through the vector functions, padded lanes included, so a pixel's value does not
+ * depend on where the batch starts (each lane is computed on its own). */
+#if defined(SVP_HAVE_MVEC) && defined(__x86_64__)
+typedef double svp_m2d __attribute__((vector_size(16)));
+typedef double svp_m4d __attribute__((vector_size(32)));
+svp_m2d _ZGVbN2v_exp(svp_m2d);
+svp_m2d _ZGVbN2v_log1p(svp_m2d);
+__attribute__((target("avx2"))) svp_m4d _ZGVdN4v_exp(svp_m4d);
+__attribute__((target("avx2"))) svp_m4d _ZGVdN4v_log1p(svp_m4d);
+
+__attribute__((target("avx2"))) static void profile_values_avx2(const profile_eval *e,
+                                                                double *q, int n)
+{
+    const int gauss = e->model == SVP_PSF_GAUSSIAN;
+    for (int i = 0; i < n; i += 4) {
+        svp_m4d x = {0, 0, 0, 0};
+        const int k = n - i < 4 ? n - i : 4;
+        for (int t = 0; t < k; t++) x[t] = q[i + t];
+        const svp_m4d y = gauss ? _ZGVdN4v_exp(-0.5 * x) : _ZGVdN4v_exp(-e->beta * _ZGVdN4v_log1p(x));
+        for (int t = 0; t < k; t++) q[i + t] = y[t];
+    }
+}
+
+static void profile_values_sse2(const profile_eval *e, double *q, int n)
+{
+    const int gauss = e->model == SVP_PSF_GAUSSIAN;
+    for (int i = 0; i < n; i += 2) {
+        svp_m2d x = {q[i], i + 1 < n ? q[i + 1] : 0};
+        const svp_m2d y = gauss ? _ZGVbN2v_exp(-0.5 * x) : _ZGVbN2v_exp(-e->beta * _ZGVbN2v_log1p(x));
+        q[i] = y[0];
+        if (i + 1 < n) q[i + 1] = y[1];
+    }
+}
+#endif
+
+static void profile_values(const profile_eval *e, double *q, int n)
+{
+    if (e->model != SVP_PSF_GAUSSIAN && e->beta == 1.0) {
+        for (int i = 0; i < n; i++) q[i] = 1.0 / (1.0 + q[i]);
+        return;
+    }
+#if defined(SVP_HAVE_MVEC) && defined(__x86_64__)
+    if (__builtin_cpu_supports("avx2"))
+        profile_values_avx2(e, q, n);
+    else
+        profile_values_sse2(e, q, n);
+#else
+    for (int i = 0; i < n; i++)
+        q[i] = e->model == SVP_PSF_GAUSSIAN ? exp(-0.5 * q[i]) : exp(-e->beta * log1p(q[i]));
+#endif
+}
+
+/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out): the
+ * profile at the pixel centres (profile_values, a batch at a time), the sub-pixel mean where it
+ * curves within a pixel. An unrotated profile (sin θ = 0: u = ±dx, v = dy exactly) has
+ * k(−dx) = k(dx) bit for bit at the pixel centres: the right half of the row copies the left
+ * one there (the sub-pixel means are summed in another order, so they are computed). */
 static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry, int y,
                        double *restrict out)
 {
@@ -212,17 +263,30 @@ static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry
     const double fwhm_max = psf->fwhm_minor > psf->fwhm ? psf->fwhm_minor : psf->fwhm;
     const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
     const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
-    const int w = 2 * rx + 1, mirror = e->s == 0.0;
-    double dy = y - ry;
-    for (int x = 0; x < w; x++) {
-        double dx = x - rx;
-        double r2 = dx * dx + dy * dy;
+    const int w = 2 * rx + 1, mirror = e->s == 0.0, xend = mirror ? rx + 1 : w;
+    const double dy = y - ry;
+    enum { BATCH = 256 };
+    double qb[BATCH];
+    int xb[BATCH], nb = 0;
+    for (int x = 0; x <= w; x++) {
+        if (nb == BATCH || (x == xend && nb > 0)) {
+            profile_values(e, qb, nb);
+            for (int t = 0; t < nb; t++) out[xb[t]] = qb[t];
+            nb = 0;
+        }
+        if (x == w) break;
+        const double dx = x - rx, r2 = dx * dx + dy * dy;
         if (!(r2 <= support2))
             out[x] = 0;
-        else if (mirror && x > rx && !(ns > 1 && r2 <= sub_radius2))
+        else if (ns > 1 && r2 <= sub_radius2)
+            out[x] = render_subsampled(e, ns, dx, dy);
+        else if (x >= xend)
             out[x] = out[2 * rx - x];
-        else
-            out[x] = render_pixel(e, ns, sub_radius2, dx, dy, r2);
+        else {
+            const double u = dx * e->c + dy * e->s, v = -dx * e->s + dy * e->c;
+            qb[nb] = u * u * e->ia2 + v * v * e->ib2; /* as profile_at */
+            xb[nb++] = x;
+        }
     }
 }
 
