@@ -470,6 +470,74 @@ static void test_single_precision(void **state)
                   worst);
 }
 
+/* The memory bound (docs/model.md §9): with whole-field Moffat kernels (β 1.2–2, the slowest
+ * tails the field allows) the default representation's operator and workspace after RL
+ * (svp_blur_memory, RL's workspace included) plus RL's own buffers stays within 4 x the
+ * invariant correction's (the centre PSF's operator after RL plus the same buffers). The
+ * build's transient peak (svp_variant_info.peak_bytes, an upper estimate) is printed: at this
+ * size its fixed part (the 256 samples' Gram partials and row blocks) dominates it; measured
+ * peak RSS of whole `svpsf correct` runs at 512² and 1024² are in docs/model.md §9. A
+ * max_memory below the estimate is refused before the build, naming the megabytes. */
+static void test_memory_bound(void **state)
+{
+    (void)state;
+    const int w = 160, h = 144;
+    const size_t n = (size_t)w * h, rl_buffers = 9 * n * sizeof(double); /* 7 + in + out */
+    svp_psf base = moffat(4.0, 1.6, 0.0);
+    base.support = 0; /* whole field */
+    const int nt = svp_psf_field_poly_terms(2);
+    double c[SVP_FIELD_NPARAM * 6] = {0};
+    c[SVP_FIELD_FWHM * nt + 0] = 4.0;
+    c[SVP_FIELD_FWHM * nt + 3] = 1.2;
+    c[SVP_FIELD_FWHM * nt + 5] = 1.2;
+    c[SVP_FIELD_BETA * nt + 0] = 1.6;
+    c[SVP_FIELD_BETA * nt + 3] = -0.2;
+    c[SVP_FIELD_BETA * nt + 5] = -0.2;
+    svp_psf_field *f = NULL;
+    ASSERT_OK(svp_psf_field_new_poly(&base, w, h, 2, c, &f));
+    svp_image *x = test_random_image(w, h, 5), *y = test_image(w, h), *xr = test_image(w, h);
+    svp_deconv_options dopt;
+    svp_deconv_defaults(&dopt);
+    dopt.iterations = 2;
+    svp_blur *inv = NULL, *var = NULL;
+    ASSERT_OK(svp_blur_new(&base, w, h, SVP_BOUNDARY_MIRROR, &inv));
+    ASSERT_OK(svp_blur_apply(inv, x, y));
+    ASSERT_OK(svp_deconv_rl(inv, y, &dopt, xr));
+    const double inv_peak = (double)(svp_blur_memory(inv) + rl_buffers);
+    ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_MIRROR, NULL, &var));
+    ASSERT_OK(svp_deconv_rl(var, y, &dopt, xr));
+    svp_variant_info info;
+    ASSERT_OK(svp_blur_variant_info(var, &info));
+    const size_t held = svp_blur_memory(var);
+    const double var_use = (double)(held + rl_buffers);
+    print_message("memory, %d x %d, whole-field Moffat map: %s %d x %d (rank %d), after RL %.1f "
+                  "MB, invariant %.1f MB: ratio %.2f (bound 4); build peak estimate %.1f MB "
+                  "(%.1f x)\n",
+                  w, h, info.representation == SVP_VARIANT_LOWRANK ? "low rank" : "tent",
+                  info.grid_x, info.grid_y, info.rank, var_use / 1e6, inv_peak / 1e6,
+                  var_use / inv_peak, (info.peak_bytes + rl_buffers) / 1e6,
+                  (info.peak_bytes + rl_buffers) / inv_peak);
+    assert_true(var_use <= 4 * inv_peak);
+    /* a limit below the estimate: refused up front */
+    svp_variant_options o;
+    svp_variant_defaults(&o);
+    o.representation = info.representation;
+    o.grid_x = o.samples_x = info.grid_x;
+    o.grid_y = o.samples_y = info.grid_y;
+    o.rank = info.rank > 0 ? info.rank : o.rank;
+    o.max_memory = 0.5 * (double)info.peak_bytes;
+    svp_blur *none = NULL;
+    assert_int_equal(svp_blur_new_field(f, w, h, SVP_BOUNDARY_MIRROR, &o, &none), SVP_ERR_INVALID);
+    assert_null(none);
+    assert_non_null(strstr(svp_last_error(), "memory limit"));
+    svp_blur_free(var);
+    svp_blur_free(inv);
+    svp_image_free(x);
+    svp_image_free(y);
+    svp_image_free(xr);
+    svp_psf_field_free(f);
+}
+
 /* Point-symmetric PSFs (elliptical Moffats here) give real term spectra, stored as such: tent
  * grids that are not row-pruned, and low rank at every rank — its eigen-PSFs of (numerically)
  * zero singular value are projected onto the symmetric ones, which changes the operator by
@@ -1408,6 +1476,7 @@ int main(void)
         cmocka_unit_test(test_uniform_and_identical_regions),
         cmocka_unit_test(test_real_spectra),
         cmocka_unit_test(test_single_precision),
+        cmocka_unit_test(test_memory_bound),
         cmocka_unit_test(test_second_order_convergence),
         cmocka_unit_test(test_low_rank),
         cmocka_unit_test(test_lowrank_gram),
