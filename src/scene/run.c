@@ -812,7 +812,8 @@ static svp_status stage_compare(run_ctx *c)
 
 /* The margin of correction `cr` in pixels: its own, or for `auto` the PSF's significant reach
  * (svp_psf_reach at 1 % of the peak, at most a quarter of the view's larger side, as `svpsf
- * correct --margin auto`) where it applies — one model PSF and the zero boundary — else 0. */
+ * correct --margin auto`) where it applies — one model PSF without a halo and the zero
+ * boundary — else 0. */
 static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, int w, int h,
                                  int *m)
 {
@@ -825,7 +826,9 @@ static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, 
         return SVP_OK;
     }
     *m = 0;
-    if (one_psf && psf->boundary == SVP_BOUNDARY_ZERO) {
+    /* with a halo (light spread evenly over the view) a margin's unknowns can hold the halo's
+     * flux, which the data cannot tell apart: no margin (docs/model.md §3) */
+    if (one_psf && psf->boundary == SVP_BOUNDARY_ZERO && !(psf->psf.halo > 0)) {
         const int cap = (w > h ? w : h) / 4;
         const int r = (int)ceil(svp_psf_reach(&psf->psf, 0.01));
         *m = r < cap ? r : cap;
