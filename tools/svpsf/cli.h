@@ -424,4 +424,102 @@ int cli_maps_read(cli_run *run, cli_maps *maps);
 int cli_maps_plan(cli_run *run, cli_maps *maps);
 void cli_maps_release(cli_maps *maps);
 
+/* ---- option groups -------------------------------------------------------------------------
+ *
+ * An option group is a set of options several commands share, in four pieces: codes (an enum
+ * from its own base), a CLI_X_LONGOPTS list to put in the command's getopt table, a struct the
+ * options parse into (cli_X_init sets the defaults) and cli_X_option(run, group, option, arg),
+ * which returns 0 when it handled the option, CLI_EXIT_USAGE after a message naming it, and -1
+ * when the option is not one of the group's (so a command tries its groups in turn). A group
+ * whose help lines mean the same in every command prints them with cli_print_X_help. The
+ * groups: the common ones of cli_run (-o/--force, --format, --threads, --wisdom/--fft,
+ * --quiet, handled by cli_next_option itself), CLI_VARIANT (a PSF map's operator), CLI_MAPS
+ * (field and PL maps with their PSF), CLI_DECONV (the deconvolution settings of deconvolve
+ * and correct) and CLI_SPOT (the spot fit of fit-psf and map-psf). */
+
+/* The deconvolution settings deconvolve and correct share. Each command states in its own
+ * help what they apply to (one image; the PL and field x PL), and which combinations it
+ * refuses. */
+typedef struct cli_deconv_args {
+    int iterations;      /* --iterations N (default: svp_deconv_defaults) */
+    int iterations_auto; /* --iterations auto */
+    double balance;      /* --balance L */
+    int balance_auto;    /* --balance auto */
+    int balance_given;   /* --balance given at all */
+    double noise;        /* --noise SIGMA; 0 = estimated */
+    int cg_max_steps;    /* --cg-max-steps N */
+    int precision;       /* --precision: index in cli_precision_names */
+    int acceleration;    /* --acceleration: index in cli_acceleration_names */
+    int keep_doubtful;   /* --keep-doubtful */
+} cli_deconv_args;
+enum {
+    CLI_OPT_ITERATIONS = 1920,
+    CLI_OPT_BALANCE,
+    CLI_OPT_NOISE,
+    CLI_OPT_CG_MAX_STEPS,
+    CLI_OPT_PRECISION,
+    CLI_OPT_ACCELERATION,
+    CLI_OPT_KEEP_DOUBTFUL
+};
+/* clang-format off */
+#define CLI_DECONV_LONGOPTS \
+    {"iterations", required_argument, NULL, CLI_OPT_ITERATIONS}, \
+    {"balance", required_argument, NULL, CLI_OPT_BALANCE}, \
+    {"noise", required_argument, NULL, CLI_OPT_NOISE}, \
+    {"cg-max-steps", required_argument, NULL, CLI_OPT_CG_MAX_STEPS}, \
+    {"precision", required_argument, NULL, CLI_OPT_PRECISION}, \
+    {"acceleration", required_argument, NULL, CLI_OPT_ACCELERATION}, \
+    {"keep-doubtful", no_argument, NULL, CLI_OPT_KEEP_DOUBTFUL}
+/* clang-format on */
+/* Defaults from the library's options (svp_deconv_defaults, svp_correct_defaults' deconv). */
+void cli_deconv_init(cli_deconv_args *args, const svp_deconv_options *defaults);
+int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, const char *arg);
+/* Copies iterations, balance, CG cap, acceleration and precision into the library's options
+ * (auto_stop from --iterations auto; the noise and --balance auto are the caller's). */
+void cli_deconv_apply(const cli_deconv_args *args, svp_deconv_options *opt);
+/* The --cg-max-steps help lines (the same in both commands) with its default. */
+void cli_print_deconv_help(FILE *out, const svp_deconv_options *defaults);
+/* --acceleration: indexed by svp_rl_acceleration. */
+extern const char *const cli_acceleration_names[];
+/* svp_deconv_report.stop as the summary names it. */
+extern const char *const cli_rl_stop_names[];
+
+/* The spot fit fit-psf and map-psf share: --model, --circular, --gain (photons per data unit,
+ * >= 0). */
+typedef struct cli_spot_args {
+    int model;      /* index in cli_psf_model_names (default moffat) */
+    int elliptical; /* 0 with --circular */
+    double gain;    /* --gain (default: the library's) */
+} cli_spot_args;
+enum { CLI_OPT_MODEL = 1930, CLI_OPT_CIRCULAR, CLI_OPT_GAIN };
+/* clang-format off */
+#define CLI_SPOT_LONGOPTS \
+    {"model", required_argument, NULL, CLI_OPT_MODEL}, \
+    {"circular", no_argument, NULL, CLI_OPT_CIRCULAR}, \
+    {"gain", required_argument, NULL, CLI_OPT_GAIN}
+/* clang-format on */
+/* Defaults from the library's options (svp_spot_defaults). */
+void cli_spot_init(cli_spot_args *args, const svp_spot_options *defaults);
+int cli_spot_option(const cli_run *run, cli_spot_args *args, int option, const char *arg);
+/* Sets model, elliptical and noise.gain of the library's spot options. */
+void cli_spot_apply(const cli_spot_args *args, svp_spot_options *opt);
+/* The --model help line. */
+void cli_print_spot_help(FILE *out);
+
+/* A command in two halves: `int parse_X_args(cli_run *run, struct X_args *args)` reads the
+ * options into the command's struct (its own and its groups') and checks them, returning 0 to
+ * go on, CLI_OPTION_HELP after printing the help, or the exit status after a message; then
+ * `int run_X(cli_run *run, const struct X_args *args)` does the work in the command's own
+ * stages (read, plan, compute, write, report) and returns the exit status. cmd_X is then
+ *     int code = parse_X_args(&run, &args);
+ *     if (code == 0) code = run_X(&run, &args);
+ *     return cli_run_finish(&run, cli_parsed_status(code));
+ * cli_parsed_status maps CLI_OPTION_HELP to 0 and keeps any other status. */
+int cli_parsed_status(int code);
+
+/* The positional arguments after the options: exactly one, else an error. `missing` is the
+ * message when there is none; a second one is "unexpected argument 'X'" followed by
+ * `extra_note` (may be ""). Returns the argument, or NULL after the message. */
+const char *cli_one_argument(const cli_run *run, const char *missing, const char *extra_note);
+
 #endif
