@@ -1726,7 +1726,4 @@ const char *cli_one_argument(const cli_run *run, const char *missing, const char
     return run->argv[optind];
 }
 
-int cli_parsed_status(int code)
-{
-    return code == CLI_OPTION_HELP ? 0 : code;
-}
+int cli_parsed_status(int code) { return code == CLI_OPTION_HELP ? 0 : code; }

@@ -419,14 +419,13 @@ static void correct_report_balance(cli_run *run, const struct correct_args *a,
         cli_result_str(run, key, bound);
     }
     if (*at < sizeof job->bal)
-        *at += (size_t)snprintf(job->bal + *at, sizeof job->bal - *at,
-                                "%s %s %g (%s, noise sigma %g)",
-                                *at ? "," : ", automatic balance:", k == 0 ? "PL" : name,
-                                r->balance,
-                                r->balance_lcurve ? "L-curve corner: the noise level is "
-                                                    "out of reach"
-                                                  : "discrepancy principle",
-                                r->noise_sigma);
+        *at +=
+            (size_t)snprintf(job->bal + *at, sizeof job->bal - *at, "%s %s %g (%s, noise sigma %g)",
+                             *at ? "," : ", automatic balance:", k == 0 ? "PL" : name, r->balance,
+                             r->balance_lcurve ? "L-curve corner: the noise level is "
+                                                 "out of reach"
+                                               : "discrepancy principle",
+                             r->noise_sigma);
 }
 
 /* What each Wiener deconvolution did: [0] the PL's (method W), [1 + c] field c's numerator:

@@ -51,15 +51,15 @@ static void print_help(const cli_run *run, FILE *out)
             d.balance, d.iterations);
     cli_print_deconv_help(out, &d);
     fputs("  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
-            "                        PSF file's boundary, else zero; not with --compat)\n"
-            "  --compat skimage      reproduce scikit-image 0.19: restoration.wiener(IN, psf,\n"
-            "                        balance) (circular, clipped to [-1, 1]) or\n"
-            "                        restoration.richardson_lucy(IN, psf, num_iter) (start 0.5,\n"
-            "                        zero-padded 'same', clipped to [-1, 1]); a kernel image is\n"
-            "                        used as given, a YAML PSF is rendered at the image size\n"
-            "                        (default: off, the library's own methods: Richardson-Lucy\n"
-            "                        started at the data mean with a floored denominator and\n"
-            "                        boundary weights)\n",
+          "                        PSF file's boundary, else zero; not with --compat)\n"
+          "  --compat skimage      reproduce scikit-image 0.19: restoration.wiener(IN, psf,\n"
+          "                        balance) (circular, clipped to [-1, 1]) or\n"
+          "                        restoration.richardson_lucy(IN, psf, num_iter) (start 0.5,\n"
+          "                        zero-padded 'same', clipped to [-1, 1]); a kernel image is\n"
+          "                        used as given, a YAML PSF is rendered at the image size\n"
+          "                        (default: off, the library's own methods: Richardson-Lucy\n"
+          "                        started at the data mean with a floored denominator and\n"
+          "                        boundary weights)\n",
           out);
     cli_print_common_help(run, out);
 }
@@ -358,8 +358,8 @@ static int deconvolve_write(cli_run *run, const struct deconvolve_args *a,
     cli_result_str(run, "doubt", job->doubt);
     if (job->doubt[0]) {
         if (!a->deconv.keep_doubtful) {
-            cli_error(run, "%s: result in doubt: %s (--keep-doubtful writes it anyway)",
-                      a->in_path, job->doubt);
+            cli_error(run, "%s: result in doubt: %s (--keep-doubtful writes it anyway)", a->in_path,
+                      job->doubt);
             return CLI_EXIT_DOUBTFUL;
         }
         cli_warn(run, "%s: result in doubt, kept by --keep-doubtful: %s", a->in_path, job->doubt);

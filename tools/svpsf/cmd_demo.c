@@ -309,17 +309,18 @@ static int run_demo(cli_run *run, const struct demo_args *a)
     if (!code) {
         const lit_error ea = job.ea, ec = job.ec;
         const double peak = job.peak;
-        printf("svpsf demo: a %d x %d field map (peak %.3g uT) under a chequered, spot-lit PL map,\n"
-               "blurred by a Lorentzian PSF of %g um FWHM (%g um pixels), then corrected with R&W\n"
-               "(%d Richardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL).\n"
-               "Errors in the lit regions (true PL > %g %% of max):\n"
-               "  apparent  (T):     max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
-               "  corrected (T^-1):  max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
-               "Time %.2f s. Outputs (maps, psf.yaml, figures *.png, summary.json) are in %s/\n",
-               DEMO_SIZE, DEMO_SIZE, peak, DEMO_FWHM_UM, DEMO_PIXEL_UM, job.opt.deconv.iterations,
-               job.opt.deconv.balance, 100 * DEMO_LIT, ea.max, 100 * ea.max / peak, ea.mean,
-               100 * ea.mean / peak, ec.max, 100 * ec.max / peak, ec.mean, 100 * ec.mean / peak,
-               cli_now() - run->t_start, a->output);
+        printf(
+            "svpsf demo: a %d x %d field map (peak %.3g uT) under a chequered, spot-lit PL map,\n"
+            "blurred by a Lorentzian PSF of %g um FWHM (%g um pixels), then corrected with R&W\n"
+            "(%d Richardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL).\n"
+            "Errors in the lit regions (true PL > %g %% of max):\n"
+            "  apparent  (T):     max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
+            "  corrected (T^-1):  max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
+            "Time %.2f s. Outputs (maps, psf.yaml, figures *.png, summary.json) are in %s/\n",
+            DEMO_SIZE, DEMO_SIZE, peak, DEMO_FWHM_UM, DEMO_PIXEL_UM, job.opt.deconv.iterations,
+            job.opt.deconv.balance, 100 * DEMO_LIT, ea.max, 100 * ea.max / peak, ea.mean,
+            100 * ea.mean / peak, ec.max, 100 * ec.max / peak, ec.mean, 100 * ec.mean / peak,
+            cli_now() - run->t_start, a->output);
     }
     for (int i = 0; i < N_IMAGES; i++) svp_image_free(job.images[i]);
     svp_image_free(job.err_apparent);

@@ -141,11 +141,11 @@ static int read_frequencies(cli_run *run, const char *arg, double unit, int n_fr
 }
 
 struct fit_odmr_args {
-    const char *stack_path; /* STACK */
-    const char *freq_arg;   /* --frequencies */
+    const char *stack_path;                                    /* STACK */
+    const char *freq_arg;                                      /* --frequencies */
     int freq_unit, lines, line, line_given, unit, failed_mode; /* indices in the name tables */
-    svp_odmr od;               /* --zero-field, --gamma, --linewidth */
-    svp_odmr_fit_options opt;  /* --baseline-frames, --max-iterations; lines and line */
+    svp_odmr od;              /* --zero-field, --gamma, --linewidth */
+    svp_odmr_fit_options opt; /* --baseline-frames, --max-iterations; lines and line */
 };
 
 enum { N_MAPS = 15 };
@@ -154,8 +154,8 @@ enum { N_MAPS = 15 };
 struct fit_odmr_job {
     svp_stack *stack;
     int nf, w, h;
-    double *freq;        /* increasing, Hz */
-    svp_image **frames;  /* in the order of freq */
+    double *freq;       /* increasing, Hz */
+    svp_image **frames; /* in the order of freq */
     svp_image *img[N_MAPS];
     const char *paths[N_MAPS], *summary_path;
     size_t n_failed;
@@ -182,8 +182,7 @@ static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
         return cli_parse_double_in(run, "--linewidth", optarg, 0, 0, INFINITY, 0,
                                    &od->linewidth_hz);
     case OPT_BASELINE_FRAMES:
-        return cli_parse_int(run, "--baseline-frames", optarg, 1, 1000000,
-                             &a->opt.baseline_frames);
+        return cli_parse_int(run, "--baseline-frames", optarg, 1, 1000000, &a->opt.baseline_frames);
     case OPT_MAX_ITERATIONS:
         return cli_parse_int(run, "--max-iterations", optarg, 1, 1000000,
                              &a->opt.lm.max_iterations);
@@ -294,9 +293,10 @@ static int fit_odmr_read(cli_run *run, const struct fit_odmr_args *a, struct fit
 static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
 {
     static const char *const names[N_MAPS] = {
-        "field",    "field_sigma",    "field_lower", "field_lower_sigma", "field_upper",
-        "field_upper_sigma", "pl",    "pl_sigma",    "contrast",          "contrast_sigma",
-        "linewidth", "linewidth_sigma", "quality",   "converged",         NULL};
+        "field",       "field_sigma",       "field_lower", "field_lower_sigma",
+        "field_upper", "field_upper_sigma", "pl",          "pl_sigma",
+        "contrast",    "contrast_sigma",    "linewidth",   "linewidth_sigma",
+        "quality",     "converged",         NULL};
     const svp_odmr *od = &a->od;
     const svp_odmr_fit_options *opt = &a->opt;
     int code;
@@ -331,14 +331,25 @@ static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_
 {
     svp_image **img = job->img;
     cli_stage_begin(run, "fit");
-    svp_cube cube = {.width = job->w, .height = job->h, .n_freq = job->nf, .freq = job->freq,
+    svp_cube cube = {.width = job->w,
+                     .height = job->h,
+                     .n_freq = job->nf,
+                     .freq = job->freq,
                      .frame = job->frames};
-    svp_odmr_maps maps = {.field = img[0], .field_sigma = img[1], .field_lower = img[2],
-                          .field_lower_sigma = img[3], .field_upper = img[4],
-                          .field_upper_sigma = img[5], .baseline = img[6],
-                          .baseline_sigma = img[7], .contrast = img[8],
-                          .contrast_sigma = img[9], .linewidth = img[10],
-                          .linewidth_sigma = img[11], .quality = img[12], .converged = img[13]};
+    svp_odmr_maps maps = {.field = img[0],
+                          .field_sigma = img[1],
+                          .field_lower = img[2],
+                          .field_lower_sigma = img[3],
+                          .field_upper = img[4],
+                          .field_upper_sigma = img[5],
+                          .baseline = img[6],
+                          .baseline_sigma = img[7],
+                          .contrast = img[8],
+                          .contrast_sigma = img[9],
+                          .linewidth = img[10],
+                          .linewidth_sigma = img[11],
+                          .quality = img[12],
+                          .converged = img[13]};
     svp_odmr_fit_options opt = a->opt;
     opt.progress = cli_progress;
     opt.progress_user = run;
@@ -379,8 +390,7 @@ static void fit_odmr_report(cli_run *run, const struct fit_odmr_args *a, struct 
         snprintf(key, sizeof key, "mean_field_sigma_%s", unit_names[a->unit]);
         cli_result_num(run, key, sum_sigma / (double)n_ok);
     }
-    cli_result_num(run, "fits_per_second",
-                   job->fit_seconds > 0 ? (double)n / job->fit_seconds : 0);
+    cli_result_num(run, "fits_per_second", job->fit_seconds > 0 ? (double)n / job->fit_seconds : 0);
     if (n_failed)
         cli_note(run, "%zu of %zu pixel fits did not converge (%s in the field maps)", n_failed, n,
                  a->failed_mode == 0 ? "NaN" : "kept");
@@ -400,10 +410,9 @@ static int fit_odmr_write(cli_run *run, const struct fit_odmr_args *a, struct fi
     cli_stage_end(run);
     printf("svpsf fit-odmr: %d x %d, %d frequencies (%.6g to %.6g GHz), lines %s: %zu of %zu "
            "fits converged (%.3g fits/s); maps written to %s in %.2f s\n",
-           job->w, job->h, nf, job->freq[0] * 1e-9, job->freq[nf - 1] * 1e-9,
-           lines_names[a->lines], n - job->n_failed, n,
-           job->fit_seconds > 0 ? (double)n / job->fit_seconds : 0, run->output,
-           cli_now() - run->t_start);
+           job->w, job->h, nf, job->freq[0] * 1e-9, job->freq[nf - 1] * 1e-9, lines_names[a->lines],
+           n - job->n_failed, n, job->fit_seconds > 0 ? (double)n / job->fit_seconds : 0,
+           run->output, cli_now() - run->t_start);
     return 0;
 }
 

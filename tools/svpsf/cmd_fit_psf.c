@@ -43,7 +43,7 @@ static void print_help(const cli_run *run, FILE *out)
           "  --excitation SPOT_G   the excitation spot of the pair (same size as SPOT)\n",
           out);
     cli_print_spot_help(out);
-    fputs(          "  --iterations N        Richardson-Lucy iterations of the pair method (default 75)\n"
+    fputs("  --iterations N        Richardson-Lucy iterations of the pair method (default 75)\n"
           "  --use deconvolved|direct  which fit of a pair goes to PSF.yaml (default\n"
           "                        deconvolved)\n"
           "  --circular            one FWHM (no ellipticity, no angle)\n"
@@ -349,8 +349,7 @@ static int fit_psf_option(cli_run *run, struct fit_psf_args *a, int c)
         return cli_parse_double_in(run, "--sigma-bg", optarg, 0, 1, INFINITY, 0,
                                    &so->noise.sigma_bg);
     case OPT_SATURATION:
-        return cli_parse_double_in(run, "--saturation", optarg, 0, 0, INFINITY, 0,
-                                   &so->saturation);
+        return cli_parse_double_in(run, "--saturation", optarg, 0, 0, INFINITY, 0, &so->saturation);
     case OPT_REFUSE_BORDER: so->refuse_near_border = 1; return 0;
     case OPT_MAX_ITER:
         return cli_parse_int(run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations);
@@ -504,8 +503,8 @@ static int fit_psf_pair(cli_run *run, const struct fit_psf_args *a, struct fit_p
     cli_result_num(run, "offset_x_px", pr->offset_x);
     cli_result_num(run, "offset_y_px", pr->offset_y);
     if (rst == SVP_OK) {
-        printf(", phase correlation (%.3f, %.3f) px (significance %.1f)\n", rr.shift_x,
-               rr.shift_y, rr.significance);
+        printf(", phase correlation (%.3f, %.3f) px (significance %.1f)\n", rr.shift_x, rr.shift_y,
+               rr.significance);
         cli_result_num(run, "phase_offset_x_px", rr.shift_x);
         cli_result_num(run, "phase_offset_y_px", rr.shift_y);
         cli_result_num(run, "phase_significance", rr.significance);
@@ -529,16 +528,14 @@ static int fit_psf_pair(cli_run *run, const struct fit_psf_args *a, struct fit_p
         print_fit(what, &pr->deconvolved, um, 1);
     }
     job->chosen = a->use_direct ? &pr->direct : &pr->deconvolved;
-    snprintf(job->source, sizeof job->source,
-             "%s fit of %s (%s), excitation %s, %d RL iterations",
+    snprintf(job->source, sizeof job->source, "%s fit of %s (%s), excitation %s, %d RL iterations",
              cli_psf_model_names[a->spot.model], spot_path,
              a->use_direct ? "direct" : "deconvolved", exc_path, a->po.iterations);
     return 0;
 }
 
 /* The figures of a pair: excitation, direct emission and (when it worked) deconvolved. */
-static int fit_psf_pair_figures(cli_run *run, const struct fit_psf_args *a,
-                                struct fit_psf_job *job)
+static int fit_psf_pair_figures(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
 {
     const svp_spot_options *so = &a->po.spot;
     const double um = a->pixel_um;
@@ -547,8 +544,8 @@ static int fit_psf_pair_figures(cli_run *run, const struct fit_psf_args *a,
     int code;
     if ((code = fit_with_images(run, job->exc, so, &tmp, &job->m1, &job->r1, a->exc_path)))
         return code;
-    if ((code = write_figures(run, fig_dir, "excitation_", "excitation", job->exc, job->m1,
-                              job->r1, &tmp, so, um)))
+    if ((code = write_figures(run, fig_dir, "excitation_", "excitation", job->exc, job->m1, job->r1,
+                              &tmp, so, um)))
         return code;
     if ((code = fit_with_images(run, job->spot, so, &tmp, &job->m2, &job->r2, a->spot_path)))
         return code;
@@ -560,8 +557,7 @@ static int fit_psf_pair_figures(cli_run *run, const struct fit_psf_args *a,
     ds.noise.sigma_bg = ds.noise.gain = ds.noise.excess = 0.0;
     ds.saturation = -1.0;
     ds.hot_pixels = 0;
-    if ((code = fit_with_images(run, job->dec, &ds, &job->dfit, &job->m3, &job->r3,
-                                a->spot_path)))
+    if ((code = fit_with_images(run, job->dec, &ds, &job->dfit, &job->m3, &job->r3, a->spot_path)))
         return code;
     return write_figures(run, fig_dir, "deconvolved_", "deconvolved", job->dec, job->m3, job->r3,
                          &job->dfit, &ds, um);
@@ -597,10 +593,11 @@ static int fit_psf_compute(cli_run *run, const struct fit_psf_args *a, struct fi
 {
     int code;
     cli_stage_begin(run, "fit");
-    if ((code = a->exc_path ? fit_psf_pair(run, a, job) : fit_psf_single(run, a, job)))
-        return code;
+    if ((code = a->exc_path ? fit_psf_pair(run, a, job) : fit_psf_single(run, a, job))) return code;
     cli_result_str(run, "written_fit",
-                   !a->exc_path ? "spot" : a->use_direct ? "direct" : "deconvolved");
+                   !a->exc_path    ? "spot"
+                   : a->use_direct ? "direct"
+                                   : "deconvolved");
     if (job->chosen->flags) {
         char buf[256];
         svp_spot_flags_describe(job->chosen->flags, buf, sizeof buf);
@@ -609,8 +606,8 @@ static int fit_psf_compute(cli_run *run, const struct fit_psf_args *a, struct fi
     if (a->no_figures) return 0;
     cli_stage_begin(run, "figures");
     if (a->exc_path) return fit_psf_pair_figures(run, a, job);
-    return write_figures(run, job->fig_dir, "", "spot", job->spot, job->m1, job->r1,
-                         &job->single, &a->po.spot, a->pixel_um);
+    return write_figures(run, job->fig_dir, "", "spot", job->spot, job->m1, job->r1, &job->single,
+                         &a->po.spot, a->pixel_um);
 }
 
 static int run_fit_psf(cli_run *run, const struct fit_psf_args *a)

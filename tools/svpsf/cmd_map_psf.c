@@ -254,8 +254,7 @@ static int map_psf_option(cli_run *run, struct map_psf_args *a, int c)
                                    &a->transition_um);
     case OPT_ALPHA: return cli_parse_double_in(run, "--alpha", optarg, 0, 0, 1, 0, &mo->alpha);
     case OPT_CLIP:
-        return cli_parse_double_in(run, "--clip-kappa", optarg, 0, 1, INFINITY, 0,
-                                   &mo->clip_kappa);
+        return cli_parse_double_in(run, "--clip-kappa", optarg, 0, 1, INFINITY, 0, &mo->clip_kappa);
     case OPT_WINDOW:
         if (cli_parse_int(run, "--window", optarg, 7, 1001, &a->window)) return CLI_EXIT_USAGE;
         if (a->window % 2 == 0) return cli_error(run, "--window %d: must be odd", a->window);
@@ -382,8 +381,7 @@ static int read_spot_entry(cli_run *run, const struct map_psf_args *a, const svp
             return yaml_fail(run, a, st);
         e->ox = v[0];
         e->oy = v[1];
-    } else if ((st = svp_yaml_get_number(it, "x", -INFINITY, INFINITY, 0, &e->x, NULL)) !=
-                   SVP_OK ||
+    } else if ((st = svp_yaml_get_number(it, "x", -INFINITY, INFINITY, 0, &e->x, NULL)) != SVP_OK ||
                (st = svp_yaml_get_number(it, "y", -INFINITY, INFINITY, 0, &e->y, NULL)) != SVP_OK)
         return yaml_fail(run, a, st);
     relative_to(a->spots_path, name, e->path, sizeof e->path);
@@ -454,8 +452,7 @@ static int map_psf_read_spots(cli_run *run, const struct map_psf_args *a, struct
 }
 
 /* --labels: the field's size (or checked against it), integers 0..L-1, at most 4096. */
-static int map_psf_read_labels(cli_run *run, const struct map_psf_args *a,
-                               struct map_psf_job *job)
+static int map_psf_read_labels(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
 {
     const char *labels_path = a->labels_path;
     int code;
@@ -594,8 +591,8 @@ static int map_psf_map(cli_run *run, const struct map_psf_args *a, struct map_ps
     cli_stage_begin(run, "map");
     if (job->labels) {
         mo.transition = a->transition_um / job->pixel_um;
-        st = svp_psf_map_regions(job->samples, job->n_samples, job->labels, job->width,
-                                 job->height, job->n_labels, &mo, &job->field, &job->rep);
+        st = svp_psf_map_regions(job->samples, job->n_samples, job->labels, job->width, job->height,
+                                 job->n_labels, &mo, &job->field, &job->rep);
     } else {
         st = svp_psf_map_poly(job->samples, job->n_samples, job->width, job->height, &mo,
                               &job->field, &job->rep);
@@ -603,8 +600,8 @@ static int map_psf_map(cli_run *run, const struct map_psf_args *a, struct map_ps
     if (st == SVP_OK) return 0;
     for (int k = 0; k < job->n_spots; k++)
         if (job->sample_of[k] < 0)
-            fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k,
-                    job->spots[k].path, job->spots[k].error);
+            fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, job->spots[k].path,
+                    job->spots[k].error);
     return cli_fail(run, st, a->spots_path);
 }
 

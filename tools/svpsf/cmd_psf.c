@@ -204,8 +204,8 @@ static int run_psf(cli_run *run, const struct psf_args *a)
         double held = converges || p->support > 0
                           ? svp_psf_encircled_energy(p, radius, p->support > 0 ? p->support : 0)
                           : NAN;
-        printf("kernel %d x %d px (size from %s) written to %s, normalised to unit sum", size,
-               size, size_rule, run->output);
+        printf("kernel %d x %d px (size from %s) written to %s, normalised to unit sum", size, size,
+               size_rule, run->output);
         if (isfinite(held))
             printf("; the square holds at least %.4g %% of the core's light", 100 * held);
         printf("\n");

@@ -122,8 +122,7 @@ static int psf_compare_read(cli_run *run, const struct psf_compare_args *a,
     double ua = 0, ub = 0;
     int code;
     cli_stage_begin(run, "read");
-    if ((code = load(run, pa, &job->fa, &ua)) || (code = load(run, pb, &job->fb, &ub)))
-        return code;
+    if ((code = load(run, pa, &job->fa, &ua)) || (code = load(run, pb, &job->fb, &ub))) return code;
     if (fabs(ua - ub) > 1e-9 * ua)
         return cli_error(run,
                          "%s: pixel_um %g differs from %s's %g: the maps must share the "
@@ -132,8 +131,8 @@ static int psf_compare_read(cli_run *run, const struct psf_compare_args *a,
     int aw = svp_psf_field_width(job->fa), ah = svp_psf_field_height(job->fa);
     int bw = svp_psf_field_width(job->fb), bh = svp_psf_field_height(job->fb);
     if (aw && bw && (aw != bw || ah != bh))
-        return cli_error(run, "size mismatch: %s maps a %d x %d field but %s a %d x %d one", pa,
-                         aw, ah, pb, bw, bh);
+        return cli_error(run, "size mismatch: %s maps a %d x %d field but %s a %d x %d one", pa, aw,
+                         ah, pb, bw, bh);
     int w = a->w, h = a->h;
     if (aw)
         w = aw, h = ah;
@@ -188,9 +187,8 @@ static int psf_compare_parameters(cli_run *run, const struct psf_compare_args *a
         return cli_fail(run, st, NULL);
     const int beta_comparable = ma.model != SVP_PSF_GAUSSIAN && mb.model != SVP_PSF_GAUSSIAN;
     if (ma.model != mb.model)
-        cli_note(run, "the maps use different models (A %s, B %s)%s",
-                 cli_psf_model_names[ma.model], cli_psf_model_names[mb.model],
-                 beta_comparable ? "" : ": beta is not compared");
+        cli_note(run, "the maps use different models (A %s, B %s)%s", cli_psf_model_names[ma.model],
+                 cli_psf_model_names[mb.model], beta_comparable ? "" : ": beta is not compared");
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
             double p[SVP_FIELD_NPARAM], q[SVP_FIELD_NPARAM];
@@ -261,7 +259,8 @@ static int psf_compare_transforms(cli_run *run, struct psf_compare_job *job)
     svp_correct_options co, cb;
     svp_correct_defaults(&co);
     /* the two corrections are the long part: each reports half of the stage's progress */
-    svp_progress_share half_a = {cli_progress, run, 0.0, 0.5}, half_b = {cli_progress, run, 0.5, 0.5};
+    svp_progress_share half_a = {cli_progress, run, 0.0, 0.5},
+                       half_b = {cli_progress, run, 0.5, 0.5};
     cb = co;
     co.deconv.progress = cb.deconv.progress = svp_progress_share_fn;
     co.deconv.progress_user = &half_a;
@@ -270,8 +269,8 @@ static int psf_compare_transforms(cli_run *run, struct psf_compare_job *job)
     svp_status st;
     if ((st = svp_blur_new_field(job->wa, n, n, SVP_BOUNDARY_ZERO, &vo, &job->ha)) != SVP_OK ||
         (st = svp_blur_new_field(job->wb, n, n, SVP_BOUNDARY_ZERO, &vo, &job->hb)) != SVP_OK ||
-        (st = svp_forward_transform(job->ha, job->pltrue, (const svp_image *const *)&job->btrue,
-                                    1, job->plapp, &job->bapp, NULL)) != SVP_OK ||
+        (st = svp_forward_transform(job->ha, job->pltrue, (const svp_image *const *)&job->btrue, 1,
+                                    job->plapp, &job->bapp, NULL)) != SVP_OK ||
         (st = svp_inverse_transform(job->ha, job->plapp, (const svp_image *const *)&job->bapp, 1,
                                     &co, job->plc, &job->bc_a, NULL, NULL)) != SVP_OK ||
         (st = svp_inverse_transform(job->hb, job->plapp, (const svp_image *const *)&job->bapp, 1,
@@ -331,7 +330,8 @@ static int psf_compare_write(cli_run *run, struct psf_compare_job *job)
     svp_status st;
     int code;
     cli_stage_begin(run, "write");
-    double lim_f = job->max_df > 0 ? job->max_df : 1e-6, lim_b = job->max_db > 0 ? job->max_db : 1e-6;
+    double lim_f = job->max_df > 0 ? job->max_df : 1e-6,
+           lim_b = job->max_db > 0 ? job->max_db : 1e-6;
     if ((code = cli_write_image(run, job->out_dfw, job->dfw)) ||
         (code = cli_write_image(run, job->out_dbe, job->dbe)) ||
         (code = cli_write_image(run, job->out_ca, job->bc_a)) ||

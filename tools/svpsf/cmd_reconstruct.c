@@ -347,8 +347,8 @@ static int reconstruct_write(cli_run *run, const struct reconstruct_args *a,
         int is_norm = k == 2;
         char label[64];
         snprintf(label, sizeof label, "%s (%s)", job->names[k], a->quantity == 0 ? "mA" : "A/m");
-        if ((code = figure(run, run->output, job->names[k], job->out[k],
-                           a->quantity == 0 ? 1e3 : 1, label, a->pixel_um, !is_norm)))
+        if ((code = figure(run, run->output, job->names[k], job->out[k], a->quantity == 0 ? 1e3 : 1,
+                           label, a->pixel_um, !is_norm)))
             return code;
     }
     cli_stage_end(run);

@@ -247,8 +247,8 @@ struct register_args {
     const char *contrast_option;              /* "--invert" / "--no-invert" as given */
     int method, motion, interp;               /* indices in the name tables */
     int border_given, keep_doubtful;
-    double border;                            /* --border (NaN for "nan") */
-    svp_register_options opt;                 /* the library's options, filled from the above */
+    double border;            /* --border (NaN for "nan") */
+    svp_register_options opt; /* the library's options, filled from the above */
 };
 
 /* What a run holds (released by run_register). */
@@ -275,8 +275,7 @@ static int register_option(cli_run *run, struct register_args *a, int c)
         }
         return cli_parse_double(run, "--border", optarg, &a->border);
     case OPT_SMOOTH:
-        return cli_parse_double_in(run, "--smooth", optarg, 0, 1, INFINITY, 0,
-                                   &opt->smooth_sigma);
+        return cli_parse_double_in(run, "--smooth", optarg, 0, 1, INFINITY, 0, &opt->smooth_sigma);
     case OPT_NO_WINDOW: opt->window = 0; return 0;
     case OPT_ITERATIONS:
         return cli_parse_int(run, "--iterations", optarg, 2, 1000000, &opt->iterations);
@@ -414,8 +413,8 @@ static void register_print(const struct register_args *a, const struct register_
     else if (isfinite(r->significance_other))
         printf("  contrast    %s (detected: the correlation's %s, significance %.1f, against "
                "%.1f for its %s)\n",
-               r->inverted ? "inverted" : "same", r->inverted ? "trough" : "peak",
-               r->significance, r->significance_other, r->inverted ? "peak" : "trough");
+               r->inverted ? "inverted" : "same", r->inverted ? "trough" : "peak", r->significance,
+               r->significance_other, r->inverted ? "peak" : "trough");
     if (ecc) printf("  ECC         %d iterations\n", r->iterations);
     if (r->nonfinite_reference || r->nonfinite_moving)
         printf("  NaN/Inf     %zu reference and %zu moving pixels, filled from their neighbours "
@@ -473,9 +472,8 @@ static int register_warp(cli_run *run, const struct register_args *a, struct reg
     int code;
     cli_stage_begin(run, "warp");
     const int labels = looks_like_labels(to_warp);
-    const svp_interpolation how = a->interp == 1 || (a->interp == 0 && labels)
-                                      ? SVP_INTERP_NEAREST
-                                      : SVP_INTERP_LINEAR;
+    const svp_interpolation how =
+        a->interp == 1 || (a->interp == 0 && labels) ? SVP_INTERP_NEAREST : SVP_INTERP_LINEAR;
     double border = a->border;
     if (!a->border_given) border = how == SVP_INTERP_NEAREST ? 0 : NAN;
     svp_status st;
@@ -488,9 +486,9 @@ static int register_warp(cli_run *run, const struct register_args *a, struct reg
     printf("  warped      %s (%d x %d) -> %s (%d x %d), %s interpolation%s, border %g\n",
            a->warp_path, to_warp->width, to_warp->height, a->warp_out, job->warped->width,
            job->warped->height, how == SVP_INTERP_NEAREST ? "nearest" : "linear",
-           a->interp == 0 ? (labels ? " (integer pixels: a label mask)"
-                                    : " (non-integer pixels: an image)")
-                          : "",
+           a->interp == 0
+               ? (labels ? " (integer pixels: a label mask)" : " (non-integer pixels: an image)")
+               : "",
            border);
     return 0;
 }
@@ -505,7 +503,7 @@ static int run_register(cli_run *run, const struct register_args *a)
     if (!code && a->warp_path) code = register_warp(run, a, &job);
     if (!code && a->transform_path) {
         cli_stage_begin(run, "write");
-        const transform_doc doc = {a->reference_path,      a->moving_path, job.reference->width,
+        const transform_doc doc = {a->reference_path,     a->moving_path, job.reference->width,
                                    job.reference->height, &job.opt,       &job.r};
         code = write_transform(run, a->transform_path, &doc);
         if (!code) printf("  transform   written to %s\n", a->transform_path);
