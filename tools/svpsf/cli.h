@@ -1,33 +1,37 @@
 /*
  * Shared helpers of the svpsf command-line program.
  *
- * Adding a command (e.g. for issues 3-5: simulate, fit-psf, map-psf, psf-compare, reconstruct,
- * register):
- *   1. write `int cmd_NAME(int argc, char **argv)` in tools/svpsf/cmd_NAME.c (its prototype is
- *      already declared below); argv[0] is the command name, the options follow;
+ * Adding a command (docs/architecture.md, "Adding a CLI command"):
+ *   1. write `int cmd_NAME(int argc, char **argv)` in tools/svpsf/cmd_NAME.c and declare it
+ *      below; argv[0] is the command name, the options follow;
  *   2. add ONE line to the `commands` table in tools/svpsf/main.c:
  *          {"fit-psf", "fit a Moffat PSF to a spot image pair", cmd_fit_psf},
  *      The table is what `svpsf --help` lists and what `svpsf NAME` dispatches to; a command
  *      that is not in the table does not exist for the user.
  *
- * The shape of a command (see cmd_forward.c for a complete one):
+ * The shape of a command (cmd_deconvolve.c and cmd_correct.c are complete ones): it parses
+ * into a struct of its arguments, then runs (see cli_parsed_status below):
  *
- *   cli_run run;
- *   cli_run_init(&run, "forward", argc, argv, CLI_COMMON_OUTPUT_DIR);
- *   struct option own[] = {{"pl", required_argument, NULL, OPT_PL}, ..., {0}};
- *   int c;
- *   while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
- *       switch (c) {
- *       case CLI_OPTION_HELP: print_help(stdout); return cli_run_finish(&run, 0);
- *       case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
- *       case OPT_PL: ...
+ *   static int parse_NAME_args(cli_run *run, struct NAME_args *a)
+ *   {
+ *       static const struct option own[] = {{"pl", required_argument, NULL, OPT_PL}, ...,
+ *                                           CLI_DECONV_LONGOPTS, {0}};
+ *       ... defaults, cli_deconv_init(&a->deconv, &library_defaults) ...
+ *       int c;
+ *       while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+ *           if (c == CLI_OPTION_HELP) { print_help(run, stdout); return CLI_OPTION_HELP; }
+ *           if (c == CLI_OPTION_ERROR || NAME_option(run, a, c)) return CLI_EXIT_USAGE;
  *       }
+ *       ... positional arguments (cli_one_argument), the combinations refused ...
  *   }
- *   ... read inputs with cli_read_image / cli_psf_load (they record them for the summary),
- *   plan every output with cli_output_in_dir / cli_output_file, then cli_outputs_check (no
- *   file is written before all are known to be writable), compute inside
- *   cli_stage_begin/cli_stage_end, write with cli_write_image, cli_summary_write, and
- *   return cli_run_finish(&run, status).
+ *
+ * where NAME_option switches over the command's own options and passes the others to its
+ * groups' cli_X_option (each returns -1 for an option that is not its own). run_NAME then
+ * reads inputs with cli_read_image / cli_psf_load (they record them for the summary), plans
+ * every output with cli_output_in_dir / cli_output_file, then cli_outputs_check (no file is
+ * written before all are known to be writable), computes inside cli_stage_begin /
+ * cli_stage_end, writes with cli_write_image, cli_summary_write, and returns the status;
+ * each stage is a function of its own (none over 150 lines: tools/check/funclen.py).
  *
  * Conventions every command follows (docs/cli.md):
  *   - exit 0 ok, 1 bad usage or bad input (CLI_EXIT_USAGE), 2 runtime failure;
@@ -62,7 +66,6 @@ int cmd_correct(int argc, char **argv);
 int cmd_deconvolve(int argc, char **argv);
 int cmd_psf(int argc, char **argv);
 int cmd_demo(int argc, char **argv);
-/* Planned by later issues; defined in their own files when they exist. */
 int cmd_simulate(int argc, char **argv);
 int cmd_fit_psf(int argc, char **argv);
 int cmd_map_psf(int argc, char **argv);
