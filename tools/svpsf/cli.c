@@ -1654,6 +1654,7 @@ int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, con
     case CLI_OPT_CG_MAX_STEPS:
         return cli_parse_int(run, "--cg-max-steps", arg, 1, 100000, &args->cg_max_steps);
     case CLI_OPT_PRECISION:
+        args->precision_given = 1;
         return cli_parse_choice(run, "--precision", arg, cli_precision_names, &args->precision);
     case CLI_OPT_ACCELERATION:
         return cli_parse_choice(run, "--acceleration", arg, cli_acceleration_names,

@@ -452,6 +452,7 @@ typedef struct cli_deconv_args {
     double noise;        /* --noise SIGMA; 0 = estimated */
     int cg_max_steps;    /* --cg-max-steps N */
     int precision;       /* --precision: index in cli_precision_names */
+    int precision_given; /* --precision given at all */
     int acceleration;    /* --acceleration: index in cli_acceleration_names */
     int keep_doubtful;   /* --keep-doubtful */
 } cli_deconv_args;

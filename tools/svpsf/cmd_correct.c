@@ -20,23 +20,17 @@ static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound"
                                           "iterations_at_cap", "implausible_values",
                                           "regularised_away"};
 
-/* --margin auto: the PSF's significant reach, the radius where the profile falls to 1 % of its
- * peak along the major axis (Gaussian 1.29 FWHM; Moffat r0 √(100^(1/β) − 1): 4.3 FWHM at β 1.1;
- * a kernel image: its half-width), at most a quarter of the view's larger side. */
+/* --margin auto: the PSF's significant reach (svp_psf_reach: the radius where the profile falls
+ * to 1 % of its peak along the major axis; Gaussian 1.29 FWHM, Moffat β 1.1 4.3 FWHM; a kernel
+ * image: its half-width), at most a quarter of the view's larger side; 0 for a PSF with a halo,
+ * whose margin unknowns can take up halo flux (docs/model.md §3). */
 static int auto_margin(const cli_psf *psf, int w, int h)
 {
     const int cap = (w > h ? w : h) / 4;
     double r = 0;
     if (psf->is_model) {
-        const svp_psf *p = &psf->model;
-        if (p->model == SVP_PSF_GAUSSIAN) {
-            r = p->fwhm / (2 * sqrt(2 * log(2))) * sqrt(2 * log(100.0));
-        } else {
-            const double beta = p->model == SVP_PSF_LORENTZIAN ? 1.0 : p->beta;
-            const double r0 = p->fwhm / (2 * sqrt(expm1(log(2) / beta)));
-            r = r0 * sqrt(expm1(log(100.0) / beta));
-        }
-        if (p->support > 0 && p->support < r) r = p->support;
+        if (psf->model.halo > 0) return 0;
+        r = svp_psf_reach(&psf->model, 0.01);
     } else if (psf->kernel_raw) {
         const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
         r = 0.5 * (kw > kh ? kw : kh);
@@ -118,9 +112,10 @@ static void print_help(const cli_run *run, FILE *out)
             "  --plausible-factor K  a corrected |field| above K x the measured map's largest\n"
             "                        |value| at a lit pixel is implausible (default %g)\n"
             "  --precision double|single  the Richardson-Lucy convolutions of rw, r and\n"
-            "                        rl-signed in double (default) or single precision (float\n"
-            "                        FFTs: 1.4-2.4x faster, within about 1e-5 of the peak at\n"
-            "                        100 iterations); one PSF only, not a space-variant map\n"
+            "                        rl-signed in double or single precision (float FFTs:\n"
+            "                        1.4-2.4x faster; the field within about 2e-4 of its peak\n"
+            "                        of the double one at 75 iterations, docs/cli.md); default\n"
+            "                        single for r and rl-signed with one PSF, else double\n"
             "  --balance L|auto      Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
             "                        (default %g); auto: each Wiener deconvolution (of the PL\n"
             "                        for w, of field x PL for rw and w) picks its own by the\n"
@@ -310,6 +305,13 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     cli_maps *maps = &a->maps;
     int code;
     if ((code = cli_maps_open(run, maps, &job->psf))) return code;
+    /* default: single-precision transforms for r and rl-signed with one PSF — their error is
+     * ~10⁻⁴ of the peak, far below a measurement's (docs/cli.md, --precision) — else double */
+    if (!a->deconv.precision_given && !job->psf.field &&
+        (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED)) {
+        a->deconv.precision = 1;
+        opt->deconv.single_precision = 1;
+    }
     if (a->deconv.precision == 1 && job->psf.field) /* refused before the map's operator is built */
         return cli_error(run,
                          "%s: --precision single needs one PSF; this is a space-variant PSF "
