@@ -2,7 +2,8 @@
  * field, and how much the corrected field of a reference scene changes between them. */
 #include "cli.h"
 
-#include "scene/scene_internal.h"
+#include "core/internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -291,10 +292,10 @@ int cmd_psf_compare(int argc, char **argv)
             (code = cli_write_image(&run, out_ca, bc_a)) ||
             (code = cli_write_image(&run, out_cb, bc_b)))
             goto cleanup;
-        if ((st = scene_map_figure(png_dfw, dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
+        if ((st = svp_figure_map(png_dfw, dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
                                    "FWHM of B - FWHM of A", "dFWHM (nm)", um, run.force)) !=
                 SVP_OK ||
-            (st = scene_map_figure(png_dbe, dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
+            (st = svp_figure_map(png_dbe, dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
                                    "dbeta", um, run.force)) != SVP_OK) {
             code = cli_fail(&run, st, "figures");
             goto cleanup;
@@ -320,6 +321,6 @@ cleanup:
     svp_image_free(plc);
     svp_image_free(bc_a);
     svp_image_free(bc_b);
-    scene_figures_cleanup();
+    svp_figure_cleanup();
     return cli_run_finish(&run, code);
 }
