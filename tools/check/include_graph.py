@@ -12,7 +12,7 @@ tools/svpsf:
 - the file use graph (a.c -> b.c when a.c names a function b.c defines without `static`, read
   from the source text: a reference to a name two files define is left out) and its cycles;
   these are the loops a reader follows between files (operator.c -> variant.c -> exact.c and
-  back), whichever headers carry the declarations;
+  back), whichever headers carry the declarations; and the same graph between modules;
 - the largest files (lines) and the total;
 - the functions longer than --limit lines (default 150; tools/check/funclen.py's parser, which
   here also looks inside C++ `extern "C" {` and `namespace {` blocks).
@@ -140,6 +140,7 @@ def line_count(path):
 def measure(root, limit):
     files = files_of(root)
     fg = include_graph(root, files)
+    ug = use_graph(root, files)
     sizes = sorted(((line_count(os.path.join(root, f)), f) for f in files), reverse=True)
     long_fns = []
     for f in files:
@@ -153,7 +154,8 @@ def measure(root, limit):
         'sizes': sizes,
         'file_cycles': sccs(fg),
         'module_cycles': sccs(module_graph(fg)),
-        'use_cycles': sccs(use_graph(root, files)),
+        'use_cycles': sccs(ug),
+        'module_use_cycles': sccs(module_graph(ug)),
         'long': long_fns,
     }
 
@@ -163,7 +165,8 @@ def report(title, m, top, limit):
     print(f'{m["files"]} files, {m["lines"]} lines under {", ".join(DIRS)}')
     for label, key in (('file include cycles', 'file_cycles'),
                        ('module include cycles', 'module_cycles'),
-                       ('file use cycles (function calls between .c files)', 'use_cycles')):
+                       ('file use cycles (function calls between .c files)', 'use_cycles'),
+                       ('module use cycles', 'module_use_cycles')):
         print(f'{label}: {len(m[key])}')
         for c in m[key]:
             print(f'  {" <-> ".join(c)}')
@@ -186,9 +189,13 @@ def summary(results, top, limit):
         ('module include cycles', lambda m: '; '.join(' <-> '.join(os.path.basename(x)
                                                                 for x in c)
                                                       for c in m['module_cycles']) or '0'),
-        ('file use cycles (sizes)', lambda m: f'{len(m["use_cycles"])} (' +
+        ('file use cycles (files in each)', lambda m: f'{len(m["use_cycles"])} (' +
          ', '.join(str(len(c)) for c in m['use_cycles']) + ')'),
-        (f'functions over {limit} lines', lambda m: str(len(m['long']))),
+        ('module use cycles', lambda m: '; '.join(' <-> '.join(os.path.basename(x)
+                                                            for x in c)
+                                                  for c in m['module_use_cycles']) or '0'),
+        (f'functions over {limit} lines (in src/)',
+         lambda m: f'{len(m["long"])} ({sum(1 for r in m["long"] if r[1].startswith("src"))})'),
         ('longest function', lambda m: f'{m["long"][0][2]} ({m["long"][0][0]})'
          if m['long'] else '-'),
     ]
@@ -229,7 +236,8 @@ def self_test():
         m = measure(root, 150)
     want = {'file_cycles': [['src/a/a.h', 'src/a/b.h']],
             'module_cycles': [['src/a', 'src/b']],
-            'use_cycles': [['src/a/x.c', 'src/b/y.c']]}
+            'use_cycles': [['src/a/x.c', 'src/b/y.c']],
+            'module_use_cycles': [['src/a', 'src/b']]}
     failed = 0
     for k, w in want.items():
         ok = m[k] == w
