@@ -5,6 +5,7 @@
 #include "test_helpers.h"
 
 #include "core/internal.h"
+#include "figure/figure.h"
 #include "scene/scene_internal.h"
 
 #include <cairo.h>
@@ -646,7 +647,7 @@ static void png_rgb(cairo_surface_t *png, int x, int y, int rgb[3])
 
 /* A signed map drawn by the scene figures: the diverging colour map is white at zero, red for
  * positive and blue for negative values, and the colour bar beside the map runs from red (top,
- * the maximum) through white to blue (bottom). Layout of scene_map_figure: the map scaled to
+ * the maximum) through white to blue (bottom). Layout of svp_figure_map: the map scaled to
  * 560 px on its long side at (20, 48), the colour bar 16 px to its right, 18 px wide. */
 static void test_figure_diverging(void **state)
 {
@@ -658,7 +659,7 @@ static void test_figure_diverging(void **state)
     char dir[] = "/tmp/svpsf_fig_XXXXXX", path[64];
     assert_non_null(mkdtemp(dir));
     snprintf(path, sizeof path, "%s/map.png", dir);
-    ASSERT_OK(scene_map_figure(path, img, 1, -1, 1, 1, "a signed map", "B_z (uT)", 0.1, 0));
+    ASSERT_OK(svp_figure_map(path, img, 1, -1, 1, 1, "a signed map", "B_z (uT)", 0.1, 0));
     cairo_surface_t *png = cairo_image_surface_create_from_png(path);
     assert_int_equal(cairo_surface_status(png), CAIRO_STATUS_SUCCESS);
     cairo_surface_flush(png);
@@ -749,7 +750,7 @@ int main(void)
         cmocka_unit_test(test_outputs_written),
     };
     int rc = cmocka_run_group_tests_name("scene", tests, NULL, NULL);
-    scene_figures_cleanup();
+    svp_figure_cleanup();
     svp_fft_cleanup();
     return rc;
 }

@@ -3,7 +3,8 @@
  * forward/correct/deconvolve accepts, figures and a summary. */
 #include "cli.h"
 
-#include "scene/scene_internal.h"
+#include "core/internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -220,18 +221,18 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
     }
     snprintf(path, sizeof path, "%s/%sspot.png", dir, prefix);
     snprintf(t, sizeof t, "%s: data", title);
-    if ((st = scene_map_figure(path, a, 1, lo, hi, 0, t, "log10 (counts above background)", um,
+    if ((st = svp_figure_map(path, a, 1, lo, hi, 0, t, "log10 (counts above background)", um,
                                run->force)) != SVP_OK)
         goto fail;
     snprintf(path, sizeof path, "%s/%smodel.png", dir, prefix);
     snprintf(t, sizeof t, "%s: fitted %s", title, cli_psf_model_names[r->model]);
-    if ((st = scene_map_figure(path, b, 1, lo, hi, 0, t, "log10 (counts above background)", um,
+    if ((st = svp_figure_map(path, b, 1, lo, hi, 0, t, "log10 (counts above background)", um,
                                run->force)) != SVP_OK)
         goto fail;
     snprintf(path, sizeof path, "%s/%sresidual.png", dir, prefix);
     snprintf(t, sizeof t, "%s: residual (data - model) / sigma%s", title,
              unit ? " (sigma from the scatter)" : "");
-    if ((st = scene_map_figure(path, z, 1, -5, 5, 1, t, "residual / sigma", um, run->force)) !=
+    if ((st = svp_figure_map(path, z, 1, -5, 5, 1, t, "residual / sigma", um, run->force)) !=
         SVP_OK)
         goto fail;
     /* azimuthal means in 0.5 px rings around the fitted centre */
@@ -278,7 +279,7 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
         snprintf(path, sizeof path, "%s/%sprofile.png", dir, prefix);
         snprintf(t, sizeof t, "%s: radial profile", title);
         const int markers[2] = {1, 0}; /* data as points, the fit as a line */
-        if ((st = scene_line_plot(path, t, "radius from the fitted centre (um)",
+        if ((st = svp_figure_line_plot(path, t, "radius from the fitted centre (um)",
                                   "log10 (counts above background)", 2, xs, ys, ns, labels,
                                   markers, run->force)) != SVP_OK)
             goto fail;
@@ -627,7 +628,7 @@ static int run_fit_psf(cli_run *run, const struct fit_psf_args *a)
     svp_image_free(job.r2);
     svp_image_free(job.m3);
     svp_image_free(job.r3);
-    scene_figures_cleanup();
+    svp_figure_cleanup();
     return code;
 }
 

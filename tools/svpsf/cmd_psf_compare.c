@@ -2,7 +2,8 @@
  * field, and how much the corrected field of a reference scene changes between them. */
 #include "cli.h"
 
-#include "scene/scene_internal.h"
+#include "core/internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -337,9 +338,9 @@ static int psf_compare_write(cli_run *run, struct psf_compare_job *job)
         (code = cli_write_image(run, job->out_ca, job->bc_a)) ||
         (code = cli_write_image(run, job->out_cb, job->bc_b)))
         return code;
-    if ((st = scene_map_figure(job->png_dfw, job->dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
+    if ((st = svp_figure_map(job->png_dfw, job->dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
                                "FWHM of B - FWHM of A", "dFWHM (nm)", um, run->force)) != SVP_OK ||
-        (st = scene_map_figure(job->png_dbe, job->dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
+        (st = svp_figure_map(job->png_dbe, job->dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
                                "dbeta", um, run->force)) != SVP_OK)
         return cli_fail(run, st, "figures");
     cli_stage_end(run);
@@ -365,7 +366,7 @@ static int run_psf_compare(cli_run *run, const struct psf_compare_args *a)
     svp_image *imgs[] = {job.dfw,  job.dbe, job.btrue, job.pltrue, job.plapp,
                          job.bapp, job.plc, job.bc_a,  job.bc_b};
     for (size_t k = 0; k < sizeof imgs / sizeof imgs[0]; k++) svp_image_free(imgs[k]);
-    scene_figures_cleanup();
+    svp_figure_cleanup();
     return code;
 }
 

@@ -4,7 +4,7 @@
 #include "cli.h"
 
 #include "io/mat.h"
-#include "scene/scene_internal.h"
+#include "figure/figure.h"
 
 #include <limits.h>
 #include <math.h>
@@ -89,7 +89,7 @@ static int figure(cli_run *run, const char *dir, const char *name, const svp_ima
     char bar[128];
     snprintf(bar, sizeof bar, "%s", label);
     svp_status st =
-        scene_map_figure(path, img, scale, lo, m, diverging, title, bar, pixel_um, run->force);
+        svp_figure_map(path, img, scale, lo, m, diverging, title, bar, pixel_um, run->force);
     return st == SVP_OK ? 0 : cli_fail(run, st, path);
 }
 
@@ -372,7 +372,7 @@ static int run_reconstruct(cli_run *run, const struct reconstruct_args *a)
         svp_image_free(job.b[k]);
         svp_image_free(job.out[k]);
     }
-    scene_figures_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
+    svp_figure_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
     return code;
 }
 
