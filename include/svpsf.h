@@ -233,6 +233,10 @@ SVP_API double svp_psf_profile(const svp_psf *psf, double dx, double dy);
  * units of pixels; R = 0: infinite plane when the flux converges). Analytic, stable near
  * beta = 1 (expm1/log1p). */
 SVP_API double svp_psf_encircled_energy(const svp_psf *psf, double r, double R);
+/* Radius (pixels) along the major axis where the core profile falls to `level` (in (0, 1)) of
+ * its peak, at most the support when one is set: the PSF's significant reach (level 0.01 gives
+ * `svpsf correct --margin auto`, docs/model.md §3). 0 for a level outside (0, 1). */
+SVP_API double svp_psf_reach(const svp_psf *psf, double level);
 /* Radius (pixels) enclosing `fraction` of the flux over a disc of radius R. */
 SVP_API svp_status svp_psf_encircled_radius(const svp_psf *psf, double fraction, double R,
                                             double *radius);

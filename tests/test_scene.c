@@ -5,6 +5,7 @@
 #include "test_helpers.h"
 
 #include "core/internal.h"
+#include "figure/figure.h"
 #include "scene/scene_internal.h"
 
 #include <cairo.h>
@@ -200,6 +201,16 @@ static void test_bad_scenes(void **state)
         /* a wrong choice */
         {FLAKE_SCENE_HEAD "psf: {model: gauss, fwhm_um: 0.3}\n", SVP_ERR_INVALID,
          "bad.yaml:5:14:", "must be one of gaussian, lorentzian, moffat"},
+        /* a correction's margin: negative, or a word other than auto; an unknown precision */
+        {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                          "correct: {method: r, margin: -1}\n",
+         SVP_ERR_INVALID, "bad.yaml:6:30:", "correct.margin must be in [0, 10000], got -1"},
+        {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                          "correct: {method: r, margin: wide}\n",
+         SVP_ERR_FORMAT, "bad.yaml:6:30:", "must be a number"},
+        {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                          "correct: {method: r, precision: half}\n",
+         SVP_ERR_INVALID, "bad.yaml:6:33:", "must be one of double, single"},
         /* malformed YAML */
         {"grid: {pixel_um: 0.1, size_um: [6.4, 6.4]\n", SVP_ERR_FORMAT, "bad.yaml:", ""},
     };
@@ -328,6 +339,67 @@ static void test_end_to_end_matches_transforms(void **state)
     svp_image_free(plc);
     svp_image_free(bzc);
     svp_image_free(val);
+    svp_scene_result_free(r);
+    svp_scene_free(s);
+}
+
+/* Corrections with a margin: `auto` is the PSF's reach at 1 % of its peak (at most a quarter of
+ * the view), a number is µm; each equals svp_inverse_transform run directly on an operator of the
+ * view plus that margin. */
+static void test_correct_margin(void **state)
+{
+    (void)state;
+    svp_scene *s = load("margin.yaml",
+                        "grid: {pixel_um: 0.1, size_um: [6.4, 6.4], margin_um: 1}\n"
+                        "sources:\n"
+                        "  - flake: {shape: rectangle, size_um: [3.2, 3.2], "
+                        "magnetisation_A_per_m: 1.0e6,\n"
+                        "            thickness_nm: 1, standoff_nm: 100}\n"
+                        "emission: [{gaussian: {fwhm_um: 6}}]\n"
+                        "psf: {model: moffat, fwhm_um: 0.3, beta: 2}\n"
+                        "correct:\n"
+                        "  - {method: r, iterations: 20, margin: auto, name: auto}\n"
+                        "  - {method: r, iterations: 20, margin: 0.5, name: half_um,"
+                        " precision: single}\n");
+    svp_scene_result *r = run_nowrite(s);
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.model = SVP_PSF_MOFFAT;
+    psf.fwhm = 3;
+    psf.beta = 2;
+    /* Moffat: r0 √(100^(1/β) − 1) = r0 · 3 with r0 = 1.5 / √(√2 − 1) */
+    const double reach = 1.5 / sqrt(sqrt(2.0) - 1) * 3;
+    ASSERT_CLOSE(svp_psf_reach(&psf, 0.01), reach, 1e-12 * reach);
+    const int m_auto = (int)ceil(reach);
+    assert_int_equal((int)value(r, "correct/auto/margin_px"), m_auto);
+    assert_int_equal((int)value(r, "correct/half_um/margin_px"), 5);
+    const svp_image *pla = map(r, "pl_apparent");
+    const int w = pla->width, h = pla->height;
+    const int margins[2] = {m_auto, 5};
+    const char *names[2] = {"B_z_corrected_auto", "B_z_corrected_half_um"};
+    for (int k = 0; k < 2; k++) {
+        svp_blur *blur = NULL;
+        ASSERT_OK(svp_blur_new(&psf, w + 2 * margins[k], h + 2 * margins[k], SVP_BOUNDARY_ZERO,
+                               &blur));
+        svp_correct_options o;
+        svp_correct_defaults(&o);
+        o.method = SVP_METHOD_R;
+        o.deconv.iterations = 20;
+        o.deconv.balance = 1;
+        o.deconv.single_precision = k == 1;
+        o.margin = margins[k];
+        o.keep_doubtful = 1;
+        svp_image *plc = test_image(w, h), *bzc = test_image(w, h), *val = test_image(w, h);
+        const svp_image *fa[1] = {map(r, "B_z_apparent")};
+        svp_image *fc[1] = {bzc};
+        ASSERT_OK(svp_inverse_transform(blur, pla, fa, 1, &o, plc, fc, val, NULL));
+        const double e = test_max_abs_diff(bzc, map(r, names[k]));
+        if (e > 1e-12 * test_max_abs(bzc)) fail_msg("%s differs by %.3g T", names[k], e);
+        svp_blur_free(blur);
+        svp_image_free(plc);
+        svp_image_free(bzc);
+        svp_image_free(val);
+    }
     svp_scene_result_free(r);
     svp_scene_free(s);
 }
@@ -575,7 +647,7 @@ static void png_rgb(cairo_surface_t *png, int x, int y, int rgb[3])
 
 /* A signed map drawn by the scene figures: the diverging colour map is white at zero, red for
  * positive and blue for negative values, and the colour bar beside the map runs from red (top,
- * the maximum) through white to blue (bottom). Layout of scene_map_figure: the map scaled to
+ * the maximum) through white to blue (bottom). Layout of svp_figure_map: the map scaled to
  * 560 px on its long side at (20, 48), the colour bar 16 px to its right, 18 px wide. */
 static void test_figure_diverging(void **state)
 {
@@ -587,7 +659,7 @@ static void test_figure_diverging(void **state)
     char dir[] = "/tmp/svpsf_fig_XXXXXX", path[64];
     assert_non_null(mkdtemp(dir));
     snprintf(path, sizeof path, "%s/map.png", dir);
-    ASSERT_OK(scene_map_figure(path, img, 1, -1, 1, 1, "a signed map", "B_z (uT)", 0.1, 0));
+    ASSERT_OK(svp_figure_map(path, img, 1, -1, 1, 1, "a signed map", "B_z (uT)", 0.1, 0));
     cairo_surface_t *png = cairo_image_surface_create_from_png(path);
     assert_int_equal(cairo_surface_status(png), CAIRO_STATUS_SUCCESS);
     cairo_surface_flush(png);
@@ -668,6 +740,7 @@ int main(void)
         cmocka_unit_test(test_plan_spectrum),
         cmocka_unit_test(test_bad_scenes),
         cmocka_unit_test(test_end_to_end_matches_transforms),
+        cmocka_unit_test(test_correct_margin),
         cmocka_unit_test(test_strip_reconstruction),
         cmocka_unit_test(test_noise),
         cmocka_unit_test(test_determinism),
@@ -677,7 +750,7 @@ int main(void)
         cmocka_unit_test(test_outputs_written),
     };
     int rc = cmocka_run_group_tests_name("scene", tests, NULL, NULL);
-    scene_figures_cleanup();
+    svp_figure_cleanup();
     svp_fft_cleanup();
     return rc;
 }

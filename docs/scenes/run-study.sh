@@ -49,22 +49,23 @@ print("m_z = M_z t inside the flake (mask `flake`: the 100 µm square eroded by 
       "apparent map; medians of |relative error| (histogram medians) before (apparent) and "
       "after correction. B_z: peak reduction over the whole view.\n")
 print("| emission | PSF | m_z mean red. % | m_z peak red. % | B_z peak red. % (view) | "
-      "median abs err. % apparent | R&W | R | time (s) |")
-print("|---|---|---|---|---|---|---|---|---|")
+      "median abs err. % apparent | R&W | R | default | time (s) |")
+print("|---|---|---|---|---|---|---|---|---|---|")
 for em in ["uniform", "spot", "chessboard"]:
     for psf in ["gaussian-300nm", "gaussian-1um", "gaussian-300nm-halo", "lorentzian-300nm",
                 "lorentzian-1um"]:
         n = "micromagnet-%s-%s" % (em, psf)
         if n not in S:
             continue
-        print("| %s | %s | %s | %s | %s | %s | %s | %s | %.1f |" % (
+        print("| %s | %s | %s | %s | %s | %s | %s | %s | %s | %.1f |" % (
             em, psf,
             f(v(n, "m_z/flake/apparent/mean_reduction_pct")),
             f(v(n, "m_z/flake/apparent/peak_reduction_pct")),
             f(v(n, "B_z/view/apparent/peak_reduction_pct")),
             f(v(n, "m_z/flake/apparent/median_abs_rel_err_pct")),
             f(v(n, "m_z/flake/corrected_rw/median_abs_rel_err_pct")),
-            f(v(n, "m_z/flake/corrected_r/median_abs_rel_err_pct")), total(n)))
+            f(v(n, "m_z/flake/corrected_r/median_abs_rel_err_pct")),
+            f(v(n, "m_z/flake/corrected_default/median_abs_rel_err_pct")), total(n)))
 
 def corrections(n, quantities, masks):
     versions = ["apparent"] + ["corrected_" + c["name"] for c in S[n]["settings"]["corrections"]]
@@ -212,6 +213,36 @@ if "spectrum-fit" in S and "spectrum-fit-contrast" in S:
               1e6 * rms_diff(a, b), 1e6 * max(abs(x - y) for x, y in zip(a, b)),
               100 * rms_diff(a, b) / peak, 100 * max(abs(x - y) for x, y in zip(a, b)) / peak,
               1e6 * peak, 1e6 * rms_diff(b, npy("spectrum-fit", "B_z_closed_form"))))
+
+print("\n## The default correction against none\n")
+print("`default` is `svpsf correct`'s defaults (R, 75 RL iterations, margin auto, single-precision "
+      "transforms). For every scene with corrections: the scene's headline quantity and mask, "
+      "its median |relative error| apparent and after the default correction, and how many of "
+      "the scene's (quantity, mask) pairs the default leaves worse than the apparent map.\n")
+print("| scene | quantity / mask | apparent % | default % | default / apparent | pairs worse |")
+print("|---|---|---|---|---|---|")
+HEADLINE = [("m_z", "flake"), ("J_bxy", "middle"), ("J_bxy", "wire"), ("B_z", "view")]
+n_worse = 0
+for n in S:
+    names = [c["name"] for c in S[n]["settings"].get("corrections", [])]
+    if "default" not in names:
+        continue
+    res = S[n]["results"]
+    pairs = sorted({tuple(k.split("/")[:2]) for k in res
+                    if k.endswith("/corrected_default/median_abs_rel_err_pct")})
+    worse = [p for p in pairs
+             if v(n, "%s/%s/corrected_default/median_abs_rel_err_pct" % p) >
+             v(n, "%s/%s/apparent/median_abs_rel_err_pct" % p)]
+    head = next((p for p in HEADLINE if p in pairs), pairs[0] if pairs else None)
+    if head is None:
+        continue
+    a = v(n, "%s/%s/apparent/median_abs_rel_err_pct" % head)
+    d = v(n, "%s/%s/corrected_default/median_abs_rel_err_pct" % head)
+    n_worse += d > a
+    print("| %s | %s / %s | %s | %s | %s | %d of %d%s |" % (
+        n, head[0], head[1], f(a), f(d), f(d / a if a else float("nan"), "%.2f"), len(worse),
+        len(pairs), ": " + ", ".join("%s/%s" % p for p in worse) if worse else ""))
+print("\nScenes whose headline error the default correction makes worse: %d." % n_worse)
 
 print("\n## Run times\n")
 print("| scene | view | stages | total (s) | slowest stage |")

@@ -364,8 +364,8 @@ svp_status svp_io_write_colormap_png(const char *path, const svp_image *img, dou
 
 } // extern "C"
 
-// Added for scene figures (src/scene/report.c): the colour map of svp_io_write_colormap_png into
-// an RGB buffer, so a figure can be composed around it (colour bar, scale bar, labels).
+// For figures (src/figure): the colour map of svp_io_write_colormap_png into an RGB buffer, so a
+// figure can be composed around it (colour bar, scale bar, labels).
 // values[n] → rgb[3 n] over exactly [lo, hi] (clamped; no symmetric widening), NaN/Inf grey.
 extern "C" svp_status svp_io_colormap_rgb(const double *values, size_t n, double lo, double hi,
                                           int diverging, unsigned char *rgb)

@@ -84,6 +84,11 @@ svp_status svp_io_write_png16(const char *path, const svp_image *img, int overwr
  * (128, 128, 128). */
 svp_status svp_io_write_colormap_png(const char *path, const svp_image *img, double lo, double hi,
                                      int diverging, int overwrite);
+/* The colour maps of svp_io_write_colormap_png as RGB bytes, for figures composed around them
+ * (src/figure): values[n] -> rgb[3 n] over exactly [lo, hi] (clamped; no symmetric widening),
+ * NaN/Inf grey. */
+svp_status svp_io_colormap_rgb(const double *values, size_t n, double lo, double hi, int diverging,
+                               unsigned char *rgb);
 /* OpenCV's version string (CV_VERSION), for --version and summary.json. */
 const char *svp_io_opencv_version(void);
 

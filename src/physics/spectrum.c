@@ -681,17 +681,10 @@ static void put(svp_image *img, size_t p, double v)
     if (img) img->data[p] = v;
 }
 
-svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
-                             const svp_odmr_fit_options *options, const svp_odmr_maps *maps,
-                             size_t *n_failed)
+/* The options of svp_odmr_fit_maps and its maps against the cube. */
+static svp_status fit_check(const svp_cube *cube, const svp_odmr_fit_options *options,
+                            const svp_odmr_maps *maps)
 {
-    SVP_CHECK(odmr_validate(odmr));
-    SVP_CHECK(cube_check(cube));
-    svp_odmr_fit_options defaults;
-    if (!options) {
-        svp_odmr_fit_defaults(&defaults);
-        options = &defaults;
-    }
     const svp_odmr_lines lines = options->lines;
     if (lines != SVP_ODMR_LINES_PAIR && lines != SVP_ODMR_LINES_TWO && lines != SVP_ODMR_LINES_ONE)
         return svp_fail(SVP_ERR_INVALID, "ODMR fit: lines %d is not PAIR (0), TWO (1) or ONE (2)",
@@ -710,9 +703,280 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     if (options->lm.max_iterations < 1)
         return svp_fail(SVP_ERR_INVALID, "Lorentzian fit: lm.max_iterations %d must be >= 1",
                         options->lm.max_iterations);
+    return SVP_OK;
+}
+
+/* What every pixel's fit shares (svp_odmr_fit_maps). */
+typedef struct fit_shared {
+    const svp_cube *cube;
+    const svp_odmr_fit_options *options;
+    const svp_odmr_maps *maps;
+    svp_odmr_lines lines;
+    int nf, np, nb;        /* frequencies, parameters, baseline frames at each end */
+    double D, gamma, G0;   /* zero-field splitting, gyromagnetic ratio, nominal linewidth */
+    const double *q, *xs;  /* trapezoid weights; frequencies (ω − D) / Γ0 */
+    int half_box, exclude; /* the starting point's smoothing and second-dip exclusion */
+} fit_shared;
+
+/* One thread's solvers: the generic LM (fallback) for the pair model and for ONE / TWO. */
+typedef struct fit_thread {
+    svp_lm_workspace *ws;
+    odmr_pixel px;
+    svp_lm_problem prob, gprob;
+    odmr_gen go;
+} fit_thread;
+
+/* One pixel's start values from its spectrum y: baseline b0 (mean of the end frames), dip area
+ * den (trapezoid), mean, the deepest smoothed frame (best, its smoothed value v_best). */
+typedef struct fit_start {
+    double b0, den, mean, v_best;
+    int best;
+} fit_start;
+
+/* PAIR: θ = (b, C, B, Γ) by odmr_fast_fit, or svp_lm_solve when it does not converge.
+ * Returns 1 when the fit failed (*st its status). */
+static int fit_pair(const fit_shared *c, fit_thread *t, const double *y, const fit_start *s,
+                    double th[GEN_MAX], double cov[GEN_MAX][GEN_MAX], double *chi2,
+                    svp_status *st)
+{
+    const int nf = c->nf;
+    const double b0 = s->b0, den = s->den, D = c->D, gamma = c->gamma, G0 = c->G0;
+    const double bs = b0 > 0 ? b0 : 1;
+    double A[GEN_MAX][GEN_MAX];
+    th[0] = b0;
+    th[2] = fabs(c->cube->freq[s->best] - D) / gamma;
+    th[3] = G0;
+    /* at B = 0 exactly the model is flat in B (the dips are symmetric) */
+    th[2] = fmax(th[2], 0.25 * G0 / gamma);
+    th[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * th[3])) : 0.01;
+    if (!(th[1] > 1e-6)) th[1] = 1e-6;
+    double th0[4] = {th[0], th[1], th[2], th[3]}, Ap[10];
+    const odmr_fast fo = {.freq = c->cube->freq, .y = y, .n = nf, .D = D, .gamma = gamma,
+                          .b0 = bs, .g0 = G0};
+    if (b0 > 0 && !odmr_fast_fit(&fo, &c->options->lm, th, Ap, chi2)) {
+        for (int a = 0; a < 4; a++)
+            for (int k = 0; k < 4; k++) A[a][k] = Ap[sym4[a][k]];
+        covariance_from(4, A, *chi2, nf - 4, cov);
+        /* q = (b / b0, C, γB / Γ0, Γ / Γ0) → θ */
+        const double sc[4] = {bs, 1, G0 / gamma, G0};
+        for (int a = 0; a < 4; a++)
+            for (int k = 0; k < 4; k++) cov[a][k] *= sc[a] * sc[k];
+        return 0;
+    }
+    svp_lm_result res;
+    double covl[16];
+    memcpy(th, th0, sizeof th0);
+    *st = svp_lm_solve(t->ws, &t->prob, &c->options->lm, th, &res, covl);
+    *chi2 = res.chi2;
+    for (int a = 0; a < 4; a++)
+        for (int k = 0; k < 4; k++) cov[a][k] = covl[a * 4 + k];
+    return *st != SVP_OK;
+}
+
+/* ONE and TWO: the scaled start q = (b / b0, C, u..., w) of a pixel (TWO: the two deepest dips
+ * apart by `exclude` frames, else the deepest one's mirror about D, else a split about it). */
+static void fit_lines_start(const fit_shared *c, const double *y, const fit_start *s,
+                            double qs[GEN_MAX])
+{
+    const double b0 = s->b0, den = s->den, bs = b0 > 0 ? b0 : 1;
+    const double *xs = c->xs;
+    const double area_lines = c->lines == SVP_ODMR_LINES_TWO ? 1.0 : 0.5;
+    qs[0] = b0 / bs;
+    qs[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * c->G0 * area_lines)) : 0.01;
+    if (!(qs[1] > 1e-6)) qs[1] = 1e-6;
+    if (c->lines == SVP_ODMR_LINES_ONE) {
+        qs[2] = xs[s->best];
+        qs[3] = 1;
+        return;
+    }
+    double v2;
+    int second = deepest(y, c->nf, c->half_box, s->best, c->exclude, &v2);
+    double u1 = xs[s->best], u2;
+    if (second >= 0 && b0 - v2 >= 0.3 * (b0 - s->v_best))
+        u2 = xs[second];
+    else if (fabs(u1) > 0.25)
+        u2 = -u1; /* its mirror about D */
+    else {
+        u1 = -0.25; /* overlapping lines: split about the dip */
+        u2 = 0.25;
+        u1 += xs[s->best];
+        u2 += xs[s->best];
+    }
+    qs[2] = fmin(u1, u2);
+    qs[3] = fmax(u1, u2);
+    qs[4] = 1;
+}
+
+/* ONE: θ = (b, C, f₀, Γ); TWO: θ = (b, C, f₋, f₊, Γ) with f₋ < f₊; by gen_fit, or svp_lm_solve
+ * when it does not converge. Returns 1 when the fit failed (*st its status). */
+static int fit_lines(const fit_shared *c, fit_thread *t, const double *y, const fit_start *s,
+                     double th[GEN_MAX], double cov[GEN_MAX][GEN_MAX], double *chi2,
+                     svp_status *st)
+{
+    const int np = c->np, nf = c->nf;
+    const double b0 = s->b0, bs = b0 > 0 ? b0 : 1, D = c->D, G0 = c->G0;
+    double qs[GEN_MAX], q0[GEN_MAX], A[GEN_MAX][GEN_MAX];
+    int fail = 0;
+    fit_lines_start(c, y, s, qs);
+    memcpy(q0, qs, sizeof qs);
+    t->go.b0 = bs;
+    if (!(b0 > 0) || gen_fit(&t->go, &c->options->lm, qs, A, chi2)) {
+        svp_lm_result res;
+        double covl[GEN_MAX * GEN_MAX];
+        memcpy(qs, q0, sizeof q0);
+        *st = svp_lm_solve(t->ws, &t->gprob, &c->options->lm, qs, &res, covl);
+        fail = *st != SVP_OK;
+        *chi2 = res.chi2;
+        for (int a = 0; a < np; a++)
+            for (int k = 0; k < np; k++) cov[a][k] = covl[a * np + k];
+    } else {
+        covariance_from(np, A, *chi2, nf - np, cov);
+    }
+    /* q → θ: b = b0 q0, C, f = D + Γ0 u, Γ = Γ0 w */
+    double sc[GEN_MAX];
+    sc[0] = bs;
+    sc[1] = 1;
+    for (int a = 2; a < np; a++) sc[a] = G0;
+    th[0] = qs[0] * bs;
+    th[1] = qs[1];
+    for (int a = 2; a < np - 1; a++) th[a] = D + G0 * qs[a];
+    th[np - 1] = G0 * qs[np - 1];
+    for (int a = 0; a < np; a++)
+        for (int k = 0; k < np; k++) cov[a][k] *= sc[a] * sc[k];
+    if (c->lines == SVP_ODMR_LINES_TWO && th[2] > th[3]) { /* f₋ < f₊ */
+        double tmp = th[2];
+        th[2] = th[3];
+        th[3] = tmp;
+        for (int a = 0; a < np; a++) {
+            tmp = cov[a][2], cov[a][2] = cov[a][3], cov[a][3] = tmp;
+        }
+        for (int k = 0; k < np; k++) {
+            tmp = cov[2][k], cov[2][k] = cov[3][k], cov[3][k] = tmp;
+        }
+    }
+    return fail;
+}
+
+/* Pixel p's maps from its fit θ, covariance and χ² (the field B and its σ per line model). */
+static void fit_put(const fit_shared *c, size_t p, const double *y, double mean,
+                    const double th[GEN_MAX], double cov[GEN_MAX][GEN_MAX], double chi2, int fail)
+{
+    const svp_odmr_maps *maps = c->maps;
+    const int np = c->np, nf = c->nf;
+    const double D = c->D, gamma = c->gamma;
+    if (!(th[1] > 0 && th[1] < 1)) /* C on its bound: no σ from the curvature */
+        for (int a = 0; a < np; a++)
+            for (int k = 0; k < np; k++) cov[a][k] = a == k ? INFINITY : 0;
+    const double sd_b = sqrt(cov[0][0]), sd_c = sqrt(cov[1][1]);
+    const double sd_w = sqrt(cov[np - 1][np - 1]);
+    double B, sd_B;
+    if (c->lines == SVP_ODMR_LINES_PAIR) {
+        B = fabs(th[2]);
+        sd_B = sqrt(cov[2][2]);
+    } else if (c->lines == SVP_ODMR_LINES_ONE) {
+        B = c->options->line_sign * (th[2] - D) / gamma;
+        sd_B = sqrt(cov[2][2]) / gamma;
+    } else {
+        B = (th[3] - th[2]) / (2 * gamma);
+        double var = cov[2][2] + cov[3][3] - 2 * cov[2][3];
+        sd_B = isfinite(var) ? sqrt(fmax(var, 0)) / (2 * gamma) : INFINITY;
+        put(maps->field_lower, p, (D - th[2]) / gamma);
+        put(maps->field_lower_sigma, p, sqrt(cov[2][2]) / gamma);
+        put(maps->field_upper, p, (th[3] - D) / gamma);
+        put(maps->field_upper_sigma, p, sqrt(cov[3][3]) / gamma);
+    }
+    maps->field->data[p] = B;
+    put(maps->field_sigma, p, sd_B);
+    put(maps->baseline, p, th[0]);
+    put(maps->baseline_sigma, p, sd_b);
+    put(maps->contrast, p, th[1]);
+    put(maps->contrast_sigma, p, sd_c);
+    put(maps->linewidth, p, th[np - 1]);
+    put(maps->linewidth_sigma, p, sd_w);
+    put(maps->converged, p, fail ? 0.0 : 1.0);
+    if (maps->quality) {
+        double ss = 0;
+        for (int f = 0; f < nf; f++) ss += (y[f] - mean) * (y[f] - mean);
+        maps->quality->data[p] = ss > 0 ? 1 - chi2 / ss : 0.0;
+    }
+}
+
+/* A missing pixel (NaN/Inf in some frame): NaN maps, not converged. */
+static void fit_put_missing(const svp_odmr_maps *maps, size_t p)
+{
+    svp_image *const all[] = {
+        maps->field,          maps->field_sigma,    maps->field_lower, maps->field_lower_sigma,
+        maps->field_upper,    maps->field_upper_sigma, maps->baseline, maps->baseline_sigma,
+        maps->contrast,       maps->contrast_sigma, maps->linewidth,   maps->linewidth_sigma,
+        maps->quality};
+    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++) put(all[k], p, NAN);
+    put(maps->converged, p, 0.0);
+}
+
+/* Pixel p of spectrum y: its start, fit and maps. Returns 0 when it converged, 1 when its fit
+ * failed (*st the status) and 2 for a missing pixel. */
+static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
+{
+    const int nf = c->nf, nb = c->nb;
+    fit_start s = {0, 0, 0, 0, 0};
+    int finite = 1;
+    *st = SVP_OK;
+    t->prob.data = t->gprob.data = t->go.y = y;
+    for (int f = 0; f < nf; f++) finite &= isfinite(y[f]) != 0;
+    if (!finite) {
+        fit_put_missing(c->maps, p);
+        return 2;
+    }
+    for (int f = 0; f < nb; f++) s.b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
+    for (int f = 0; f < nf; f++) {
+        s.den += c->q[f] * (s.b0 - y[f]);
+        s.mean += y[f];
+    }
+    s.mean /= nf;
+    s.best = deepest(y, nf, c->half_box, -1, 0, &s.v_best);
+    /* θ in physical units: PAIR (b, C, B, Γ); ONE (b, C, f₀, Γ); TWO (b, C, f₋, f₊, Γ) */
+    double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], chi2 = NAN;
+    const int fail = c->lines == SVP_ODMR_LINES_PAIR ? fit_pair(c, t, y, &s, th, cov, &chi2, st)
+                                                     : fit_lines(c, t, y, &s, th, cov, &chi2, st);
+    fit_put(c, p, y, s.mean, th, cov, chi2, fail);
+    return fail;
+}
+
+static const double fit_lower4[4] = {-INFINITY, 0, -INFINITY, 0};
+static const double fit_upper4[4] = {INFINITY, 1, INFINITY, INFINITY};
+static const double fit_lowerg[GEN_MAX] = {-INFINITY, 0, -INFINITY, -INFINITY, 0};
+static const double fit_upperg[GEN_MAX] = {INFINITY, 1, INFINITY, INFINITY, INFINITY};
+
+/* A thread's solvers for spectra at y (pointers moved per pixel by fit_pixel). */
+static void fit_thread_init(const fit_shared *c, fit_thread *t, double *y)
+{
+    t->px = (odmr_pixel){.freq = c->cube->freq, .D = c->D, .gamma = c->gamma};
+    t->prob = (svp_lm_problem){.n_params = 4, .n_points = c->nf, .model = odmr_model,
+                               .user = &t->px, .analytic_jacobian = 1, .data = y,
+                               .lower = fit_lower4, .upper = fit_upper4};
+    t->go = (odmr_gen){.x = c->xs, .y = y, .n = c->nf, .np = c->np,
+                       .two = c->lines == SVP_ODMR_LINES_TWO};
+    t->gprob = (svp_lm_problem){.n_params = c->np, .n_points = c->nf, .model = gen_model,
+                                .user = &t->go, .analytic_jacobian = 1, .data = y,
+                                .lower = c->np == 5 ? fit_lowerg : fit_lower4,
+                                .upper = fit_upperg};
+}
+
+svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
+                             const svp_odmr_fit_options *options, const svp_odmr_maps *maps,
+                             size_t *n_failed)
+{
+    SVP_CHECK(odmr_validate(odmr));
+    SVP_CHECK(cube_check(cube));
+    svp_odmr_fit_options defaults;
+    if (!options) {
+        svp_odmr_fit_defaults(&defaults);
+        options = &defaults;
+    }
+    SVP_CHECK(fit_check(cube, options, maps));
+    const int nf = cube->n_freq, np = options->lines == SVP_ODMR_LINES_TWO ? 5 : 4;
     const size_t n = (size_t)cube->width * cube->height;
-    const double D = odmr->zero_field_hz, gamma = odmr->gamma_hz_per_t, G0 = odmr->linewidth_hz;
-    const int nb = options->baseline_frames;
+    const double D = odmr->zero_field_hz, G0 = odmr->linewidth_hz;
     /* trapezoid weights (the dip area for the starting contrast) and scaled frequencies */
     double *q = malloc((size_t)nf * sizeof(double)), *xs = malloc((size_t)nf * sizeof(double));
     if (!q || !xs) {
@@ -726,16 +990,15 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     }
     /* smoothing half-width for the starting point: about half a linewidth of frames */
     const double spacing = (cube->freq[nf - 1] - cube->freq[0]) / (nf - 1);
-    const int half_box = (int)fmin(nf / 4, floor(0.5 * G0 / spacing));
-    const int exclude = (int)ceil(1.5 * G0 / spacing);
+    const fit_shared c = {.cube = cube, .options = options, .maps = maps,
+                          .lines = options->lines, .nf = nf, .np = np,
+                          .nb = options->baseline_frames, .D = D,
+                          .gamma = odmr->gamma_hz_per_t, .G0 = G0, .q = q, .xs = xs,
+                          .half_box = (int)fmin(nf / 4, floor(0.5 * G0 / spacing)),
+                          .exclude = (int)ceil(1.5 * G0 / spacing)};
     size_t failed = 0;
     int alloc_failed = 0, cancelled = 0;
     svp_status first_error = SVP_OK;
-    const double lower4[4] = {-INFINITY, 0, -INFINITY, 0}, upper4[4] = {INFINITY, 1, INFINITY,
-                                                                          INFINITY};
-    const double lowerg[GEN_MAX] = {-INFINITY, 0, -INFINITY, -INFINITY, 0};
-    const double upperg[GEN_MAX] = {INFINITY, 1, INFINITY, INFINITY, INFINITY};
-    double lowerone[4] = {-INFINITY, 0, -INFINITY, 0};
     /* Pixels go to the threads in chunks (dynamic: fits differ in cost), with no barrier
      * between them; the calling thread (OpenMP's thread 0) reports the fraction done from a
      * shared count whenever it passes another 1 %, between its own chunks, and a cancel stops
@@ -748,201 +1011,33 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
 #pragma omp parallel reduction(+ : failed)
     {
         size_t next_report = step; /* thread 0's */
-        svp_lm_workspace *ws = NULL;
+        fit_thread t = {0};
         /* the chunk's spectra, pixel-major: read frame by frame (a run of contiguous pixels
          * from each), not pixel by pixel across all frames */
-        double *spectra = malloc((size_t)nf * chunk * sizeof(double)), *y = spectra;
-        if (svp_lm_workspace_new(np, nf, &ws) != SVP_OK || !y) {
+        double *spectra = malloc((size_t)nf * chunk * sizeof(double));
+        if (svp_lm_workspace_new(np, nf, &t.ws) != SVP_OK || !spectra) {
 #pragma omp atomic write
             alloc_failed = 1;
         }
-        odmr_pixel px = {.freq = cube->freq, .D = D, .gamma = gamma};
-        svp_lm_problem prob = {.n_params = 4, .n_points = nf, .model = odmr_model, .user = &px,
-                               .analytic_jacobian = 1, .data = y, .lower = lower4,
-                               .upper = upper4};
-        odmr_gen go = {.x = xs, .y = y, .n = nf, .np = np, .two = lines == SVP_ODMR_LINES_TWO};
-        svp_lm_problem gprob = {.n_params = np, .n_points = nf, .model = gen_model, .user = &go,
-                                .analytic_jacobian = 1, .data = y,
-                                .lower = np == 5 ? lowerg : lowerone,
-                                .upper = upperg};
+        fit_thread_init(&c, &t, spectra);
 #pragma omp for schedule(dynamic, 1)
         for (size_t ck = 0; ck < n_chunks; ck++) {
             int stop;
 #pragma omp atomic read
             stop = cancelled;
-            if (stop || !ws || !y) continue;
+            if (stop || !t.ws || !spectra) continue;
             const size_t p0 = ck * chunk, p1 = p0 + chunk < n ? p0 + chunk : n;
             for (int f = 0; f < nf; f++) {
                 const double *src = cube->frame[f]->data + p0;
                 for (size_t k = 0; k < p1 - p0; k++) spectra[k * (size_t)nf + f] = src[k];
             }
             for (size_t p = p0; p < p1; p++) {
-                double b0 = 0, den = 0, mean = 0;
-                int finite = 1;
-                y = spectra + (p - p0) * (size_t)nf;
-                prob.data = gprob.data = go.y = y;
-                for (int f = 0; f < nf; f++) finite &= isfinite(y[f]) != 0;
-                if (!finite) { /* a missing pixel (NaN/Inf in some frame): NaN maps */
-                    svp_image *const all[] = {
-                        maps->field,         maps->field_sigma,   maps->field_lower,
-                        maps->field_lower_sigma, maps->field_upper, maps->field_upper_sigma,
-                        maps->baseline,      maps->baseline_sigma, maps->contrast,
-                        maps->contrast_sigma, maps->linewidth,   maps->linewidth_sigma,
-                        maps->quality};
-                    for (size_t k = 0; k < sizeof all / sizeof all[0]; k++) put(all[k], p, NAN);
-                    put(maps->converged, p, 0.0);
-                    failed++;
-                    continue;
-                }
-                for (int f = 0; f < nb; f++) b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
-                for (int f = 0; f < nf; f++) {
-                    den += q[f] * (b0 - y[f]);
-                    mean += y[f];
-                }
-                mean /= nf;
-                double v_best;
-                const int best = deepest(y, nf, half_box, -1, 0, &v_best);
-                /* θ in physical units: PAIR (b, C, B, Γ); ONE (b, C, f₀, Γ); TWO (b, C, f₋, f₊, Γ) */
-                double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], A[GEN_MAX][GEN_MAX], chi2 = NAN;
-                const double bs = b0 > 0 ? b0 : 1;
-                int fail = 0;
-                svp_status st = SVP_OK;
-                if (lines == SVP_ODMR_LINES_PAIR) {
-                    th[0] = b0;
-                    th[2] = fabs(cube->freq[best] - D) / gamma;
-                    th[3] = G0;
-                    /* at B = 0 exactly the model is flat in B (the dips are symmetric) */
-                    th[2] = fmax(th[2], 0.25 * G0 / gamma);
-                    th[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * th[3])) : 0.01;
-                    if (!(th[1] > 1e-6)) th[1] = 1e-6;
-                    double th0[4] = {th[0], th[1], th[2], th[3]}, Ap[10];
-                    const odmr_fast fo = {.freq = cube->freq, .y = y, .n = nf, .D = D,
-                                          .gamma = gamma, .b0 = bs, .g0 = G0};
-                    if (b0 > 0 && !odmr_fast_fit(&fo, &options->lm, th, Ap, &chi2)) {
-                        for (int a = 0; a < 4; a++)
-                            for (int c = 0; c < 4; c++) A[a][c] = Ap[sym4[a][c]];
-                        covariance_from(4, A, chi2, nf - 4, cov);
-                        /* q = (b / b0, C, γB / Γ0, Γ / Γ0) → θ */
-                        const double s[4] = {bs, 1, G0 / gamma, G0};
-                        for (int a = 0; a < 4; a++)
-                            for (int c = 0; c < 4; c++) cov[a][c] *= s[a] * s[c];
-                    } else {
-                        svp_lm_result res;
-                        double covl[16];
-                        memcpy(th, th0, sizeof th0);
-                        st = svp_lm_solve(ws, &prob, &options->lm, th, &res, covl);
-                        fail = st != SVP_OK;
-                        chi2 = res.chi2;
-                        for (int a = 0; a < 4; a++)
-                            for (int c = 0; c < 4; c++) cov[a][c] = covl[a * 4 + c];
-                    }
-                } else {
-                    /* scaled start q = (b / b0, C, u..., w) */
-                    double qs[GEN_MAX], q0[GEN_MAX];
-                    const double area_lines = lines == SVP_ODMR_LINES_TWO ? 1.0 : 0.5;
-                    qs[0] = b0 / bs;
-                    qs[1] = (den > 0 && b0 > 0) ? fmin(0.9, den / (b0 * M_PI * G0 * area_lines))
-                                                : 0.01;
-                    if (!(qs[1] > 1e-6)) qs[1] = 1e-6;
-                    if (lines == SVP_ODMR_LINES_ONE) {
-                        qs[2] = xs[best];
-                        qs[3] = 1;
-                    } else {
-                        double v2;
-                        int second = deepest(y, nf, half_box, best, exclude, &v2);
-                        double u1 = xs[best], u2;
-                        if (second >= 0 && b0 - v2 >= 0.3 * (b0 - v_best))
-                            u2 = xs[second];
-                        else if (fabs(u1) > 0.25)
-                            u2 = -u1; /* its mirror about D */
-                        else {
-                            u1 = -0.25; /* overlapping lines: split about the dip */
-                            u2 = 0.25;
-                            u1 += xs[best];
-                            u2 += xs[best];
-                        }
-                        qs[2] = fmin(u1, u2);
-                        qs[3] = fmax(u1, u2);
-                        qs[4] = 1;
-                    }
-                    memcpy(q0, qs, sizeof qs);
-                    go.b0 = bs;
-                    if (!(b0 > 0) || gen_fit(&go, &options->lm, qs, A, &chi2)) {
-                        svp_lm_result res;
-                        double covl[GEN_MAX * GEN_MAX];
-                        memcpy(qs, q0, sizeof q0);
-                        st = svp_lm_solve(ws, &gprob, &options->lm, qs, &res, covl);
-                        fail = st != SVP_OK;
-                        chi2 = res.chi2;
-                        for (int a = 0; a < np; a++)
-                            for (int c = 0; c < np; c++) cov[a][c] = covl[a * np + c];
-                    } else {
-                        covariance_from(np, A, chi2, nf - np, cov);
-                    }
-                    /* q → θ: b = b0 q0, C, f = D + Γ0 u, Γ = Γ0 w */
-                    double s[GEN_MAX];
-                    s[0] = bs;
-                    s[1] = 1;
-                    for (int a = 2; a < np; a++) s[a] = G0;
-                    th[0] = qs[0] * bs;
-                    th[1] = qs[1];
-                    for (int a = 2; a < np - 1; a++) th[a] = D + G0 * qs[a];
-                    th[np - 1] = G0 * qs[np - 1];
-                    for (int a = 0; a < np; a++)
-                        for (int c = 0; c < np; c++) cov[a][c] *= s[a] * s[c];
-                    if (lines == SVP_ODMR_LINES_TWO && th[2] > th[3]) { /* f₋ < f₊ */
-                        double t = th[2];
-                        th[2] = th[3];
-                        th[3] = t;
-                        for (int a = 0; a < np; a++) {
-                            t = cov[a][2], cov[a][2] = cov[a][3], cov[a][3] = t;
-                        }
-                        for (int c = 0; c < np; c++) {
-                            t = cov[2][c], cov[2][c] = cov[3][c], cov[3][c] = t;
-                        }
-                    }
-                }
-                if (fail) {
-                    failed++;
-                    if (st != SVP_ERR_NUMERIC) {
+                svp_status st;
+                const int fail = fit_pixel(&c, &t, spectra + (p - p0) * (size_t)nf, p, &st);
+                if (fail) failed++;
+                if (fail == 1 && st != SVP_ERR_NUMERIC) {
 #pragma omp critical(svp_odmr_fit_error)
-                        if (first_error == SVP_OK) first_error = st;
-                    }
-                }
-                if (!(th[1] > 0 && th[1] < 1)) /* C on its bound: no σ from the curvature */
-                    for (int a = 0; a < np; a++)
-                        for (int c = 0; c < np; c++) cov[a][c] = a == c ? INFINITY : 0;
-                const double sd_b = sqrt(cov[0][0]), sd_c = sqrt(cov[1][1]);
-                const double sd_w = sqrt(cov[np - 1][np - 1]);
-                double B, sd_B;
-                if (lines == SVP_ODMR_LINES_PAIR) {
-                    B = fabs(th[2]);
-                    sd_B = sqrt(cov[2][2]);
-                } else if (lines == SVP_ODMR_LINES_ONE) {
-                    B = options->line_sign * (th[2] - D) / gamma;
-                    sd_B = sqrt(cov[2][2]) / gamma;
-                } else {
-                    B = (th[3] - th[2]) / (2 * gamma);
-                    double var = cov[2][2] + cov[3][3] - 2 * cov[2][3];
-                    sd_B = isfinite(var) ? sqrt(fmax(var, 0)) / (2 * gamma) : INFINITY;
-                    put(maps->field_lower, p, (D - th[2]) / gamma);
-                    put(maps->field_lower_sigma, p, sqrt(cov[2][2]) / gamma);
-                    put(maps->field_upper, p, (th[3] - D) / gamma);
-                    put(maps->field_upper_sigma, p, sqrt(cov[3][3]) / gamma);
-                }
-                maps->field->data[p] = B;
-                put(maps->field_sigma, p, sd_B);
-                put(maps->baseline, p, th[0]);
-                put(maps->baseline_sigma, p, sd_b);
-                put(maps->contrast, p, th[1]);
-                put(maps->contrast_sigma, p, sd_c);
-                put(maps->linewidth, p, th[np - 1]);
-                put(maps->linewidth_sigma, p, sd_w);
-                put(maps->converged, p, fail ? 0.0 : 1.0);
-                if (maps->quality) {
-                    double ss = 0;
-                    for (int f = 0; f < nf; f++) ss += (y[f] - mean) * (y[f] - mean);
-                    maps->quality->data[p] = ss > 0 ? 1 - chi2 / ss : 0.0;
+                    if (first_error == SVP_OK) first_error = st;
                 }
             }
             size_t now;
@@ -959,7 +1054,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                 }
             }
         }
-        svp_lm_workspace_free(ws);
+        svp_lm_workspace_free(t.ws);
         free(spectra);
     }
     free(q);

@@ -114,6 +114,23 @@ double svp_psf_profile(const svp_psf *psf, double dx, double dy)
     return profile_at(&e, dx, dy);
 }
 
+/* Radius along the major axis where the core profile falls to `level` of its peak:
+ * Gaussian σ √(2 ln(1/level)), Moffat r0 √(level^(−1/β) − 1); at most the support when one is
+ * set. 0 for a level outside (0, 1). */
+double svp_psf_reach(const svp_psf *psf, double level)
+{
+    if (!(level > 0 && level < 1)) return 0.0;
+    double r;
+    if (psf->model == SVP_PSF_GAUSSIAN) {
+        r = svp_psf_fwhm_to_r0(psf->fwhm, 0.0) * sqrt(-2.0 * log(level));
+    } else {
+        const double beta = effective_beta(psf);
+        r = svp_psf_fwhm_to_r0(psf->fwhm, beta) * sqrt(expm1(-log(level) / beta));
+    }
+    if (psf->support > 0 && psf->support < r) r = psf->support;
+    return r;
+}
+
 /* Fraction of flux within radius r of a disc of radius R (circular profile with the
  * geometric-mean FWHM for elliptical ones). */
 double svp_psf_encircled_energy(const svp_psf *psf, double r, double R)

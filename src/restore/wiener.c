@@ -730,6 +730,153 @@ static int lcurve_corner(const double *rho, const double *eta, int n, double *ka
     return best;
 }
 
+/* The discrepancy search (svp_wiener_balance_discrepancy_var): its data, its solver's options
+ * and buffers, and the L-curve's points along the walk. */
+typedef struct disc_search {
+    svp_blur *blur;
+    const svp_image *y, *variance;
+    int w, h;
+    size_t n;
+    svp_image *x, *hx;  /* the solution at the current λ and H x */
+    double *prod, *lx;  /* n values each; lx (L x) only for the L-curve */
+    double target;      /* Σ r² / var = n_finite; a constant variance folds into the target */
+    double var_floor;
+    svp_deconv_options o;
+    svp_deconv_report rep;
+    /* the L-curve's points along the walk (log10 λ, log10 residual, log10 ‖L x‖²) */
+    double lc_t[LCURVE_MAX], lc_rho[LCURVE_MAX], lc_eta[LCURVE_MAX];
+    int lc_n;
+} disc_search;
+
+/* The residual's excess over the target at log10 λ = t (> 0: λ too large) into *excess;
+ * *unsolved = 1 when the solve stopped at its step cap short of convergence (its residual says
+ * nothing). A converged point joins the L-curve's (while lx is there and room is left). */
+static svp_status disc_excess(disc_search *d, double t, double *excess, int *unsolved)
+{
+    const size_t n = d->n;
+    const svp_image *y = d->y, *variance = d->variance;
+    double *prod = d->prod;
+    d->o.balance = pow(10.0, t);
+    SVP_CHECK(svp_deconv_wiener(d->blur, y, &d->o, d->x));
+    SVP_CHECK(svp_blur_apply(d->blur, d->x, d->hx));
+    for (size_t i = 0; i < n; i++) {
+        double r = isfinite(y->data[i]) ? d->hx->data[i] - y->data[i] : 0.0;
+        double v = variance ? variance->data[i] : 1.0;
+        prod[i] = r * r / (v > d->var_floor ? v : d->var_floor);
+    }
+    *excess = svp_sum(prod, n) - d->target;
+    *unsolved = d->rep.cg_capped && d->rep.cg_residual > DISCREPANCY_CG_RESIDUAL;
+    if (d->lx && !*unsolved && d->lc_n < LCURVE_MAX) {
+        laplacian_neumann(d->w, d->h, d->x->data, d->lx);
+        for (size_t i = 0; i < n; i++) prod[i] = d->lx[i] * d->lx[i];
+        d->lc_t[d->lc_n] = t;
+        d->lc_rho[d->lc_n] = log10(fmax(*excess + d->target, 1e-300));
+        d->lc_eta[d->lc_n] = log10(fmax(svp_sum(prod, n), 1e-300));
+        d->lc_n++;
+    }
+    return SVP_OK;
+}
+
+/* Down from the largest λ a decade at a time until the residual fits the noise (the crossing
+ * lies in the last decade: bisected there) or the solves stop converging (the lower bound of
+ * what can be searched: the choice ends there, in doubt) — so a search whose small λ cannot be
+ * solved costs a few solves, not sixteen capped ones. On return [*lo, *hi] holds the crossing
+ * (log10 λ); *bound = 1 when even the largest λ fits, -1 when no λ searched does (or the solves
+ * stopped converging), else 0. */
+static svp_status disc_walk(disc_search *d, double *lo_out, double *hi_out, int *bound_out)
+{
+    double lo = DISCREPANCY_LOG_MAX, hi = DISCREPANCY_LOG_MAX, excess = 0;
+    int unsolved = 0, bound = 0;
+    svp_status st = disc_excess(d, hi, &excess, &unsolved);
+    if (st == SVP_OK && !(excess > 0)) { /* even the largest λ fits: take it */
+        bound = 1;
+    } else if (st == SVP_OK) {
+        for (double t = DISCREPANCY_LOG_MAX - 1; t >= DISCREPANCY_LOG_MIN - 1e-9; t -= 1.0) {
+            if ((st = disc_excess(d, t, &excess, &unsolved)) != SVP_OK) break;
+            if (unsolved) { /* below here nothing converges: the search ends on its bound */
+                lo = hi;
+                bound = -1;
+                break;
+            }
+            if (!(excess > 0)) {
+                lo = t;
+                break;
+            }
+            hi = t;
+            lo = t;
+            if (t - 1.0 < DISCREPANCY_LOG_MIN - 1e-9) bound = -1; /* even 1e-12 misses */
+        }
+        /* bisect the decade [lo, hi] (lo fits, hi misses) */
+        for (int step = 0; st == SVP_OK && !bound && step < DISCREPANCY_BISECTIONS; step++) {
+            const double t = 0.5 * (lo + hi);
+            if ((st = disc_excess(d, t, &excess, &unsolved)) != SVP_OK) break;
+            if (unsolved || excess > 0)
+                hi = t;
+            else
+                lo = t;
+        }
+    }
+    *lo_out = lo;
+    *hi_out = hi;
+    *bound_out = bound;
+    return st;
+}
+
+/* The model cannot reach the noise (light from outside the view, a wrong PSF, a noise estimate
+ * that is too small): the L-curve's corner over the decades walked, refined by half and quarter
+ * decades about it. *found = 1 and *corner_t (log10 λ) when the decades bend; a corner on the
+ * walk's end stays in doubt (*found = 0). */
+static svp_status disc_lcurve(disc_search *d, double *corner_t, int *found)
+{
+    *found = 0;
+    /* the decade points, ascending in λ (the walk went down) */
+    double t[LCURVE_MAX], rho[LCURVE_MAX], eta[LCURVE_MAX];
+    int m = 0;
+    for (int k = d->lc_n - 1; k >= 0; k--)
+        if (fabs(d->lc_t[k] - round(d->lc_t[k])) < 1e-9) {
+            t[m] = d->lc_t[k];
+            rho[m] = d->lc_rho[k];
+            eta[m] = d->lc_eta[k];
+            m++;
+        }
+    int c = lcurve_corner(rho, eta, m, NULL);
+    if (c <= 0) return SVP_OK;
+    svp_status st = SVP_OK;
+    double step = 1.0, ct = t[c], excess;
+    int unsolved;
+    double ft[5], fr[5], fe[5]; /* five points at spacing step/2 about the corner */
+    for (int level = 0; st == SVP_OK && level < 2; level++) {
+        const double h2 = 0.5 * step;
+        for (int j = 0; j < 5; j++) ft[j] = ct + (j - 2) * h2;
+        int ok = 1;
+        for (int j = 0; st == SVP_OK && j < 5 && ok; j++) {
+            /* reuse a point already solved */
+            int at = -1;
+            for (int k = 0; k < d->lc_n; k++)
+                if (fabs(d->lc_t[k] - ft[j]) < 1e-9) at = k;
+            if (at < 0) {
+                const int before = d->lc_n;
+                st = disc_excess(d, ft[j], &excess, &unsolved);
+                if (st != SVP_OK || unsolved || d->lc_n == before) {
+                    ok = 0;
+                    break;
+                }
+                at = d->lc_n - 1;
+            }
+            fr[j] = d->lc_rho[at];
+            fe[j] = d->lc_eta[at];
+        }
+        if (st != SVP_OK || !ok) break;
+        const int cc = lcurve_corner(fr, fe, 5, NULL);
+        if (cc < 0) break;
+        ct = ft[cc];
+        step = h2;
+    }
+    *corner_t = ct;
+    *found = 1;
+    return st;
+}
+
 svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,
                                               const svp_image *variance, double sigma,
                                               int cg_max_steps, double *balance,
@@ -754,137 +901,24 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
     if (n_finite == 0)
         return svp_fail(SVP_ERR_INVALID, "%s: all %zu pixels of the data y are NaN or Inf",
                         what, n);
-    svp_image *x = NULL, *hx = NULL;
-    svp_status st = svp_image_new(w, h, &x);
-    if (st == SVP_OK) st = svp_image_new(w, h, &hx);
-    double *prod = svp_alloc(n * sizeof(double));
-    double *lx = lcurve ? svp_alloc(n * sizeof(double)) : NULL;
-    if (st == SVP_OK && (!prod || (lcurve && !lx)))
+    disc_search search = {.blur = blur, .y = y, .variance = variance, .w = w, .h = h, .n = n};
+    disc_search *d = &search;
+    svp_status st = svp_image_new(w, h, &d->x);
+    if (st == SVP_OK) st = svp_image_new(w, h, &d->hx);
+    d->prod = svp_alloc(n * sizeof(double));
+    d->lx = lcurve ? svp_alloc(n * sizeof(double)) : NULL;
+    if (st == SVP_OK && (!d->prod || (lcurve && !d->lx)))
         st = svp_fail(SVP_ERR_NOMEM, "%s: out of memory", what);
-    /* the L-curve's points along the walk (log10 λ, log10 residual, log10 ‖L x‖²) */
-    double lc_t[LCURVE_MAX], lc_rho[LCURVE_MAX], lc_eta[LCURVE_MAX];
-    int lc_n = 0;
-    /* Σ r² / var = n_finite; a constant variance folds into the target */
-    const double target = variance ? (double)n_finite : (double)n_finite * sigma * sigma;
-    const double var_floor = variance ? 1e-300 : 1.0;
-    int bound = 0;
-    svp_deconv_options o;
-    svp_deconv_defaults(&o);
-    o.cg_max_steps = cg_max_steps;
-    svp_deconv_report rep;
-    o.report = &rep;
-    /* the residual's excess over the target at log10 λ = t (> 0: λ too large); *unsolved = 1
-     * when the solve stopped at its step cap short of convergence (its residual says nothing) */
-#define EXCESS(t, unsolved)                                                                    \
-    do {                                                                                       \
-        o.balance = pow(10.0, (t));                                                            \
-        if ((st = svp_deconv_wiener(blur, y, &o, x)) != SVP_OK) break;                        \
-        if ((st = svp_blur_apply(blur, x, hx)) != SVP_OK) break;                              \
-        for (size_t i = 0; i < n; i++) {                                                       \
-            double r = isfinite(y->data[i]) ? hx->data[i] - y->data[i] : 0.0;                  \
-            double v = variance ? variance->data[i] : 1.0;                                     \
-            prod[i] = r * r / (v > var_floor ? v : var_floor);                                 \
-        }                                                                                      \
-        excess = svp_sum(prod, n) - target;                                                    \
-        unsolved = rep.cg_capped && rep.cg_residual > DISCREPANCY_CG_RESIDUAL;                 \
-        if (lx && !unsolved && lc_n < LCURVE_MAX) {                                            \
-            laplacian_neumann(w, h, x->data, lx);                                              \
-            for (size_t i = 0; i < n; i++) prod[i] = lx[i] * lx[i];                            \
-            lc_t[lc_n] = (t);                                                                  \
-            lc_rho[lc_n] = log10(fmax(excess + target, 1e-300));                               \
-            lc_eta[lc_n] = log10(fmax(svp_sum(prod, n), 1e-300));                              \
-            lc_n++;                                                                            \
-        }                                                                                      \
-    } while (0)
-    /* Down from the largest λ a decade at a time until the residual fits the noise (the
-     * crossing lies in the last decade: bisected there) or the solves stop converging (the
-     * lower bound of what can be searched: the choice ends there, in doubt) — so a search
-     * whose small λ cannot be solved costs a few solves, not sixteen capped ones. */
-    double lo = DISCREPANCY_LOG_MAX, hi = DISCREPANCY_LOG_MAX, excess = 0;
-    int unsolved = 0;
-    if (st == SVP_OK) EXCESS(hi, unsolved);
-    if (st == SVP_OK && !(excess > 0)) { /* even the largest λ fits: take it */
-        bound = 1;
-    } else if (st == SVP_OK) {
-        for (double t = DISCREPANCY_LOG_MAX - 1; t >= DISCREPANCY_LOG_MIN - 1e-9; t -= 1.0) {
-            EXCESS(t, unsolved);
-            if (st != SVP_OK) break;
-            if (unsolved) { /* below here nothing converges: the search ends on its bound */
-                lo = hi;
-                bound = -1;
-                break;
-            }
-            if (!(excess > 0)) {
-                lo = t;
-                break;
-            }
-            hi = t;
-            lo = t;
-            if (t - 1.0 < DISCREPANCY_LOG_MIN - 1e-9) bound = -1; /* even 1e-12 misses */
-        }
-        /* bisect the decade [lo, hi] (lo fits, hi misses) */
-        for (int step = 0; st == SVP_OK && !bound && step < DISCREPANCY_BISECTIONS; step++) {
-            const double t = 0.5 * (lo + hi);
-            EXCESS(t, unsolved);
-            if (st != SVP_OK) break;
-            if (unsolved || excess > 0)
-                hi = t;
-            else
-                lo = t;
-        }
-    }
-    /* The model cannot reach the noise (light from outside the view, a wrong PSF, a noise
-     * estimate that is too small): the L-curve's corner over the decades walked, refined by
-     * half and quarter decades about it; a corner on the walk's end stays in doubt. */
-    double corner_t = 0;
-    int corner = 0;
-    if (st == SVP_OK && lx && bound < 0 && lc_n >= 3) {
-        /* the decade points, ascending in λ (the walk went down) */
-        double t[LCURVE_MAX], rho[LCURVE_MAX], eta[LCURVE_MAX];
-        int m = 0;
-        for (int k = lc_n - 1; k >= 0; k--)
-            if (fabs(lc_t[k] - round(lc_t[k])) < 1e-9) {
-                t[m] = lc_t[k];
-                rho[m] = lc_rho[k];
-                eta[m] = lc_eta[k];
-                m++;
-            }
-        int c = lcurve_corner(rho, eta, m, NULL);
-        if (c > 0) {
-            double step = 1.0, ct = t[c];
-            double ft[5], fr[5], fe[5]; /* five points at spacing step/2 about the corner */
-            for (int level = 0; st == SVP_OK && level < 2; level++) {
-                const double h2 = 0.5 * step;
-                for (int j = 0; j < 5; j++) ft[j] = ct + (j - 2) * h2;
-                int ok = 1;
-                for (int j = 0; st == SVP_OK && j < 5 && ok; j++) {
-                    /* reuse a point already solved */
-                    int found = -1;
-                    for (int k = 0; k < lc_n; k++)
-                        if (fabs(lc_t[k] - ft[j]) < 1e-9) found = k;
-                    if (found < 0) {
-                        const int before = lc_n;
-                        EXCESS(ft[j], unsolved);
-                        if (st != SVP_OK || unsolved || lc_n == before) {
-                            ok = 0;
-                            break;
-                        }
-                        found = lc_n - 1;
-                    }
-                    fr[j] = lc_rho[found];
-                    fe[j] = lc_eta[found];
-                }
-                if (st != SVP_OK || !ok) break;
-                const int cc = lcurve_corner(fr, fe, 5, NULL);
-                if (cc < 0) break;
-                ct = ft[cc];
-                step = h2;
-            }
-            corner_t = ct;
-            corner = 1;
-        }
-    }
-#undef EXCESS
+    d->target = variance ? (double)n_finite : (double)n_finite * sigma * sigma;
+    d->var_floor = variance ? 1e-300 : 1.0;
+    svp_deconv_defaults(&d->o);
+    d->o.cg_max_steps = cg_max_steps;
+    d->o.report = &d->rep;
+    double lo = DISCREPANCY_LOG_MAX, hi = DISCREPANCY_LOG_MAX, corner_t = 0;
+    int bound = 0, corner = 0;
+    if (st == SVP_OK) st = disc_walk(d, &lo, &hi, &bound);
+    if (st == SVP_OK && d->lx && bound < 0 && d->lc_n >= 3)
+        st = disc_lcurve(d, &corner_t, &corner);
     if (bound == 1) lo = hi;
     if (st == SVP_OK) *balance = pow(10.0, bound ? (bound < 0 ? hi : lo) : 0.5 * (lo + hi));
     if (st == SVP_OK && corner) {
@@ -893,9 +927,9 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
         *lcurve = 1;
     }
     if (at_bound) *at_bound = bound;
-    svp_image_free(x);
-    svp_image_free(hx);
-    svp_free(prod);
-    svp_free(lx);
+    svp_image_free(d->x);
+    svp_image_free(d->hx);
+    svp_free(d->prod);
+    svp_free(d->lx);
     return st;
 }

@@ -810,15 +810,44 @@ static svp_status stage_compare(run_ctx *c)
 
 /* ---- corrections ---------------------------------------------------------------------------- */
 
+/* The margin of correction `cr` in pixels: its own, or for `auto` the PSF's significant reach
+ * (svp_psf_reach at 1 % of the peak, at most a quarter of the view's larger side, as `svpsf
+ * correct --margin auto`) where it applies — one model PSF without a halo and the zero
+ * boundary — else 0. */
+static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, int w, int h,
+                                 int *m)
+{
+    const int one_psf = psf->n_regions == 0 && !psf->from_file;
+    if (cr->margin_px >= 0) {
+        if (cr->margin_px > 0 && (!one_psf || psf->boundary != SVP_BOUNDARY_ZERO))
+            return svp_fail(SVP_ERR_INVALID,
+                            "%s: a margin needs one model PSF and the zero boundary", cr->where);
+        *m = cr->margin_px;
+        return SVP_OK;
+    }
+    *m = 0;
+    /* with a halo (light spread evenly over the view) a margin's unknowns can hold the halo's
+     * flux, which the data cannot tell apart: no margin (docs/model.md §3) */
+    if (one_psf && psf->boundary == SVP_BOUNDARY_ZERO && !(psf->psf.halo > 0)) {
+        const int cap = (w > h ? w : h) / 4;
+        const int r = (int)ceil(svp_psf_reach(&psf->psf, 0.01));
+        *m = r < cap ? r : cap;
+    }
+    return SVP_OK;
+}
+
 static svp_status stage_correct(run_ctx *c)
 {
     const int k = c->s->plan[c->stage].index;
     const svp_scene *s = c->s;
     const scene_correct *cr = &s->correct[k];
     const int w = s->view_w, h = s->view_h;
+    const scene_psf *psf = cr->has_psf ? &cr->psf : &s->psf;
+    int m = 0;
+    SVP_CHECK(correct_margin(cr, psf, w, h, &m));
     svp_blur *own = NULL, *blur = NULL;
-    if (cr->has_psf) {
-        SVP_CHECK(make_blur(c, &cr->psf, w, h, &own));
+    if (cr->has_psf || m > 0) {
+        SVP_CHECK(make_blur(c, psf, w + 2 * m, h + 2 * m, &own));
         blur = own;
     } else {
         if (!c->blur_view) SVP_CHECK(make_blur(c, &s->psf, w, h, &c->blur_view));
@@ -832,6 +861,8 @@ static svp_status stage_correct(run_ctx *c)
     o.deconv.progress = inner_progress;
     o.deconv.progress_user = c;
     o.pl_floor = cr->pl_floor;
+    o.margin = m;
+    o.deconv.single_precision = cr->single;
     /* a study compares corrections, doubtful ones included: kept (validity 0 where in doubt)
      * and their doubts recorded */
     svp_correct_summary summary;
@@ -862,6 +893,7 @@ static svp_status stage_correct(run_ctx *c)
     if (st != SVP_OK) return st;
     double low = 0;
     for (size_t p = 0; p < (size_t)w * h; p++) low += valid->data[p] < 1;
+    SVP_CHECK(value(c, (double)m, "correct/%s/margin_px", cr->name));
     SVP_CHECK(value(c, (double)summary.doubts, "correct/%s/doubts", cr->name));
     SVP_CHECK(value(c, (double)summary.n_implausible, "correct/%s/n_implausible", cr->name));
     return value(c, low / ((double)w * h), "correct/%s/low_validity_fraction", cr->name);
@@ -1082,6 +1114,11 @@ static svp_status write_summary(run_ctx *c, double total)
         svp_json_key_int(j, "iterations", cr->iterations);
         svp_json_key_number(j, "balance", cr->balance);
         svp_json_key_number(j, "pl_floor", cr->pl_floor);
+        if (cr->margin_px < 0)
+            svp_json_key_string(j, "margin", "auto");
+        else
+            svp_json_key_int(j, "margin_px", cr->margin_px);
+        svp_json_key_string(j, "precision", cr->single ? "single" : "double");
         if (cr->has_psf) svp_json_key_string(j, "psf", cr->psf.describe);
         svp_json_end_object(j);
     }

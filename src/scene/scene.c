@@ -989,8 +989,9 @@ static svp_status parse_effects(struct svp_scene *s, const svp_yaml_node *root)
 static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c, const char *what,
                                     scene_correct *out)
 {
-    static const char *const keys[] = {"method", "iterations", "balance", "pl_floor",
-                                       "psf",    "name",       NULL};
+    static const char *const keys[] = {"method", "iterations", "balance",   "pl_floor",
+                                       "psf",    "name",       "margin", "precision", NULL};
+    static const char *const precisions[] = {"double", "single", NULL};
     static const char *const methods[] = {"rw", "r", "w", "rl_signed", NULL};
     SVP_CHECK(check_keys(c, what, keys));
     where_of(c, out->where);
@@ -1015,6 +1016,19 @@ static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c,
     }
     SVP_CHECK(get_num(c, what, "balance", 0, INFINITY, 0, &out->balance, 0));
     SVP_CHECK(get_num(c, what, "pl_floor", 0, 1, SVP_YAML_OPEN_HI, &out->pl_floor, 0));
+    int prec = 0;
+    SVP_CHECK(get_choice(c, what, "precision", precisions, &prec, 0));
+    out->single = prec == 1;
+    const svp_yaml_node *mg = svp_yaml_get(c, "margin");
+    const char *mtext = NULL;
+    if (mg && svp_yaml_type_of(mg) == SVP_YAML_SCALAR &&
+        svp_yaml_string(mg, "margin", &mtext) == SVP_OK && strcmp(mtext, "auto") == 0) {
+        out->margin_px = -1;
+    } else if (mg) {
+        double um = 0;
+        SVP_CHECK(svp_yaml_number_in(mg, qname(qn, sizeof qn, what, "margin"), 0, 1e4, 0, &um));
+        out->margin_px = (int)lround(um / s->pixel_um);
+    }
     const svp_yaml_node *p = svp_yaml_get(c, "psf");
     if (p) {
         char w[96];

@@ -109,6 +109,9 @@ typedef struct scene_correct {
     int iterations; /* RL */
     double balance; /* Wiener */
     double pl_floor;
+    int margin_px; /* object estimated on the view plus this margin; -1 = auto (the PSF's reach,
+                      as `svpsf correct --margin auto`); 0 (default) = the view only */
+    int single;    /* 1: single-precision transforms for RL (as `--precision single`) */
     int has_psf; /* an assumed PSF different from the scene's */
     scene_psf psf;
     char where[SCENE_WHERE];
@@ -334,7 +337,7 @@ const char *scene_component_name(int comp);
 /* Compiles the plan of a parsed scene (plan.c). */
 svp_status scene_compile_plan(struct svp_scene *s);
 
-/* ---- metrics (metrics.c) and figures (report.c) ------------------------------------------- */
+/* ---- metrics (metrics.c), figures and report (report.c; drawn by src/figure) ------------- */
 typedef struct scene_hist {
     int q, m;      /* quantity and mask */
     double lo, hi; /* bin range, percent */
@@ -367,31 +370,10 @@ svp_status scene_make_masks(const struct svp_scene *s, struct svp_scene_result *
 /* Relative-error maps, statistics, histograms, line cuts, CSV texts; values into r. */
 svp_status scene_analyse(const struct svp_scene *s, struct svp_scene_result *r, scene_analysis *a);
 void scene_analysis_free(scene_analysis *a);
-/* Every figure of the plan into out_dir/figures/. */
+/* Every figure of the plan into out_dir/figures/ (through src/figure/figure.h). */
 svp_status scene_figures(const struct svp_scene *s, const struct svp_scene_result *r,
                          const scene_analysis *a, const char *out_dir, int overwrite,
                          svp_progress_fn progress, void *progress_user);
-/* One map as a PNG figure: the colour map over [lo, hi] (display units = value × display_scale;
- * diverging: blue–white–red, else viridis), a colour bar with ticks and `bar_label`, a scale bar
- * (pixel_um per pixel) and a title. Atomic write. */
-svp_status scene_map_figure(const char *path, const svp_image *img, double display_scale, double lo,
-                            double hi, int diverging, const char *title, const char *bar_label,
-                            double pixel_um, int overwrite);
-/* A line plot (PNG, atomic): n_series (1..10) curves x[k][0..n[k]-1], y[k][...] (NaN breaks a
- * curve) in colours black, red, blue, ..., labelled axes, a title and a legend. Series k is
- * drawn as dots when markers && markers[k] (measured data), else as a line (a model). Used by
- * svpsf fit-psf for radial profiles. */
-svp_status scene_line_plot(const char *path, const char *title, const char *xlabel,
-                           const char *ylabel, int n_series, const double *const *x,
-                           const double *const *y, const int *n, const char *const *labels,
-                           const int *markers, int overwrite);
-/* Defined in src/io/image_io.cpp (the only C++ file): the colour maps of
- * svp_io_write_colormap_png as RGB bytes, values[n] over [lo, hi], NaN/Inf grey. */
-svp_status svp_io_colormap_rgb(const double *values, size_t n, double lo, double hi, int diverging,
-                               unsigned char *rgb);
-/* Releases cairo's process-wide font caches: call at exit from tools and tests (after every
- * figure is written), never while another thread draws. */
-void scene_figures_cleanup(void);
 /* report.md text (malloc'd). */
 svp_status scene_report_text(const struct svp_scene *s, const struct svp_scene_result *r,
                              const scene_analysis *a, char **text);

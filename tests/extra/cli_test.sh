@@ -194,12 +194,21 @@ expect_ok corr_rw correct --field fwd_m/field.npy --pl fwd_m/pl.npy --psf moffat
 check_close "T^-1(T(B)), R&W 500 iterations, mirror: field" Bz.txt corr_rw/field.txt 1e-3
 expect_ok fwd_zero forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o fwd_z --format tif $FAST
 expect_ok corr_r correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
-    --method rl-signed --iterations 500 --margin 0 -o corr_r --format txt $FAST
+    --method rl-signed --iterations 500 --margin 0 --precision double -o corr_r --format txt $FAST
 # float32 TIFF inputs: 1e-7 relative rounding before the deconvolution
 check_close "T^-1(T(B)), signed RL 500 iterations, zero boundary, float32 TIFF: field" Bz.txt corr_r/field.txt 5e-3
 expect_ok corr_r32 correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
     --method rl-signed --iterations 500 --precision single --margin 0 -o corr_r32 --format txt $FAST
 check_close "correct --precision single (500 iterations) agrees with double" corr_r/field.txt corr_r32/field.txt 1e-3
+# the default precision: single for r and rl-signed with one PSF (the same numbers as
+# --precision single), double for rw
+expect_ok corr_rdef correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
+    --method rl-signed --iterations 500 --margin 0 -o corr_rdef --format txt $FAST
+cmp -s corr_rdef/field.txt corr_r32/field.txt && grep -q '"precision": "single"' corr_rdef/summary.json &&
+    pass "correct r/rl-signed defaults to --precision single" ||
+    fail "default precision of rl-signed" "$(grep precision corr_rdef/summary.json)"
+grep -q '"precision": "double"' corr_rw/summary.json && pass "correct rw defaults to double" ||
+    fail "default precision of rw" "$(grep precision corr_rw/summary.json)"
 expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
     --psf moffat_periodic.yaml --method w --precision single -o corr_w32
 if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then

@@ -38,8 +38,12 @@ import foreign  # noqa: E402
 OPTION_SETS = [
     ("default", []),
     ("r, 75 it, margin 0", ["--method", "r", "--margin", "0"]),
-    ("r, 75 it, margin auto", ["--method", "r", "--margin", "auto"]),
-    ("r, 150 it, margin auto", ["--method", "r", "--iterations", "150", "--margin", "auto"]),
+    ("r, 75 it, margin auto, double", ["--method", "r", "--margin", "auto", "--precision",
+                                       "double"]),
+    ("r, 75 it, margin auto, single", ["--method", "r", "--margin", "auto", "--precision",
+                                       "single"]),
+    ("r, 150 it, margin auto, single", ["--method", "r", "--iterations", "150", "--margin", "auto",
+                                        "--precision", "single"]),
     ("r, auto iterations", ["--method", "r", "--iterations", "300", "--iterations", "auto"]),
     ("r, 30 it, Biggs–Andrews", ["--method", "r", "--iterations", "30",
                                  "--acceleration", "biggs-andrews"]),
@@ -55,6 +59,10 @@ SCENES = ["wire", "chessboard"]
 COUNTS = [100, 1000, 10000]
 PSF_ERRORS = [(0.0, 0.0), (0.05, 0.10)]
 TIE = 0.05
+# The PSF error one parameter at a time (FWHM, β relative errors of the file the program is
+# given), default correction and 300 iterations, 10⁴ photons: which of the two limits the error.
+SENSITIVITY = [(0.05, 0.0), (-0.05, 0.0), (0.0, 0.10), (0.0, -0.10), (0.05, 0.10)]
+SENSITIVITY_SETS = [("default", []), ("r, 300 it", ["--method", "r", "--iterations", "300"])]
 
 
 def correct_help(svpsf):
@@ -129,7 +137,8 @@ def fmt(x, spec=".3f"):
 TITLE = "Accuracy on foreign data: what each correction costs and gains"
 
 
-def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE, extra=None):
+def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE, extra=None,
+           sens=None):
     out = []
     w = out.append
     w(f"# {title}\n")
@@ -246,6 +255,34 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
           + ("`svpsf correct`'s defaults are this option set (or give the same errors).\n"
              if is_default(best[0]) else
              "`svpsf correct`'s defaults in the program measured are not.\n"))
+    if sens:
+        w("## Which PSF error matters: FWHM or β\n")
+        w("The same scenes at 10⁴ photons with the PSF file wrong in one parameter at a time "
+          "(relative errors; the datasets above use +5 % FWHM and +10 % β together). Ratios to "
+          "uncorrected, dark / lit.\n")
+        labels_s = []
+        for r in sens:
+            if r["label"] not in labels_s:
+                labels_s.append(r["label"])
+        w("| scene | FWHM error | β error | " + " | ".join(labels_s) + " |")
+        w("|---|---|---|" + "---|" * len(labels_s))
+        keys = []
+        for r in sens:
+            k = (r["scene"], r["fwhm_err"], r["beta_err"])
+            if k not in keys:
+                keys.append(k)
+        for k in keys:
+            cells = []
+            for label in labels_s:
+                r = next((x for x in sens if (x["scene"], x["fwhm_err"], x["beta_err"]) == k
+                          and x["label"] == label), None)
+                if r is None or r["exit"] != 0:
+                    cells.append(f"exit {r['exit']}" if r else "–")
+                else:
+                    cells.append(f"{r['dark'] / r['uncorrected']['dark']:.2f} / "
+                                 f"{r['lit'] / r['uncorrected']['lit']:.2f}")
+            w(f"| {k[0]} | {100 * k[1]:+g} % | {100 * k[2]:+g} % | " + " | ".join(cells) + " |")
+        w("")
     return "\n".join(out) + "\n"
 
 
@@ -269,6 +306,8 @@ def main():
                     help="σ_B at the peak PL for foreign.py (default its 0.3 µT)")
     ap.add_argument("--fwhm-err", type=float, default=None,
                     help="the 'PSF off' file's FWHM error (default +0.05: 5 %% too wide)")
+    ap.add_argument("--no-sensitivity", action="store_true",
+                    help="skip the section on FWHM against β errors")
     ap.add_argument("--from-json", default=None,
                     help="render the page from a --json file of an earlier run, running nothing")
     args = ap.parse_args()
@@ -277,7 +316,7 @@ def main():
             saved = json.load(f)
         md = render(saved["runs"], saved["skipped"], saved["quick"], saved["commit"],
                     saved["size"], saved["threads"], saved.get("camera"), args.title,
-                    saved.get("extra"))
+                    saved.get("extra"), saved.get("sensitivity"))
         with open(args.output, "w") as f:
             f.write(md)
         return 0
@@ -324,13 +363,30 @@ def main():
                               f"dark {fmt(r.get('dark'))} lit {fmt(r.get('lit'))} "
                               f"(uncorrected {fmt(u['dark'])} / {fmt(u['lit'])}) "
                               f"{r['seconds']:.2f} s", file=sys.stderr, flush=True)
+        sens = []
+        if not args.quick and not args.no_sensitivity:
+            for scene in scenes:
+                for fe, be in SENSITIVITY:
+                    data = os.path.join(tmp, f"sens_{scene}_{fe}_{be}")
+                    foreign.main(["make", "-o", data, "--scene", scene, "--size", str(size),
+                                  "--counts", "10000", "--fwhm-err", str(fe), "--beta-err",
+                                  str(be), "--seed", str(7 + 10000 % 97)])
+                    u = uncorrected(data)
+                    for label, args_ in SENSITIVITY_SETS:
+                        r = one_run(args.svpsf, data, label, args_, args.threads,
+                                    os.path.join(tmp, "fftw.wisdom"))
+                        r.update(scene=scene, fwhm_err=fe, beta_err=be, uncorrected=u)
+                        sens.append(r)
+                        print(f"sensitivity {scene} FWHM {fe:+g} beta {be:+g}: {label}: exit "
+                              f"{r['exit']} dark {fmt(r.get('dark'))} lit {fmt(r.get('lit'))}",
+                              file=sys.stderr, flush=True)
     if args.json:  # first: a page that fails to render can be rendered again from it
         with open(args.json, "w") as f:
             json.dump(dict(runs=runs, skipped=skipped, quick=args.quick, commit=commit,
-                           size=size, threads=args.threads, camera=camera, extra=extra), f,
-                      indent=1)
+                           size=size, threads=args.threads, camera=camera, extra=extra,
+                           sensitivity=sens), f, indent=1)
     md = render(runs, skipped, args.quick, commit, size, args.threads, camera, args.title,
-                extra)
+                extra, sens)
     with open(args.output, "w") as f:
         f.write(md)
     return 0

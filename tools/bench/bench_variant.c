@@ -29,7 +29,7 @@
 #include "svpsf.h"
 
 #include "blur/blur_internal.h"
-#include "scene/scene_internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdint.h>
@@ -439,7 +439,7 @@ static int cmd_plot(int argc, char **argv)
         }
     }
     if (ns < 0) return fprintf(stderr, "bench_variant plot: no curve\n"), 1;
-    svp_status st = scene_line_plot(
+    svp_status st = svp_figure_line_plot(
         argv[2], title, "log10 time per application (s)", "log10 relative L2 error vs exact",
         ns + 1, (const double *const *)x, (const double *const *)y, n, labels, NULL, 1);
     for (int k = 0; k <= ns; k++) {

@@ -60,7 +60,11 @@ def strip(text):
 def functions(path):
     """(name, first line, last line, has reason) of every function definition in path."""
     with open(path, encoding='utf-8', errors='replace') as f:
-        text = f.read()
+        return functions_in(f.read())
+
+
+def functions_in(text):
+    """functions() of a source text."""
     code, comments = strip(text)
     # preprocessor lines out (a macro body must not count as code at depth 0)
     code = re.sub(r'(?m)^[ \t]*#(?:[^\n]*\\\n)*[^\n]*', lambda m: re.sub(r'[^\n]', ' ', m.group(0)), code)

@@ -1621,3 +1621,110 @@ int cli_maps_write(cli_run *run, const cli_maps *maps, const svp_image *pl,
     cli_stage_end(run);
     return cli_summary_write(run, maps->summary_out);
 }
+
+/* ---- option groups: deconvolution, spot fit; one positional argument ---------------------- */
+
+const char *const cli_acceleration_names[] = {"none", "biggs-andrews", NULL};
+const char *const cli_rl_stop_names[] = {"count", "discrepancy", "stalled", "cap"};
+
+void cli_deconv_init(cli_deconv_args *args, const svp_deconv_options *defaults)
+{
+    memset(args, 0, sizeof *args);
+    args->iterations = defaults->iterations;
+    args->balance = defaults->balance;
+    args->cg_max_steps = defaults->cg_max_steps;
+    args->acceleration = (int)defaults->acceleration;
+    args->precision = defaults->single_precision ? 1 : 0;
+}
+
+int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, const char *arg)
+{
+    switch (option) {
+    case CLI_OPT_ITERATIONS:
+        if (strcmp(arg, "auto") == 0) {
+            args->iterations_auto = 1;
+            return 0;
+        }
+        return cli_parse_int(run, "--iterations", arg, 1, 100000, &args->iterations);
+    case CLI_OPT_BALANCE:
+        args->balance_given = 1;
+        return cli_parse_balance(run, arg, &args->balance, &args->balance_auto);
+    case CLI_OPT_NOISE:
+        return cli_parse_double_in(run, "--noise", arg, 0, 0, INFINITY, 0, &args->noise);
+    case CLI_OPT_CG_MAX_STEPS:
+        return cli_parse_int(run, "--cg-max-steps", arg, 1, 100000, &args->cg_max_steps);
+    case CLI_OPT_PRECISION:
+        args->precision_given = 1;
+        return cli_parse_choice(run, "--precision", arg, cli_precision_names, &args->precision);
+    case CLI_OPT_ACCELERATION:
+        return cli_parse_choice(run, "--acceleration", arg, cli_acceleration_names,
+                                &args->acceleration);
+    case CLI_OPT_KEEP_DOUBTFUL: args->keep_doubtful = 1; return 0;
+    default: return -1;
+    }
+}
+
+void cli_deconv_apply(const cli_deconv_args *args, svp_deconv_options *opt)
+{
+    opt->iterations = args->iterations;
+    opt->auto_stop = args->iterations_auto;
+    opt->balance = args->balance;
+    opt->cg_max_steps = args->cg_max_steps;
+    opt->acceleration = (svp_rl_acceleration)args->acceleration;
+    opt->single_precision = args->precision == 1;
+}
+
+void cli_print_deconv_help(FILE *out, const svp_deconv_options *defaults)
+{
+    fprintf(out,
+            "  --cg-max-steps N      step cap of the zero-boundary Wiener solve (conjugate\n"
+            "                        gradients; default %d); a solve that stops there above\n"
+            "                        its tolerance is warned about and recorded\n",
+            defaults->cg_max_steps);
+}
+
+void cli_spot_init(cli_spot_args *args, const svp_spot_options *defaults)
+{
+    args->model = SVP_PSF_MOFFAT;
+    args->elliptical = defaults->elliptical;
+    args->gain = defaults->noise.gain;
+}
+
+int cli_spot_option(const cli_run *run, cli_spot_args *args, int option, const char *arg)
+{
+    switch (option) {
+    case CLI_OPT_MODEL:
+        return cli_parse_choice(run, "--model", arg, cli_psf_model_names, &args->model);
+    case CLI_OPT_CIRCULAR: args->elliptical = 0; return 0;
+    case CLI_OPT_GAIN:
+        return cli_parse_double_in(run, "--gain", arg, 0, 1, INFINITY, 0, &args->gain);
+    default: return -1;
+    }
+}
+
+void cli_spot_apply(const cli_spot_args *args, svp_spot_options *opt)
+{
+    opt->model = (svp_psf_model)args->model;
+    opt->elliptical = args->elliptical;
+    opt->noise.gain = args->gain;
+}
+
+void cli_print_spot_help(FILE *out)
+{
+    fputs("  --model M             moffat (default), gaussian or lorentzian\n", out);
+}
+
+const char *cli_one_argument(const cli_run *run, const char *missing, const char *extra_note)
+{
+    if (optind >= run->argc) {
+        cli_error(run, "%s", missing);
+        return NULL;
+    }
+    if (optind + 1 < run->argc) {
+        cli_error(run, "unexpected argument '%s'%s", run->argv[optind + 1], extra_note);
+        return NULL;
+    }
+    return run->argv[optind];
+}
+
+int cli_parsed_status(int code) { return code == CLI_OPTION_HELP ? 0 : code; }

@@ -1,33 +1,37 @@
 /*
  * Shared helpers of the svpsf command-line program.
  *
- * Adding a command (e.g. for issues 3-5: simulate, fit-psf, map-psf, psf-compare, reconstruct,
- * register):
- *   1. write `int cmd_NAME(int argc, char **argv)` in tools/svpsf/cmd_NAME.c (its prototype is
- *      already declared below); argv[0] is the command name, the options follow;
+ * Adding a command (docs/architecture.md, "Adding a CLI command"):
+ *   1. write `int cmd_NAME(int argc, char **argv)` in tools/svpsf/cmd_NAME.c and declare it
+ *      below; argv[0] is the command name, the options follow;
  *   2. add ONE line to the `commands` table in tools/svpsf/main.c:
  *          {"fit-psf", "fit a Moffat PSF to a spot image pair", cmd_fit_psf},
  *      The table is what `svpsf --help` lists and what `svpsf NAME` dispatches to; a command
  *      that is not in the table does not exist for the user.
  *
- * The shape of a command (see cmd_forward.c for a complete one):
+ * The shape of a command (cmd_deconvolve.c and cmd_correct.c are complete ones): it parses
+ * into a struct of its arguments, then runs (see cli_parsed_status below):
  *
- *   cli_run run;
- *   cli_run_init(&run, "forward", argc, argv, CLI_COMMON_OUTPUT_DIR);
- *   struct option own[] = {{"pl", required_argument, NULL, OPT_PL}, ..., {0}};
- *   int c;
- *   while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
- *       switch (c) {
- *       case CLI_OPTION_HELP: print_help(stdout); return cli_run_finish(&run, 0);
- *       case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
- *       case OPT_PL: ...
+ *   static int parse_NAME_args(cli_run *run, struct NAME_args *a)
+ *   {
+ *       static const struct option own[] = {{"pl", required_argument, NULL, OPT_PL}, ...,
+ *                                           CLI_DECONV_LONGOPTS, {0}};
+ *       ... defaults, cli_deconv_init(&a->deconv, &library_defaults) ...
+ *       int c;
+ *       while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+ *           if (c == CLI_OPTION_HELP) { print_help(run, stdout); return CLI_OPTION_HELP; }
+ *           if (c == CLI_OPTION_ERROR || NAME_option(run, a, c)) return CLI_EXIT_USAGE;
  *       }
+ *       ... positional arguments (cli_one_argument), the combinations refused ...
  *   }
- *   ... read inputs with cli_read_image / cli_psf_load (they record them for the summary),
- *   plan every output with cli_output_in_dir / cli_output_file, then cli_outputs_check (no
- *   file is written before all are known to be writable), compute inside
- *   cli_stage_begin/cli_stage_end, write with cli_write_image, cli_summary_write, and
- *   return cli_run_finish(&run, status).
+ *
+ * where NAME_option switches over the command's own options and passes the others to its
+ * groups' cli_X_option (each returns -1 for an option that is not its own). run_NAME then
+ * reads inputs with cli_read_image / cli_psf_load (they record them for the summary), plans
+ * every output with cli_output_in_dir / cli_output_file, then cli_outputs_check (no file is
+ * written before all are known to be writable), computes inside cli_stage_begin /
+ * cli_stage_end, writes with cli_write_image, cli_summary_write, and returns the status;
+ * each stage is a function of its own (none over 150 lines: tools/check/funclen.py).
  *
  * Conventions every command follows (docs/cli.md):
  *   - exit 0 ok, 1 bad usage or bad input (CLI_EXIT_USAGE), 2 runtime failure;
@@ -62,7 +66,6 @@ int cmd_correct(int argc, char **argv);
 int cmd_deconvolve(int argc, char **argv);
 int cmd_psf(int argc, char **argv);
 int cmd_demo(int argc, char **argv);
-/* Planned by later issues; defined in their own files when they exist. */
 int cmd_simulate(int argc, char **argv);
 int cmd_fit_psf(int argc, char **argv);
 int cmd_map_psf(int argc, char **argv);
@@ -423,5 +426,104 @@ int cli_maps_read(cli_run *run, cli_maps *maps);
  * DIR/summary.json, refusing two inputs with the same stem. */
 int cli_maps_plan(cli_run *run, cli_maps *maps);
 void cli_maps_release(cli_maps *maps);
+
+/* ---- option groups -------------------------------------------------------------------------
+ *
+ * An option group is a set of options several commands share, in four pieces: codes (an enum
+ * from its own base), a CLI_X_LONGOPTS list to put in the command's getopt table, a struct the
+ * options parse into (cli_X_init sets the defaults) and cli_X_option(run, group, option, arg),
+ * which returns 0 when it handled the option, CLI_EXIT_USAGE after a message naming it, and -1
+ * when the option is not one of the group's (so a command tries its groups in turn). A group
+ * whose help lines mean the same in every command prints them with cli_print_X_help. The
+ * groups: the common ones of cli_run (-o/--force, --format, --threads, --wisdom/--fft,
+ * --quiet, handled by cli_next_option itself), CLI_VARIANT (a PSF map's operator), CLI_MAPS
+ * (field and PL maps with their PSF), CLI_DECONV (the deconvolution settings of deconvolve
+ * and correct) and CLI_SPOT (the spot fit of fit-psf and map-psf). */
+
+/* The deconvolution settings deconvolve and correct share. Each command states in its own
+ * help what they apply to (one image; the PL and field x PL), and which combinations it
+ * refuses. */
+typedef struct cli_deconv_args {
+    int iterations;      /* --iterations N (default: svp_deconv_defaults) */
+    int iterations_auto; /* --iterations auto */
+    double balance;      /* --balance L */
+    int balance_auto;    /* --balance auto */
+    int balance_given;   /* --balance given at all */
+    double noise;        /* --noise SIGMA; 0 = estimated */
+    int cg_max_steps;    /* --cg-max-steps N */
+    int precision;       /* --precision: index in cli_precision_names */
+    int precision_given; /* --precision given at all */
+    int acceleration;    /* --acceleration: index in cli_acceleration_names */
+    int keep_doubtful;   /* --keep-doubtful */
+} cli_deconv_args;
+enum {
+    CLI_OPT_ITERATIONS = 1920,
+    CLI_OPT_BALANCE,
+    CLI_OPT_NOISE,
+    CLI_OPT_CG_MAX_STEPS,
+    CLI_OPT_PRECISION,
+    CLI_OPT_ACCELERATION,
+    CLI_OPT_KEEP_DOUBTFUL
+};
+/* clang-format off */
+#define CLI_DECONV_LONGOPTS \
+    {"iterations", required_argument, NULL, CLI_OPT_ITERATIONS}, \
+    {"balance", required_argument, NULL, CLI_OPT_BALANCE}, \
+    {"noise", required_argument, NULL, CLI_OPT_NOISE}, \
+    {"cg-max-steps", required_argument, NULL, CLI_OPT_CG_MAX_STEPS}, \
+    {"precision", required_argument, NULL, CLI_OPT_PRECISION}, \
+    {"acceleration", required_argument, NULL, CLI_OPT_ACCELERATION}, \
+    {"keep-doubtful", no_argument, NULL, CLI_OPT_KEEP_DOUBTFUL}
+/* clang-format on */
+/* Defaults from the library's options (svp_deconv_defaults, svp_correct_defaults' deconv). */
+void cli_deconv_init(cli_deconv_args *args, const svp_deconv_options *defaults);
+int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, const char *arg);
+/* Copies iterations, balance, CG cap, acceleration and precision into the library's options
+ * (auto_stop from --iterations auto; the noise and --balance auto are the caller's). */
+void cli_deconv_apply(const cli_deconv_args *args, svp_deconv_options *opt);
+/* The --cg-max-steps help lines (the same in both commands) with its default. */
+void cli_print_deconv_help(FILE *out, const svp_deconv_options *defaults);
+/* --acceleration: indexed by svp_rl_acceleration. */
+extern const char *const cli_acceleration_names[];
+/* svp_deconv_report.stop as the summary names it. */
+extern const char *const cli_rl_stop_names[];
+
+/* The spot fit fit-psf and map-psf share: --model, --circular, --gain (photons per data unit,
+ * >= 0). */
+typedef struct cli_spot_args {
+    int model;      /* index in cli_psf_model_names (default moffat) */
+    int elliptical; /* 0 with --circular */
+    double gain;    /* --gain (default: the library's) */
+} cli_spot_args;
+enum { CLI_OPT_MODEL = 1930, CLI_OPT_CIRCULAR, CLI_OPT_GAIN };
+/* clang-format off */
+#define CLI_SPOT_LONGOPTS \
+    {"model", required_argument, NULL, CLI_OPT_MODEL}, \
+    {"circular", no_argument, NULL, CLI_OPT_CIRCULAR}, \
+    {"gain", required_argument, NULL, CLI_OPT_GAIN}
+/* clang-format on */
+/* Defaults from the library's options (svp_spot_defaults). */
+void cli_spot_init(cli_spot_args *args, const svp_spot_options *defaults);
+int cli_spot_option(const cli_run *run, cli_spot_args *args, int option, const char *arg);
+/* Sets model, elliptical and noise.gain of the library's spot options. */
+void cli_spot_apply(const cli_spot_args *args, svp_spot_options *opt);
+/* The --model help line. */
+void cli_print_spot_help(FILE *out);
+
+/* A command in two halves: `int parse_X_args(cli_run *run, struct X_args *args)` reads the
+ * options into the command's struct (its own and its groups') and checks them, returning 0 to
+ * go on, CLI_OPTION_HELP after printing the help, or the exit status after a message; then
+ * `int run_X(cli_run *run, const struct X_args *args)` does the work in the command's own
+ * stages (read, plan, compute, write, report) and returns the exit status. cmd_X is then
+ *     int code = parse_X_args(&run, &args);
+ *     if (code == 0) code = run_X(&run, &args);
+ *     return cli_run_finish(&run, cli_parsed_status(code));
+ * cli_parsed_status maps CLI_OPTION_HELP to 0 and keeps any other status. */
+int cli_parsed_status(int code);
+
+/* The positional arguments after the options: exactly one, else an error. `missing` is the
+ * message when there is none; a second one is "unexpected argument 'X'" followed by
+ * `extra_note` (may be ""). Returns the argument, or NULL after the message. */
+const char *cli_one_argument(const cli_run *run, const char *missing, const char *extra_note);
 
 #endif

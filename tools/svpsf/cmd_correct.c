@@ -7,45 +7,30 @@
 
 enum {
     OPT_METHOD = CLI_OPTION_FIRST,
-    OPT_ITERATIONS,
-    OPT_BALANCE,
     OPT_PL_FLOOR,
     OPT_SHIFT,
-    OPT_NOISE,
-    OPT_CG_MAX_STEPS,
-    OPT_PRECISION,
-    OPT_ACCELERATION,
     OPT_MARGIN,
     OPT_GAIN,
     OPT_OFFSET,
     OPT_FIELD_SIGMA,
-    OPT_KEEP_DOUBTFUL,
     OPT_PLAUSIBLE,
 };
 
-static const char *const acceleration_names[] = {"none", "biggs-andrews", NULL};
-static const char *const stop_names[] = {"count", "discrepancy", "stalled", "cap"};
 static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound",
                                           "iterations_at_cap", "implausible_values",
                                           "regularised_away"};
 
-/* --margin auto: the PSF's significant reach, the radius where the profile falls to 1 % of its
- * peak along the major axis (Gaussian 1.29 FWHM; Moffat r0 √(100^(1/β) − 1): 4.3 FWHM at β 1.1;
- * a kernel image: its half-width), at most a quarter of the view's larger side. */
+/* --margin auto: the PSF's significant reach (svp_psf_reach: the radius where the profile falls
+ * to 1 % of its peak along the major axis; Gaussian 1.29 FWHM, Moffat β 1.1 4.3 FWHM; a kernel
+ * image: its half-width), at most a quarter of the view's larger side; 0 for a PSF with a halo,
+ * whose margin unknowns can take up halo flux (docs/model.md §3). */
 static int auto_margin(const cli_psf *psf, int w, int h)
 {
     const int cap = (w > h ? w : h) / 4;
     double r = 0;
     if (psf->is_model) {
-        const svp_psf *p = &psf->model;
-        if (p->model == SVP_PSF_GAUSSIAN) {
-            r = p->fwhm / (2 * sqrt(2 * log(2))) * sqrt(2 * log(100.0));
-        } else {
-            const double beta = p->model == SVP_PSF_LORENTZIAN ? 1.0 : p->beta;
-            const double r0 = p->fwhm / (2 * sqrt(expm1(log(2) / beta)));
-            r = r0 * sqrt(expm1(log(100.0) / beta));
-        }
-        if (p->support > 0 && p->support < r) r = p->support;
+        if (psf->model.halo > 0) return 0;
+        r = svp_psf_reach(&psf->model, 0.01);
     } else if (psf->kernel_raw) {
         const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
         r = 0.5 * (kw > kh ? kw : kh);
@@ -127,26 +112,27 @@ static void print_help(const cli_run *run, FILE *out)
             "  --plausible-factor K  a corrected |field| above K x the measured map's largest\n"
             "                        |value| at a lit pixel is implausible (default %g)\n"
             "  --precision double|single  the Richardson-Lucy convolutions of rw, r and\n"
-            "                        rl-signed in double (default) or single precision (float\n"
-            "                        FFTs: 1.4-2.4x faster, within about 1e-5 of the peak at\n"
-            "                        100 iterations); a map's operator too (docs/cli.md)\n"
+            "                        rl-signed in double or single precision (float FFTs:\n"
+            "                        1.4-2.4x faster; the field within about 2e-4 of its peak\n"
+            "                        of the double one at 75 iterations, docs/cli.md); default\n"
+            "                        single for r and rl-signed with one PSF, else double (a\n"
+            "                        map's operator too when given)\n"
             "  --balance L|auto      Wiener-Hunt regularisation lambda, Laplacian regulariser\n"
             "                        (default %g); auto: each Wiener deconvolution (of the PL\n"
             "                        for w, of field x PL for rw and w) picks its own by the\n"
             "                        discrepancy principle (residual = noise)\n"
             "  --noise SIGMA         with --balance auto: the noise standard deviation of the\n"
             "                        deconvolved images (PL, field x PL); default: estimated\n"
-            "                        from each image\n"
-            "  --cg-max-steps N      step cap of the zero-boundary Wiener solve (conjugate\n"
-            "                        gradients; default %d); a solve that stops there above\n"
-            "                        its tolerance is warned about and recorded\n"
+            "                        from each image\n",
+            d.deconv.iterations, d.plausible_factor, d.deconv.balance);
+    cli_print_deconv_help(out, &d.deconv);
+    fprintf(out,
             "  --pl-floor F          the recovered PL is floored at F x max(PL) before dividing;\n"
             "                        pixels below it get validity < 1 (default %g)\n"
             "  --shift C             the constant c of the signed shift for r/rl-signed\n"
             "                        (default: automatic, 2 max|Bt| per map)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
-            d.deconv.iterations, d.plausible_factor, d.deconv.balance, d.deconv.cg_max_steps,
             d.pl_floor);
     cli_print_variant_help(out);
     cli_print_common_help(run, out);
@@ -163,365 +149,431 @@ static void print_help(const cli_run *run, FILE *out)
           out);
 }
 
-int cmd_correct(int argc, char **argv)
+struct correct_args {
+    cli_maps maps;           /* --field, --pl, --psf, --boundary, --nodes, ... */
+    cli_deconv_args deconv;  /* --iterations, --balance, --noise, ... */
+    svp_correct_options opt; /* the command's own options, then the group's */
+    int method;              /* index in method_names */
+    int margin_auto;         /* --margin auto: 1, a number: 0, not given: -1 */
+    int n_sigma;
+    const char *sigma_paths[CLI_MAX_FIELDS]; /* --field-sigma */
+};
+
+/* What a run holds (released by correct_release). */
+struct correct_job {
+    cli_psf psf;
+    svp_blur *blur;
+    svp_image *field_sigma[CLI_MAX_FIELDS];
+    svp_image *pl_true, *validity, *field_true[CLI_MAX_FIELDS];
+    svp_correct_summary summary;
+    svp_deconv_report reports[CLI_MAX_FIELDS + 1];
+    size_t n_missing, n_flagged, n_invalid;
+    char bal[1024]; /* the automatic balances, for the line on stdout */
+};
+
+static int correct_option(cli_run *run, struct correct_args *a, int c)
 {
-    cli_run run;
-    cli_run_init(&run, "correct", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    svp_correct_options *opt = &a->opt;
+    switch (c) {
+    case OPT_METHOD: {
+        int bad = cli_parse_choice(run, "--method", optarg, method_names, &a->method);
+        opt->method = method_values[a->method];
+        return bad;
+    }
+    case OPT_MARGIN:
+        a->margin_auto = strcmp(optarg, "auto") == 0;
+        return a->margin_auto ? 0 : cli_parse_int(run, "--margin", optarg, 0, 100000, &opt->margin);
+    case OPT_GAIN:
+        return cli_parse_double_in(run, "--gain", optarg, 0, 0, INFINITY, 0, &opt->pl_gain);
+    case OPT_OFFSET: return cli_parse_double(run, "--offset", optarg, &opt->pl_offset);
+    case OPT_FIELD_SIGMA:
+        if (a->n_sigma >= CLI_MAX_FIELDS)
+            return cli_error(run, "--field-sigma: at most %d maps", CLI_MAX_FIELDS);
+        a->sigma_paths[a->n_sigma++] = optarg;
+        return 0;
+    case OPT_PLAUSIBLE:
+        return cli_parse_double_in(run, "--plausible-factor", optarg, 1, 0, INFINITY, 0,
+                                   &opt->plausible_factor);
+    case OPT_PL_FLOOR:
+        return cli_parse_double_in(run, "--pl-floor", optarg, 0, 0, 1, 0, &opt->pl_floor);
+    case OPT_SHIFT: return cli_parse_double(run, "--shift", optarg, &opt->shift);
+    default: {
+        int bad = cli_deconv_option(run, &a->deconv, c, optarg);
+        if (bad < 0) bad = cli_maps_option(run, &a->maps, c, optarg);
+        return bad < 0 ? cli_error(run, "internal: option %d", c) : bad;
+    }
+    }
+}
+
+/* The deconvolution group into the library's options; the combinations correct refuses. */
+static int correct_check(const cli_run *run, struct correct_args *a)
+{
+    svp_correct_options *opt = &a->opt;
+    const cli_deconv_args *d = &a->deconv;
+    const int auto_stop = opt->deconv.auto_stop;
+    cli_deconv_apply(d, &opt->deconv);
+    opt->deconv.auto_stop = auto_stop; /* --iterations auto is the transform's own */
+    opt->auto_iterations = d->iterations_auto;
+    opt->balance_auto = d->balance_auto;
+    opt->noise_sigma = d->noise;
+    opt->keep_doubtful = d->keep_doubtful;
+    const int has_wiener = opt->method == SVP_METHOD_RW || opt->method == SVP_METHOD_W;
+    if (d->balance_given && !d->balance_auto && !has_wiener)
+        return cli_error(run,
+                         "--balance is used only by the methods with a Wiener deconvolution "
+                         "(--method rw or w), not --method %s",
+                         method_names[a->method]);
+    if (d->balance_auto && !has_wiener)
+        return cli_error(run, "--balance auto needs a method with a Wiener deconvolution "
+                              "(--method rw or w)");
+    if (d->noise > 0 && !d->balance_auto)
+        return cli_error(run, "--noise is only used with --balance auto");
+    if ((d->iterations_auto || d->acceleration) && opt->method == SVP_METHOD_W)
+        return cli_error(run, "--iterations auto and --acceleration apply to Richardson-Lucy: "
+                              "not with --method w");
+    if (d->precision == 1 && opt->method == SVP_METHOD_W)
+        return cli_error(run, "--precision single applies to Richardson-Lucy: not with --method w");
+    return 0;
+}
+
+static int parse_correct_args(cli_run *run, struct correct_args *a)
+{
     static const struct option own[] = {
         CLI_MAPS_LONGOPTS,
+        CLI_DECONV_LONGOPTS,
         {"method", required_argument, NULL, OPT_METHOD},
-        {"iterations", required_argument, NULL, OPT_ITERATIONS},
-        {"balance", required_argument, NULL, OPT_BALANCE},
         {"pl-floor", required_argument, NULL, OPT_PL_FLOOR},
         {"shift", required_argument, NULL, OPT_SHIFT},
-        {"noise", required_argument, NULL, OPT_NOISE},
-        {"cg-max-steps", required_argument, NULL, OPT_CG_MAX_STEPS},
-        {"precision", required_argument, NULL, OPT_PRECISION},
-        {"acceleration", required_argument, NULL, OPT_ACCELERATION},
         {"margin", required_argument, NULL, OPT_MARGIN},
         {"gain", required_argument, NULL, OPT_GAIN},
         {"offset", required_argument, NULL, OPT_OFFSET},
         {"field-sigma", required_argument, NULL, OPT_FIELD_SIGMA},
-        {"keep-doubtful", no_argument, NULL, OPT_KEEP_DOUBTFUL},
         {"plausible-factor", required_argument, NULL, OPT_PLAUSIBLE},
         {NULL, 0, NULL, 0},
     };
-    cli_maps maps;
-    cli_maps_init(&maps);
-    cli_psf psf;
-    memset(&psf, 0, sizeof psf);
-    int method = 0, precision = 0, acceleration = 0, margin_auto = -1, n_sigma = 0;
-    int balance_given = 0;
-    const char *sigma_paths[CLI_MAX_FIELDS] = {NULL};
-    svp_image *field_sigma[CLI_MAX_FIELDS] = {NULL};
-    svp_correct_summary summary;
-    svp_correct_options opt;
-    svp_correct_defaults(&opt);
-    while (method_values[method] != opt.method) method++; /* the library's default */
-    svp_blur *blur = NULL;
-    svp_image *pl_true = NULL, *validity = NULL;
-    svp_image *field_true[CLI_MAX_FIELDS] = {NULL};
-    int code = 0;
-    memset(&summary, 0, sizeof summary);
-
+    memset(a, 0, sizeof *a);
+    cli_maps_init(&a->maps);
+    svp_correct_defaults(&a->opt);
+    cli_deconv_init(&a->deconv, &a->opt.deconv);
+    while (method_values[a->method] != a->opt.method) a->method++; /* the library's default */
+    a->margin_auto = -1;
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        int bad = 0;
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_METHOD:
-            bad = cli_parse_choice(&run, "--method", optarg, method_names, &method);
-            opt.method = method_values[method];
-            break;
-        case OPT_ITERATIONS:
-            if (strcmp(optarg, "auto") == 0)
-                opt.auto_iterations = 1;
-            else
-                bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000,
-                                    &opt.deconv.iterations);
-            break;
-        case OPT_ACCELERATION:
-            bad = cli_parse_choice(&run, "--acceleration", optarg, acceleration_names,
-                                   &acceleration);
-            opt.deconv.acceleration = (svp_rl_acceleration)acceleration;
-            break;
-        case OPT_MARGIN:
-            margin_auto = strcmp(optarg, "auto") == 0;
-            if (!margin_auto)
-                bad = cli_parse_int(&run, "--margin", optarg, 0, 100000, &opt.margin);
-            break;
-        case OPT_GAIN:
-            bad = cli_parse_double_in(&run, "--gain", optarg, 0, 0, INFINITY, 0, &opt.pl_gain);
-            break;
-        case OPT_OFFSET: bad = cli_parse_double(&run, "--offset", optarg, &opt.pl_offset); break;
-        case OPT_FIELD_SIGMA:
-            if (n_sigma >= CLI_MAX_FIELDS)
-                bad = cli_error(&run, "--field-sigma: at most %d maps", CLI_MAX_FIELDS);
-            else
-                sigma_paths[n_sigma++] = optarg;
-            break;
-        case OPT_KEEP_DOUBTFUL: opt.keep_doubtful = 1; break;
-        case OPT_PLAUSIBLE:
-            bad = cli_parse_double_in(&run, "--plausible-factor", optarg, 1, 0, INFINITY, 0,
-                                      &opt.plausible_factor);
-            break;
-        case OPT_BALANCE:
-            bad = cli_parse_balance(&run, optarg, &opt.deconv.balance, &opt.balance_auto);
-            balance_given = 1;
-            break;
-        case OPT_NOISE:
-            bad = cli_parse_double_in(&run, "--noise", optarg, 0, 0, INFINITY, 0, &opt.noise_sigma);
-            break;
-        case OPT_CG_MAX_STEPS:
-            bad =
-                cli_parse_int(&run, "--cg-max-steps", optarg, 1, 100000, &opt.deconv.cg_max_steps);
-            break;
-        case OPT_PL_FLOOR:
-            bad = cli_parse_double_in(&run, "--pl-floor", optarg, 0, 0, 1, 0, &opt.pl_floor);
-            break;
-        case OPT_SHIFT: bad = cli_parse_double(&run, "--shift", optarg, &opt.shift); break;
-        case OPT_PRECISION:
-            bad = cli_parse_choice(&run, "--precision", optarg, cli_precision_names, &precision);
-            break;
-        default:
-            bad = cli_maps_option(&run, &maps, c, optarg);
-            if (bad < 0) bad = cli_error(&run, "internal: option %d", c);
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        if (c == CLI_OPTION_HELP) {
+            print_help(run, stdout);
+            return CLI_OPTION_HELP;
         }
-        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+        if (c == CLI_OPTION_ERROR || correct_option(run, a, c)) return CLI_EXIT_USAGE;
     }
-    const int has_wiener = opt.method == SVP_METHOD_RW || opt.method == SVP_METHOD_W;
-    if (balance_given && !opt.balance_auto && !has_wiener)
-        return cli_run_finish(&run, cli_error(&run, "--balance is used only by the methods with a "
-                                                    "Wiener deconvolution (--method rw or w), "
-                                                    "not --method %s", method_names[method]));
-    if (opt.balance_auto && !has_wiener)
-        return cli_run_finish(&run, cli_error(&run, "--balance auto needs a method with a Wiener "
-                                                    "deconvolution (--method rw or w)"));
-    if (opt.noise_sigma > 0 && !opt.balance_auto)
-        return cli_run_finish(&run, cli_error(&run, "--noise is only used with --balance auto"));
-    if ((opt.auto_iterations || acceleration) && opt.method == SVP_METHOD_W)
-        return cli_run_finish(&run, cli_error(&run, "--iterations auto and --acceleration apply "
-                                                    "to Richardson-Lucy: not with --method w"));
-    if (precision == 1 && opt.method == SVP_METHOD_W)
-        return cli_run_finish(&run, cli_error(&run, "--precision single applies to Richardson-"
-                                                    "Lucy: not with --method w"));
-    opt.deconv.single_precision = precision == 1;
-    if ((code = cli_maps_open(&run, &maps, &psf))) goto cleanup;
-    /* a map's operator in single precision keeps only float spectra (half their memory) when
-     * RL is its only user; rw's Wiener step (CG) keeps the double ones */
-    if (precision == 1 && psf.field) psf.variant.single_precision = opt.method != SVP_METHOD_RW;
+    return correct_check(run, a);
+}
 
-    const int w = maps.pl->width, h = maps.pl->height;
+/* --field-sigma: one map per --field, the PL's size, never negative. */
+static int correct_read_sigma(cli_run *run, struct correct_args *a, struct correct_job *job)
+{
+    const cli_maps *maps = &a->maps;
+    const int w = maps->pl->width, h = maps->pl->height, n_sigma = a->n_sigma;
     const size_t n = (size_t)w * h;
-    if (n_sigma && n_sigma != maps.n_fields) {
-        code = cli_error(&run, "--field-sigma: %d map%s for %d --field map%s: give one per field, in "
+    int code;
+    if (n_sigma && n_sigma != maps->n_fields)
+        return cli_error(run,
+                         "--field-sigma: %d map%s for %d --field map%s: give one per field, in "
                          "the same order",
-                         n_sigma, n_sigma == 1 ? "" : "s", maps.n_fields,
-                         maps.n_fields == 1 ? "" : "s");
-        goto cleanup;
-    }
+                         n_sigma, n_sigma == 1 ? "" : "s", maps->n_fields,
+                         maps->n_fields == 1 ? "" : "s");
     for (int i = 0; i < n_sigma; i++) {
-        if ((code = cli_read_image(&run, "field_sigma", sigma_paths[i], &field_sigma[i])))
-            goto cleanup;
-        if (field_sigma[i]->width != w || field_sigma[i]->height != h) {
-            code = cli_error(&run,
+        const char *path = a->sigma_paths[i];
+        if ((code = cli_read_image(run, "field_sigma", path, &job->field_sigma[i]))) return code;
+        const svp_image *s = job->field_sigma[i];
+        if (s->width != w || s->height != h)
+            return cli_error(run,
                              "size mismatch: field sigma %s is %d x %d (width x height) but PL %s "
                              "is %d x %d",
-                             sigma_paths[i], field_sigma[i]->width, field_sigma[i]->height,
-                             maps.pl_path, w, h);
-            goto cleanup;
-        }
+                             path, s->width, s->height, maps->pl_path, w, h);
         for (size_t k = 0; k < n; k++)
-            if (field_sigma[i]->data[k] < 0) {
-                code = cli_error(&run, "%s: field sigma is negative (%g) at pixel (%zu, %zu)",
-                                 sigma_paths[i], field_sigma[i]->data[k], k % (size_t)w,
-                                 k / (size_t)w);
-                goto cleanup;
-            }
+            if (s->data[k] < 0)
+                return cli_error(run, "%s: field sigma is negative (%g) at pixel (%zu, %zu)", path,
+                                 s->data[k], k % (size_t)w, k / (size_t)w);
     }
-    if (n_sigma) opt.field_sigma = (const svp_image *const *)field_sigma;
+    if (n_sigma) a->opt.field_sigma = (const svp_image *const *)job->field_sigma;
+    return 0;
+}
+
+/* The maps, the PSF and the field sigmas; --margin decided; the settings recorded. */
+static int correct_read(cli_run *run, struct correct_args *a, struct correct_job *job)
+{
+    svp_correct_options *opt = &a->opt;
+    cli_maps *maps = &a->maps;
+    int code;
+    if ((code = cli_maps_open(run, maps, &job->psf))) return code;
+    /* default: single-precision transforms for r and rl-signed with one PSF — their error is
+     * ~10⁻⁴ of the peak, far below a measurement's (docs/cli.md, --precision) — else double */
+    if (!a->deconv.precision_given && !job->psf.field &&
+        (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED)) {
+        a->deconv.precision = 1;
+        opt->deconv.single_precision = 1;
+    }
+    /* a map's operator in single precision keeps only float spectra (half their memory) when
+     * RL is its only user; rw's Wiener step (CG) keeps the double ones */
+    if (a->deconv.precision == 1 && job->psf.field)
+        job->psf.variant.single_precision = opt->method != SVP_METHOD_RW;
+    if ((code = correct_read_sigma(run, a, job))) return code;
+    const int w = maps->pl->width, h = maps->pl->height;
     /* default: auto for the RL methods (measured: docs/accuracy.md), 0 for the Wiener ones */
+    int margin_auto = a->margin_auto;
     if (margin_auto < 0)
-        margin_auto = opt.method == SVP_METHOD_R || opt.method == SVP_METHOD_RL_SIGNED;
-    if ((margin_auto || opt.margin > 0) && (psf.field || maps.boundary != SVP_BOUNDARY_ZERO)) {
-        if (!margin_auto) {
-            code = cli_error(&run, "--margin needs one PSF and the zero boundary%s",
-                             psf.field ? " (this is a space-variant PSF map)" : "");
-            goto cleanup;
-        }
-        opt.margin = 0; /* auto: only where it applies */
+        margin_auto = opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED;
+    if ((margin_auto || opt->margin > 0) &&
+        (job->psf.field || maps->boundary != SVP_BOUNDARY_ZERO)) {
+        if (!margin_auto)
+            return cli_error(run, "--margin needs one PSF and the zero boundary%s",
+                             job->psf.field ? " (this is a space-variant PSF map)" : "");
+        opt->margin = 0; /* auto: only where it applies */
     } else if (margin_auto) {
-        opt.margin = auto_margin(&psf, w, h);
+        opt->margin = auto_margin(&job->psf, w, h);
     }
-    opt.summary = &summary;
+    opt->summary = &job->summary;
     /* the library's messages name the field maps by their files */
-    opt.field_names = maps.field_paths;
-    cli_setting_str(&run, "method", method_names[method]);
-    if (opt.auto_iterations)
-        cli_setting_str(&run, "iterations", "auto");
-    cli_setting_int(&run, opt.auto_iterations ? "iteration_cap" : "iterations",
-                    opt.deconv.iterations);
-    cli_setting_str(&run, "acceleration", acceleration_names[acceleration]);
-    cli_setting_int(&run, "margin", opt.margin);
-    if (opt.pl_gain > 0) cli_setting_num(&run, "gain", opt.pl_gain);
-    cli_setting_num(&run, "offset", opt.pl_offset);
-    cli_setting_num(&run, "plausible_factor", opt.plausible_factor);
-    cli_setting_int(&run, "keep_doubtful", opt.keep_doubtful);
-    cli_setting_str(&run, "precision", cli_precision_names[precision]);
-    if (opt.balance_auto)
-        cli_setting_str(&run, "balance", "auto (discrepancy principle)");
+    opt->field_names = maps->field_paths;
+    cli_setting_str(run, "method", method_names[a->method]);
+    if (opt->auto_iterations) cli_setting_str(run, "iterations", "auto");
+    cli_setting_int(run, opt->auto_iterations ? "iteration_cap" : "iterations",
+                    opt->deconv.iterations);
+    cli_setting_str(run, "acceleration", cli_acceleration_names[a->deconv.acceleration]);
+    cli_setting_int(run, "margin", opt->margin);
+    if (opt->pl_gain > 0) cli_setting_num(run, "gain", opt->pl_gain);
+    cli_setting_num(run, "offset", opt->pl_offset);
+    cli_setting_num(run, "plausible_factor", opt->plausible_factor);
+    cli_setting_int(run, "keep_doubtful", opt->keep_doubtful);
+    cli_setting_str(run, "precision", cli_precision_names[a->deconv.precision]);
+    if (opt->balance_auto)
+        cli_setting_str(run, "balance", "auto (discrepancy principle)");
     else
-        cli_setting_num(&run, "balance", opt.deconv.balance);
-    if (opt.noise_sigma > 0) cli_setting_num(&run, "noise_sigma", opt.noise_sigma);
-    cli_setting_int(&run, "cg_max_steps", opt.deconv.cg_max_steps);
-    cli_setting_num(&run, "pl_floor", opt.pl_floor);
-    cli_setting_num(&run, "shift", opt.shift);
+        cli_setting_num(run, "balance", opt->deconv.balance);
+    if (opt->noise_sigma > 0) cli_setting_num(run, "noise_sigma", opt->noise_sigma);
+    cli_setting_int(run, "cg_max_steps", opt->deconv.cg_max_steps);
+    cli_setting_num(run, "pl_floor", opt->pl_floor);
+    cli_setting_num(run, "shift", opt->shift);
+    return 0;
+}
 
-    cli_stage_begin(&run, "plan");
-    if ((code = cli_psf_blur(&run, &psf, w + 2 * opt.margin, h + 2 * opt.margin, maps.boundary,
-                             &blur)))
-        goto cleanup;
+/* The operator (on the view plus the margin) and the inverse transform. */
+static int correct_compute(cli_run *run, struct correct_args *a, struct correct_job *job)
+{
+    svp_correct_options *opt = &a->opt;
+    const cli_maps *maps = &a->maps;
+    const int w = maps->pl->width, h = maps->pl->height;
+    int code;
+    cli_stage_begin(run, "plan");
+    if ((code = cli_psf_blur(run, &job->psf, w + 2 * opt->margin, h + 2 * opt->margin,
+                             maps->boundary, &job->blur)))
+        return code;
 
-    cli_stage_begin(&run, "transform");
-    svp_status st = svp_image_new(w, h, &pl_true);
-    if (st == SVP_OK) st = svp_image_new(w, h, &validity);
-    for (int i = 0; i < maps.n_fields && st == SVP_OK; i++)
-        st = svp_image_new(w, h, &field_true[i]);
-    size_t n_missing = 0;
-    svp_deconv_report reports[CLI_MAX_FIELDS + 1];
-    opt.reports = reports;
+    cli_stage_begin(run, "transform");
+    svp_status st = svp_image_new(w, h, &job->pl_true);
+    if (st == SVP_OK) st = svp_image_new(w, h, &job->validity);
+    for (int i = 0; i < maps->n_fields && st == SVP_OK; i++)
+        st = svp_image_new(w, h, &job->field_true[i]);
+    opt->reports = job->reports;
     if (st == SVP_OK) {
-        opt.deconv.progress = cli_progress;
-        opt.deconv.progress_user = &run;
-        cli_progress_start(&run, "correcting");
-        st = svp_inverse_transform(blur, maps.pl, (const svp_image *const *)maps.fields,
-                                   maps.n_fields, &opt, pl_true, field_true, validity, &n_missing);
-        cli_progress_done(&run);
+        opt->deconv.progress = cli_progress;
+        opt->deconv.progress_user = run;
+        cli_progress_start(run, "correcting");
+        st = svp_inverse_transform(job->blur, maps->pl, (const svp_image *const *)maps->fields,
+                                   maps->n_fields, opt, job->pl_true, job->field_true,
+                                   job->validity, &job->n_missing);
+        cli_progress_done(run);
     }
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
-    size_t n_flagged = 0, n_invalid = 0;
+    if (st != SVP_OK) return cli_fail(run, st, NULL);
+    const size_t n = (size_t)w * h;
     for (size_t i = 0; i < n; i++) {
-        n_flagged += validity->data[i] < 1;
-        n_invalid += validity->data[i] <= 0;
+        job->n_flagged += job->validity->data[i] < 1;
+        job->n_invalid += job->validity->data[i] <= 0;
     }
-    cli_result_int(&run, "n_missing", (long long)n_missing);
-    cli_result_int(&run, "n_flagged", (long long)n_flagged);
-    cli_result_num(&run, "flagged_fraction", (double)n_flagged / (double)n);
-    cli_result_int(&run, "n_invalid", (long long)n_invalid);
-    /* What each Wiener deconvolution did: [0] the PL's (method W), [1 + c] field c's numerator:
-     * the chosen balance and noise, and whether its CG stopped at the step cap. */
-    char bal[1024] = "";
+    cli_result_int(run, "n_missing", (long long)job->n_missing);
+    cli_result_int(run, "n_flagged", (long long)job->n_flagged);
+    cli_result_num(run, "flagged_fraction", (double)job->n_flagged / (double)n);
+    cli_result_int(run, "n_invalid", (long long)job->n_invalid);
+    return 0;
+}
+
+/* One Wiener deconvolution's automatic balance: results, bound check, the stdout note. */
+static void correct_report_balance(cli_run *run, const struct correct_args *a,
+                                   struct correct_job *job, int k, const char *name, size_t *at)
+{
+    const svp_deconv_report *r = &job->reports[k];
+    const cli_maps *maps = &a->maps;
+    char key[340];
+    snprintf(key, sizeof key, "balance_%s", name);
+    cli_result_num(run, key, r->balance);
+    snprintf(key, sizeof key, "noise_sigma_%s", name);
+    cli_result_num(run, key, r->noise_sigma);
+    snprintf(key, sizeof key, "balance_rule_%s", name);
+    cli_result_str(run, key, r->balance_lcurve ? "lcurve" : "discrepancy");
+    char what[600];
+    if (k == 0)
+        snprintf(what, sizeof what, "the PL %s", maps->pl_path);
+    else
+        snprintf(what, sizeof what, "field x PL of %s", maps->field_paths[k - 1]);
+    const char *bound = cli_balance_bound_check(run, what, r->balance, r->noise_sigma);
+    if (bound) {
+        snprintf(key, sizeof key, "balance_at_bound_%s", name);
+        cli_result_str(run, key, bound);
+    }
+    if (*at < sizeof job->bal)
+        *at +=
+            (size_t)snprintf(job->bal + *at, sizeof job->bal - *at, "%s %s %g (%s, noise sigma %g)",
+                             *at ? "," : ", automatic balance:", k == 0 ? "PL" : name, r->balance,
+                             r->balance_lcurve ? "L-curve corner: the noise level is "
+                                                 "out of reach"
+                                               : "discrepancy principle",
+                             r->noise_sigma);
+}
+
+/* What each Wiener deconvolution did: [0] the PL's (method W), [1 + c] field c's numerator:
+ * the chosen balance and noise, and whether its CG stopped at the step cap. */
+static void correct_report_wiener(cli_run *run, const struct correct_args *a,
+                                  struct correct_job *job)
+{
+    const cli_maps *maps = &a->maps;
     size_t at = 0;
     int n_capped = 0;
-    for (int k = 0; k <= maps.n_fields; k++) {
-        const svp_deconv_report *r = &reports[k];
+    for (int k = 0; k <= maps->n_fields; k++) {
+        const svp_deconv_report *r = &job->reports[k];
         if (!r->wiener) continue;
         char name[300], key[340];
         if (k == 0)
             snprintf(name, sizeof name, "pl");
-        else if (maps.n_fields == 1)
+        else if (maps->n_fields == 1)
             snprintf(name, sizeof name, "field");
         else {
             char stem[256];
-            cli_path_stem(maps.field_paths[k - 1], stem, sizeof stem);
+            cli_path_stem(maps->field_paths[k - 1], stem, sizeof stem);
             snprintf(name, sizeof name, "field_%s", stem);
         }
-        if (opt.balance_auto) {
-            snprintf(key, sizeof key, "balance_%s", name);
-            cli_result_num(&run, key, r->balance);
-            snprintf(key, sizeof key, "noise_sigma_%s", name);
-            cli_result_num(&run, key, r->noise_sigma);
-            snprintf(key, sizeof key, "balance_rule_%s", name);
-            cli_result_str(&run, key, r->balance_lcurve ? "lcurve" : "discrepancy");
-            char what[600];
-            if (k == 0)
-                snprintf(what, sizeof what, "the PL %s", maps.pl_path);
-            else
-                snprintf(what, sizeof what, "field x PL of %s", maps.field_paths[k - 1]);
-            const char *bound = cli_balance_bound_check(&run, what, r->balance, r->noise_sigma);
-            if (bound) {
-                snprintf(key, sizeof key, "balance_at_bound_%s", name);
-                cli_result_str(&run, key, bound);
-            }
-            if (at < sizeof bal)
-                at += (size_t)snprintf(bal + at, sizeof bal - at, "%s %s %g (%s, noise sigma %g)",
-                                       at ? "," : ", automatic balance:", k == 0 ? "PL" : name,
-                                       r->balance,
-                                       r->balance_lcurve ? "L-curve corner: the noise level is "
-                                                           "out of reach"
-                                                         : "discrepancy principle",
-                                       r->noise_sigma);
-        }
+        if (a->opt.balance_auto) correct_report_balance(run, a, job, k, name, &at);
         if (r->cg_steps > 0) {
             snprintf(key, sizeof key, "cg_steps_%s", name);
-            cli_result_int(&run, key, r->cg_steps);
+            cli_result_int(run, key, r->cg_steps);
         }
         if (r->cg_capped) {
             n_capped++;
             snprintf(key, sizeof key, "cg_capped_%s", name);
-            cli_result_int(&run, key, 1);
+            cli_result_int(run, key, 1);
             snprintf(key, sizeof key, "cg_residual_%s", name);
-            cli_result_num(&run, key, r->cg_residual);
-            cli_warn(&run,
+            cli_result_num(run, key, r->cg_residual);
+            cli_warn(run,
                      "the Wiener deconvolution of %s%s stopped at the step cap (%d conjugate-"
                      "gradient steps) with relative residual %.3g above the tolerance 1e-8: "
                      "not converged (kept by --keep-doubtful; its validity is 0)",
                      k == 0 ? "the PL" : name, k == 0 ? "" : " x PL", r->cg_steps, r->cg_residual);
         }
     }
-    if (opt.balance_auto)
-        cli_result_str(&run, "noise_sigma_from", opt.noise_sigma > 0 ? "--noise" : "estimated");
-    cli_result_int(&run, "n_cg_capped", n_capped);
-    if (opt.method != SVP_METHOD_W) {
-        cli_result_int(&run, "rl_iterations", summary.rl_iterations);
-        cli_result_str(&run, "rl_stop", stop_names[summary.rl_stop]);
-        if (opt.auto_iterations) cli_result_num(&run, "rl_chi2", summary.rl_chi2);
+    if (a->opt.balance_auto)
+        cli_result_str(run, "noise_sigma_from", a->opt.noise_sigma > 0 ? "--noise" : "estimated");
+    cli_result_int(run, "n_cg_capped", n_capped);
+}
+
+/* The transform's summary: RL's stop, the shifts, the PL gain, spread and doubts. */
+static void correct_report(cli_run *run, const struct correct_args *a, struct correct_job *job)
+{
+    const svp_correct_options *opt = &a->opt;
+    const svp_correct_summary *summary = &job->summary;
+    const int n_fields = a->maps.n_fields;
+    correct_report_wiener(run, a, job);
+    if (opt->method != SVP_METHOD_W) {
+        cli_result_int(run, "rl_iterations", summary->rl_iterations);
+        cli_result_str(run, "rl_stop", cli_rl_stop_names[summary->rl_stop]);
+        if (opt->auto_iterations) cli_result_num(run, "rl_chi2", summary->rl_chi2);
     }
-    if (opt.method == SVP_METHOD_R || opt.method == SVP_METHOD_RL_SIGNED)
-        for (int k = 0; k < maps.n_fields && k < 16; k++) {
+    if (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED)
+        for (int k = 0; k < n_fields && k < 16; k++) {
             char key[64];
-            snprintf(key, sizeof key, maps.n_fields == 1 ? "shift" : "shift_%d", k);
-            cli_result_num(&run, key, summary.shift[k]);
+            snprintf(key, sizeof key, n_fields == 1 ? "shift" : "shift_%d", k);
+            cli_result_num(run, key, summary->shift[k]);
         }
-    if (summary.pl_gain > 0) {
-        cli_result_num(&run, "pl_gain", summary.pl_gain);
-        cli_result_str(&run, "pl_gain_from", opt.pl_gain > 0 ? "--gain" : "estimated");
-        if (!(opt.pl_gain > 0))
-            cli_result_num(&run, "pl_gain_offset_estimate", summary.pl_gain_offset);
+    if (summary->pl_gain > 0) {
+        cli_result_num(run, "pl_gain", summary->pl_gain);
+        cli_result_str(run, "pl_gain_from", opt->pl_gain > 0 ? "--gain" : "estimated");
+        if (!(opt->pl_gain > 0))
+            cli_result_num(run, "pl_gain_offset_estimate", summary->pl_gain_offset);
     }
-    cli_result_num(&run, "spread_ratio", summary.spread_ratio);
-    cli_result_int(&run, "n_implausible", (long long)summary.n_implausible);
-    {
-        char list[256] = "";
-        size_t at_l = 0;
-        for (int b = 0; b < 5; b++)
-            if (summary.doubts & (1u << b) && at_l < sizeof list)
-                at_l += (size_t)snprintf(list + at_l, sizeof list - at_l, "%s%s", at_l ? "," : "",
-                                         doubt_names[b]);
-        cli_result_str(&run, "doubts", list);
-        if (summary.doubts)
-            cli_warn(&run,
-                     "result in doubt (%s), kept by --keep-doubtful: the affected pixels have "
-                     "validity 0",
-                     list);
+    cli_result_num(run, "spread_ratio", summary->spread_ratio);
+    cli_result_int(run, "n_implausible", (long long)summary->n_implausible);
+    char list[256] = "";
+    size_t at_l = 0;
+    for (int b = 0; b < 5; b++)
+        if (summary->doubts & (1u << b) && at_l < sizeof list)
+            at_l += (size_t)snprintf(list + at_l, sizeof list - at_l, "%s%s", at_l ? "," : "",
+                                     doubt_names[b]);
+    cli_result_str(run, "doubts", list);
+    if (summary->doubts)
+        cli_warn(run,
+                 "result in doubt (%s), kept by --keep-doubtful: the affected pixels have "
+                 "validity 0",
+                 list);
+}
+
+/* The maps and summary.json, then the line on stdout. */
+static int correct_write(cli_run *run, const struct correct_args *a, struct correct_job *job)
+{
+    const svp_correct_options *opt = &a->opt;
+    const cli_maps *maps = &a->maps;
+    const int w = maps->pl->width, h = maps->pl->height;
+    const size_t n = (size_t)w * h;
+    int code;
+    if ((code = cli_maps_write(run, maps, job->pl_true, job->field_true, job->validity)))
+        return code;
+    const int has_wiener = opt->method == SVP_METHOD_RW || opt->method == SVP_METHOD_W;
+    char iters[96] = "", op[256];
+    cli_variant_sentence(job->blur, op, sizeof op);
+    if (opt->method != SVP_METHOD_W)
+        snprintf(iters, sizeof iters, ", %d RL iterations", opt->deconv.iterations);
+    if (has_wiener && !opt->balance_auto)
+        snprintf(job->bal, sizeof job->bal, ", balance %g", opt->deconv.balance);
+    if (opt->auto_iterations)
+        snprintf(iters, sizeof iters, ", %d RL iterations (auto: %s)", job->summary.rl_iterations,
+                 cli_rl_stop_names[job->summary.rl_stop]);
+    printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
+           "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "
+           "%zu pixels (%.2f %%) are flagged (validity < 1), %zu of them with no "
+           "information (validity 0). Time %.2f s (deconvolutions %.2f s).%s "
+           "Outputs in %s.\n",
+           maps->n_fields, maps->n_fields > 1 ? "s" : "", w, h, method_long_name(opt->method),
+           iters, job->bal, job->n_missing, job->n_missing == 1 ? "" : "s", job->n_flagged,
+           100.0 * (double)job->n_flagged / (double)n, job->n_invalid, cli_now() - run->t_start,
+           cli_stage_seconds(run, "transform"), op, run->output);
+    return 0;
+}
+
+static int run_correct(cli_run *run, struct correct_args *a)
+{
+    struct correct_job job;
+    memset(&job, 0, sizeof job);
+    int code = correct_read(run, a, &job);
+    if (!code) code = correct_compute(run, a, &job);
+    if (!code) {
+        correct_report(run, a, &job);
+        code = correct_write(run, a, &job);
     }
-
-    if ((code = cli_maps_write(&run, &maps, pl_true, field_true, validity))) goto cleanup;
-
-    {
-        char iters[96] = "", op[256];
-        cli_variant_sentence(blur, op, sizeof op);
-        if (opt.method != SVP_METHOD_W)
-            snprintf(iters, sizeof iters, ", %d RL iterations", opt.deconv.iterations);
-        if (has_wiener && !opt.balance_auto)
-            snprintf(bal, sizeof bal, ", balance %g", opt.deconv.balance);
-        if (opt.auto_iterations)
-            snprintf(iters, sizeof iters, ", %d RL iterations (auto: %s)", summary.rl_iterations,
-                     stop_names[summary.rl_stop]);
-        printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
-               "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "
-               "%zu pixels (%.2f %%) are flagged (validity < 1), %zu of them with no "
-               "information (validity 0). Time %.2f s (deconvolutions %.2f s).%s "
-               "Outputs in %s.\n",
-               maps.n_fields, maps.n_fields > 1 ? "s" : "", w, h, method_long_name(opt.method),
-               iters, bal, n_missing, n_missing == 1 ? "" : "s", n_flagged,
-               100.0 * (double)n_flagged / (double)n, n_invalid, cli_now() - run.t_start,
-               cli_stage_seconds(&run, "transform"), op, run.output);
-    }
-
-cleanup:
-    svp_blur_free(blur);
-    svp_image_free(pl_true);
-    svp_image_free(validity);
+    svp_blur_free(job.blur);
+    svp_image_free(job.pl_true);
+    svp_image_free(job.validity);
     for (int i = 0; i < CLI_MAX_FIELDS; i++) {
-        svp_image_free(field_true[i]);
-        svp_image_free(field_sigma[i]);
+        svp_image_free(job.field_true[i]);
+        svp_image_free(job.field_sigma[i]);
     }
-    cli_maps_release(&maps);
-    cli_psf_release(&psf);
-    return cli_run_finish(&run, code);
+    cli_psf_release(&job.psf);
+    return code;
+}
+
+int cmd_correct(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "correct", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    struct correct_args args;
+    int code = parse_correct_args(&run, &args);
+    if (code == 0) code = run_correct(&run, &args);
+    cli_maps_release(&args.maps);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

@@ -140,10 +140,61 @@ static int read_frequencies(cli_run *run, const char *arg, double unit, int n_fr
     return code;
 }
 
-int cmd_fit_odmr(int argc, char **argv)
+struct fit_odmr_args {
+    const char *stack_path;                                    /* STACK */
+    const char *freq_arg;                                      /* --frequencies */
+    int freq_unit, lines, line, line_given, unit, failed_mode; /* indices in the name tables */
+    svp_odmr od;              /* --zero-field, --gamma, --linewidth */
+    svp_odmr_fit_options opt; /* --baseline-frames, --max-iterations; lines and line */
+};
+
+enum { N_MAPS = 15 };
+
+/* What a run holds (released by run_fit_odmr). */
+struct fit_odmr_job {
+    svp_stack *stack;
+    int nf, w, h;
+    double *freq;       /* increasing, Hz */
+    svp_image **frames; /* in the order of freq */
+    svp_image *img[N_MAPS];
+    const char *paths[N_MAPS], *summary_path;
+    size_t n_failed;
+    double fit_seconds;
+};
+
+static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
 {
-    cli_run run;
-    cli_run_init(&run, "fit-odmr", argc, argv, CLI_COMMON_OUTPUT | CLI_COMMON_FORMAT);
+    svp_odmr *od = &a->od;
+    switch (c) {
+    case OPT_FREQUENCIES: a->freq_arg = optarg; return 0;
+    case OPT_FREQ_UNIT:
+        return cli_parse_choice(run, "--frequency-unit", optarg, freq_unit_names, &a->freq_unit);
+    case OPT_LINES: return cli_parse_choice(run, "--lines", optarg, lines_names, &a->lines);
+    case OPT_LINE:
+        a->line_given = 1;
+        return cli_parse_choice(run, "--line", optarg, line_names, &a->line);
+    case OPT_ZERO_FIELD:
+        return cli_parse_double_in(run, "--zero-field", optarg, 0, 0, INFINITY, 0,
+                                   &od->zero_field_hz);
+    case OPT_GAMMA:
+        return cli_parse_double_in(run, "--gamma", optarg, 0, 0, INFINITY, 0, &od->gamma_hz_per_t);
+    case OPT_LINEWIDTH:
+        return cli_parse_double_in(run, "--linewidth", optarg, 0, 0, INFINITY, 0,
+                                   &od->linewidth_hz);
+    case OPT_BASELINE_FRAMES:
+        return cli_parse_int(run, "--baseline-frames", optarg, 1, 1000000, &a->opt.baseline_frames);
+    case OPT_MAX_ITERATIONS:
+        return cli_parse_int(run, "--max-iterations", optarg, 1, 1000000,
+                             &a->opt.lm.max_iterations);
+    case OPT_UNIT: return cli_parse_choice(run, "--unit", optarg, unit_names, &a->unit);
+    case OPT_FAILED:
+        return cli_parse_choice(run, "--failed", optarg, failed_names, &a->failed_mode);
+    default: return cli_error(run, "internal: option %d", c);
+    }
+}
+
+static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
+{
     static const struct option own[] = {
         {"frequencies", required_argument, NULL, OPT_FREQUENCIES},
         {"frequency-unit", required_argument, NULL, OPT_FREQ_UNIT},
@@ -158,112 +209,44 @@ int cmd_fit_odmr(int argc, char **argv)
         {"failed", required_argument, NULL, OPT_FAILED},
         {NULL, 0, NULL, 0},
     };
-    svp_odmr od;
-    svp_odmr_defaults(&od);
-    svp_odmr_fit_options opt;
-    svp_odmr_fit_defaults(&opt);
-    const char *freq_arg = NULL;
-    int freq_unit = 0, lines = 0, line = 0, line_given = 0, unit = 0, failed_mode = 0;
-    svp_stack *stack = NULL;
-    double *freq = NULL;
-    svp_image **frames = NULL;
-    enum { N_MAPS = 15 };
-    svp_image *img[N_MAPS] = {NULL};
-    int code = 0;
-
+    memset(a, 0, sizeof *a);
+    svp_odmr_defaults(&a->od);
+    svp_odmr_fit_defaults(&a->opt);
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        int bad = 0;
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_FREQUENCIES: freq_arg = optarg; break;
-        case OPT_FREQ_UNIT:
-            bad = cli_parse_choice(&run, "--frequency-unit", optarg, freq_unit_names, &freq_unit);
-            break;
-        case OPT_LINES: bad = cli_parse_choice(&run, "--lines", optarg, lines_names, &lines); break;
-        case OPT_LINE:
-            line_given = 1;
-            bad = cli_parse_choice(&run, "--line", optarg, line_names, &line);
-            break;
-        case OPT_ZERO_FIELD:
-            bad = cli_parse_double_in(&run, "--zero-field", optarg, 0, 0, INFINITY, 0,
-                                      &od.zero_field_hz);
-            break;
-        case OPT_GAMMA:
-            bad = cli_parse_double_in(&run, "--gamma", optarg, 0, 0, INFINITY, 0,
-                                      &od.gamma_hz_per_t);
-            break;
-        case OPT_LINEWIDTH:
-            bad = cli_parse_double_in(&run, "--linewidth", optarg, 0, 0, INFINITY, 0,
-                                      &od.linewidth_hz);
-            break;
-        case OPT_BASELINE_FRAMES:
-            bad = cli_parse_int(&run, "--baseline-frames", optarg, 1, 1000000,
-                                &opt.baseline_frames);
-            break;
-        case OPT_MAX_ITERATIONS:
-            bad = cli_parse_int(&run, "--max-iterations", optarg, 1, 1000000,
-                                &opt.lm.max_iterations);
-            break;
-        case OPT_UNIT: bad = cli_parse_choice(&run, "--unit", optarg, unit_names, &unit); break;
-        case OPT_FAILED:
-            bad = cli_parse_choice(&run, "--failed", optarg, failed_names, &failed_mode);
-            break;
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        if (c == CLI_OPTION_HELP) {
+            print_help(run, stdout);
+            return CLI_OPTION_HELP;
         }
-        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+        if (c == CLI_OPTION_ERROR || fit_odmr_option(run, a, c)) return CLI_EXIT_USAGE;
     }
-    if (argc - optind < 1)
-        return cli_run_finish(&run, cli_error(&run, "STACK is required (see --help)"));
-    if (argc - optind > 1)
-        return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s' (one STACK)",
-                                              argv[optind + 1]));
-    if (!freq_arg)
-        return cli_run_finish(&run, cli_error(&run, "--frequencies is required (a file or "
-                                              "START:STOP:N)"));
-    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
-    if (line_given && lines != 2)
-        return cli_run_finish(&run, cli_error(&run, "--line %s needs --lines one",
-                                              line_names[line]));
-    const char *stack_path = argv[optind];
-    opt.lines = lines == 1 ? SVP_ODMR_LINES_TWO : lines == 2 ? SVP_ODMR_LINES_ONE
-                                                             : SVP_ODMR_LINES_PAIR;
-    opt.line_sign = line == 1 ? -1 : 1;
+    a->stack_path = cli_one_argument(run, "STACK is required (see --help)", " (one STACK)");
+    if (!a->stack_path) return CLI_EXIT_USAGE;
+    if (!a->freq_arg) return cli_error(run, "--frequencies is required (a file or START:STOP:N)");
+    if (!run->output) return cli_error(run, "-o DIR is required");
+    if (a->line_given && a->lines != 2)
+        return cli_error(run, "--line %s needs --lines one", line_names[a->line]);
+    a->opt.lines = a->lines == 1   ? SVP_ODMR_LINES_TWO
+                   : a->lines == 2 ? SVP_ODMR_LINES_ONE
+                                   : SVP_ODMR_LINES_PAIR;
+    a->opt.line_sign = a->line == 1 ? -1 : 1;
+    return 0;
+}
 
-    cli_stage_begin(&run, "read");
-    svp_status st = svp_stack_read(stack_path, &stack);
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, stack_path);
-        goto cleanup;
-    }
-    cli_record_input(&run, "stack", stack_path, stack->width, stack->height);
-    const int nf = stack->n_frames, w = stack->width, h = stack->height;
-    const int np = opt.lines == SVP_ODMR_LINES_TWO ? 5 : 4;
-    if (nf < 5 || nf <= np) {
-        code = cli_error(&run, "%s: %d frame%s: a Lorentzian fit (--lines %s) needs at least %d "
-                         "(one per frequency)",
-                         stack_path, nf, nf == 1 ? "" : "s", lines_names[lines],
-                         np + 1 > 5 ? np + 1 : 5);
-        goto cleanup;
-    }
-    if (2 * opt.baseline_frames > nf) {
-        code = cli_error(&run, "--baseline-frames %d: at most %d for a stack of %d frames",
-                         opt.baseline_frames, nf / 2, nf);
-        goto cleanup;
-    }
-    freq = malloc((size_t)nf * sizeof(double));
-    frames = malloc((size_t)nf * sizeof *frames);
-    if (!freq || !frames) {
-        code = cli_error(&run, "out of memory");
-        goto cleanup;
-    }
-    if ((code = read_frequencies(&run, freq_arg, freq_unit_hz[freq_unit], nf, stack_path, freq)))
-        goto cleanup;
-    /* a decreasing sweep: frames and frequencies in increasing order */
+/* The frequencies of the frames, in increasing order (a decreasing sweep reverses the frames
+ * too); anything else is refused. */
+static int fit_odmr_frequencies(cli_run *run, const struct fit_odmr_args *a,
+                                struct fit_odmr_job *job)
+{
+    const int nf = job->nf;
+    double *freq = job->freq;
+    int code;
+    if ((code = read_frequencies(run, a->freq_arg, freq_unit_hz[a->freq_unit], nf, a->stack_path,
+                                 freq)))
+        return code;
     int decreasing = freq[nf - 1] < freq[0];
     for (int f = 0; f < nf; f++) {
-        frames[f] = stack->frame[decreasing ? nf - 1 - f : f];
+        job->frames[f] = job->stack->frame[decreasing ? nf - 1 - f : f];
         if (decreasing && f < nf / 2) {
             double t = freq[f];
             freq[f] = freq[nf - 1 - f];
@@ -271,75 +254,126 @@ int cmd_fit_odmr(int argc, char **argv)
         }
     }
     for (int f = 1; f < nf; f++)
-        if (!(freq[f] > freq[f - 1])) {
-            code = cli_error(&run, "--frequencies %s: not monotonic: frame %d at %.9g Hz after "
+        if (!(freq[f] > freq[f - 1]))
+            return cli_error(run,
+                             "--frequencies %s: not monotonic: frame %d at %.9g Hz after "
                              "%.9g Hz",
-                             freq_arg, decreasing ? nf - f : f + 1, freq[f], freq[f - 1]);
-            goto cleanup;
-        }
+                             a->freq_arg, decreasing ? nf - f : f + 1, freq[f], freq[f - 1]);
+    return 0;
+}
 
-    /* outputs */
+/* The stack (enough frames for the fit and the baseline) and its frequencies. */
+static int fit_odmr_read(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
+{
+    const char *stack_path = a->stack_path;
+    cli_stage_begin(run, "read");
+    svp_status st = svp_stack_read(stack_path, &job->stack);
+    if (st != SVP_OK) return cli_fail(run, st, stack_path);
+    cli_record_input(run, "stack", stack_path, job->stack->width, job->stack->height);
+    const int nf = job->nf = job->stack->n_frames;
+    job->w = job->stack->width;
+    job->h = job->stack->height;
+    const int np = a->opt.lines == SVP_ODMR_LINES_TWO ? 5 : 4;
+    if (nf < 5 || nf <= np)
+        return cli_error(run,
+                         "%s: %d frame%s: a Lorentzian fit (--lines %s) needs at least %d "
+                         "(one per frequency)",
+                         stack_path, nf, nf == 1 ? "" : "s", lines_names[a->lines],
+                         np + 1 > 5 ? np + 1 : 5);
+    if (2 * a->opt.baseline_frames > nf)
+        return cli_error(run, "--baseline-frames %d: at most %d for a stack of %d frames",
+                         a->opt.baseline_frames, nf / 2, nf);
+    job->freq = malloc((size_t)nf * sizeof(double));
+    job->frames = malloc((size_t)nf * sizeof *job->frames);
+    if (!job->freq || !job->frames) return cli_error(run, "out of memory");
+    return fit_odmr_frequencies(run, a, job);
+}
+
+/* Every output planned and checked, the maps allocated, the settings recorded. */
+static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
+{
     static const char *const names[N_MAPS] = {
-        "field",    "field_sigma",    "field_lower", "field_lower_sigma", "field_upper",
-        "field_upper_sigma", "pl",    "pl_sigma",    "contrast",          "contrast_sigma",
-        "linewidth", "linewidth_sigma", "quality",   "converged",         NULL};
-    const char *paths[N_MAPS] = {NULL};
+        "field",       "field_sigma",       "field_lower", "field_lower_sigma",
+        "field_upper", "field_upper_sigma", "pl",          "pl_sigma",
+        "contrast",    "contrast_sigma",    "linewidth",   "linewidth_sigma",
+        "quality",     "converged",         NULL};
+    const svp_odmr *od = &a->od;
+    const svp_odmr_fit_options *opt = &a->opt;
+    int code;
     for (int k = 0; k < 13; k++) {
-        if (opt.lines != SVP_ODMR_LINES_TWO && k >= 2 && k < 6) continue;
-        paths[k] = cli_output_in_dir(&run, names[k], names[k], 1);
+        if (opt->lines != SVP_ODMR_LINES_TWO && k >= 2 && k < 6) continue;
+        job->paths[k] = cli_output_in_dir(run, names[k], names[k], 1);
     }
-    const char *summary_path = cli_output_in_dir(&run, "summary", "summary.json", 0);
-    if ((code = cli_outputs_check(&run))) goto cleanup;
+    job->summary_path = cli_output_in_dir(run, "summary", "summary.json", 0);
+    if ((code = cli_outputs_check(run))) return code;
+    svp_status st = SVP_OK;
     for (int k = 0; k < 14 && st == SVP_OK; k++)
-        if (paths[k] || k == 13) st = svp_image_new(w, h, &img[k]);
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
+        if (job->paths[k] || k == 13) st = svp_image_new(job->w, job->h, &job->img[k]);
+    if (st != SVP_OK) return cli_fail(run, st, NULL);
 
-    cli_setting_int(&run, "n_frames", nf);
-    cli_setting_num(&run, "frequency_first_hz", freq[0]);
-    cli_setting_num(&run, "frequency_last_hz", freq[nf - 1]);
-    cli_setting_str(&run, "lines", lines_names[lines]);
-    if (opt.lines == SVP_ODMR_LINES_ONE) cli_setting_str(&run, "line", line_names[line]);
-    cli_setting_num(&run, "zero_field_hz", od.zero_field_hz);
-    cli_setting_num(&run, "gamma_hz_per_t", od.gamma_hz_per_t);
-    cli_setting_num(&run, "linewidth_start_hz", od.linewidth_hz);
-    cli_setting_int(&run, "baseline_frames", opt.baseline_frames);
-    cli_setting_int(&run, "max_iterations", opt.lm.max_iterations);
-    cli_setting_str(&run, "unit", unit_names[unit]);
-    cli_setting_str(&run, "failed", failed_names[failed_mode]);
+    cli_setting_int(run, "n_frames", job->nf);
+    cli_setting_num(run, "frequency_first_hz", job->freq[0]);
+    cli_setting_num(run, "frequency_last_hz", job->freq[job->nf - 1]);
+    cli_setting_str(run, "lines", lines_names[a->lines]);
+    if (opt->lines == SVP_ODMR_LINES_ONE) cli_setting_str(run, "line", line_names[a->line]);
+    cli_setting_num(run, "zero_field_hz", od->zero_field_hz);
+    cli_setting_num(run, "gamma_hz_per_t", od->gamma_hz_per_t);
+    cli_setting_num(run, "linewidth_start_hz", od->linewidth_hz);
+    cli_setting_int(run, "baseline_frames", opt->baseline_frames);
+    cli_setting_int(run, "max_iterations", opt->lm.max_iterations);
+    cli_setting_str(run, "unit", unit_names[a->unit]);
+    cli_setting_str(run, "failed", failed_names[a->failed_mode]);
+    return 0;
+}
 
-    cli_stage_begin(&run, "fit");
-    svp_cube cube = {.width = w, .height = h, .n_freq = nf, .freq = freq, .frame = frames};
-    svp_odmr_maps maps = {.field = img[0], .field_sigma = img[1], .field_lower = img[2],
-                          .field_lower_sigma = img[3], .field_upper = img[4],
-                          .field_upper_sigma = img[5], .baseline = img[6],
-                          .baseline_sigma = img[7], .contrast = img[8],
-                          .contrast_sigma = img[9], .linewidth = img[10],
-                          .linewidth_sigma = img[11], .quality = img[12], .converged = img[13]};
+/* The per-pixel fits. */
+static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
+{
+    svp_image **img = job->img;
+    cli_stage_begin(run, "fit");
+    svp_cube cube = {.width = job->w,
+                     .height = job->h,
+                     .n_freq = job->nf,
+                     .freq = job->freq,
+                     .frame = job->frames};
+    svp_odmr_maps maps = {.field = img[0],
+                          .field_sigma = img[1],
+                          .field_lower = img[2],
+                          .field_lower_sigma = img[3],
+                          .field_upper = img[4],
+                          .field_upper_sigma = img[5],
+                          .baseline = img[6],
+                          .baseline_sigma = img[7],
+                          .contrast = img[8],
+                          .contrast_sigma = img[9],
+                          .linewidth = img[10],
+                          .linewidth_sigma = img[11],
+                          .quality = img[12],
+                          .converged = img[13]};
+    svp_odmr_fit_options opt = a->opt;
     opt.progress = cli_progress;
-    opt.progress_user = &run;
-    cli_progress_start(&run, "fitting");
-    size_t n_failed = 0;
+    opt.progress_user = run;
+    cli_progress_start(run, "fitting");
     const double t_fit = cli_now();
-    st = svp_odmr_fit_maps(&od, &cube, &opt, &maps, &n_failed);
-    const double fit_seconds = cli_now() - t_fit;
-    cli_progress_done(&run);
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, stack_path);
-        goto cleanup;
-    }
-    const size_t n = (size_t)w * h;
-    /* units and failed pixels; statistics over the converged pixels */
+    svp_status st = svp_odmr_fit_maps(&a->od, &cube, &opt, &maps, &job->n_failed);
+    job->fit_seconds = cli_now() - t_fit;
+    cli_progress_done(run);
+    return st == SVP_OK ? 0 : cli_fail(run, st, a->stack_path);
+}
+
+/* Units and failed pixels; statistics over the converged pixels. */
+static void fit_odmr_report(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
+{
+    svp_image **img = job->img;
+    const size_t n = (size_t)job->w * job->h, n_failed = job->n_failed;
     double sum_q = 0, sum_sigma = 0;
     size_t n_ok = 0;
     for (size_t p = 0; p < n; p++) {
         const int ok = img[13]->data[p] == 1;
         for (int k = 0; k < 6; k++) {
             if (!img[k]) continue;
-            img[k]->data[p] *= unit_scale[unit];
-            if (!ok && failed_mode == 0) img[k]->data[p] = NAN;
+            img[k]->data[p] *= unit_scale[a->unit];
+            if (!ok && a->failed_mode == 0) img[k]->data[p] = NAN;
         }
         if (ok) {
             n_ok++;
@@ -347,35 +381,65 @@ int cmd_fit_odmr(int argc, char **argv)
             sum_sigma += img[1]->data[p];
         }
     }
-    cli_result_int(&run, "n_pixels", (long long)n);
-    cli_result_int(&run, "n_failed", (long long)n_failed);
-    cli_result_num(&run, "failed_fraction", (double)n_failed / (double)n);
+    cli_result_int(run, "n_pixels", (long long)n);
+    cli_result_int(run, "n_failed", (long long)n_failed);
+    cli_result_num(run, "failed_fraction", (double)n_failed / (double)n);
     if (n_ok) {
-        cli_result_num(&run, "mean_quality", sum_q / (double)n_ok);
+        cli_result_num(run, "mean_quality", sum_q / (double)n_ok);
         char key[64];
-        snprintf(key, sizeof key, "mean_field_sigma_%s", unit_names[unit]);
-        cli_result_num(&run, key, sum_sigma / (double)n_ok);
+        snprintf(key, sizeof key, "mean_field_sigma_%s", unit_names[a->unit]);
+        cli_result_num(run, key, sum_sigma / (double)n_ok);
     }
-    cli_result_num(&run, "fits_per_second", fit_seconds > 0 ? (double)n / fit_seconds : 0);
+    cli_result_num(run, "fits_per_second", job->fit_seconds > 0 ? (double)n / job->fit_seconds : 0);
     if (n_failed)
-        cli_note(&run, "%zu of %zu pixel fits did not converge (%s in the field maps)", n_failed,
-                 n, failed_mode == 0 ? "NaN" : "kept");
+        cli_note(run, "%zu of %zu pixel fits did not converge (%s in the field maps)", n_failed, n,
+                 a->failed_mode == 0 ? "NaN" : "kept");
+}
 
-    cli_stage_begin(&run, "write");
+/* The maps, summary.json and the line on stdout. */
+static int fit_odmr_write(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
+{
+    const size_t n = (size_t)job->w * job->h;
+    const int nf = job->nf;
+    int code = 0;
+    cli_stage_begin(run, "write");
     for (int k = 0; k < 13 && !code; k++)
-        if (paths[k]) code = cli_write_image(&run, paths[k], img[k]);
-    if (!code) code = cli_summary_write(&run, summary_path);
-    if (code) goto cleanup;
-    cli_stage_end(&run);
+        if (job->paths[k]) code = cli_write_image(run, job->paths[k], job->img[k]);
+    if (!code) code = cli_summary_write(run, job->summary_path);
+    if (code) return code;
+    cli_stage_end(run);
     printf("svpsf fit-odmr: %d x %d, %d frequencies (%.6g to %.6g GHz), lines %s: %zu of %zu "
            "fits converged (%.3g fits/s); maps written to %s in %.2f s\n",
-           w, h, nf, freq[0] * 1e-9, freq[nf - 1] * 1e-9, lines_names[lines], n - n_failed, n,
-           fit_seconds > 0 ? (double)n / fit_seconds : 0, run.output, cli_now() - run.t_start);
+           job->w, job->h, nf, job->freq[0] * 1e-9, job->freq[nf - 1] * 1e-9, lines_names[a->lines],
+           n - job->n_failed, n, job->fit_seconds > 0 ? (double)n / job->fit_seconds : 0,
+           run->output, cli_now() - run->t_start);
+    return 0;
+}
 
-cleanup:
-    for (int k = 0; k < N_MAPS; k++) svp_image_free(img[k]);
-    free(frames);
-    free(freq);
-    svp_stack_free(stack);
-    return cli_run_finish(&run, code);
+static int run_fit_odmr(cli_run *run, const struct fit_odmr_args *a)
+{
+    struct fit_odmr_job job;
+    memset(&job, 0, sizeof job);
+    int code = fit_odmr_read(run, a, &job);
+    if (!code) code = fit_odmr_plan(run, a, &job);
+    if (!code) code = fit_odmr_fit(run, a, &job);
+    if (!code) {
+        fit_odmr_report(run, a, &job);
+        code = fit_odmr_write(run, a, &job);
+    }
+    for (int k = 0; k < N_MAPS; k++) svp_image_free(job.img[k]);
+    free(job.frames);
+    free(job.freq);
+    svp_stack_free(job.stack);
+    return code;
+}
+
+int cmd_fit_odmr(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "fit-odmr", argc, argv, CLI_COMMON_OUTPUT | CLI_COMMON_FORMAT);
+    struct fit_odmr_args args;
+    int code = parse_fit_odmr_args(&run, &args);
+    if (code == 0) code = run_fit_odmr(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

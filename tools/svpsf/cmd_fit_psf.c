@@ -3,7 +3,8 @@
  * forward/correct/deconvolve accepts, figures and a summary. */
 #include "cli.h"
 
-#include "scene/scene_internal.h"
+#include "core/internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -12,11 +13,8 @@
 enum {
     OPT_EXCITATION = CLI_OPTION_FIRST,
     OPT_PIXEL_UM,
-    OPT_MODEL,
     OPT_ITERATIONS,
-    OPT_CIRCULAR,
     OPT_FIX_BETA,
-    OPT_GAIN,
     OPT_SIGMA_BG,
     OPT_SATURATION,
     OPT_REFUSE_BORDER,
@@ -43,9 +41,10 @@ static void print_help(const cli_run *run, FILE *out)
           "  SPOT                  the spot image (photon counts unless --gain says otherwise)\n"
           "  --pixel-um P          pixel size in um (required)\n"
           "  -o, --output PSF.yaml the PSF file to write (required)\n"
-          "  --excitation SPOT_G   the excitation spot of the pair (same size as SPOT)\n"
-          "  --model M             moffat (default), gaussian or lorentzian\n"
-          "  --iterations N        Richardson-Lucy iterations of the pair method (default 75)\n"
+          "  --excitation SPOT_G   the excitation spot of the pair (same size as SPOT)\n",
+          out);
+    cli_print_spot_help(out);
+    fputs("  --iterations N        Richardson-Lucy iterations of the pair method (default 75)\n"
           "  --use deconvolved|direct  which fit of a pair goes to PSF.yaml (default\n"
           "                        deconvolved)\n"
           "  --circular            one FWHM (no ellipticity, no angle)\n"
@@ -222,18 +221,18 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
     }
     snprintf(path, sizeof path, "%s/%sspot.png", dir, prefix);
     snprintf(t, sizeof t, "%s: data", title);
-    if ((st = scene_map_figure(path, a, 1, lo, hi, 0, t, "log10 (counts above background)", um,
+    if ((st = svp_figure_map(path, a, 1, lo, hi, 0, t, "log10 (counts above background)", um,
                                run->force)) != SVP_OK)
         goto fail;
     snprintf(path, sizeof path, "%s/%smodel.png", dir, prefix);
     snprintf(t, sizeof t, "%s: fitted %s", title, cli_psf_model_names[r->model]);
-    if ((st = scene_map_figure(path, b, 1, lo, hi, 0, t, "log10 (counts above background)", um,
+    if ((st = svp_figure_map(path, b, 1, lo, hi, 0, t, "log10 (counts above background)", um,
                                run->force)) != SVP_OK)
         goto fail;
     snprintf(path, sizeof path, "%s/%sresidual.png", dir, prefix);
     snprintf(t, sizeof t, "%s: residual (data - model) / sigma%s", title,
              unit ? " (sigma from the scatter)" : "");
-    if ((st = scene_map_figure(path, z, 1, -5, 5, 1, t, "residual / sigma", um, run->force)) !=
+    if ((st = svp_figure_map(path, z, 1, -5, 5, 1, t, "residual / sigma", um, run->force)) !=
         SVP_OK)
         goto fail;
     /* azimuthal means in 0.5 px rings around the fitted centre */
@@ -280,7 +279,7 @@ static int write_figures(cli_run *run, const char *dir, const char *prefix, cons
         snprintf(path, sizeof path, "%s/%sprofile.png", dir, prefix);
         snprintf(t, sizeof t, "%s: radial profile", title);
         const int markers[2] = {1, 0}; /* data as points, the fit as a line */
-        if ((st = scene_line_plot(path, t, "radius from the fitted centre (um)",
+        if ((st = svp_figure_line_plot(path, t, "radius from the fitted centre (um)",
                                   "log10 (counts above background)", 2, xs, ys, ns, labels,
                                   markers, run->force)) != SVP_OK)
             goto fail;
@@ -310,18 +309,72 @@ static int fit_with_images(cli_run *run, const svp_image *img, const svp_spot_op
     return 0;
 }
 
-int cmd_fit_psf(int argc, char **argv)
+struct fit_psf_args {
+    const char *spot_path; /* SPOT */
+    const char *exc_path;  /* --excitation */
+    const char *figures;   /* --figures */
+    int no_figures;        /* --no-figures */
+    int use_direct;        /* --use direct */
+    double pixel_um;       /* --pixel-um */
+    cli_spot_args spot;    /* --model, --circular, --gain */
+    svp_pair_options po;   /* the pair method and its spot fit (the group applied) */
+};
+
+/* What a run holds (released by run_fit_psf). */
+struct fit_psf_job {
+    svp_image *spot, *exc, *dec, *m1, *r1, *m2, *r2, *m3, *r3;
+    char *text;
+    svp_spot_result single, dfit;
+    svp_pair_result pr;
+    const svp_spot_result *chosen; /* the fit written to PSF.yaml */
+    char source[512];
+    char summary_path[4096], fig_dir[4096];
+};
+
+static int fit_psf_option(cli_run *run, struct fit_psf_args *a, int c)
 {
-    cli_run run;
-    cli_run_init(&run, "fit-psf", argc, argv, CLI_COMMON_OUTPUT);
+    svp_spot_options *so = &a->po.spot;
+    switch (c) {
+    case OPT_EXCITATION: a->exc_path = optarg; return 0;
+    case OPT_PIXEL_UM:
+        return cli_parse_double_in(run, "--pixel-um", optarg, SVP_PIXEL_UM_MIN, 1, INFINITY, 0,
+                                   &a->pixel_um);
+    case OPT_ITERATIONS:
+        return cli_parse_int(run, "--iterations", optarg, 1, 100000, &a->po.iterations);
+    case OPT_FIX_BETA:
+        if (cli_parse_double_in(run, "--fix-beta", optarg, 0, 0, INFINITY, 0, &so->beta))
+            return CLI_EXIT_USAGE;
+        so->fix_beta = 1;
+        return 0;
+    case OPT_SIGMA_BG:
+        return cli_parse_double_in(run, "--sigma-bg", optarg, 0, 1, INFINITY, 0,
+                                   &so->noise.sigma_bg);
+    case OPT_SATURATION:
+        return cli_parse_double_in(run, "--saturation", optarg, 0, 0, INFINITY, 0, &so->saturation);
+    case OPT_REFUSE_BORDER: so->refuse_near_border = 1; return 0;
+    case OPT_MAX_ITER:
+        return cli_parse_int(run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations);
+    case OPT_FIGURES: a->figures = optarg; return 0;
+    case OPT_NO_FIGURES: a->no_figures = 1; return 0;
+    case OPT_USE: {
+        static const char *const uses[] = {"deconvolved", "direct", NULL};
+        return cli_parse_choice(run, "--use", optarg, uses, &a->use_direct);
+    }
+    default: {
+        int bad = cli_spot_option(run, &a->spot, c, optarg);
+        return bad < 0 ? cli_error(run, "internal: option %d", c) : bad;
+    }
+    }
+}
+
+static int parse_fit_psf_args(cli_run *run, struct fit_psf_args *a)
+{
     static const struct option own[] = {
         {"excitation", required_argument, NULL, OPT_EXCITATION},
         {"pixel-um", required_argument, NULL, OPT_PIXEL_UM},
-        {"model", required_argument, NULL, OPT_MODEL},
+        CLI_SPOT_LONGOPTS,
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
-        {"circular", no_argument, NULL, OPT_CIRCULAR},
         {"fix-beta", required_argument, NULL, OPT_FIX_BETA},
-        {"gain", required_argument, NULL, OPT_GAIN},
         {"sigma-bg", required_argument, NULL, OPT_SIGMA_BG},
         {"saturation", required_argument, NULL, OPT_SATURATION},
         {"refuse-border", no_argument, NULL, OPT_REFUSE_BORDER},
@@ -331,268 +384,260 @@ int cmd_fit_psf(int argc, char **argv)
         {"max-iterations", required_argument, NULL, OPT_MAX_ITER},
         {NULL, 0, NULL, 0},
     };
-    svp_pair_options po;
-    svp_pair_defaults(&po);
-    svp_spot_options *so = &po.spot;
-    const char *exc_path = NULL, *figures = NULL;
-    double pixel_um = 0;
-    int no_figures = 0, model = SVP_PSF_MOFFAT, use_direct = 0;
-    svp_image *spot = NULL, *exc = NULL, *dec = NULL, *m1 = NULL, *r1 = NULL, *m2 = NULL,
-              *r2 = NULL, *m3 = NULL, *r3 = NULL;
-    char *text = NULL;
-    int code = 0;
-    svp_status st;
-
+    memset(a, 0, sizeof *a);
+    svp_pair_defaults(&a->po);
+    cli_spot_init(&a->spot, &a->po.spot);
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        int bad = 0;
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_EXCITATION: exc_path = optarg; break;
-        case OPT_PIXEL_UM:
-            bad = cli_parse_double_in(&run, "--pixel-um", optarg, SVP_PIXEL_UM_MIN, 1, INFINITY,
-                                      0, &pixel_um);
-            break;
-        case OPT_MODEL:
-            bad = cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model);
-            break;
-        case OPT_ITERATIONS:
-            bad = cli_parse_int(&run, "--iterations", optarg, 1, 100000, &po.iterations);
-            break;
-        case OPT_CIRCULAR: so->elliptical = 0; break;
-        case OPT_FIX_BETA:
-            if (cli_parse_double_in(&run, "--fix-beta", optarg, 0, 0, INFINITY, 0, &so->beta))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            so->fix_beta = 1;
-            break;
-        case OPT_GAIN:
-            bad = cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so->noise.gain);
-            break;
-        case OPT_SIGMA_BG:
-            bad = cli_parse_double_in(&run, "--sigma-bg", optarg, 0, 1, INFINITY, 0,
-                                      &so->noise.sigma_bg);
-            break;
-        case OPT_SATURATION:
-            bad = cli_parse_double_in(&run, "--saturation", optarg, 0, 0, INFINITY, 0,
-                                      &so->saturation);
-            break;
-        case OPT_REFUSE_BORDER: so->refuse_near_border = 1; break;
-        case OPT_MAX_ITER:
-            bad =
-                cli_parse_int(&run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations);
-            break;
-        case OPT_FIGURES: figures = optarg; break;
-        case OPT_NO_FIGURES: no_figures = 1; break;
-        case OPT_USE: {
-            static const char *const uses[] = {"deconvolved", "direct", NULL};
-            bad = cli_parse_choice(&run, "--use", optarg, uses, &use_direct);
-            break;
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        if (c == CLI_OPTION_HELP) {
+            print_help(run, stdout);
+            return CLI_OPTION_HELP;
         }
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
-        }
-        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+        if (c == CLI_OPTION_ERROR || fit_psf_option(run, a, c)) return CLI_EXIT_USAGE;
     }
-    if (optind >= argc)
-        return cli_run_finish(&run,
-                              cli_error(&run, "the spot image SPOT is required (see --help)"));
-    if (optind + 1 < argc)
-        return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s'", argv[optind + 1]));
-    const char *spot_path = argv[optind];
-    if (!(pixel_um > 0)) return cli_run_finish(&run, cli_error(&run, "--pixel-um P is required"));
-    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o PSF.yaml is required"));
-    if (!cli_yaml_extension(run.output))
-        return cli_run_finish(&run, cli_error(&run, "-o %s: the PSF file must end in .yaml or .yml",
-                                              run.output));
-    if (figures && no_figures)
-        return cli_run_finish(&run, cli_error(&run, "--figures and --no-figures contradict"));
-    if (!exc_path && use_direct)
-        return cli_run_finish(&run, cli_error(&run, "--use needs --excitation (a pair)"));
-    so->model = (svp_psf_model)model;
-    if (model != SVP_PSF_MOFFAT && so->fix_beta)
-        return cli_run_finish(&run, cli_error(&run, "--fix-beta applies to --model moffat only"));
+    a->spot_path = cli_one_argument(run, "the spot image SPOT is required (see --help)", "");
+    if (!a->spot_path) return CLI_EXIT_USAGE;
+    if (!(a->pixel_um > 0)) return cli_error(run, "--pixel-um P is required");
+    if (!run->output) return cli_error(run, "-o PSF.yaml is required");
+    if (!cli_yaml_extension(run->output))
+        return cli_error(run, "-o %s: the PSF file must end in .yaml or .yml", run->output);
+    if (a->figures && a->no_figures) return cli_error(run, "--figures and --no-figures contradict");
+    if (!a->exc_path && a->use_direct) return cli_error(run, "--use needs --excitation (a pair)");
+    cli_spot_apply(&a->spot, &a->po.spot);
+    if (a->spot.model != SVP_PSF_MOFFAT && a->po.spot.fix_beta)
+        return cli_error(run, "--fix-beta applies to --model moffat only");
+    return 0;
+}
 
-    /* inputs, then every output planned and checked before any work */
-    cli_stage_begin(&run, "read");
-    if ((code = cli_read_image(&run, exc_path ? "emission" : "spot", spot_path, &spot)))
-        goto cleanup;
+/* The inputs, then every output planned and checked before any work. */
+static int fit_psf_read(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
+{
+    const svp_spot_options *so = &a->po.spot;
+    const char *exc_path = a->exc_path;
+    int code;
+    cli_stage_begin(run, "read");
+    if ((code = cli_read_image(run, exc_path ? "emission" : "spot", a->spot_path, &job->spot)))
+        return code;
     if (exc_path) {
-        if ((code = cli_read_image(&run, "excitation", exc_path, &exc))) goto cleanup;
-        if ((code = cli_check_same_size(&run, spot, "emission", spot_path, exc, "excitation",
-                                        exc_path)))
-            goto cleanup;
+        if ((code = cli_read_image(run, "excitation", exc_path, &job->exc))) return code;
+        if ((code = cli_check_same_size(run, job->spot, "emission", a->spot_path, job->exc,
+                                        "excitation", exc_path)))
+            return code;
     }
-    char summary_path[4096], fig_dir[4096], buf[8448];
-    cli_path_sibling(run.output, ".summary.json", summary_path, sizeof summary_path);
-    if (figures)
-        snprintf(fig_dir, sizeof fig_dir, "%s", figures);
+    cli_path_sibling(run->output, ".summary.json", job->summary_path, sizeof job->summary_path);
+    if (a->figures)
+        snprintf(job->fig_dir, sizeof job->fig_dir, "%s", a->figures);
     else
-        cli_path_sibling(run.output, ".figures", fig_dir, sizeof fig_dir);
-    cli_output_file(&run, "psf", run.output);
-    cli_output_file(&run, "summary", summary_path);
-    if (!no_figures) {
+        cli_path_sibling(run->output, ".figures", job->fig_dir, sizeof job->fig_dir);
+    cli_output_file(run, "psf", run->output);
+    cli_output_file(run, "summary", job->summary_path);
+    if (!a->no_figures) {
         static const char *const names[] = {"spot", "model", "residual", "profile"};
         static const char *const prefixes[] = {"", "excitation_", "direct_", "deconvolved_"};
+        char buf[8448];
         for (int p = exc_path ? 1 : 0; p < (exc_path ? 4 : 1); p++)
             for (int k = 0; k < 4; k++) {
-                snprintf(buf, sizeof buf, "%s/%s%s.png", fig_dir, prefixes[p], names[k]);
-                cli_output_file(&run, "figure", buf);
+                snprintf(buf, sizeof buf, "%s/%s%s.png", job->fig_dir, prefixes[p], names[k]);
+                cli_output_file(run, "figure", buf);
             }
     }
-    if ((code = cli_outputs_check(&run))) goto cleanup;
-    cli_setting_num(&run, "pixel_um", pixel_um);
-    cli_setting_str(&run, "model", cli_psf_model_names[model]);
-    cli_setting_int(&run, "elliptical", so->elliptical);
-    if (so->fix_beta) cli_setting_num(&run, "fixed_beta", so->beta);
-    cli_setting_num(&run, "gain", so->noise.gain);
-    cli_setting_num(&run, "sigma_bg", so->noise.sigma_bg);
-    if (exc_path) cli_setting_int(&run, "rl_iterations", po.iterations);
+    if ((code = cli_outputs_check(run))) return code;
+    cli_setting_num(run, "pixel_um", a->pixel_um);
+    cli_setting_str(run, "model", cli_psf_model_names[a->spot.model]);
+    cli_setting_int(run, "elliptical", so->elliptical);
+    if (so->fix_beta) cli_setting_num(run, "fixed_beta", so->beta);
+    cli_setting_num(run, "gain", so->noise.gain);
+    cli_setting_num(run, "sigma_bg", so->noise.sigma_bg);
+    if (exc_path) cli_setting_int(run, "rl_iterations", a->po.iterations);
+    return 0;
+}
 
-    const double um = pixel_um;
-    const svp_spot_result *chosen = NULL;
-    svp_spot_result single, dfit;
-    svp_pair_result pr;
-    memset(&pr, 0, sizeof pr);
-    char source[512];
-    cli_stage_begin(&run, "fit");
-    if (!exc_path) {
-        st = svp_image_new(spot->width, spot->height, &m1);
-        if (st == SVP_OK) st = svp_image_new(spot->width, spot->height, &r1);
-        if (st == SVP_OK) st = svp_spot_fit(spot, so, &single, m1, r1);
-        if (st == SVP_ERR_NUMERIC && (single.flags & SVP_SPOT_NOT_CONVERGED)) {
-            print_fit("last parameters (NOT CONVERGED)", &single, um,
-                      so->noise.gain == 0 && so->noise.sigma_bg == 0);
-            code = cli_fail(&run, st, spot_path);
-            goto cleanup;
-        }
-        if (st != SVP_OK) {
-            code = cli_fail(&run, st, spot_path);
-            goto cleanup;
-        }
-        record_fit(&run, "", &single, um);
-        print_fit(spot_path, &single, um, so->noise.gain == 0 && so->noise.sigma_bg == 0);
-        chosen = &single;
-        snprintf(source, sizeof source, "%s fit of %s", cli_psf_model_names[model], spot_path);
+/* One spot: its fit (the last parameters printed when it does not converge). */
+static int fit_psf_single(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
+{
+    const svp_spot_options *so = &a->po.spot;
+    const int unit_weights = so->noise.gain == 0 && so->noise.sigma_bg == 0;
+    const svp_image *spot = job->spot;
+    svp_status st = svp_image_new(spot->width, spot->height, &job->m1);
+    if (st == SVP_OK) st = svp_image_new(spot->width, spot->height, &job->r1);
+    if (st == SVP_OK) st = svp_spot_fit(spot, so, &job->single, job->m1, job->r1);
+    if (st == SVP_ERR_NUMERIC && (job->single.flags & SVP_SPOT_NOT_CONVERGED)) {
+        print_fit("last parameters (NOT CONVERGED)", &job->single, a->pixel_um, unit_weights);
+        return cli_fail(run, st, a->spot_path);
+    }
+    if (st != SVP_OK) return cli_fail(run, st, a->spot_path);
+    record_fit(run, "", &job->single, a->pixel_um);
+    print_fit(a->spot_path, &job->single, a->pixel_um, unit_weights);
+    job->chosen = &job->single;
+    snprintf(job->source, sizeof job->source, "%s fit of %s", cli_psf_model_names[a->spot.model],
+             a->spot_path);
+    return 0;
+}
+
+/* A pair: the offset by phase correlation (a cross-check of the fitted centres, which the
+ * pair method uses to centre the kernel), then the pair method's three fits. */
+static int fit_psf_pair(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
+{
+    const svp_spot_options *so = &a->po.spot;
+    const int unit_weights = so->noise.gain == 0 && so->noise.sigma_bg == 0;
+    const double um = a->pixel_um;
+    const char *spot_path = a->spot_path, *exc_path = a->exc_path;
+    svp_pair_result *pr = &job->pr;
+    svp_register_options ro;
+    svp_register_defaults(&ro);
+    ro.contrast = SVP_CONTRAST_SAME; /* two bright spots: never a negative */
+    svp_register_result rr;
+    svp_status rst = svp_register(job->exc, job->spot, &ro, &rr);
+    svp_status st = svp_image_new(job->spot->width, job->spot->height, &job->dec);
+    if (st == SVP_OK) st = svp_psf_from_pair(job->exc, job->spot, &a->po, pr, job->dec);
+    if (st != SVP_OK && !(pr->excitation.fwhm > 0 && pr->direct.fwhm > 0))
+        return cli_fail(run, st,
+                        st == SVP_ERR_NUMERIC || strstr(svp_last_error(), "emission") ? spot_path
+                                                                                      : exc_path);
+    record_fit(run, "excitation_", &pr->excitation, um);
+    record_fit(run, "direct_", &pr->direct, um);
+    print_fit("excitation spot I_G (direct fit)", &pr->excitation, um, unit_weights);
+    print_fit("emission spot I_PL (direct fit: upper bound on the PSF width)", &pr->direct, um,
+              unit_weights);
+    printf("offset emission - excitation: fitted centres (%.3f, %.3f) px", pr->offset_x,
+           pr->offset_y);
+    cli_result_num(run, "offset_x_px", pr->offset_x);
+    cli_result_num(run, "offset_y_px", pr->offset_y);
+    if (rst == SVP_OK) {
+        printf(", phase correlation (%.3f, %.3f) px (significance %.1f)\n", rr.shift_x, rr.shift_y,
+               rr.significance);
+        cli_result_num(run, "phase_offset_x_px", rr.shift_x);
+        cli_result_num(run, "phase_offset_y_px", rr.shift_y);
+        cli_result_num(run, "phase_significance", rr.significance);
     } else {
-        /* offset by phase correlation (a cross-check of the fitted centres, which the pair
-         * method uses to centre the kernel) */
-        svp_register_options ro;
-        svp_register_defaults(&ro);
-        ro.contrast = SVP_CONTRAST_SAME; /* two bright spots: never a negative */
-        svp_register_result rr;
-        svp_status rst = svp_register(exc, spot, &ro, &rr);
-        st = svp_image_new(spot->width, spot->height, &dec);
-        if (st == SVP_OK) st = svp_psf_from_pair(exc, spot, &po, &pr, dec);
-        if (st != SVP_OK && !(pr.excitation.fwhm > 0 && pr.direct.fwhm > 0)) {
-            code =
-                cli_fail(&run, st,
-                         st == SVP_ERR_NUMERIC || strstr(svp_last_error(), "emission") ? spot_path
-                                                                                       : exc_path);
-            goto cleanup;
-        }
-        record_fit(&run, "excitation_", &pr.excitation, um);
-        record_fit(&run, "direct_", &pr.direct, um);
-        print_fit("excitation spot I_G (direct fit)", &pr.excitation, um,
-                  so->noise.gain == 0 && so->noise.sigma_bg == 0);
-        print_fit("emission spot I_PL (direct fit: upper bound on the PSF width)", &pr.direct, um,
-                  so->noise.gain == 0 && so->noise.sigma_bg == 0);
-        printf("offset emission - excitation: fitted centres (%.3f, %.3f) px", pr.offset_x,
-               pr.offset_y);
-        cli_result_num(&run, "offset_x_px", pr.offset_x);
-        cli_result_num(&run, "offset_y_px", pr.offset_y);
-        if (rst == SVP_OK) {
-            printf(", phase correlation (%.3f, %.3f) px (significance %.1f)\n", rr.shift_x,
-                   rr.shift_y, rr.significance);
-            cli_result_num(&run, "phase_offset_x_px", rr.shift_x);
-            cli_result_num(&run, "phase_offset_y_px", rr.shift_y);
-            cli_result_num(&run, "phase_significance", rr.significance);
-        } else {
-            printf(", phase correlation failed: %s\n", svp_last_error());
-        }
-        if (!pr.deconvolved_ok) {
-            cli_note(&run, "%s: the deconvolution failed (%s)", spot_path, svp_last_error());
-            if (!use_direct) {
-                code = cli_error(&run,
-                                 "%s: no deconvolved PSF; use --use direct to write the "
-                                 "direct fit (upper bound) instead",
-                                 spot_path);
-                goto cleanup;
-            }
-        } else {
-            record_fit(&run, "deconvolved_", &pr.deconvolved, um);
-            char what[160];
-            snprintf(what, sizeof what,
-                     "PSF p = I_PL deconvolved by I_G (%d RL iterations: "
-                     "lower bound on the width)",
-                     po.iterations);
-            print_fit(what, &pr.deconvolved, um, 1);
-        }
-        chosen = use_direct ? &pr.direct : &pr.deconvolved;
-        snprintf(source, sizeof source, "%s fit of %s (%s), excitation %s, %d RL iterations",
-                 cli_psf_model_names[model], spot_path, use_direct ? "direct" : "deconvolved",
-                 exc_path, po.iterations);
+        printf(", phase correlation failed: %s\n", svp_last_error());
     }
-    cli_result_str(&run, "written_fit", !exc_path ? "spot" : use_direct ? "direct" : "deconvolved");
-    if (chosen->flags)
-        cli_note(&run, "%s: the written fit is flagged: %s", spot_path,
-                 (svp_spot_flags_describe(chosen->flags, buf, sizeof buf), buf));
+    if (!pr->deconvolved_ok) {
+        cli_note(run, "%s: the deconvolution failed (%s)", spot_path, svp_last_error());
+        if (!a->use_direct)
+            return cli_error(run,
+                             "%s: no deconvolved PSF; use --use direct to write the "
+                             "direct fit (upper bound) instead",
+                             spot_path);
+    } else {
+        record_fit(run, "deconvolved_", &pr->deconvolved, um);
+        char what[160];
+        snprintf(what, sizeof what,
+                 "PSF p = I_PL deconvolved by I_G (%d RL iterations: "
+                 "lower bound on the width)",
+                 a->po.iterations);
+        print_fit(what, &pr->deconvolved, um, 1);
+    }
+    job->chosen = a->use_direct ? &pr->direct : &pr->deconvolved;
+    snprintf(job->source, sizeof job->source, "%s fit of %s (%s), excitation %s, %d RL iterations",
+             cli_psf_model_names[a->spot.model], spot_path,
+             a->use_direct ? "direct" : "deconvolved", exc_path, a->po.iterations);
+    return 0;
+}
 
-    if (!no_figures) {
-        cli_stage_begin(&run, "figures");
-        if (!exc_path) {
-            if ((code = write_figures(&run, fig_dir, "", "spot", spot, m1, r1, &single, so, um)))
-                goto cleanup;
-        } else {
-            svp_spot_result tmp;
-            if ((code = fit_with_images(&run, exc, so, &tmp, &m1, &r1, exc_path))) goto cleanup;
-            if ((code = write_figures(&run, fig_dir, "excitation_", "excitation", exc, m1, r1, &tmp,
-                                      so, um)))
-                goto cleanup;
-            if ((code = fit_with_images(&run, spot, so, &tmp, &m2, &r2, spot_path))) goto cleanup;
-            if ((code = write_figures(&run, fig_dir, "direct_", "emission", spot, m2, r2, &tmp, so,
-                                      um)))
-                goto cleanup;
-            if (pr.deconvolved_ok) {
-                svp_spot_options ds = *so; /* as svp_psf_from_pair fits the deconvolved spot */
-                ds.noise.sigma_bg = ds.noise.gain = ds.noise.excess = 0.0;
-                ds.saturation = -1.0;
-                ds.hot_pixels = 0;
-                if ((code = fit_with_images(&run, dec, &ds, &dfit, &m3, &r3, spot_path)))
-                    goto cleanup;
-                if ((code = write_figures(&run, fig_dir, "deconvolved_", "deconvolved", dec, m3, r3,
-                                          &dfit, &ds, um)))
-                    goto cleanup;
-            }
-        }
-    }
+/* The figures of a pair: excitation, direct emission and (when it worked) deconvolved. */
+static int fit_psf_pair_figures(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
+{
+    const svp_spot_options *so = &a->po.spot;
+    const double um = a->pixel_um;
+    const char *fig_dir = job->fig_dir;
+    svp_spot_result tmp;
+    int code;
+    if ((code = fit_with_images(run, job->exc, so, &tmp, &job->m1, &job->r1, a->exc_path)))
+        return code;
+    if ((code = write_figures(run, fig_dir, "excitation_", "excitation", job->exc, job->m1, job->r1,
+                              &tmp, so, um)))
+        return code;
+    if ((code = fit_with_images(run, job->spot, so, &tmp, &job->m2, &job->r2, a->spot_path)))
+        return code;
+    if ((code = write_figures(run, fig_dir, "direct_", "emission", job->spot, job->m2, job->r2,
+                              &tmp, so, um)))
+        return code;
+    if (!job->pr.deconvolved_ok) return 0;
+    svp_spot_options ds = *so; /* as svp_psf_from_pair fits the deconvolved spot */
+    ds.noise.sigma_bg = ds.noise.gain = ds.noise.excess = 0.0;
+    ds.saturation = -1.0;
+    ds.hot_pixels = 0;
+    if ((code = fit_with_images(run, job->dec, &ds, &job->dfit, &job->m3, &job->r3, a->spot_path)))
+        return code;
+    return write_figures(run, fig_dir, "deconvolved_", "deconvolved", job->dec, job->m3, job->r3,
+                         &job->dfit, &ds, um);
+}
 
-    cli_stage_begin(&run, "write");
-    text = psf_file_text(chosen, um, source);
-    if (!text) {
-        cli_error(&run, "out of memory");
-        code = CLI_EXIT_RUNTIME;
-        goto cleanup;
+/* PSF.yaml, PSF.summary.json and the line on stdout. */
+static int fit_psf_write(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
+{
+    const svp_spot_result *chosen = job->chosen;
+    char buf[64];
+    int code;
+    cli_stage_begin(run, "write");
+    job->text = psf_file_text(chosen, a->pixel_um, job->source);
+    if (!job->text) {
+        cli_error(run, "out of memory");
+        return CLI_EXIT_RUNTIME;
     }
-    if ((code = cli_write_text(&run, run.output, text))) goto cleanup;
-    cli_stage_end(&run);
-    if ((code = cli_summary_write(&run, summary_path))) goto cleanup;
-    printf("svpsf fit-psf: wrote %s (FWHM %.4f um%s), %s%s%s\n", run.output, chosen->fwhm * um,
+    if ((code = cli_write_text(run, run->output, job->text))) return code;
+    cli_stage_end(run);
+    if ((code = cli_summary_write(run, job->summary_path))) return code;
+    printf("svpsf fit-psf: wrote %s (FWHM %.4f um%s), %s%s%s\n", run->output,
+           chosen->fwhm * a->pixel_um,
            chosen->model == SVP_PSF_MOFFAT
                ? (snprintf(buf, sizeof buf, ", beta %.3f", chosen->beta), buf)
                : "",
-           summary_path, no_figures ? "" : ", figures in ", no_figures ? "" : fig_dir);
+           job->summary_path, a->no_figures ? "" : ", figures in ",
+           a->no_figures ? "" : job->fig_dir);
+    return 0;
+}
 
-cleanup:
-    free(text);
-    svp_image_free(spot);
-    svp_image_free(exc);
-    svp_image_free(dec);
-    svp_image_free(m1);
-    svp_image_free(r1);
-    svp_image_free(m2);
-    svp_image_free(r2);
-    svp_image_free(m3);
-    svp_image_free(r3);
-    scene_figures_cleanup();
-    return cli_run_finish(&run, code);
+/* The fit (one spot or a pair), the flags of the written fit, the figures, the files. */
+static int fit_psf_compute(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
+{
+    int code;
+    cli_stage_begin(run, "fit");
+    if ((code = a->exc_path ? fit_psf_pair(run, a, job) : fit_psf_single(run, a, job))) return code;
+    cli_result_str(run, "written_fit",
+                   !a->exc_path    ? "spot"
+                   : a->use_direct ? "direct"
+                                   : "deconvolved");
+    if (job->chosen->flags) {
+        char buf[256];
+        svp_spot_flags_describe(job->chosen->flags, buf, sizeof buf);
+        cli_note(run, "%s: the written fit is flagged: %s", a->spot_path, buf);
+    }
+    if (a->no_figures) return 0;
+    cli_stage_begin(run, "figures");
+    if (a->exc_path) return fit_psf_pair_figures(run, a, job);
+    return write_figures(run, job->fig_dir, "", "spot", job->spot, job->m1, job->r1, &job->single,
+                         &a->po.spot, a->pixel_um);
+}
+
+static int run_fit_psf(cli_run *run, const struct fit_psf_args *a)
+{
+    struct fit_psf_job job;
+    memset(&job, 0, sizeof job);
+    int code = fit_psf_read(run, a, &job);
+    if (!code) code = fit_psf_compute(run, a, &job);
+    if (!code) code = fit_psf_write(run, a, &job);
+    free(job.text);
+    svp_image_free(job.spot);
+    svp_image_free(job.exc);
+    svp_image_free(job.dec);
+    svp_image_free(job.m1);
+    svp_image_free(job.r1);
+    svp_image_free(job.m2);
+    svp_image_free(job.r2);
+    svp_image_free(job.m3);
+    svp_image_free(job.r3);
+    svp_figure_cleanup();
+    return code;
+}
+
+int cmd_fit_psf(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "fit-psf", argc, argv, CLI_COMMON_OUTPUT);
+    struct fit_psf_args args;
+    int code = parse_fit_psf_args(&run, &args);
+    if (code == 0) code = run_fit_psf(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

@@ -15,9 +15,6 @@ enum {
     OPT_LABELS = CLI_OPTION_FIRST,
     OPT_DEGREE,
     OPT_MAX_DEGREE,
-    OPT_MODEL,
-    OPT_CIRCULAR,
-    OPT_GAIN,
     OPT_HALO,
     OPT_TRANSITION,
     OPT_ALPHA,
@@ -56,9 +53,10 @@ static void print_help(const cli_run *run, FILE *out)
           "  --labels L.tif        region labels (integers 0..L-1, the field's size): per-region\n"
           "                        map instead of polynomial surfaces\n"
           "  --degree d|auto       polynomial degree 0..8, or auto (default: cross-validation)\n"
-          "  --max-degree N        largest degree auto tries (default 3)\n"
-          "  --model M             moffat (default), gaussian or lorentzian\n"
-          "  --circular            round spot fits (no ellipticity)\n"
+          "  --max-degree N        largest degree auto tries (default 3)\n",
+          out);
+    cli_print_spot_help(out);
+    fputs("  --circular            round spot fits (no ellipticity)\n"
           "  --gain G              photons per data unit (default 1)\n"
           "  --halo A              background-halo fraction alpha_b written into the map\n"
           "                        (spots do not measure it; default 0)\n"
@@ -209,17 +207,76 @@ done:
     return code;
 }
 
-int cmd_map_psf(int argc, char **argv)
+struct map_psf_args {
+    const char *spots_path;  /* SPOTS.yaml */
+    const char *labels_path; /* --labels */
+    cli_spot_args spot;      /* --model, --circular, --gain */
+    svp_spot_options so;     /* the spot fit (the group applied) */
+    svp_map_options mo;      /* --degree, --max-degree, --halo, --alpha, --clip-kappa */
+    int window, window_given, threshold_given;
+    double threshold, transition_um;
+};
+
+/* What a run holds (released by map_psf_release). */
+struct map_psf_job {
+    svp_yaml_doc *doc;
+    double pixel_um;
+    int width, height; /* the field */
+    int window;        /* detection settings: SPOTS.yaml's unless overridden */
+    double threshold;
+    svp_image *labels_img, *field_img;
+    int *labels, n_labels;
+    spot_entry *spots;
+    int n_spots;
+    svp_psf_sample *samples;
+    int *sample_of, n_samples, n_failed;
+    svp_psf_field *field;
+    svp_map_report *rep;
+    char *csv;
+    char csv_path[4096], summary_path[4096], labels_out[4096];
+};
+
+static int map_psf_option(cli_run *run, struct map_psf_args *a, int c)
 {
-    cli_run run;
-    cli_run_init(&run, "map-psf", argc, argv, CLI_COMMON_OUTPUT);
+    svp_map_options *mo = &a->mo;
+    switch (c) {
+    case OPT_LABELS: a->labels_path = optarg; return 0;
+    case OPT_DEGREE:
+        if (strcmp(optarg, "auto") == 0) {
+            mo->degree = -1;
+            return 0;
+        }
+        return cli_parse_int(run, "--degree", optarg, 0, 8, &mo->degree);
+    case OPT_MAX_DEGREE: return cli_parse_int(run, "--max-degree", optarg, 0, 8, &mo->max_degree);
+    case OPT_HALO: return cli_parse_double_in(run, "--halo", optarg, 0, 1, 1, 0, &mo->halo);
+    case OPT_TRANSITION:
+        return cli_parse_double_in(run, "--transition-um", optarg, 0, 1, INFINITY, 0,
+                                   &a->transition_um);
+    case OPT_ALPHA: return cli_parse_double_in(run, "--alpha", optarg, 0, 0, 1, 0, &mo->alpha);
+    case OPT_CLIP:
+        return cli_parse_double_in(run, "--clip-kappa", optarg, 0, 1, INFINITY, 0, &mo->clip_kappa);
+    case OPT_WINDOW:
+        if (cli_parse_int(run, "--window", optarg, 7, 1001, &a->window)) return CLI_EXIT_USAGE;
+        if (a->window % 2 == 0) return cli_error(run, "--window %d: must be odd", a->window);
+        a->window_given = 1;
+        return 0;
+    case OPT_THRESHOLD:
+        a->threshold_given = 1;
+        return cli_parse_double_in(run, "--threshold", optarg, 0, 0, INFINITY, 0, &a->threshold);
+    default: {
+        int bad = cli_spot_option(run, &a->spot, c, optarg);
+        return bad < 0 ? cli_error(run, "internal: option %d", c) : bad;
+    }
+    }
+}
+
+static int parse_map_psf_args(cli_run *run, struct map_psf_args *a)
+{
     static const struct option own[] = {
         {"labels", required_argument, NULL, OPT_LABELS},
         {"degree", required_argument, NULL, OPT_DEGREE},
         {"max-degree", required_argument, NULL, OPT_MAX_DEGREE},
-        {"model", required_argument, NULL, OPT_MODEL},
-        {"circular", no_argument, NULL, OPT_CIRCULAR},
-        {"gain", required_argument, NULL, OPT_GAIN},
+        CLI_SPOT_LONGOPTS,
         {"halo", required_argument, NULL, OPT_HALO},
         {"transition-um", required_argument, NULL, OPT_TRANSITION},
         {"alpha", required_argument, NULL, OPT_ALPHA},
@@ -228,503 +285,498 @@ int cmd_map_psf(int argc, char **argv)
         {"threshold", required_argument, NULL, OPT_THRESHOLD},
         {NULL, 0, NULL, 0},
     };
-    svp_spot_options so;
-    svp_spot_defaults(&so);
-    svp_map_options mo;
-    svp_map_defaults(&mo);
-    const char *labels_path = NULL;
-    int model = SVP_PSF_MOFFAT, window = 0, window_given = 0, threshold_given = 0;
-    double threshold = 10, transition_um = 0;
-    svp_yaml_doc *doc = NULL;
-    svp_image *labels_img = NULL, *field_img = NULL;
-    int *labels = NULL;
-    spot_entry *spots = NULL;
-    int n_spots = 0;
-    svp_psf_sample *samples = NULL;
-    int *sample_of = NULL;
-    svp_psf_field *field = NULL;
-    svp_map_report *rep = NULL;
-    char *csv = NULL;
-    int code = 0;
-    svp_status st;
-
+    memset(a, 0, sizeof *a);
+    svp_spot_defaults(&a->so);
+    svp_map_defaults(&a->mo);
+    cli_spot_init(&a->spot, &a->so);
+    a->threshold = 10;
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        int bad = 0;
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_LABELS: labels_path = optarg; break;
-        case OPT_DEGREE:
-            if (strcmp(optarg, "auto") == 0)
-                mo.degree = -1;
-            else if (cli_parse_int(&run, "--degree", optarg, 0, 8, &mo.degree))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            break;
-        case OPT_MAX_DEGREE:
-            bad = cli_parse_int(&run, "--max-degree", optarg, 0, 8, &mo.max_degree);
-            break;
-        case OPT_MODEL:
-            bad = cli_parse_choice(&run, "--model", optarg, cli_psf_model_names, &model);
-            break;
-        case OPT_CIRCULAR: so.elliptical = 0; break;
-        case OPT_GAIN:
-            bad = cli_parse_double_in(&run, "--gain", optarg, 0, 1, INFINITY, 0, &so.noise.gain);
-            break;
-        case OPT_HALO:
-            bad = cli_parse_double_in(&run, "--halo", optarg, 0, 1, 1, 0, &mo.halo);
-            break;
-        case OPT_TRANSITION:
-            bad = cli_parse_double_in(&run, "--transition-um", optarg, 0, 1, INFINITY, 0,
-                                      &transition_um);
-            break;
-        case OPT_ALPHA:
-            bad = cli_parse_double_in(&run, "--alpha", optarg, 0, 0, 1, 0, &mo.alpha);
-            break;
-        case OPT_CLIP:
-            bad = cli_parse_double_in(&run, "--clip-kappa", optarg, 0, 1, INFINITY, 0,
-                                      &mo.clip_kappa);
-            break;
-        case OPT_WINDOW:
-            if (cli_parse_int(&run, "--window", optarg, 7, 1001, &window))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            if (window % 2 == 0)
-                return cli_run_finish(&run, cli_error(&run, "--window %d: must be odd", window));
-            window_given = 1;
-            break;
-        case OPT_THRESHOLD:
-            if (cli_parse_double_in(&run, "--threshold", optarg, 0, 0, INFINITY, 0, &threshold))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            threshold_given = 1;
-            break;
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        if (c == CLI_OPTION_HELP) {
+            print_help(run, stdout);
+            return CLI_OPTION_HELP;
         }
-        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+        if (c == CLI_OPTION_ERROR || map_psf_option(run, a, c)) return CLI_EXIT_USAGE;
     }
-    if (optind >= argc)
-        return cli_run_finish(&run, cli_error(&run, "SPOTS.yaml is required (see --help)"));
-    if (optind + 1 < argc)
-        return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s'", argv[optind + 1]));
-    const char *spots_path = argv[optind];
-    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o MAP.yaml is required"));
-    if (!cli_yaml_extension(run.output))
-        return cli_run_finish(&run, cli_error(&run, "-o %s: the PSF map must end in .yaml or .yml",
-                                              run.output));
-    so.model = (svp_psf_model)model;
+    a->spots_path = cli_one_argument(run, "SPOTS.yaml is required (see --help)", "");
+    if (!a->spots_path) return CLI_EXIT_USAGE;
+    if (!run->output) return cli_error(run, "-o MAP.yaml is required");
+    if (!cli_yaml_extension(run->output))
+        return cli_error(run, "-o %s: the PSF map must end in .yaml or .yml", run->output);
+    cli_spot_apply(&a->spot, &a->so);
+    return 0;
+}
 
-    /* ---- read SPOTS.yaml, the images, the labels ---- */
-    cli_stage_begin(&run, "read");
-    double pixel_um = 0;
-    int width = 0, height = 0;
-    if ((st = svp_yaml_load_file(spots_path, &doc)) != SVP_OK) {
-        code = cli_fail(&run, st, spots_path);
-        goto cleanup;
-    }
-    cli_record_input(&run, "spots", spots_path, 0, 0);
-    {
-        const svp_yaml_node *root = svp_yaml_root(doc), *node;
-        static const char *const keys[] = {"pixel_um", "field",     "spots",   "image",
-                                           "window",   "threshold", "comment", NULL};
-        if ((st = svp_yaml_expect_mapping(root, NULL)) != SVP_OK ||
-            (st = svp_yaml_check_keys(root, NULL, keys)) != SVP_OK ||
-            (st = svp_yaml_require(root, "pixel_um", NULL, &node)) != SVP_OK ||
-            (st = svp_yaml_number_in(node, "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0, &pixel_um)) !=
-                SVP_OK)
-            goto yaml_fail;
-        const svp_yaml_node *list = svp_yaml_get(root, "spots"),
-                            *image = svp_yaml_get(root, "image");
-        if (!list == !image) {
-            st = svp_yaml_fail(root, SVP_ERR_FORMAT,
-                               "give either 'spots' (a list of spot images) "
-                               "or 'image' (one image with many spots)");
-            goto yaml_fail;
-        }
-        if (image) {
-            const char *name;
-            long long wv = 31;
-            if ((st = svp_yaml_string(image, "image", &name)) != SVP_OK) goto yaml_fail;
-            if ((st = svp_yaml_get_int(root, "window", 7, 1001, &wv, NULL)) != SVP_OK)
-                goto yaml_fail;
-            if (wv % 2 == 0) {
-                st = svp_yaml_fail(svp_yaml_get(root, "window"), SVP_ERR_FORMAT,
-                                   "window: %lld must be odd", wv);
-                goto yaml_fail;
-            }
-            double th = 10;
-            if ((st = svp_yaml_get_number(root, "threshold", 0, INFINITY, SVP_YAML_OPEN_LO, &th,
-                                          NULL)) != SVP_OK)
-                goto yaml_fail;
-            if (!window_given) window = (int)wv;
-            if (!threshold_given) threshold = th;
-            if (svp_yaml_get(root, "field")) {
-                st = svp_yaml_fail(svp_yaml_get(root, "field"), SVP_ERR_FORMAT,
-                                   "field: not with 'image' (the field is the image)");
-                goto yaml_fail;
-            }
-            char path[4096];
-            relative_to(spots_path, name, path, sizeof path);
-            if ((code = cli_read_image(&run, "image", path, &field_img))) goto cleanup;
-            width = field_img->width;
-            height = field_img->height;
-            cli_stage_begin(&run, "detect");
-            if ((code = detect(&run, field_img, path, window, threshold, &spots, &n_spots)))
-                goto cleanup;
-            cli_stage_begin(&run, "read");
-            cli_setting_int(&run, "window", window);
-            cli_setting_num(&run, "threshold", threshold);
-        } else {
-            const svp_yaml_node *f = svp_yaml_get(root, "field");
-            if (f) {
-                static const char *const fk[] = {"width", "height", NULL};
-                long long wv, hv;
-                const svp_yaml_node *a, *b;
-                if ((st = svp_yaml_expect_mapping(f, "field")) != SVP_OK ||
-                    (st = svp_yaml_check_keys(f, "field", fk)) != SVP_OK ||
-                    (st = svp_yaml_require(f, "width", "field", &a)) != SVP_OK ||
-                    (st = svp_yaml_int(a, "width", 1, 1 << 20, &wv)) != SVP_OK ||
-                    (st = svp_yaml_require(f, "height", "field", &b)) != SVP_OK ||
-                    (st = svp_yaml_int(b, "height", 1, 1 << 20, &hv)) != SVP_OK)
-                    goto yaml_fail;
-                width = (int)wv;
-                height = (int)hv;
-            }
-            if (svp_yaml_type_of(list) != SVP_YAML_SEQUENCE || svp_yaml_size(list) == 0) {
-                st = svp_yaml_fail(list, SVP_ERR_FORMAT, "spots: expected a non-empty list");
-                goto yaml_fail;
-            }
-            n_spots = (int)svp_yaml_size(list);
-            spots = calloc((size_t)n_spots, sizeof *spots);
-            if (!spots) {
-                cli_error(&run, "out of memory");
-                code = CLI_EXIT_RUNTIME;
-                goto cleanup;
-            }
-            for (int k = 0; k < n_spots; k++) {
-                const svp_yaml_node *it = svp_yaml_item(list, (size_t)k), *fn;
-                static const char *const sk[] = {"file", "origin", "x", "y", NULL};
-                const char *name;
-                if ((st = svp_yaml_expect_mapping(it, "spot")) != SVP_OK ||
-                    (st = svp_yaml_check_keys(it, "spot", sk)) != SVP_OK ||
-                    (st = svp_yaml_require(it, "file", "spot", &fn)) != SVP_OK ||
-                    (st = svp_yaml_string(fn, "file", &name)) != SVP_OK)
-                    goto yaml_fail;
-                const svp_yaml_node *org = svp_yaml_get(it, "origin");
-                int has_x = svp_yaml_get(it, "x") != NULL, has_y = svp_yaml_get(it, "y") != NULL;
-                if (!org == !(has_x && has_y) || has_x != has_y) {
-                    st = svp_yaml_fail(it, SVP_ERR_FORMAT,
+static int yaml_fail(cli_run *run, const struct map_psf_args *a, svp_status st)
+{
+    return cli_fail(run, st, a->spots_path);
+}
+
+/* SPOTS.yaml with `image`: detect the spots in it (window and threshold from the file unless
+ * given as options). */
+static int read_spot_image(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job,
+                           const svp_yaml_node *root, const svp_yaml_node *image)
+{
+    const char *name;
+    long long wv = 31;
+    svp_status st;
+    int code;
+    if ((st = svp_yaml_string(image, "image", &name)) != SVP_OK) return yaml_fail(run, a, st);
+    if ((st = svp_yaml_get_int(root, "window", 7, 1001, &wv, NULL)) != SVP_OK)
+        return yaml_fail(run, a, st);
+    if (wv % 2 == 0)
+        return yaml_fail(run, a,
+                         svp_yaml_fail(svp_yaml_get(root, "window"), SVP_ERR_FORMAT,
+                                       "window: %lld must be odd", wv));
+    double th = 10;
+    if ((st = svp_yaml_get_number(root, "threshold", 0, INFINITY, SVP_YAML_OPEN_LO, &th, NULL)) !=
+        SVP_OK)
+        return yaml_fail(run, a, st);
+    job->window = a->window_given ? a->window : (int)wv;
+    job->threshold = a->threshold_given ? a->threshold : th;
+    if (svp_yaml_get(root, "field"))
+        return yaml_fail(run, a,
+                         svp_yaml_fail(svp_yaml_get(root, "field"), SVP_ERR_FORMAT,
+                                       "field: not with 'image' (the field is the image)"));
+    char path[4096];
+    relative_to(a->spots_path, name, path, sizeof path);
+    if ((code = cli_read_image(run, "image", path, &job->field_img))) return code;
+    job->width = job->field_img->width;
+    job->height = job->field_img->height;
+    cli_stage_begin(run, "detect");
+    if ((code = detect(run, job->field_img, path, job->window, job->threshold, &job->spots,
+                       &job->n_spots)))
+        return code;
+    cli_stage_begin(run, "read");
+    cli_setting_int(run, "window", job->window);
+    cli_setting_num(run, "threshold", job->threshold);
+    return 0;
+}
+
+/* One entry of SPOTS.yaml's `spots` list: its file, and its origin or centre. */
+static int read_spot_entry(cli_run *run, const struct map_psf_args *a, const svp_yaml_node *it,
+                           spot_entry *e)
+{
+    const svp_yaml_node *fn;
+    static const char *const sk[] = {"file", "origin", "x", "y", NULL};
+    const char *name;
+    svp_status st;
+    if ((st = svp_yaml_expect_mapping(it, "spot")) != SVP_OK ||
+        (st = svp_yaml_check_keys(it, "spot", sk)) != SVP_OK ||
+        (st = svp_yaml_require(it, "file", "spot", &fn)) != SVP_OK ||
+        (st = svp_yaml_string(fn, "file", &name)) != SVP_OK)
+        return yaml_fail(run, a, st);
+    const svp_yaml_node *org = svp_yaml_get(it, "origin");
+    int has_x = svp_yaml_get(it, "x") != NULL, has_y = svp_yaml_get(it, "y") != NULL;
+    if (!org == !(has_x && has_y) || has_x != has_y)
+        return yaml_fail(run, a,
+                         svp_yaml_fail(it, SVP_ERR_FORMAT,
                                        "spot: give either origin: [x, y] (the cut-out's corner "
-                                       "in the field) or x and y (the spot's centre)");
-                    goto yaml_fail;
-                }
-                spots[k].x = spots[k].y = NAN;
-                if (org) {
-                    double v[2];
-                    size_t cnt;
-                    if ((st = svp_yaml_number_list(org, "origin", 2, 2, v, &cnt)) != SVP_OK)
-                        goto yaml_fail;
-                    spots[k].ox = v[0];
-                    spots[k].oy = v[1];
-                } else if ((st = svp_yaml_get_number(it, "x", -INFINITY, INFINITY, 0, &spots[k].x,
-                                                     NULL)) != SVP_OK ||
-                           (st = svp_yaml_get_number(it, "y", -INFINITY, INFINITY, 0, &spots[k].y,
-                                                     NULL)) != SVP_OK)
-                    goto yaml_fail;
-                relative_to(spots_path, name, spots[k].path, sizeof spots[k].path);
-                if ((code = cli_read_image(&run, "spot", spots[k].path, &spots[k].image)))
-                    goto cleanup;
-            }
-        }
-        goto yaml_ok;
-    yaml_fail:
-        code = cli_fail(&run, st, spots_path);
-        goto cleanup;
+                                       "in the field) or x and y (the spot's centre)"));
+    e->x = e->y = NAN;
+    if (org) {
+        double v[2];
+        size_t cnt;
+        if ((st = svp_yaml_number_list(org, "origin", 2, 2, v, &cnt)) != SVP_OK)
+            return yaml_fail(run, a, st);
+        e->ox = v[0];
+        e->oy = v[1];
+    } else if ((st = svp_yaml_get_number(it, "x", -INFINITY, INFINITY, 0, &e->x, NULL)) != SVP_OK ||
+               (st = svp_yaml_get_number(it, "y", -INFINITY, INFINITY, 0, &e->y, NULL)) != SVP_OK)
+        return yaml_fail(run, a, st);
+    relative_to(a->spots_path, name, e->path, sizeof e->path);
+    return cli_read_image(run, "spot", e->path, &e->image);
+}
+
+/* SPOTS.yaml with `spots`: the optional field size, then each spot image. */
+static int read_spot_list(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job,
+                          const svp_yaml_node *root, const svp_yaml_node *list)
+{
+    svp_status st;
+    int code;
+    const svp_yaml_node *f = svp_yaml_get(root, "field");
+    if (f) {
+        static const char *const fk[] = {"width", "height", NULL};
+        long long wv, hv;
+        const svp_yaml_node *x, *y;
+        if ((st = svp_yaml_expect_mapping(f, "field")) != SVP_OK ||
+            (st = svp_yaml_check_keys(f, "field", fk)) != SVP_OK ||
+            (st = svp_yaml_require(f, "width", "field", &x)) != SVP_OK ||
+            (st = svp_yaml_int(x, "width", 1, 1 << 20, &wv)) != SVP_OK ||
+            (st = svp_yaml_require(f, "height", "field", &y)) != SVP_OK ||
+            (st = svp_yaml_int(y, "height", 1, 1 << 20, &hv)) != SVP_OK)
+            return yaml_fail(run, a, st);
+        job->width = (int)wv;
+        job->height = (int)hv;
     }
-yaml_ok:
-    if (labels_path) {
-        if ((code = cli_read_image(&run, "labels", labels_path, &labels_img))) goto cleanup;
-        if (width == 0) {
-            width = labels_img->width;
-            height = labels_img->height;
-        } else if (labels_img->width != width || labels_img->height != height) {
-            code = cli_error(&run,
-                             "size mismatch: --labels %s is %d x %d but the field of %s is "
-                             "%d x %d",
-                             labels_path, labels_img->width, labels_img->height, spots_path, width,
-                             height);
-            goto cleanup;
-        }
+    if (svp_yaml_type_of(list) != SVP_YAML_SEQUENCE || svp_yaml_size(list) == 0)
+        return yaml_fail(run, a,
+                         svp_yaml_fail(list, SVP_ERR_FORMAT, "spots: expected a non-empty list"));
+    job->n_spots = (int)svp_yaml_size(list);
+    job->spots = calloc((size_t)job->n_spots, sizeof *job->spots);
+    if (!job->spots) {
+        cli_error(run, "out of memory");
+        return CLI_EXIT_RUNTIME;
     }
-    if (width == 0) {
-        code = cli_error(&run,
+    for (int k = 0; k < job->n_spots; k++)
+        if ((code = read_spot_entry(run, a, svp_yaml_item(list, (size_t)k), &job->spots[k])))
+            return code;
+    return 0;
+}
+
+/* SPOTS.yaml: the pixel size and either the spot list or the image to detect spots in. */
+static int map_psf_read_spots(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
+{
+    svp_status st;
+    cli_stage_begin(run, "read");
+    if ((st = svp_yaml_load_file(a->spots_path, &job->doc)) != SVP_OK)
+        return cli_fail(run, st, a->spots_path);
+    cli_record_input(run, "spots", a->spots_path, 0, 0);
+    const svp_yaml_node *root = svp_yaml_root(job->doc), *node;
+    static const char *const keys[] = {"pixel_um", "field",     "spots",   "image",
+                                       "window",   "threshold", "comment", NULL};
+    if ((st = svp_yaml_expect_mapping(root, NULL)) != SVP_OK ||
+        (st = svp_yaml_check_keys(root, NULL, keys)) != SVP_OK ||
+        (st = svp_yaml_require(root, "pixel_um", NULL, &node)) != SVP_OK ||
+        (st = svp_yaml_number_in(node, "pixel_um", SVP_PIXEL_UM_MIN, INFINITY, 0,
+                                 &job->pixel_um)) != SVP_OK)
+        return yaml_fail(run, a, st);
+    const svp_yaml_node *list = svp_yaml_get(root, "spots"), *image = svp_yaml_get(root, "image");
+    if (!list == !image)
+        return yaml_fail(run, a,
+                         svp_yaml_fail(root, SVP_ERR_FORMAT,
+                                       "give either 'spots' (a list of spot images) "
+                                       "or 'image' (one image with many spots)"));
+    return image ? read_spot_image(run, a, job, root, image)
+                 : read_spot_list(run, a, job, root, list);
+}
+
+/* --labels: the field's size (or checked against it), integers 0..L-1, at most 4096. */
+static int map_psf_read_labels(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
+{
+    const char *labels_path = a->labels_path;
+    int code;
+    if ((code = cli_read_image(run, "labels", labels_path, &job->labels_img))) return code;
+    const svp_image *img = job->labels_img;
+    if (job->width == 0) {
+        job->width = img->width;
+        job->height = img->height;
+    } else if (img->width != job->width || img->height != job->height) {
+        return cli_error(run,
+                         "size mismatch: --labels %s is %d x %d but the field of %s is "
+                         "%d x %d",
+                         labels_path, img->width, img->height, a->spots_path, job->width,
+                         job->height);
+    }
+    const size_t N = (size_t)job->width * job->height;
+    job->labels = malloc(N * sizeof *job->labels);
+    if (!job->labels) {
+        cli_error(run, "out of memory");
+        return CLI_EXIT_RUNTIME;
+    }
+    for (size_t i = 0; i < N; i++) {
+        double v = img->data[i];
+        if (!(v >= 0 && v <= 1000000 && v == floor(v)))
+            return cli_error(run,
+                             "%s: pixel (%zu, %zu) is %g: labels must be integers "
+                             "0..L-1",
+                             labels_path, i % (size_t)job->width, i / (size_t)job->width, v);
+        job->labels[i] = (int)v;
+        if (job->labels[i] + 1 > job->n_labels) job->n_labels = job->labels[i] + 1;
+    }
+    if (job->n_labels > 4096)
+        return cli_error(run, "%s: %d labels: at most 4096 regions", labels_path, job->n_labels);
+    return 0;
+}
+
+/* The inputs, then every output planned and checked, the settings recorded. */
+static int map_psf_read(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
+{
+    int code;
+    if ((code = map_psf_read_spots(run, a, job))) return code;
+    if (a->labels_path && (code = map_psf_read_labels(run, a, job))) return code;
+    if (job->width == 0)
+        return cli_error(run,
                          "%s: the field size is unknown: add field: {width: W, height: H} "
                          "(or give --labels)",
-                         spots_path);
-        goto cleanup;
-    }
-    int n_labels = 0;
-    if (labels_img) {
-        size_t N = (size_t)width * height;
-        labels = malloc(N * sizeof *labels);
-        if (!labels) {
-            cli_error(&run, "out of memory");
-            code = CLI_EXIT_RUNTIME;
-            goto cleanup;
-        }
-        for (size_t i = 0; i < N; i++) {
-            double v = labels_img->data[i];
-            if (!(v >= 0 && v <= 1000000 && v == floor(v))) {
-                code = cli_error(&run,
-                                 "%s: pixel (%zu, %zu) is %g: labels must be integers "
-                                 "0..L-1",
-                                 labels_path, i % (size_t)width, i / (size_t)width, v);
-                goto cleanup;
-            }
-            labels[i] = (int)v;
-            if (labels[i] + 1 > n_labels) n_labels = labels[i] + 1;
-        }
-        if (n_labels > 4096) {
-            code = cli_error(&run, "%s: %d labels: at most 4096 regions", labels_path, n_labels);
-            goto cleanup;
-        }
-    }
-    if (n_spots == 0) {
-        code = cli_error(&run, "%s: no spots to fit", spots_path);
-        goto cleanup;
-    }
+                         a->spots_path);
+    if (job->n_spots == 0) return cli_error(run, "%s: no spots to fit", a->spots_path);
 
-    /* ---- outputs ---- */
-    char csv_path[4096], summary_path[4096], labels_out[4096];
-    cli_path_sibling(run.output, ".spots.csv", csv_path, sizeof csv_path);
-    cli_path_sibling(run.output, ".summary.json", summary_path, sizeof summary_path);
-    cli_output_file(&run, "map", run.output);
-    if (labels) {
-        cli_path_sibling(run.output, ".labels.npy", labels_out, sizeof labels_out);
-        cli_output_file(&run, "labels", labels_out);
+    cli_path_sibling(run->output, ".spots.csv", job->csv_path, sizeof job->csv_path);
+    cli_path_sibling(run->output, ".summary.json", job->summary_path, sizeof job->summary_path);
+    cli_output_file(run, "map", run->output);
+    if (job->labels) {
+        cli_path_sibling(run->output, ".labels.npy", job->labels_out, sizeof job->labels_out);
+        cli_output_file(run, "labels", job->labels_out);
     }
-    cli_output_file(&run, "spots", csv_path);
-    cli_output_file(&run, "summary", summary_path);
-    if ((code = cli_outputs_check(&run))) goto cleanup;
-    cli_setting_num(&run, "pixel_um", pixel_um);
-    cli_setting_str(&run, "model", cli_psf_model_names[model]);
-    cli_setting_str(&run, "map", labels ? "regions" : "poly");
-    if (!labels) {
-        if (mo.degree < 0)
-            cli_setting_str(&run, "degree", "auto");
+    cli_output_file(run, "spots", job->csv_path);
+    cli_output_file(run, "summary", job->summary_path);
+    if ((code = cli_outputs_check(run))) return code;
+    cli_setting_num(run, "pixel_um", job->pixel_um);
+    cli_setting_str(run, "model", cli_psf_model_names[a->spot.model]);
+    cli_setting_str(run, "map", job->labels ? "regions" : "poly");
+    if (!job->labels) {
+        if (a->mo.degree < 0)
+            cli_setting_str(run, "degree", "auto");
         else
-            cli_setting_int(&run, "degree", mo.degree);
+            cli_setting_int(run, "degree", a->mo.degree);
     }
-    cli_setting_num(&run, "halo", mo.halo);
-    cli_setting_int(&run, "n_spots", n_spots);
+    cli_setting_num(run, "halo", a->mo.halo);
+    cli_setting_int(run, "n_spots", job->n_spots);
+    return 0;
+}
 
-    /* ---- fits (independent: in parallel, each result the same at any thread count) ---- */
-    cli_stage_begin(&run, "fit");
-    cli_progress_start(&run, "fitting spots");
+/* The fits (independent: in parallel, each result the same at any thread count), and the
+ * samples the map is made of. */
+static int map_psf_fit(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
+{
+    const int n_spots = job->n_spots;
+    spot_entry *spots = job->spots;
+    cli_stage_begin(run, "fit");
+    cli_progress_start(run, "fitting spots");
     int n_done = 0;
 #pragma omp parallel for schedule(dynamic)
     for (int k = 0; k < n_spots; k++) {
         spot_entry *e = &spots[k];
-        e->status = svp_spot_fit(e->image, &so, &e->fit, NULL, NULL);
+        e->status = svp_spot_fit(e->image, &a->so, &e->fit, NULL, NULL);
         if (e->status != SVP_OK) snprintf(e->error, sizeof e->error, "%s", svp_last_error());
         int done;
 #pragma omp atomic capture
         done = ++n_done;
         /* progress is drawn by one thread only (cli_progress is not thread-safe) */
-        if (omp_get_thread_num() == 0) cli_progress(&run, (double)done / n_spots);
+        if (omp_get_thread_num() == 0) cli_progress(run, (double)done / n_spots);
     }
-    cli_progress_done(&run);
-    samples = calloc((size_t)n_spots, sizeof *samples);
-    sample_of = malloc((size_t)n_spots * sizeof *sample_of);
-    if (!samples || !sample_of) {
-        cli_error(&run, "out of memory");
-        code = CLI_EXIT_RUNTIME;
-        goto cleanup;
+    cli_progress_done(run);
+    job->samples = calloc((size_t)n_spots, sizeof *job->samples);
+    job->sample_of = malloc((size_t)n_spots * sizeof *job->sample_of);
+    if (!job->samples || !job->sample_of) {
+        cli_error(run, "out of memory");
+        return CLI_EXIT_RUNTIME;
     }
-    int n_samples = 0, n_failed = 0;
     for (int k = 0; k < n_spots; k++) {
         spot_entry *e = &spots[k];
-        sample_of[k] = -1;
+        job->sample_of[k] = -1;
         /* a fit that did not converge is still a sample (flagged NOT_CONVERGED: the map
          * rejects it with that reason); one that could not be made at all is not */
         if (e->status != SVP_OK &&
             !(e->status == SVP_ERR_NUMERIC && (e->fit.flags & SVP_SPOT_NOT_CONVERGED))) {
-            n_failed++;
+            job->n_failed++;
             continue;
         }
-        svp_psf_sample *s = &samples[n_samples];
+        svp_psf_sample *s = &job->samples[job->n_samples];
         s->fit = e->fit;
         s->x = isnan(e->x) ? e->ox + e->fit.x0 : e->x;
         s->y = isnan(e->y) ? e->oy + e->fit.y0 : e->y;
-        sample_of[k] = n_samples++;
+        job->sample_of[k] = job->n_samples++;
     }
-
+    if (job->n_samples > 0) return 0;
     /* every fit failed: say so (with each spot's reason), not "no spots given" */
-    if (n_samples == 0 && n_spots > 0) {
-        for (int k = 0; k < n_spots; k++)
-            fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, spots[k].path,
-                    spots[k].error);
-        if (n_spots == 1)
-            code = cli_error(&run, "%s: its only spot failed its fit (%s); no PSF map written",
-                             spots_path, spots[0].error);
-        else
-            code = cli_error(&run,
-                             "%s: all %d spots failed their fits (spot 0: %s; each spot's "
-                             "reason above); no PSF map written",
-                             spots_path, n_spots, spots[0].error);
-        goto cleanup;
-    }
+    for (int k = 0; k < n_spots; k++)
+        fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, spots[k].path,
+                spots[k].error);
+    if (n_spots == 1)
+        return cli_error(run, "%s: its only spot failed its fit (%s); no PSF map written",
+                         a->spots_path, spots[0].error);
+    return cli_error(run,
+                     "%s: all %d spots failed their fits (spot 0: %s; each spot's "
+                     "reason above); no PSF map written",
+                     a->spots_path, n_spots, spots[0].error);
+}
 
-    /* ---- the map ---- */
-    cli_stage_begin(&run, "map");
-    if (labels) {
-        mo.transition = transition_um / pixel_um;
-        st = svp_psf_map_regions(samples, n_samples, labels, width, height, n_labels, &mo, &field,
-                                 &rep);
+/* The map: per-region means with --labels, else polynomial surfaces. */
+static int map_psf_map(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
+{
+    svp_map_options mo = a->mo;
+    svp_status st;
+    cli_stage_begin(run, "map");
+    if (job->labels) {
+        mo.transition = a->transition_um / job->pixel_um;
+        st = svp_psf_map_regions(job->samples, job->n_samples, job->labels, job->width, job->height,
+                                 job->n_labels, &mo, &job->field, &job->rep);
     } else {
-        st = svp_psf_map_poly(samples, n_samples, width, height, &mo, &field, &rep);
+        st = svp_psf_map_poly(job->samples, job->n_samples, job->width, job->height, &mo,
+                              &job->field, &job->rep);
     }
-    if (st != SVP_OK) {
-        for (int k = 0; k < n_spots; k++)
-            if (sample_of[k] < 0)
-                fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, spots[k].path,
-                        spots[k].error);
-        code = cli_fail(&run, st, spots_path);
-        goto cleanup;
-    }
+    if (st == SVP_OK) return 0;
+    for (int k = 0; k < job->n_spots; k++)
+        if (job->sample_of[k] < 0)
+            fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, job->spots[k].path,
+                    job->spots[k].error);
+    return cli_fail(run, st, a->spots_path);
+}
 
-    /* per-spot lines: CSV, and the rejections on stdout */
-    {
-        size_t cap = 256 + (size_t)n_spots * 1400, len = 0;
-        csv = malloc(cap);
-        if (!csv) {
-            cli_error(&run, "out of memory");
-            code = CLI_EXIT_RUNTIME;
-            goto cleanup;
+/* Per-spot lines: the CSV, and the rejections on stdout. */
+static int map_psf_spot_lines(cli_run *run, struct map_psf_job *job)
+{
+    const double pixel_um = job->pixel_um;
+    size_t cap = 256 + (size_t)job->n_spots * 1400, len = 0;
+    char *csv = job->csv = malloc(cap);
+    if (!csv) {
+        cli_error(run, "out of memory");
+        return CLI_EXIT_RUNTIME;
+    }
+    len += (size_t)snprintf(csv + len, cap - len,
+                            "index,file,x_px,y_px,fwhm_um,fwhm_err_um,beta,beta_err,e1,e2,"
+                            "chi2_red,flags,status\n");
+    int n_kept = 0, n_rejected = 0;
+    for (int k = 0; k < job->n_spots; k++) {
+        char flags[256], desc[1024];
+        spot_entry *e = &job->spots[k];
+        int si = job->sample_of[k];
+        if (si < 0) {
+            snprintf(desc, sizeof desc, "fit failed: %s", e->error);
+            for (char *p = desc; *p; p++)
+                if (*p == ',' || *p == '"') *p = ';';
+            printf("spot %d (%s): rejected: %s\n", k, e->path, desc);
+            len += (size_t)snprintf(csv + len, cap - len, "%d,%s,,,,,,,,,,,rejected: %s\n", k,
+                                    e->path, desc);
+            n_rejected++;
+            continue;
         }
+        const svp_psf_sample *s = &job->samples[si];
+        const svp_spot_result *f = &s->fit;
+        svp_spot_flags_describe(f->flags, flags, sizeof flags);
+        svp_map_describe_sample(job->rep, job->samples, si, desc, sizeof desc);
+        const char *status = strstr(desc, "): ");
+        status = status ? status + 3 : desc;
+        int kept = strcmp(status, "kept") == 0;
+        n_kept += kept;
+        n_rejected += !kept;
+        if (!kept) printf("spot %d (%s, x %.1f, y %.1f): %s\n", k, e->path, s->x, s->y, status);
+        char st_csv[1024];
+        snprintf(st_csv, sizeof st_csv, "%s", status);
+        for (char *p = st_csv; *p; p++)
+            if (*p == ',') *p = ';';
         len += (size_t)snprintf(csv + len, cap - len,
-                                "index,file,x_px,y_px,fwhm_um,fwhm_err_um,beta,beta_err,e1,e2,"
-                                "chi2_red,flags,status\n");
-        int n_kept = 0, n_rejected = 0;
-        for (int k = 0; k < n_spots; k++) {
-            char flags[256], desc[1024];
-            spot_entry *e = &spots[k];
-            int si = sample_of[k];
-            if (si < 0) {
-                snprintf(desc, sizeof desc, "fit failed: %s", e->error);
-                for (char *p = desc; *p; p++)
-                    if (*p == ',' || *p == '"') *p = ';';
-                printf("spot %d (%s): rejected: %s\n", k, e->path, desc);
-                len += (size_t)snprintf(csv + len, cap - len, "%d,%s,,,,,,,,,,,rejected: %s\n", k,
-                                        e->path, desc);
-                n_rejected++;
-                continue;
-            }
-            const svp_spot_result *f = &samples[si].fit;
-            svp_spot_flags_describe(f->flags, flags, sizeof flags);
-            svp_map_describe_sample(rep, samples, si, desc, sizeof desc);
-            const char *status = strstr(desc, "): ");
-            status = status ? status + 3 : desc;
-            int kept = strcmp(status, "kept") == 0;
-            n_kept += kept;
-            n_rejected += !kept;
-            if (!kept)
-                printf("spot %d (%s, x %.1f, y %.1f): %s\n", k, e->path, samples[si].x,
-                       samples[si].y, status);
-            char st_csv[1024];
-            snprintf(st_csv, sizeof st_csv, "%s", status);
-            for (char *p = st_csv; *p; p++)
-                if (*p == ',') *p = ';';
-            len += (size_t)snprintf(csv + len, cap - len,
-                                    "%d,%s,%.6f,%.6f,%.8g,%.8g,%.8g,%.8g,%.8g,%.8g,%.6g,%s,%s\n", k,
-                                    e->path, samples[si].x, samples[si].y, f->fwhm * pixel_um,
-                                    f->fwhm_err * pixel_um, f->beta, f->beta_err, f->e1, f->e2,
-                                    f->chi2_red, flags, st_csv);
-        }
-        cli_result_int(&run, "spots_fitted", n_spots - n_failed);
-        cli_result_int(&run, "spots_failed", n_failed);
-        cli_result_int(&run, "spots_kept_all_parameters", n_kept);
-        cli_result_int(&run, "spots_rejected", n_rejected);
-        printf("%d spots: %d kept, %d rejected (%d fits failed)\n", n_spots, n_kept, n_rejected,
-               n_failed);
+                                "%d,%s,%.6f,%.6f,%.8g,%.8g,%.8g,%.8g,%.8g,%.8g,%.6g,%s,%s\n", k,
+                                e->path, s->x, s->y, f->fwhm * pixel_um, f->fwhm_err * pixel_um,
+                                f->beta, f->beta_err, f->e1, f->e2, f->chi2_red, flags, st_csv);
     }
+    cli_result_int(run, "spots_fitted", job->n_spots - job->n_failed);
+    cli_result_int(run, "spots_failed", job->n_failed);
+    cli_result_int(run, "spots_kept_all_parameters", n_kept);
+    cli_result_int(run, "spots_rejected", n_rejected);
+    printf("%d spots: %d kept, %d rejected (%d fits failed)\n", job->n_spots, n_kept, n_rejected,
+           job->n_failed);
+    return 0;
+}
+
+/* The polynomial surfaces: degree, spots used, residual per parameter. */
+static void map_psf_report_poly(cli_run *run, const struct map_psf_job *job)
+{
     static const char *const pnames[SVP_FIELD_NPARAM] = {"fwhm", "e1", "e2", "beta", "halo"};
+    const svp_map_report *rep = job->rep;
     char key[96];
-    if (!labels) {
-        for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
-            if (!rep->mapped[q]) continue;
-            double scale = q == SVP_FIELD_FWHM ? pixel_um : 1;
-            printf("  %-5s degree %d, %d spots, rms residual %.4g%s, chi2_red %.3f\n", pnames[q],
-                   rep->degree[q], rep->n_used[q], rep->rms[q] * scale,
-                   q == SVP_FIELD_FWHM ? " um" : "", rep->chi2_red[q]);
-            snprintf(key, sizeof key, "%s_degree", pnames[q]);
-            cli_result_int(&run, key, rep->degree[q]);
-            snprintf(key, sizeof key, "%s_rms", pnames[q]);
-            cli_result_num(&run, key, rep->rms[q] * scale);
-            snprintf(key, sizeof key, "%s_chi2_red", pnames[q]);
-            cli_result_num(&run, key, rep->chi2_red[q]);
-            snprintf(key, sizeof key, "%s_n_used", pnames[q]);
-            cli_result_int(&run, key, rep->n_used[q]);
-        }
-    } else {
-        for (int l = 0; l < rep->n_regions; l++) {
-            const svp_region_stats *r = &rep->regions[l];
-            printf("  region %d: %d spots, FWHM %.4f +- %.4f um, beta %.4f +- %.4f -> group %d\n",
-                   r->label, r->count, r->mean[SVP_FIELD_FWHM] * pixel_um,
-                   r->sem[SVP_FIELD_FWHM] * pixel_um, r->mean[SVP_FIELD_BETA],
-                   r->sem[SVP_FIELD_BETA], r->group);
-            snprintf(key, sizeof key, "region%d_count", l);
-            cli_result_int(&run, key, r->count);
-            snprintf(key, sizeof key, "region%d_fwhm_um", l);
-            cli_result_num(&run, key, r->mean[SVP_FIELD_FWHM] * pixel_um);
-            snprintf(key, sizeof key, "region%d_beta", l);
-            cli_result_num(&run, key, r->mean[SVP_FIELD_BETA]);
-            snprintf(key, sizeof key, "region%d_group", l);
-            cli_result_int(&run, key, r->group);
-        }
-        for (int a = 0; a < rep->n_regions; a++)
-            for (int b = a + 1; b < rep->n_regions; b++) {
-                double p = rep->p_value[a * rep->n_regions + b];
-                printf("  regions %d and %d: Welch p = %.3g (%s)\n", a, b, p,
-                       p < 0          ? "too few spots"
-                       : p > mo.alpha ? "alike"
-                                      : "different");
-                if (a * rep->n_regions + b < 64) {
-                    snprintf(key, sizeof key, "p_value_%d_%d", a, b);
-                    cli_result_num(&run, key, p);
-                }
+    for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+        if (!rep->mapped[q]) continue;
+        double scale = q == SVP_FIELD_FWHM ? job->pixel_um : 1;
+        printf("  %-5s degree %d, %d spots, rms residual %.4g%s, chi2_red %.3f\n", pnames[q],
+               rep->degree[q], rep->n_used[q], rep->rms[q] * scale,
+               q == SVP_FIELD_FWHM ? " um" : "", rep->chi2_red[q]);
+        snprintf(key, sizeof key, "%s_degree", pnames[q]);
+        cli_result_int(run, key, rep->degree[q]);
+        snprintf(key, sizeof key, "%s_rms", pnames[q]);
+        cli_result_num(run, key, rep->rms[q] * scale);
+        snprintf(key, sizeof key, "%s_chi2_red", pnames[q]);
+        cli_result_num(run, key, rep->chi2_red[q]);
+        snprintf(key, sizeof key, "%s_n_used", pnames[q]);
+        cli_result_int(run, key, rep->n_used[q]);
+    }
+}
+
+/* The regions: their means, the Welch tests between them and the groups they merged into. */
+static void map_psf_report_regions(cli_run *run, const struct map_psf_args *a,
+                                   const struct map_psf_job *job)
+{
+    const svp_map_report *rep = job->rep;
+    const double pixel_um = job->pixel_um;
+    char key[96];
+    for (int l = 0; l < rep->n_regions; l++) {
+        const svp_region_stats *r = &rep->regions[l];
+        printf("  region %d: %d spots, FWHM %.4f +- %.4f um, beta %.4f +- %.4f -> group %d\n",
+               r->label, r->count, r->mean[SVP_FIELD_FWHM] * pixel_um,
+               r->sem[SVP_FIELD_FWHM] * pixel_um, r->mean[SVP_FIELD_BETA], r->sem[SVP_FIELD_BETA],
+               r->group);
+        snprintf(key, sizeof key, "region%d_count", l);
+        cli_result_int(run, key, r->count);
+        snprintf(key, sizeof key, "region%d_fwhm_um", l);
+        cli_result_num(run, key, r->mean[SVP_FIELD_FWHM] * pixel_um);
+        snprintf(key, sizeof key, "region%d_beta", l);
+        cli_result_num(run, key, r->mean[SVP_FIELD_BETA]);
+        snprintf(key, sizeof key, "region%d_group", l);
+        cli_result_int(run, key, r->group);
+    }
+    for (int i = 0; i < rep->n_regions; i++)
+        for (int j = i + 1; j < rep->n_regions; j++) {
+            double p = rep->p_value[i * rep->n_regions + j];
+            printf("  regions %d and %d: Welch p = %.3g (%s)\n", i, j, p,
+                   p < 0             ? "too few spots"
+                   : p > a->mo.alpha ? "alike"
+                                     : "different");
+            if (i * rep->n_regions + j < 64) {
+                snprintf(key, sizeof key, "p_value_%d_%d", i, j);
+                cli_result_num(run, key, p);
             }
-        cli_result_int(&run, "n_groups", rep->n_groups);
-        printf("  %d region(s) merged into %d group(s) (alpha %g)\n", rep->n_regions, rep->n_groups,
-               mo.alpha);
-    }
-
-    cli_stage_begin(&run, "write");
-    {
-        char prov[512];
-        snprintf(prov, sizeof prov, "svpsf map-psf %s: %d spots, %s", spots_path, n_spots,
-                 labels ? "per-region means" : "polynomial surfaces");
-        if ((st = svp_psf_field_write(run.output, field, pixel_um, prov, run.force)) != SVP_OK) {
-            code = cli_fail(&run, st, run.output);
-            goto cleanup;
         }
-    }
-    if ((code = cli_write_text(&run, csv_path, csv))) goto cleanup;
-    cli_stage_end(&run);
-    if ((code = cli_summary_write(&run, summary_path))) goto cleanup;
-    printf("svpsf map-psf: wrote %s (%s), %s, %s\n", run.output,
-           labels ? "regions" : "polynomial surfaces", csv_path, summary_path);
+    cli_result_int(run, "n_groups", rep->n_groups);
+    printf("  %d region(s) merged into %d group(s) (alpha %g)\n", rep->n_regions, rep->n_groups,
+           a->mo.alpha);
+}
 
-cleanup:
-    if (spots)
-        for (int k = 0; k < n_spots; k++) svp_image_free(spots[k].image);
-    free(spots);
-    free(samples);
-    free(sample_of);
-    free(labels);
-    free(csv);
-    svp_image_free(labels_img);
-    svp_image_free(field_img);
-    svp_psf_field_free(field);
-    svp_map_report_free(rep);
-    svp_yaml_free(doc);
-    return cli_run_finish(&run, code);
+/* MAP.yaml, MAP.spots.csv, MAP.summary.json and the line on stdout. */
+static int map_psf_write(cli_run *run, const struct map_psf_args *a, struct map_psf_job *job)
+{
+    int code;
+    cli_stage_begin(run, "write");
+    char prov[512];
+    snprintf(prov, sizeof prov, "svpsf map-psf %s: %d spots, %s", a->spots_path, job->n_spots,
+             job->labels ? "per-region means" : "polynomial surfaces");
+    svp_status st = svp_psf_field_write(run->output, job->field, job->pixel_um, prov, run->force);
+    if (st != SVP_OK) return cli_fail(run, st, run->output);
+    if ((code = cli_write_text(run, job->csv_path, job->csv))) return code;
+    cli_stage_end(run);
+    if ((code = cli_summary_write(run, job->summary_path))) return code;
+    printf("svpsf map-psf: wrote %s (%s), %s, %s\n", run->output,
+           job->labels ? "regions" : "polynomial surfaces", job->csv_path, job->summary_path);
+    return 0;
+}
+
+static int run_map_psf(cli_run *run, const struct map_psf_args *a)
+{
+    struct map_psf_job job;
+    memset(&job, 0, sizeof job);
+    int code = map_psf_read(run, a, &job);
+    if (!code) code = map_psf_fit(run, a, &job);
+    if (!code) code = map_psf_map(run, a, &job);
+    if (!code) code = map_psf_spot_lines(run, &job);
+    if (!code) {
+        if (job.labels)
+            map_psf_report_regions(run, a, &job);
+        else
+            map_psf_report_poly(run, &job);
+        code = map_psf_write(run, a, &job);
+    }
+    if (job.spots)
+        for (int k = 0; k < job.n_spots; k++) svp_image_free(job.spots[k].image);
+    free(job.spots);
+    free(job.samples);
+    free(job.sample_of);
+    free(job.labels);
+    free(job.csv);
+    svp_image_free(job.labels_img);
+    svp_image_free(job.field_img);
+    svp_psf_field_free(job.field);
+    svp_map_report_free(job.rep);
+    svp_yaml_free(job.doc);
+    return code;
+}
+
+int cmd_map_psf(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "map-psf", argc, argv, CLI_COMMON_OUTPUT);
+    struct map_psf_args args;
+    int code = parse_map_psf_args(&run, &args);
+    if (code == 0) code = run_map_psf(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

@@ -2,7 +2,8 @@
  * field, and how much the corrected field of a reference scene changes between them. */
 #include "cli.h"
 
-#include "scene/scene_internal.h"
+#include "core/internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -60,62 +61,80 @@ static svp_status window_field(const svp_psf_field *f, int ox, int oy, int n, sv
     return svp_psf_field_new_grid(n, n, G, G, NULL, NULL, nodes, out);
 }
 
-int cmd_psf_compare(int argc, char **argv)
+struct psf_compare_args {
+    const char *pa, *pb; /* A.yaml, B.yaml */
+    int w, h;            /* --size WxH; 0 when not given */
+    int scene_n;         /* --scene-size */
+    int scene_given;
+};
+
+/* What a run holds (released by run_psf_compare). */
+struct psf_compare_job {
+    svp_psf_field *fa, *fb, *wa, *wb;
+    double um;
+    int w, h, scene_n; /* the field, the scene's side */
+    svp_image *dfw, *dbe, *btrue, *pltrue, *plapp, *bapp, *plc, *bc_a, *bc_b;
+    svp_blur *ha, *hb;
+    double max_df, max_db; /* the largest |dFWHM| (um) and |dbeta|, for the figures' scales */
+    const char *out_dfw, *out_dbe, *png_dfw, *png_dbe, *out_ca, *out_cb, *out_sum;
+};
+
+static int parse_psf_compare_args(cli_run *run, struct psf_compare_args *a)
 {
-    cli_run run;
-    cli_run_init(&run, "psf-compare", argc, argv, CLI_COMMON_OUTPUT_DIR);
     static const struct option own[] = {
         {"size", required_argument, NULL, OPT_SIZE},
         {"scene-size", required_argument, NULL, OPT_SCENE_SIZE},
         {NULL, 0, NULL, 0},
     };
-    int w = 0, h = 0, scene_n = 128, scene_given = 0, code = 0;
-    svp_psf_field *fa = NULL, *fb = NULL, *wa = NULL, *wb = NULL;
-    svp_image *dfw = NULL, *dbe = NULL, *btrue = NULL, *pltrue = NULL, *plapp = NULL, *bapp = NULL,
-              *plc = NULL, *bc_a = NULL, *bc_b = NULL;
-    svp_blur *ha = NULL, *hb = NULL;
-    svp_status st;
+    memset(a, 0, sizeof *a);
+    a->scene_n = 128;
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
         switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
+        case CLI_OPTION_HELP: print_help(run, stdout); return CLI_OPTION_HELP;
+        case CLI_OPTION_ERROR: return CLI_EXIT_USAGE;
         case OPT_SIZE:
-            if (sscanf(optarg, "%dx%d", &w, &h) != 2 || w < 8 || h < 8 || w > 16384 || h > 16384)
-                return cli_run_finish(&run, cli_error(&run,
-                                                      "--size %s: expected WxH, 8..16384 "
-                                                      "each (e.g. 256x256)",
-                                                      optarg));
+            if (sscanf(optarg, "%dx%d", &a->w, &a->h) != 2 || a->w < 8 || a->h < 8 ||
+                a->w > 16384 || a->h > 16384)
+                return cli_error(run, "--size %s: expected WxH, 8..16384 each (e.g. 256x256)",
+                                 optarg);
             break;
         case OPT_SCENE_SIZE:
-            if (cli_parse_int(&run, "--scene-size", optarg, 16, 1024, &scene_n))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            scene_given = 1;
+            if (cli_parse_int(run, "--scene-size", optarg, 16, 1024, &a->scene_n))
+                return CLI_EXIT_USAGE;
+            a->scene_given = 1;
             break;
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
+        default: return cli_error(run, "internal: option %d", c);
         }
     }
-    if (argc - optind != 2)
-        return cli_run_finish(&run, cli_error(&run, "two PSF maps A.yaml B.yaml are required (see "
-                                                    "--help)"));
-    const char *pa = argv[optind], *pb = argv[optind + 1];
+    if (run->argc - optind != 2)
+        return cli_error(run, "two PSF maps A.yaml B.yaml are required (see --help)");
+    a->pa = run->argv[optind];
+    a->pb = run->argv[optind + 1];
+    return 0;
+}
+
+/* The two maps (same pixel size, same field when both have one), the field and scene sizes,
+ * the outputs planned. */
+static int psf_compare_read(cli_run *run, const struct psf_compare_args *a,
+                            struct psf_compare_job *job)
+{
+    const char *pa = a->pa, *pb = a->pb;
     double ua = 0, ub = 0;
-    cli_stage_begin(&run, "read");
-    if ((code = load(&run, pa, &fa, &ua)) || (code = load(&run, pb, &fb, &ub))) goto cleanup;
-    if (fabs(ua - ub) > 1e-9 * ua) {
-        code = cli_error(&run,
+    int code;
+    cli_stage_begin(run, "read");
+    if ((code = load(run, pa, &job->fa, &ua)) || (code = load(run, pb, &job->fb, &ub))) return code;
+    if (fabs(ua - ub) > 1e-9 * ua)
+        return cli_error(run,
                          "%s: pixel_um %g differs from %s's %g: the maps must share the "
                          "pixel size",
                          pb, ub, pa, ua);
-        goto cleanup;
-    }
-    int aw = svp_psf_field_width(fa), ah = svp_psf_field_height(fa);
-    int bw = svp_psf_field_width(fb), bh = svp_psf_field_height(fb);
-    if (aw && bw && (aw != bw || ah != bh)) {
-        code = cli_error(&run, "size mismatch: %s maps a %d x %d field but %s a %d x %d one", pa,
-                         aw, ah, pb, bw, bh);
-        goto cleanup;
-    }
+    int aw = svp_psf_field_width(job->fa), ah = svp_psf_field_height(job->fa);
+    int bw = svp_psf_field_width(job->fb), bh = svp_psf_field_height(job->fb);
+    if (aw && bw && (aw != bw || ah != bh))
+        return cli_error(run, "size mismatch: %s maps a %d x %d field but %s a %d x %d one", pa, aw,
+                         ah, pb, bw, bh);
+    int w = a->w, h = a->h;
     if (aw)
         w = aw, h = ah;
     else if (bw)
@@ -123,60 +142,63 @@ int cmd_psf_compare(int argc, char **argv)
     else if (!w)
         w = h = 256;
     /* the scene is at most the field (as --help says); an explicit larger N is noted */
-    const int scene_asked = scene_n;
+    int scene_n = a->scene_n;
     if (scene_n > w) scene_n = w;
     if (scene_n > h) scene_n = h;
-    if (scene_given && scene_n < scene_asked)
-        cli_note(&run, "--scene-size %d is larger than the %d x %d field: the scene is %d x %d",
-                 scene_asked, w, h, scene_n, scene_n);
-    const double um = ua;
-    const char *out_dfw = NULL, *out_dbe = NULL, *png_dfw = NULL, *png_dbe = NULL, *out_ca = NULL,
-               *out_cb = NULL, *out_sum = NULL;
-    if (run.output) {
-        out_dfw = cli_output_in_dir(&run, "dfwhm", "dfwhm", 1);
-        out_dbe = cli_output_in_dir(&run, "dbeta", "dbeta", 1);
-        png_dfw = cli_output_in_dir(&run, "figure", "dfwhm.png", 0);
-        png_dbe = cli_output_in_dir(&run, "figure", "dbeta.png", 0);
-        out_ca = cli_output_in_dir(&run, "corrected_a", "corrected_a", 1);
-        out_cb = cli_output_in_dir(&run, "corrected_b", "corrected_b", 1);
-        out_sum = cli_output_in_dir(&run, "summary", "summary.json", 0);
-        if ((code = cli_outputs_check(&run))) goto cleanup;
+    if (a->scene_given && scene_n < a->scene_n)
+        cli_note(run, "--scene-size %d is larger than the %d x %d field: the scene is %d x %d",
+                 a->scene_n, w, h, scene_n, scene_n);
+    job->w = w;
+    job->h = h;
+    job->scene_n = scene_n;
+    job->um = ua;
+    if (run->output) {
+        job->out_dfw = cli_output_in_dir(run, "dfwhm", "dfwhm", 1);
+        job->out_dbe = cli_output_in_dir(run, "dbeta", "dbeta", 1);
+        job->png_dfw = cli_output_in_dir(run, "figure", "dfwhm.png", 0);
+        job->png_dbe = cli_output_in_dir(run, "figure", "dbeta.png", 0);
+        job->out_ca = cli_output_in_dir(run, "corrected_a", "corrected_a", 1);
+        job->out_cb = cli_output_in_dir(run, "corrected_b", "corrected_b", 1);
+        job->out_sum = cli_output_in_dir(run, "summary", "summary.json", 0);
+        if ((code = cli_outputs_check(run))) return code;
     }
-    cli_setting_num(&run, "pixel_um", um);
-    cli_setting_int(&run, "width", w);
-    cli_setting_int(&run, "height", h);
-    cli_setting_int(&run, "scene_size", scene_n);
+    cli_setting_num(run, "pixel_um", job->um);
+    cli_setting_int(run, "width", w);
+    cli_setting_int(run, "height", h);
+    cli_setting_int(run, "scene_size", scene_n);
+    return 0;
+}
 
-    /* ---- 1. parameters over the field ---- */
-    cli_stage_begin(&run, "parameters");
-    if ((st = svp_image_new(w, h, &dfw)) != SVP_OK || (st = svp_image_new(w, h, &dbe)) != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
+/* 1. The parameter differences B - A at every pixel of the field. */
+static int psf_compare_parameters(cli_run *run, const struct psf_compare_args *a,
+                                  struct psf_compare_job *job)
+{
+    const int w = job->w, h = job->h;
+    const double um = job->um;
+    svp_status st;
+    cli_stage_begin(run, "parameters");
+    if ((st = svp_image_new(w, h, &job->dfw)) != SVP_OK ||
+        (st = svp_image_new(w, h, &job->dbe)) != SVP_OK)
+        return cli_fail(run, st, NULL);
     double max_df = 0, sum_df = 0, max_rel = 0, max_db = 0, sum_db = 0, max_de = 0;
     /* beta compares between Moffat and Lorentzian (beta = 1) maps, not with a Gaussian one */
     svp_psf ma, mb;
-    if ((st = svp_psf_field_at(fa, 0, 0, &ma)) != SVP_OK ||
-        (st = svp_psf_field_at(fb, 0, 0, &mb)) != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
+    if ((st = svp_psf_field_at(job->fa, 0, 0, &ma)) != SVP_OK ||
+        (st = svp_psf_field_at(job->fb, 0, 0, &mb)) != SVP_OK)
+        return cli_fail(run, st, NULL);
     const int beta_comparable = ma.model != SVP_PSF_GAUSSIAN && mb.model != SVP_PSF_GAUSSIAN;
     if (ma.model != mb.model)
-        cli_note(&run, "the maps use different models (A %s, B %s)%s",
-                 cli_psf_model_names[ma.model], cli_psf_model_names[mb.model],
-                 beta_comparable ? "" : ": beta is not compared");
+        cli_note(run, "the maps use different models (A %s, B %s)%s", cli_psf_model_names[ma.model],
+                 cli_psf_model_names[mb.model], beta_comparable ? "" : ": beta is not compared");
     for (int y = 0; y < h; y++)
         for (int x = 0; x < w; x++) {
             double p[SVP_FIELD_NPARAM], q[SVP_FIELD_NPARAM];
-            if ((st = svp_psf_field_params_at(fa, x, y, p)) != SVP_OK ||
-                (st = svp_psf_field_params_at(fb, x, y, q)) != SVP_OK) {
-                code = cli_fail(&run, st, NULL);
-                goto cleanup;
-            }
+            if ((st = svp_psf_field_params_at(job->fa, x, y, p)) != SVP_OK ||
+                (st = svp_psf_field_params_at(job->fb, x, y, q)) != SVP_OK)
+                return cli_fail(run, st, NULL);
             size_t i = (size_t)y * w + x;
             double df = (q[SVP_FIELD_FWHM] - p[SVP_FIELD_FWHM]) * um;
-            dfw->data[i] = df;
+            job->dfw->data[i] = df;
             max_df = fmax(max_df, fabs(df));
             sum_df += fabs(df);
             max_rel = fmax(max_rel, fabs(df) / (p[SVP_FIELD_FWHM] * um));
@@ -188,12 +210,12 @@ int cmd_psf_compare(int argc, char **argv)
                 max_db = fmax(max_db, fabs(db));
                 sum_db += fabs(db);
             }
-            dbe->data[i] = db;
+            job->dbe->data[i] = db;
             max_de = fmax(max_de, hypot(q[SVP_FIELD_E1] - p[SVP_FIELD_E1],
                                         q[SVP_FIELD_E2] - p[SVP_FIELD_E2]));
         }
     const double n_px = (double)w * h;
-    printf("PSF maps %s (A) and %s (B), %d x %d field, pixel %g um:\n", pa, pb, w, h, um);
+    printf("PSF maps %s (A) and %s (B), %d x %d field, pixel %g um:\n", a->pa, a->pb, w, h, um);
     printf("  |dFWHM|  max %.5f um (%.2f %% of A), mean %.5f um\n", max_df, 100 * max_rel,
            sum_df / n_px);
     if (beta_comparable)
@@ -201,31 +223,23 @@ int cmd_psf_compare(int argc, char **argv)
     else
         printf("  |dbeta|  not compared (a Gaussian map has no beta; dbeta is NaN)\n");
     printf("  |de|     max %.4f\n", max_de);
-    cli_result_num(&run, "max_abs_dfwhm_um", max_df);
-    cli_result_num(&run, "mean_abs_dfwhm_um", sum_df / n_px);
-    cli_result_num(&run, "max_rel_dfwhm", max_rel);
+    cli_result_num(run, "max_abs_dfwhm_um", max_df);
+    cli_result_num(run, "mean_abs_dfwhm_um", sum_df / n_px);
+    cli_result_num(run, "max_rel_dfwhm", max_rel);
     if (beta_comparable) {
-        cli_result_num(&run, "max_abs_dbeta", max_db);
-        cli_result_num(&run, "mean_abs_dbeta", sum_db / n_px);
+        cli_result_num(run, "max_abs_dbeta", max_db);
+        cli_result_num(run, "mean_abs_dbeta", sum_db / n_px);
     }
-    cli_result_num(&run, "max_abs_de", max_de);
+    cli_result_num(run, "max_abs_de", max_de);
+    job->max_df = max_df;
+    job->max_db = max_db;
+    return 0;
+}
 
-    /* ---- 2. the reference scene ---- */
-    cli_stage_begin(&run, "scene");
-    const int n = scene_n, ox = (w - n) / 2, oy = (h - n) / 2;
-    if ((st = window_field(fa, ox, oy, n, &wa)) != SVP_OK ||
-        (st = window_field(fb, ox, oy, n, &wb)) != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
-    svp_image **imgs[] = {&btrue, &pltrue, &plapp, &bapp, &plc, &bc_a, &bc_b};
-    for (size_t k = 0; k < sizeof imgs / sizeof imgs[0]; k++)
-        if ((st = svp_image_new(n, n, imgs[k])) != SVP_OK) {
-            code = cli_fail(&run, st, NULL);
-            goto cleanup;
-        }
-    /* flake: a square of side n/2 with edges smoothed over 1 px; a -0.4 mT rim decaying over
-     * n/16 px outside it; PL 0.3 on the flake */
+/* The reference scene's truth: a flake, a square of side n/2 with edges smoothed over 1 px;
+ * a -0.4 mT rim decaying over n/16 px outside it; PL 0.3 on the flake. */
+static void flake_scene(int n, svp_image *btrue, svp_image *pltrue)
+{
     for (int y = 0; y < n; y++)
         for (int x = 0; x < n; x++) {
             double dx = fabs(x - 0.5 * (n - 1)) - 0.25 * n, dy = fabs(y - 0.5 * (n - 1)) - 0.25 * n;
@@ -235,34 +249,59 @@ int cmd_psf_compare(int argc, char **argv)
             btrue->data[(size_t)y * n + x] = inside + rim;
             pltrue->data[(size_t)y * n + x] = 1.0 - 0.7 * inside;
         }
+}
+
+/* The scene blurred with A, corrected with A and with B. */
+static int psf_compare_transforms(cli_run *run, struct psf_compare_job *job)
+{
+    const int n = job->scene_n;
     svp_variant_options vo;
     svp_variant_defaults(&vo);
     svp_correct_options co, cb;
     svp_correct_defaults(&co);
     /* the two corrections are the long part: each reports half of the stage's progress */
-    svp_progress_share half_a = {cli_progress, &run, 0.0, 0.5},
-                       half_b = {cli_progress, &run, 0.5, 0.5};
+    svp_progress_share half_a = {cli_progress, run, 0.0, 0.5},
+                       half_b = {cli_progress, run, 0.5, 0.5};
     cb = co;
     co.deconv.progress = cb.deconv.progress = svp_progress_share_fn;
     co.deconv.progress_user = &half_a;
     cb.deconv.progress_user = &half_b;
-    cli_progress_start(&run, "reference scene");
-    if ((st = svp_blur_new_field(wa, n, n, SVP_BOUNDARY_ZERO, &vo, &ha)) != SVP_OK ||
-        (st = svp_blur_new_field(wb, n, n, SVP_BOUNDARY_ZERO, &vo, &hb)) != SVP_OK ||
-        (st = svp_forward_transform(ha, pltrue, (const svp_image *const *)&btrue, 1, plapp, &bapp,
-                                    NULL)) != SVP_OK ||
-        (st = svp_inverse_transform(ha, plapp, (const svp_image *const *)&bapp, 1, &co, plc, &bc_a,
-                                    NULL, NULL)) != SVP_OK ||
-        (st = svp_inverse_transform(hb, plapp, (const svp_image *const *)&bapp, 1, &cb, plc, &bc_b,
-                                    NULL, NULL)) != SVP_OK) {
-        cli_progress_done(&run);
-        code = cli_fail(&run, st, "reference scene");
-        goto cleanup;
+    cli_progress_start(run, "reference scene");
+    svp_status st;
+    if ((st = svp_blur_new_field(job->wa, n, n, SVP_BOUNDARY_ZERO, &vo, &job->ha)) != SVP_OK ||
+        (st = svp_blur_new_field(job->wb, n, n, SVP_BOUNDARY_ZERO, &vo, &job->hb)) != SVP_OK ||
+        (st = svp_forward_transform(job->ha, job->pltrue, (const svp_image *const *)&job->btrue, 1,
+                                    job->plapp, &job->bapp, NULL)) != SVP_OK ||
+        (st = svp_inverse_transform(job->ha, job->plapp, (const svp_image *const *)&job->bapp, 1,
+                                    &co, job->plc, &job->bc_a, NULL, NULL)) != SVP_OK ||
+        (st = svp_inverse_transform(job->hb, job->plapp, (const svp_image *const *)&job->bapp, 1,
+                                    &cb, job->plc, &job->bc_b, NULL, NULL)) != SVP_OK) {
+        cli_progress_done(run);
+        return cli_fail(run, st, "reference scene");
     }
-    cli_progress_done(&run);
+    cli_progress_done(run);
+    return 0;
+}
+
+/* 2. The reference scene: how much the corrected field changes between A and B. */
+static int psf_compare_scene(cli_run *run, struct psf_compare_job *job)
+{
+    const int n = job->scene_n, ox = (job->w - n) / 2, oy = (job->h - n) / 2;
+    svp_status st;
+    int code;
+    cli_stage_begin(run, "scene");
+    if ((st = window_field(job->fa, ox, oy, n, &job->wa)) != SVP_OK ||
+        (st = window_field(job->fb, ox, oy, n, &job->wb)) != SVP_OK)
+        return cli_fail(run, st, NULL);
+    svp_image **imgs[] = {&job->btrue, &job->pltrue, &job->plapp, &job->bapp,
+                          &job->plc,   &job->bc_a,   &job->bc_b};
+    for (size_t k = 0; k < sizeof imgs / sizeof imgs[0]; k++)
+        if ((st = svp_image_new(n, n, imgs[k])) != SVP_OK) return cli_fail(run, st, NULL);
+    flake_scene(n, job->btrue, job->pltrue);
+    if ((code = psf_compare_transforms(run, job))) return code;
     double s_ab = 0, s_a = 0, s_at = 0, s_bt = 0, s_t = 0, m_ab = 0, m_t = 0;
     for (size_t i = 0; i < (size_t)n * n; i++) {
-        double a = bc_a->data[i], b = bc_b->data[i], t = btrue->data[i];
+        double a = job->bc_a->data[i], b = job->bc_b->data[i], t = job->btrue->data[i];
         s_ab += (b - a) * (b - a);
         s_a += a * a;
         s_at += (a - t) * (a - t);
@@ -278,48 +317,65 @@ int cmd_psf_compare(int argc, char **argv)
            "the field's peak\n",
            rel, m_ab / m_t);
     printf("  relative rms error to the truth: corrected with A %.4f, with B %.4f\n", rel_a, rel_b);
-    cli_result_num(&run, "scene_rel_rms_difference", rel);
-    cli_result_num(&run, "scene_max_difference_of_peak", m_ab / m_t);
-    cli_result_num(&run, "scene_rel_rms_error_a", rel_a);
-    cli_result_num(&run, "scene_rel_rms_error_b", rel_b);
+    cli_result_num(run, "scene_rel_rms_difference", rel);
+    cli_result_num(run, "scene_max_difference_of_peak", m_ab / m_t);
+    cli_result_num(run, "scene_rel_rms_error_a", rel_a);
+    cli_result_num(run, "scene_rel_rms_error_b", rel_b);
+    return 0;
+}
 
-    if (run.output) {
-        cli_stage_begin(&run, "write");
-        double lim_f = max_df > 0 ? max_df : 1e-6, lim_b = max_db > 0 ? max_db : 1e-6;
-        if ((code = cli_write_image(&run, out_dfw, dfw)) ||
-            (code = cli_write_image(&run, out_dbe, dbe)) ||
-            (code = cli_write_image(&run, out_ca, bc_a)) ||
-            (code = cli_write_image(&run, out_cb, bc_b)))
-            goto cleanup;
-        if ((st = scene_map_figure(png_dfw, dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
-                                   "FWHM of B - FWHM of A", "dFWHM (nm)", um, run.force)) !=
-                SVP_OK ||
-            (st = scene_map_figure(png_dbe, dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
-                                   "dbeta", um, run.force)) != SVP_OK) {
-            code = cli_fail(&run, st, "figures");
-            goto cleanup;
-        }
-        cli_stage_end(&run);
-        if ((code = cli_summary_write(&run, out_sum))) goto cleanup;
-        printf("svpsf psf-compare: maps and summary written to %s\n", run.output);
-    }
+/* With -o: the difference maps, the corrected fields, the figures and summary.json. */
+static int psf_compare_write(cli_run *run, struct psf_compare_job *job)
+{
+    const double um = job->um;
+    svp_status st;
+    int code;
+    cli_stage_begin(run, "write");
+    double lim_f = job->max_df > 0 ? job->max_df : 1e-6,
+           lim_b = job->max_db > 0 ? job->max_db : 1e-6;
+    if ((code = cli_write_image(run, job->out_dfw, job->dfw)) ||
+        (code = cli_write_image(run, job->out_dbe, job->dbe)) ||
+        (code = cli_write_image(run, job->out_ca, job->bc_a)) ||
+        (code = cli_write_image(run, job->out_cb, job->bc_b)))
+        return code;
+    if ((st = svp_figure_map(job->png_dfw, job->dfw, 1000, -lim_f * 1000, lim_f * 1000, 1,
+                               "FWHM of B - FWHM of A", "dFWHM (nm)", um, run->force)) != SVP_OK ||
+        (st = svp_figure_map(job->png_dbe, job->dbe, 1, -lim_b, lim_b, 1, "beta of B - beta of A",
+                               "dbeta", um, run->force)) != SVP_OK)
+        return cli_fail(run, st, "figures");
+    cli_stage_end(run);
+    if ((code = cli_summary_write(run, job->out_sum))) return code;
+    printf("svpsf psf-compare: maps and summary written to %s\n", run->output);
+    return 0;
+}
 
-cleanup:
-    svp_blur_free(ha);
-    svp_blur_free(hb);
-    svp_psf_field_free(fa);
-    svp_psf_field_free(fb);
-    svp_psf_field_free(wa);
-    svp_psf_field_free(wb);
-    svp_image_free(dfw);
-    svp_image_free(dbe);
-    svp_image_free(btrue);
-    svp_image_free(pltrue);
-    svp_image_free(plapp);
-    svp_image_free(bapp);
-    svp_image_free(plc);
-    svp_image_free(bc_a);
-    svp_image_free(bc_b);
-    scene_figures_cleanup();
-    return cli_run_finish(&run, code);
+static int run_psf_compare(cli_run *run, const struct psf_compare_args *a)
+{
+    struct psf_compare_job job;
+    memset(&job, 0, sizeof job);
+    int code = psf_compare_read(run, a, &job);
+    if (!code) code = psf_compare_parameters(run, a, &job);
+    if (!code) code = psf_compare_scene(run, &job);
+    if (!code && run->output) code = psf_compare_write(run, &job);
+    svp_blur_free(job.ha);
+    svp_blur_free(job.hb);
+    svp_psf_field_free(job.fa);
+    svp_psf_field_free(job.fb);
+    svp_psf_field_free(job.wa);
+    svp_psf_field_free(job.wb);
+    svp_image *imgs[] = {job.dfw,  job.dbe, job.btrue, job.pltrue, job.plapp,
+                         job.bapp, job.plc, job.bc_a,  job.bc_b};
+    for (size_t k = 0; k < sizeof imgs / sizeof imgs[0]; k++) svp_image_free(imgs[k]);
+    svp_figure_cleanup();
+    return code;
+}
+
+int cmd_psf_compare(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "psf-compare", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    struct psf_compare_args args;
+    int code = parse_psf_compare_args(&run, &args);
+    if (code == 0) code = run_psf_compare(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

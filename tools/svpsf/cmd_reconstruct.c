@@ -4,7 +4,7 @@
 #include "cli.h"
 
 #include "io/mat.h"
-#include "scene/scene_internal.h"
+#include "figure/figure.h"
 
 #include <limits.h>
 #include <math.h>
@@ -89,15 +89,106 @@ static int figure(cli_run *run, const char *dir, const char *name, const svp_ima
     char bar[128];
     snprintf(bar, sizeof bar, "%s", label);
     svp_status st =
-        scene_map_figure(path, img, scale, lo, m, diverging, title, bar, pixel_um, run->force);
+        svp_figure_map(path, img, scale, lo, m, diverging, title, bar, pixel_um, run->force);
     return st == SVP_OK ? 0 : cli_fail(run, st, path);
 }
 
-int cmd_reconstruct(int argc, char **argv)
+struct reconstruct_args {
+    const char *paths[3]; /* --bx, --by, --bz */
+    int quantity;         /* index in quantity_names, -1 when not given */
+    int unit, side, pad, window;
+    double pixel_um, standoff_nm, nv_nm, cutoff, thickness_nm;
+};
+
+/* What a run holds (released by run_reconstruct). */
+struct reconstruct_job {
+    svp_image *b[3], *out[3];
+    const char *out_path[3], *names[3], *summary;
+    int n_out, w, h;
+    svp_recon_options o;
+};
+
+static int reconstruct_option(cli_run *run, struct reconstruct_args *a, int c)
 {
-    cli_run run;
-    cli_run_init(&run, "reconstruct", argc, argv, CLI_COMMON_OUTPUT_DIR);
-    run.fft_measure = 0;
+    switch (c) {
+    case OPT_BX: a->paths[0] = optarg; return 0;
+    case OPT_BY: a->paths[1] = optarg; return 0;
+    case OPT_BZ: a->paths[2] = optarg; return 0;
+    case OPT_QUANTITY:
+        return cli_parse_choice(run, "--quantity", optarg, quantity_names, &a->quantity);
+    case OPT_UNIT: return cli_parse_choice(run, "--unit", optarg, unit_names, &a->unit);
+    case OPT_SIDE: {
+        static const char *const sides[] = {"above", "below", NULL};
+        return cli_parse_choice(run, "--side", optarg, sides, &a->side);
+    }
+    case OPT_PAD: return cli_parse_choice(run, "--pad", optarg, pad_names, &a->pad);
+    case OPT_NO_WINDOW: a->window = 0; return 0;
+    case OPT_PIXEL:
+    case OPT_STANDOFF:
+    case OPT_NV:
+    case OPT_CUTOFF:
+    case OPT_THICKNESS: {
+        const char *names[] = {"--pixel-um", "--standoff-nm", "--nv-thickness-nm",
+                               "--cutoff-per-um", "--thickness-nm"};
+        double *targets[] = {&a->pixel_um, &a->standoff_nm, &a->nv_nm, &a->cutoff,
+                             &a->thickness_nm};
+        int k = c == OPT_PIXEL      ? 0
+                : c == OPT_STANDOFF ? 1
+                : c == OPT_NV       ? 2
+                : c == OPT_CUTOFF   ? 3
+                                    : 4;
+        /* pixel, standoff and cutoff > 0; the thicknesses >= 0 */
+        return cli_parse_double_in(run, names[k], optarg, 0, k == 2 || k == 4, INFINITY, 0,
+                                   targets[k]);
+    }
+    default: return cli_error(run, "internal: option %d", c);
+    }
+}
+
+/* Which maps the quantity takes. */
+static int reconstruct_check_maps(const cli_run *run, const struct reconstruct_args *a)
+{
+    const char *const *paths = a->paths;
+    const int quantity = a->quantity;
+    if (quantity < 0)
+        return cli_error(run, "--quantity is required: magnetisation, current_from_bz or "
+                              "current_from_bxy");
+    if (quantity < 2 && !paths[2])
+        return cli_error(run, "--quantity %s needs --bz", quantity_names[quantity]);
+    if (quantity < 2 && (paths[0] || paths[1]))
+        return cli_error(run, "--quantity %s uses --bz only (drop --bx, --by)",
+                         quantity_names[quantity]);
+    if (quantity == 2 && !paths[0] && !paths[1])
+        return cli_error(run, "--quantity current_from_bxy needs --bx and/or --by");
+    if (quantity == 2 && paths[2])
+        return cli_error(run, "--quantity current_from_bxy uses --bx, --by (drop --bz, or use "
+                              "current_from_bz)");
+    return 0;
+}
+
+/* A QDMlab Bz file (.mat) holds the pixel size (`step`) and the stand-off (`h`): used when the
+ * options are not given (docs/cli.md, MATLAB / QDMlab files). */
+static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a)
+{
+    for (int k = 0; k < 3 && !(a->pixel_um > 0 && a->standoff_nm > 0); k++) {
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (!a->paths[k] ||
+            !svp_io_mat_path(a->paths[k], mfile, sizeof mfile, mvar, sizeof mvar, &bad))
+            continue;
+        svp_image *tmp = NULL;
+        svp_mat_info info;
+        svp_status st = svp_mat_read(a->paths[k], NULL, &tmp, &info);
+        svp_image_free(tmp);
+        if (st != SVP_OK) return cli_fail(run, st, a->paths[k]);
+        if (!(a->pixel_um > 0) && info.pixel_um > 0) a->pixel_um = info.pixel_um;
+        if (!(a->standoff_nm > 0) && info.standoff_um > 0) a->standoff_nm = info.standoff_um * 1e3;
+    }
+    return 0;
+}
+
+static int parse_reconstruct_args(cli_run *run, struct reconstruct_args *a)
+{
     static const struct option own[] = {
         {"bx", required_argument, NULL, OPT_BX},
         {"by", required_argument, NULL, OPT_BY},
@@ -114,209 +205,184 @@ int cmd_reconstruct(int argc, char **argv)
         {"thickness-nm", required_argument, NULL, OPT_THICKNESS},
         {NULL, 0, NULL, 0},
     };
-    const char *paths[3] = {NULL, NULL, NULL};
-    int quantity = -1, unit = 0, side = 0, pad = 0, window = 1;
-    double pixel_um = 0, standoff_nm = 0, nv_nm = 0, cutoff = 0, thickness_nm = 0;
-    svp_image *b[3] = {NULL, NULL, NULL}, *out[3] = {NULL, NULL, NULL};
-    const char *out_path[3] = {NULL, NULL, NULL};
-    int code = 0;
+    memset(a, 0, sizeof *a);
+    a->quantity = -1;
+    a->window = 1;
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        int bad = 0;
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_BX: paths[0] = optarg; break;
-        case OPT_BY: paths[1] = optarg; break;
-        case OPT_BZ: paths[2] = optarg; break;
-        case OPT_QUANTITY:
-            bad = cli_parse_choice(&run, "--quantity", optarg, quantity_names, &quantity);
-            break;
-        case OPT_UNIT: bad = cli_parse_choice(&run, "--unit", optarg, unit_names, &unit); break;
-        case OPT_SIDE: {
-            static const char *const sides[] = {"above", "below", NULL};
-            bad = cli_parse_choice(&run, "--side", optarg, sides, &side);
-            break;
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        if (c == CLI_OPTION_HELP) {
+            print_help(run, stdout);
+            return CLI_OPTION_HELP;
         }
-        case OPT_PAD: bad = cli_parse_choice(&run, "--pad", optarg, pad_names, &pad); break;
-        case OPT_NO_WINDOW: window = 0; break;
-        case OPT_PIXEL:
-        case OPT_STANDOFF:
-        case OPT_NV:
-        case OPT_CUTOFF:
-        case OPT_THICKNESS: {
-            const char *names[] = {"--pixel-um", "--standoff-nm", "--nv-thickness-nm",
-                                   "--cutoff-per-um", "--thickness-nm"};
-            double *targets[] = {&pixel_um, &standoff_nm, &nv_nm, &cutoff, &thickness_nm};
-            int k = c == OPT_PIXEL      ? 0
-                    : c == OPT_STANDOFF ? 1
-                    : c == OPT_NV       ? 2
-                    : c == OPT_CUTOFF   ? 3
-                                        : 4;
-            /* pixel, standoff and cutoff > 0; the thicknesses >= 0 */
-            bad = cli_parse_double_in(&run, names[k], optarg, 0, k == 2 || k == 4, INFINITY, 0,
-                                      targets[k]);
-            break;
-        }
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
-        }
-        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+        if (c == CLI_OPTION_ERROR || reconstruct_option(run, a, c)) return CLI_EXIT_USAGE;
     }
-    if (optind < argc)
-        return cli_run_finish(&run, cli_error(&run,
-                                              "unexpected argument '%s' (maps are given "
-                                              "with --bx, --by, --bz)",
-                                              argv[optind]));
-    if (quantity < 0)
-        return cli_run_finish(&run, cli_error(&run, "--quantity is required: magnetisation, "
-                                                    "current_from_bz or current_from_bxy"));
-    if (quantity < 2 && !paths[2])
-        return cli_run_finish(
-            &run, cli_error(&run, "--quantity %s needs --bz", quantity_names[quantity]));
-    if (quantity < 2 && (paths[0] || paths[1]))
-        return cli_run_finish(&run, cli_error(&run,
-                                              "--quantity %s uses --bz only (drop --bx, "
-                                              "--by)",
-                                              quantity_names[quantity]));
-    if (quantity == 2 && !paths[0] && !paths[1])
-        return cli_run_finish(&run, cli_error(&run, "--quantity current_from_bxy needs --bx "
-                                                    "and/or --by"));
-    if (quantity == 2 && paths[2])
-        return cli_run_finish(&run, cli_error(&run, "--quantity current_from_bxy uses --bx, --by "
-                                                    "(drop --bz, or use current_from_bz)"));
-    /* a QDMlab Bz file (.mat) holds the pixel size (`step`) and the stand-off (`h`): used when
-     * the options are not given (docs/cli.md, MATLAB / QDMlab files) */
-    for (int k = 0; k < 3 && !(pixel_um > 0 && standoff_nm > 0); k++) {
-        char mfile[PATH_MAX], mvar[64];
-        int bad = 0;
-        if (!paths[k] || !svp_io_mat_path(paths[k], mfile, sizeof mfile, mvar, sizeof mvar, &bad))
-            continue;
-        svp_image *tmp = NULL;
-        svp_mat_info info;
-        svp_status st = svp_mat_read(paths[k], NULL, &tmp, &info);
-        svp_image_free(tmp);
-        if (st != SVP_OK) return cli_run_finish(&run, cli_fail(&run, st, paths[k]));
-        if (!(pixel_um > 0) && info.pixel_um > 0) pixel_um = info.pixel_um;
-        if (!(standoff_nm > 0) && info.standoff_um > 0) standoff_nm = info.standoff_um * 1e3;
-    }
-    if (!(pixel_um > 0))
-        return cli_run_finish(&run, cli_error(&run, "--pixel-um is required (the map file "
-                                                    "holds no pixel size)"));
-    if (!(standoff_nm > 0))
-        return cli_run_finish(&run, cli_error(&run, "--standoff-nm is required (the map file "
-                                                    "holds no stand-off)"));
-    if (!run.output) return cli_run_finish(&run, cli_error(&run, "-o DIR is required"));
+    if (optind < run->argc)
+        return cli_error(run, "unexpected argument '%s' (maps are given with --bx, --by, --bz)",
+                         run->argv[optind]);
+    int code;
+    if ((code = reconstruct_check_maps(run, a)) || (code = reconstruct_mat_geometry(run, a)))
+        return code;
+    if (!(a->pixel_um > 0))
+        return cli_error(run, "--pixel-um is required (the map file holds no pixel size)");
+    if (!(a->standoff_nm > 0))
+        return cli_error(run, "--standoff-nm is required (the map file holds no stand-off)");
+    if (!run->output) return cli_error(run, "-o DIR is required");
+    return 0;
+}
 
-    cli_stage_begin(&run, "read");
-    const char *roles[3] = {"bx", "by", "bz"};
+/* The maps (in tesla, all one size), the outputs planned, the sensor checked, the settings. */
+static int reconstruct_read(cli_run *run, const struct reconstruct_args *a,
+                            struct reconstruct_job *job)
+{
+    static const char *const roles[3] = {"bx", "by", "bz"};
     const svp_image *first = NULL;
     const char *first_path = NULL, *first_role = NULL;
+    int code;
+    cli_stage_begin(run, "read");
     for (int k = 0; k < 3; k++) {
-        if (!paths[k]) continue;
-        if ((code = cli_read_image(&run, roles[k], paths[k], &b[k]))) goto cleanup;
-        for (size_t i = 0; i < (size_t)b[k]->width * b[k]->height; i++)
-            b[k]->data[i] *= unit_scale[unit];
-        if (first && (code = cli_check_same_size(&run, first, first_role, first_path, b[k],
-                                                 roles[k], paths[k])))
-            goto cleanup;
-        if (!first) first = b[k], first_path = paths[k], first_role = roles[k];
+        svp_image **b = &job->b[k];
+        if (!a->paths[k]) continue;
+        if ((code = cli_read_image(run, roles[k], a->paths[k], b))) return code;
+        for (size_t i = 0; i < (size_t)(*b)->width * (*b)->height; i++)
+            (*b)->data[i] *= unit_scale[a->unit];
+        if (first && (code = cli_check_same_size(run, first, first_role, first_path, *b, roles[k],
+                                                 a->paths[k])))
+            return code;
+        if (!first) first = *b, first_path = a->paths[k], first_role = roles[k];
     }
-    const int w = first->width, h = first->height;
-    const char *names[3];
-    int n_out;
-    if (quantity == 0) {
-        names[0] = "m_z";
-        n_out = 1;
+    job->w = first->width;
+    job->h = first->height;
+    if (a->quantity == 0) {
+        job->names[0] = "m_z";
+        job->n_out = 1;
     } else {
-        names[0] = "J_x", names[1] = "J_y", names[2] = "J_norm";
-        n_out = 3;
+        job->names[0] = "J_x", job->names[1] = "J_y", job->names[2] = "J_norm";
+        job->n_out = 3;
     }
-    for (int k = 0; k < n_out; k++) out_path[k] = cli_output_in_dir(&run, names[k], names[k], 1);
+    for (int k = 0; k < job->n_out; k++)
+        job->out_path[k] = cli_output_in_dir(run, job->names[k], job->names[k], 1);
     char fig[3][64];
-    for (int k = 0; k < n_out; k++) {
-        snprintf(fig[k], sizeof fig[k], "%s.png", names[k]);
-        cli_output_in_dir(&run, fig[k], fig[k], 0);
+    for (int k = 0; k < job->n_out; k++) {
+        snprintf(fig[k], sizeof fig[k], "%s.png", job->names[k]);
+        cli_output_in_dir(run, fig[k], fig[k], 0);
     }
-    const char *summary = cli_output_in_dir(&run, "summary", "summary.json", 0);
-    if ((code = cli_outputs_check(&run))) goto cleanup;
+    job->summary = cli_output_in_dir(run, "summary", "summary.json", 0);
+    return cli_outputs_check(run);
+}
 
-    svp_recon_options o;
-    svp_recon_defaults(&o);
-    o.sensor.pixel_m = pixel_um * 1e-6;
-    o.sensor.standoff_m = standoff_nm * 1e-9;
-    o.sensor.nv_thickness_m = nv_nm * 1e-9;
-    o.sensor.side = side ? -1 : 1;
-    o.cutoff = cutoff * 1e6;
-    o.window = window;
-    o.pad = (svp_pad_mode)pad;
-    o.source_thickness_m = thickness_nm * 1e-9;
-    svp_status st = svp_sensor_validate(&o.sensor);
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
-    cli_setting_str(&run, "quantity", quantity_names[quantity]);
-    cli_setting_str(&run, "unit", unit_names[unit]);
-    cli_setting_num(&run, "pixel_um", pixel_um);
-    cli_setting_num(&run, "standoff_nm", standoff_nm);
-    cli_setting_num(&run, "nv_thickness_nm", nv_nm);
-    cli_setting_str(&run, "side", side ? "below" : "above");
-    cli_setting_num(&run, "cutoff_per_um", cutoff > 0 ? cutoff : 2 * M_PI / (standoff_nm * 1e-3));
-    cli_setting_int(&run, "window", window);
-    cli_setting_str(&run, "pad", pad_names[pad]);
+/* The sensor and the reconstruction's options from the arguments; the settings recorded. */
+static int reconstruct_options(cli_run *run, const struct reconstruct_args *a,
+                               struct reconstruct_job *job)
+{
+    svp_recon_options *o = &job->o;
+    svp_recon_defaults(o);
+    o->sensor.pixel_m = a->pixel_um * 1e-6;
+    o->sensor.standoff_m = a->standoff_nm * 1e-9;
+    o->sensor.nv_thickness_m = a->nv_nm * 1e-9;
+    o->sensor.side = a->side ? -1 : 1;
+    o->cutoff = a->cutoff * 1e6;
+    o->window = a->window;
+    o->pad = (svp_pad_mode)a->pad;
+    o->source_thickness_m = a->thickness_nm * 1e-9;
+    svp_status st = svp_sensor_validate(&o->sensor);
+    if (st != SVP_OK) return cli_fail(run, st, NULL);
+    cli_setting_str(run, "quantity", quantity_names[a->quantity]);
+    cli_setting_str(run, "unit", unit_names[a->unit]);
+    cli_setting_num(run, "pixel_um", a->pixel_um);
+    cli_setting_num(run, "standoff_nm", a->standoff_nm);
+    cli_setting_num(run, "nv_thickness_nm", a->nv_nm);
+    cli_setting_str(run, "side", a->side ? "below" : "above");
+    cli_setting_num(run, "cutoff_per_um",
+                    a->cutoff > 0 ? a->cutoff : 2 * M_PI / (a->standoff_nm * 1e-3));
+    cli_setting_int(run, "window", a->window);
+    cli_setting_str(run, "pad", pad_names[a->pad]);
+    return 0;
+}
 
-    cli_stage_begin(&run, "reconstruct");
-    for (int k = 0; k < n_out && st == SVP_OK; k++) st = svp_image_new(w, h, &out[k]);
+/* The source maps, |J|, and each map's mean and peak. */
+static int reconstruct_compute(cli_run *run, const struct reconstruct_args *a,
+                               struct reconstruct_job *job)
+{
+    const int w = job->w, h = job->h;
+    svp_image **b = job->b, **out = job->out;
+    svp_status st = SVP_OK;
+    cli_stage_begin(run, "reconstruct");
+    for (int k = 0; k < job->n_out && st == SVP_OK; k++) st = svp_image_new(w, h, &out[k]);
     if (st == SVP_OK) {
-        if (quantity == 0)
-            st = svp_reconstruct_magnetisation(b[2], &o, out[0]);
-        else if (quantity == 1)
-            st = svp_reconstruct_current_from_bz(b[2], &o, out[0], out[1]);
+        if (a->quantity == 0)
+            st = svp_reconstruct_magnetisation(b[2], &job->o, out[0]);
+        else if (a->quantity == 1)
+            st = svp_reconstruct_current_from_bz(b[2], &job->o, out[0], out[1]);
         else
-            st = svp_reconstruct_current_from_bxy(b[0], b[1], &o, b[1] ? out[0] : NULL,
+            st = svp_reconstruct_current_from_bxy(b[0], b[1], &job->o, b[1] ? out[0] : NULL,
                                                   b[0] ? out[1] : NULL);
     }
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, NULL);
-        goto cleanup;
-    }
-    if (quantity > 0)
+    if (st != SVP_OK) return cli_fail(run, st, NULL);
+    if (a->quantity > 0)
         for (size_t i = 0; i < (size_t)w * h; i++)
             out[2]->data[i] = hypot(out[0]->data[i], out[1]->data[i]);
-    for (int k = 0; k < n_out; k++) {
+    for (int k = 0; k < job->n_out; k++) {
         double mean = 0, peak = 0;
         for (size_t i = 0; i < (size_t)w * h; i++) {
             mean += out[k]->data[i];
             peak = fmax(peak, fabs(out[k]->data[i]));
         }
         char key[64];
-        snprintf(key, sizeof key, "%s_mean", names[k]);
-        cli_result_num(&run, key, mean / ((double)w * h));
-        snprintf(key, sizeof key, "%s_peak_abs", names[k]);
-        cli_result_num(&run, key, peak);
+        snprintf(key, sizeof key, "%s_mean", job->names[k]);
+        cli_result_num(run, key, mean / ((double)w * h));
+        snprintf(key, sizeof key, "%s_peak_abs", job->names[k]);
+        cli_result_num(run, key, peak);
     }
+    return 0;
+}
 
-    cli_stage_begin(&run, "write");
-    for (int k = 0; k < n_out; k++) {
-        if ((code = cli_write_image(&run, out_path[k], out[k]))) goto cleanup;
+/* Each map and its figure, summary.json, the line on stdout. */
+static int reconstruct_write(cli_run *run, const struct reconstruct_args *a,
+                             struct reconstruct_job *job)
+{
+    int code;
+    cli_stage_begin(run, "write");
+    for (int k = 0; k < job->n_out; k++) {
+        if ((code = cli_write_image(run, job->out_path[k], job->out[k]))) return code;
         int is_norm = k == 2;
         char label[64];
-        snprintf(label, sizeof label, "%s (%s)", names[k], quantity == 0 ? "mA" : "A/m");
-        if ((code = figure(&run, run.output, names[k], out[k], quantity == 0 ? 1e3 : 1, label,
-                           pixel_um, !is_norm)))
-            goto cleanup;
+        snprintf(label, sizeof label, "%s (%s)", job->names[k], a->quantity == 0 ? "mA" : "A/m");
+        if ((code = figure(run, run->output, job->names[k], job->out[k], a->quantity == 0 ? 1e3 : 1,
+                           label, a->pixel_um, !is_norm)))
+            return code;
     }
-    cli_stage_end(&run);
-    if ((code = cli_summary_write(&run, summary))) goto cleanup;
+    cli_stage_end(run);
+    if ((code = cli_summary_write(run, job->summary))) return code;
     printf("svpsf reconstruct: %s from %d x %d map%s (pixel %g um, standoff %g nm) written to %s\n",
-           quantity_names[quantity], w, h, quantity == 2 && b[0] && b[1] ? "s" : "", pixel_um,
-           standoff_nm, run.output);
+           quantity_names[a->quantity], job->w, job->h,
+           a->quantity == 2 && job->b[0] && job->b[1] ? "s" : "", a->pixel_um, a->standoff_nm,
+           run->output);
+    return 0;
+}
 
-cleanup:
+static int run_reconstruct(cli_run *run, const struct reconstruct_args *a)
+{
+    struct reconstruct_job job;
+    memset(&job, 0, sizeof job);
+    int code = reconstruct_read(run, a, &job);
+    if (!code) code = reconstruct_options(run, a, &job);
+    if (!code) code = reconstruct_compute(run, a, &job);
+    if (!code) code = reconstruct_write(run, a, &job);
     for (int k = 0; k < 3; k++) {
-        svp_image_free(b[k]);
-        svp_image_free(out[k]);
+        svp_image_free(job.b[k]);
+        svp_image_free(job.out[k]);
     }
-    scene_figures_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
-    return cli_run_finish(&run, code);
+    svp_figure_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
+    return code;
+}
+
+int cmd_reconstruct(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "reconstruct", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    run.fft_measure = 0;
+    struct reconstruct_args args;
+    int code = parse_reconstruct_args(&run, &args);
+    if (code == 0) code = run_reconstruct(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

@@ -239,10 +239,99 @@ static int write_transform(cli_run *run, const char *path, const transform_doc *
     return code;
 }
 
-int cmd_register(int argc, char **argv)
+struct register_args {
+    const char *reference_path, *moving_path; /* REFERENCE, MOVING */
+    const char *warp_path;                    /* --warp */
+    const char *warp_out;                     /* -o with --warp: the warped image */
+    const char *transform_path;               /* --transform-out, or -o without --warp */
+    const char *contrast_option;              /* "--invert" / "--no-invert" as given */
+    int method, motion, interp;               /* indices in the name tables */
+    int border_given, keep_doubtful;
+    double border;            /* --border (NaN for "nan") */
+    svp_register_options opt; /* the library's options, filled from the above */
+};
+
+/* What a run holds (released by run_register). */
+struct register_job {
+    svp_image *reference, *moving, *to_warp, *warped;
+    svp_register_options opt;
+    svp_register_result r;
+};
+
+static int register_option(cli_run *run, struct register_args *a, int c)
 {
-    cli_run run;
-    cli_run_init(&run, "register", argc, argv, CLI_COMMON_OUTPUT);
+    svp_register_options *opt = &a->opt;
+    switch (c) {
+    case OPT_METHOD: return cli_parse_choice(run, "--method", optarg, method_names, &a->method);
+    case OPT_MOTION: return cli_parse_choice(run, "--motion", optarg, motion_names, &a->motion);
+    case OPT_WARP: a->warp_path = optarg; return 0;
+    case OPT_TRANSFORM_OUT: a->transform_path = optarg; return 0;
+    case OPT_INTERP: return cli_parse_choice(run, "--interp", optarg, interp_names, &a->interp);
+    case OPT_BORDER:
+        a->border_given = 1;
+        if (strcasecmp(optarg, "nan") == 0) {
+            a->border = NAN;
+            return 0;
+        }
+        return cli_parse_double(run, "--border", optarg, &a->border);
+    case OPT_SMOOTH:
+        return cli_parse_double_in(run, "--smooth", optarg, 0, 1, INFINITY, 0, &opt->smooth_sigma);
+    case OPT_NO_WINDOW: opt->window = 0; return 0;
+    case OPT_ITERATIONS:
+        return cli_parse_int(run, "--iterations", optarg, 2, 1000000, &opt->iterations);
+    case OPT_EPSILON:
+        return cli_parse_double_in(run, "--epsilon", optarg, 0, 0, INFINITY, 0, &opt->epsilon);
+    case OPT_INVERT:
+    case OPT_NO_INVERT: {
+        const char *name = c == OPT_INVERT ? "--invert" : "--no-invert";
+        if (a->contrast_option && strcmp(a->contrast_option, name) != 0)
+            return cli_error(run, "%s and %s: give one", a->contrast_option, name);
+        a->contrast_option = name;
+        opt->contrast = c == OPT_INVERT ? SVP_CONTRAST_INVERTED : SVP_CONTRAST_SAME;
+        return 0;
+    }
+    case OPT_KEEP_DOUBTFUL: a->keep_doubtful = 1; return 0;
+    default: return cli_error(run, "internal: option %d", c);
+    }
+}
+
+/* The method and motion, then the outputs: -o is the warped image with --warp, else the
+ * transform file. */
+static int register_check(cli_run *run, struct register_args *a)
+{
+    svp_register_options *opt = &a->opt;
+    opt->method = a->method == 1 ? SVP_REGISTER_ECC : SVP_REGISTER_PHASE;
+    if (a->motion < 0) a->motion = opt->method == SVP_REGISTER_ECC ? 2 : 0;
+    opt->motion = (svp_register_motion)a->motion;
+    if (opt->method == SVP_REGISTER_PHASE && opt->motion != SVP_MOTION_TRANSLATION)
+        return cli_error(run,
+                         "--motion %s needs --method ecc (phase correlation finds a translation "
+                         "only)",
+                         motion_names[a->motion]);
+    if (a->warp_path) {
+        if (!run->output)
+            return cli_error(run, "--warp %s needs -o OUT for the warped image", a->warp_path);
+        svp_file_format f = cli_format_of_path(run->output);
+        if (f == SVP_FORMAT_AUTO || f == SVP_FORMAT_PNG16)
+            return cli_error(run, "-o %s: the warped image needs a .tif, .npy, .txt or .mat name",
+                             run->output);
+        a->warp_out = run->output;
+    } else if (run->output) {
+        if (a->transform_path)
+            return cli_error(run,
+                             "-o %s and --transform-out %s: without --warp both name the "
+                             "transform file; give one",
+                             run->output, a->transform_path);
+        a->transform_path = run->output;
+    }
+    if (a->transform_path && !is_transform_path(a->transform_path))
+        return cli_error(run, "%s: the transform file needs a .json, .yaml or .yml name",
+                         a->transform_path);
+    return 0;
+}
+
+static int parse_register_args(cli_run *run, struct register_args *a)
+{
     static const struct option own[] = {
         {"method", required_argument, NULL, OPT_METHOD},
         {"motion", required_argument, NULL, OPT_MOTION},
@@ -259,221 +348,180 @@ int cmd_register(int argc, char **argv)
         {"keep-doubtful", no_argument, NULL, OPT_KEEP_DOUBTFUL},
         {NULL, 0, NULL, 0},
     };
-    svp_register_options opt;
-    svp_register_defaults(&opt);
-    int method = 0, motion = -1, interp = 0, border_given = 0, keep_doubtful = 0;
-    const char *contrast_option = NULL;
-    double border = 0;
-    const char *warp_path = NULL, *transform_path = NULL;
-    svp_image *reference = NULL, *moving = NULL, *to_warp = NULL, *warped = NULL;
-    int code = 0;
-
+    memset(a, 0, sizeof *a);
+    svp_register_defaults(&a->opt);
+    a->motion = -1;
     int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        int bad = 0;
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_METHOD:
-            bad = cli_parse_choice(&run, "--method", optarg, method_names, &method);
-            break;
-        case OPT_MOTION:
-            bad = cli_parse_choice(&run, "--motion", optarg, motion_names, &motion);
-            break;
-        case OPT_WARP: warp_path = optarg; break;
-        case OPT_TRANSFORM_OUT: transform_path = optarg; break;
-        case OPT_INTERP:
-            bad = cli_parse_choice(&run, "--interp", optarg, interp_names, &interp);
-            break;
-        case OPT_BORDER:
-            border_given = 1;
-            if (strcasecmp(optarg, "nan") == 0)
-                border = NAN;
-            else if (cli_parse_double(&run, "--border", optarg, &border))
-                return cli_run_finish(&run, CLI_EXIT_USAGE);
-            break;
-        case OPT_SMOOTH:
-            bad =
-                cli_parse_double_in(&run, "--smooth", optarg, 0, 1, INFINITY, 0, &opt.smooth_sigma);
-            break;
-        case OPT_NO_WINDOW: opt.window = 0; break;
-        case OPT_ITERATIONS:
-            bad = cli_parse_int(&run, "--iterations", optarg, 2, 1000000, &opt.iterations);
-            break;
-        case OPT_EPSILON:
-            bad = cli_parse_double_in(&run, "--epsilon", optarg, 0, 0, INFINITY, 0, &opt.epsilon);
-            break;
-        case OPT_INVERT:
-        case OPT_NO_INVERT: {
-            const char *name = c == OPT_INVERT ? "--invert" : "--no-invert";
-            if (contrast_option && strcmp(contrast_option, name) != 0)
-                return cli_run_finish(&run, cli_error(&run, "%s and %s: give one", contrast_option,
-                                                      name));
-            contrast_option = name;
-            opt.contrast = c == OPT_INVERT ? SVP_CONTRAST_INVERTED : SVP_CONTRAST_SAME;
-            break;
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        if (c == CLI_OPTION_HELP) {
+            print_help(run, stdout);
+            return CLI_OPTION_HELP;
         }
-        case OPT_KEEP_DOUBTFUL: keep_doubtful = 1; break;
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
-        }
-        if (bad) return cli_run_finish(&run, CLI_EXIT_USAGE);
+        if (c == CLI_OPTION_ERROR || register_option(run, a, c)) return CLI_EXIT_USAGE;
     }
-    if (argc - optind < 2)
-        return cli_run_finish(&run, cli_error(&run, "REFERENCE and MOVING images are required "
-                                              "(see --help)"));
-    if (argc - optind > 2)
-        return cli_run_finish(&run, cli_error(&run, "unexpected argument '%s'",
-                                              argv[optind + 2]));
-    const char *reference_path = argv[optind], *moving_path = argv[optind + 1];
+    if (run->argc - optind < 2)
+        return cli_error(run, "REFERENCE and MOVING images are required (see --help)");
+    if (run->argc - optind > 2)
+        return cli_error(run, "unexpected argument '%s'", run->argv[optind + 2]);
+    a->reference_path = run->argv[optind];
+    a->moving_path = run->argv[optind + 1];
     /* a handful of transforms of one size: measuring plans would cost more than it saves */
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
+    return register_check(run, a);
+}
 
-    opt.method = method == 1 ? SVP_REGISTER_ECC : SVP_REGISTER_PHASE;
-    if (motion < 0) motion = opt.method == SVP_REGISTER_ECC ? 2 : 0;
-    opt.motion = (svp_register_motion)motion;
-    if (opt.method == SVP_REGISTER_PHASE && opt.motion != SVP_MOTION_TRANSLATION)
-        return cli_run_finish(&run, cli_error(&run, "--motion %s needs --method ecc (phase "
-                                              "correlation finds a translation only)",
-                                              motion_names[motion]));
+/* The pair (same size), the image to warp; the outputs planned and checked. */
+static int register_read(cli_run *run, const struct register_args *a, struct register_job *job)
+{
+    int code;
+    cli_stage_begin(run, "read");
+    if ((code = cli_read_image(run, "reference", a->reference_path, &job->reference))) return code;
+    if ((code = cli_read_image(run, "moving", a->moving_path, &job->moving))) return code;
+    if ((code = cli_check_same_size(run, job->reference, "reference", a->reference_path,
+                                    job->moving, "moving", a->moving_path)))
+        return code;
+    if (a->warp_path && (code = cli_read_image(run, "warp", a->warp_path, &job->to_warp)))
+        return code;
+    if (a->warp_out) cli_output_file(run, "warped", a->warp_out);
+    if (a->transform_path) cli_output_file(run, "transform", a->transform_path);
+    return cli_outputs_check(run);
+}
 
-    /* outputs: -o is the warped image with --warp, else the transform file */
-    const char *warp_out = NULL;
-    if (warp_path) {
-        if (!run.output)
-            return cli_run_finish(&run, cli_error(&run, "--warp %s needs -o OUT for the warped "
-                                                  "image",
-                                                  warp_path));
-        svp_file_format f = cli_format_of_path(run.output);
-        if (f == SVP_FORMAT_AUTO || f == SVP_FORMAT_PNG16)
-            return cli_run_finish(&run, cli_error(&run, "-o %s: the warped image needs a .tif, "
-                                                  ".npy, .txt or .mat name",
-                                                  run.output));
-        warp_out = run.output;
-    } else if (run.output) {
-        if (transform_path)
-            return cli_run_finish(&run, cli_error(&run, "-o %s and --transform-out %s: without "
-                                                  "--warp both name the transform file; give "
-                                                  "one",
-                                                  run.output, transform_path));
-        transform_path = run.output;
-    }
-    if (transform_path && !is_transform_path(transform_path))
-        return cli_run_finish(&run, cli_error(&run, "%s: the transform file needs a .json, "
-                                              ".yaml or .yml name",
-                                              transform_path));
-
-    cli_stage_begin(&run, "read");
-    if ((code = cli_read_image(&run, "reference", reference_path, &reference))) goto cleanup;
-    if ((code = cli_read_image(&run, "moving", moving_path, &moving))) goto cleanup;
-    if ((code = cli_check_same_size(&run, reference, "reference", reference_path, moving,
-                                    "moving", moving_path)))
-        goto cleanup;
-    if (warp_path && (code = cli_read_image(&run, "warp", warp_path, &to_warp))) goto cleanup;
-    if (warp_out) cli_output_file(&run, "warped", warp_out);
-    if (transform_path) cli_output_file(&run, "transform", transform_path);
-    if ((code = cli_outputs_check(&run))) goto cleanup;
-
-    cli_stage_begin(&run, "register");
-    if (opt.method == SVP_REGISTER_ECC) {
-        cli_progress_start(&run, "ECC");
-        opt.progress = cli_progress;
-        opt.progress_user = &run;
-    }
-    opt.reference_name = reference_path;
-    opt.moving_name = moving_path;
-    svp_register_result r;
-    svp_status st = svp_register(reference, moving, &opt, &r);
-    if (opt.method == SVP_REGISTER_ECC) cli_progress_done(&run);
-    if (st != SVP_OK) {
-        /* the library names an image by its file (options above); the fault is the pair's */
-        char pair[8192];
-        snprintf(pair, sizeof pair, "%s onto %s", moving_path, reference_path);
-        code = cli_fail(&run, st, pair);
-        goto cleanup;
-    }
-
-    const double *a = r.affine;
-    printf("registration of %s onto %s (%d x %d), %s, %s\n", moving_path, reference_path,
-           reference->width, reference->height,
-           opt.method == SVP_REGISTER_ECC ? "ECC" : "phase correlation", motion_names[motion]);
-    printf("  affine      x_moving = %.8g x_ref %+.8g y_ref %+.6f\n", a[0], a[1], a[2]);
-    printf("              y_moving = %.8g x_ref %+.8g y_ref %+.6f\n", a[3], a[4], a[5]);
+/* The transform as found, on stdout. */
+static void register_print(const struct register_args *a, const struct register_job *job)
+{
+    const svp_register_result *r = &job->r;
+    const double *m = r->affine;
+    const int ecc = job->opt.method == SVP_REGISTER_ECC;
+    printf("registration of %s onto %s (%d x %d), %s, %s\n", a->moving_path, a->reference_path,
+           job->reference->width, job->reference->height, ecc ? "ECC" : "phase correlation",
+           motion_names[a->motion]);
+    printf("  affine      x_moving = %.8g x_ref %+.8g y_ref %+.6f\n", m[0], m[1], m[2]);
+    printf("              y_moving = %.8g x_ref %+.8g y_ref %+.6f\n", m[3], m[4], m[5]);
     printf("              (reference -> moving pixel coordinates, pixel centres at integers)\n");
     printf("  shift       %+.4f %+.4f px (where the reference centre lies in the moving image, "
            "minus the centre)\n",
-           r.shift_x, r.shift_y);
-    printf("  rotation    %+.5f deg   scale %.6f\n", r.rotation * 180 / M_PI, r.scale);
+           r->shift_x, r->shift_y);
+    printf("  rotation    %+.5f deg   scale %.6f\n", r->rotation * 180 / M_PI, r->scale);
     printf("  residual    RMS %.4g (in standard deviations) over %.1f %% of the reference; "
            "correlation %.5f\n",
-           r.residual_rms, 100 * r.overlap, r.correlation);
-    if (isfinite(r.response))
-        printf("  phase peak  response %.3f, significance %.1f\n", r.response, r.significance);
-    if (opt.contrast != SVP_CONTRAST_AUTO)
-        printf("  contrast    %s (%s)\n", r.inverted ? "inverted" : "same", contrast_option);
-    else if (isfinite(r.significance_other))
+           r->residual_rms, 100 * r->overlap, r->correlation);
+    if (isfinite(r->response))
+        printf("  phase peak  response %.3f, significance %.1f\n", r->response, r->significance);
+    if (job->opt.contrast != SVP_CONTRAST_AUTO)
+        printf("  contrast    %s (%s)\n", r->inverted ? "inverted" : "same", a->contrast_option);
+    else if (isfinite(r->significance_other))
         printf("  contrast    %s (detected: the correlation's %s, significance %.1f, against "
                "%.1f for its %s)\n",
-               r.inverted ? "inverted" : "same", r.inverted ? "trough" : "peak", r.significance,
-               r.significance_other, r.inverted ? "peak" : "trough");
-    if (opt.method == SVP_REGISTER_ECC) printf("  ECC         %d iterations\n", r.iterations);
-    if (r.nonfinite_reference || r.nonfinite_moving)
+               r->inverted ? "inverted" : "same", r->inverted ? "trough" : "peak", r->significance,
+               r->significance_other, r->inverted ? "peak" : "trough");
+    if (ecc) printf("  ECC         %d iterations\n", r->iterations);
+    if (r->nonfinite_reference || r->nonfinite_moving)
         printf("  NaN/Inf     %zu reference and %zu moving pixels, filled from their neighbours "
                "for the estimate and left out of the residual\n",
-               r.nonfinite_reference, r.nonfinite_moving);
-    if (r.low_significance && !keep_doubtful) {
-        /* a result in doubt (docs/cli.md, exit status): printed above, nothing written */
-        cli_error(&run,
+               r->nonfinite_reference, r->nonfinite_moving);
+}
+
+/* The registration; a peak that is not significant is a result in doubt (docs/cli.md, exit
+ * status): printed, nothing written, unless --keep-doubtful. */
+static int register_compute(cli_run *run, const struct register_args *a, struct register_job *job)
+{
+    svp_register_options *opt = &job->opt;
+    cli_stage_begin(run, "register");
+    if (opt->method == SVP_REGISTER_ECC) {
+        cli_progress_start(run, "ECC");
+        opt->progress = cli_progress;
+        opt->progress_user = run;
+    }
+    opt->reference_name = a->reference_path;
+    opt->moving_name = a->moving_path;
+    svp_status st = svp_register(job->reference, job->moving, opt, &job->r);
+    if (opt->method == SVP_REGISTER_ECC) cli_progress_done(run);
+    if (st != SVP_OK) {
+        /* the library names an image by its file (options above); the fault is the pair's */
+        char pair[8192];
+        snprintf(pair, sizeof pair, "%s onto %s", a->moving_path, a->reference_path);
+        return cli_fail(run, st, pair);
+    }
+    register_print(a, job);
+    const svp_register_result *r = &job->r;
+    if (r->low_significance && !a->keep_doubtful) {
+        cli_error(run,
                   "%s onto %s: the phase-correlation peak is not significant (%.1f < %g): the "
                   "images may not overlap or share no texture, so the transform cannot be "
                   "vouched for; nothing written (check the pair%s; --keep-doubtful writes it)",
-                  moving_path, reference_path, r.significance, opt.min_significance,
-                  opt.contrast == SVP_CONTRAST_SAME ? "; without --no-invert the contrast is "
-                                                      "detected"
-                                                    : "");
-        code = CLI_EXIT_DOUBTFUL;
-        goto cleanup;
+                  a->moving_path, a->reference_path, r->significance, opt->min_significance,
+                  opt->contrast == SVP_CONTRAST_SAME ? "; without --no-invert the contrast is "
+                                                       "detected"
+                                                     : "");
+        return CLI_EXIT_DOUBTFUL;
     }
-    if (r.low_significance)
-        cli_warn(&run,
+    if (r->low_significance)
+        cli_warn(run,
                  "the phase-correlation peak is not significant (%.1f < %g): the images may not "
                  "overlap or share no texture; the transform is unreliable (--keep-doubtful: "
                  "written)",
-                 r.significance, opt.min_significance);
+                 r->significance, opt->min_significance);
+    return 0;
+}
 
-    if (warp_path) {
-        cli_stage_begin(&run, "warp");
-        const int labels = looks_like_labels(to_warp);
-        const svp_interpolation how =
-            interp == 1 || (interp == 0 && labels) ? SVP_INTERP_NEAREST : SVP_INTERP_LINEAR;
-        if (!border_given) border = how == SVP_INTERP_NEAREST ? 0 : NAN;
-        if ((st = svp_image_new(reference->width, reference->height, &warped)) != SVP_OK ||
-            (st = svp_warp(to_warp, a, how, border, warped)) != SVP_OK) {
-            code = cli_fail(&run, st, warp_path);
-            goto cleanup;
-        }
-        cli_stage_begin(&run, "write");
-        if ((code = cli_write_image(&run, warp_out, warped))) goto cleanup;
-        printf("  warped      %s (%d x %d) -> %s (%d x %d), %s interpolation%s, border %g\n",
-               warp_path, to_warp->width, to_warp->height, warp_out, warped->width,
-               warped->height, how == SVP_INTERP_NEAREST ? "nearest" : "linear",
-               interp == 0 ? (labels ? " (integer pixels: a label mask)"
-                                     : " (non-integer pixels: an image)")
-                           : "",
-               border);
-    }
-    if (transform_path) {
-        cli_stage_begin(&run, "write");
-        const transform_doc doc = {reference_path, moving_path, reference->width,
-                                   reference->height, &opt, &r};
-        if ((code = write_transform(&run, transform_path, &doc))) goto cleanup;
-        printf("  transform   written to %s\n", transform_path);
-    }
-    cli_stage_end(&run);
+/* --warp: the third image on the reference grid (nearest for a label mask, else linear). */
+static int register_warp(cli_run *run, const struct register_args *a, struct register_job *job)
+{
+    const svp_image *to_warp = job->to_warp;
+    int code;
+    cli_stage_begin(run, "warp");
+    const int labels = looks_like_labels(to_warp);
+    const svp_interpolation how =
+        a->interp == 1 || (a->interp == 0 && labels) ? SVP_INTERP_NEAREST : SVP_INTERP_LINEAR;
+    double border = a->border;
+    if (!a->border_given) border = how == SVP_INTERP_NEAREST ? 0 : NAN;
+    svp_status st;
+    if ((st = svp_image_new(job->reference->width, job->reference->height, &job->warped)) !=
+            SVP_OK ||
+        (st = svp_warp(to_warp, job->r.affine, how, border, job->warped)) != SVP_OK)
+        return cli_fail(run, st, a->warp_path);
+    cli_stage_begin(run, "write");
+    if ((code = cli_write_image(run, a->warp_out, job->warped))) return code;
+    printf("  warped      %s (%d x %d) -> %s (%d x %d), %s interpolation%s, border %g\n",
+           a->warp_path, to_warp->width, to_warp->height, a->warp_out, job->warped->width,
+           job->warped->height, how == SVP_INTERP_NEAREST ? "nearest" : "linear",
+           a->interp == 0
+               ? (labels ? " (integer pixels: a label mask)" : " (non-integer pixels: an image)")
+               : "",
+           border);
+    return 0;
+}
 
-cleanup:
-    svp_image_free(reference);
-    svp_image_free(moving);
-    svp_image_free(to_warp);
-    svp_image_free(warped);
-    return cli_run_finish(&run, code);
+static int run_register(cli_run *run, const struct register_args *a)
+{
+    struct register_job job;
+    memset(&job, 0, sizeof job);
+    job.opt = a->opt;
+    int code = register_read(run, a, &job);
+    if (!code) code = register_compute(run, a, &job);
+    if (!code && a->warp_path) code = register_warp(run, a, &job);
+    if (!code && a->transform_path) {
+        cli_stage_begin(run, "write");
+        const transform_doc doc = {a->reference_path,     a->moving_path, job.reference->width,
+                                   job.reference->height, &job.opt,       &job.r};
+        code = write_transform(run, a->transform_path, &doc);
+        if (!code) printf("  transform   written to %s\n", a->transform_path);
+    }
+    if (!code) cli_stage_end(run);
+    svp_image_free(job.reference);
+    svp_image_free(job.moving);
+    svp_image_free(job.to_warp);
+    svp_image_free(job.warped);
+    return code;
+}
+
+int cmd_register(int argc, char **argv)
+{
+    cli_run run;
+    cli_run_init(&run, "register", argc, argv, CLI_COMMON_OUTPUT);
+    struct register_args args;
+    int code = parse_register_args(&run, &args);
+    if (code == 0) code = run_register(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }

@@ -4,7 +4,7 @@
 #include "cli.h"
 #include "svpsf_version.h"
 
-#include "scene/scene_internal.h"
+#include "figure/figure.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -194,6 +194,6 @@ int cmd_simulate(int argc, char **argv)
 cleanup:
     svp_scene_result_free(result);
     svp_scene_free(scene);
-    scene_figures_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
+    svp_figure_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
     return cli_run_finish(&run, code);
 }
