@@ -363,6 +363,7 @@ int cmd_correct(int argc, char **argv)
     cli_setting_num(&run, "shift", opt.shift);
 
     cli_stage_begin(&run, "plan");
+    psf.variant.applications = cli_correct_applications(&opt, maps.n_fields); /* cost model */
     if ((code = cli_psf_blur(&run, &psf, w + 2 * opt.margin, h + 2 * opt.margin, maps.boundary,
                              &blur)))
         goto cleanup;
