@@ -18,6 +18,7 @@
  *       time and the max / rms error of the corrected field over lit pixels relative to the
  *       field's peak.
  *   bench_variant ops --map MAP.yaml [--reprs auto:1e-3,t8,r4x8,...] [--reps R] [--probes P]
+ *                     [--rl-reps R] [--ref-x X.npy --ref-y Y.npy]
  *       The operators of a PSF-map file (square, its own size, zero boundary): first the
  *       invariant operator of the centre PSF, then per representation (auto:TOL = chosen by
  *       the error budget TOL, tN = tent N x N, rR or rRxS = low rank R on S x S samples) what
@@ -27,7 +28,8 @@
  *       exact column rendered over the operator's whole support; --probes 0: none), with
  *       --ref-x X.npy --ref-y Y.npy the relative error of H X against Y (a reference's blur
  *       of X), and the time of one Richardson-Lucy iteration (best of R runs of 6 iterations
- *       minus best of R runs of 2, over 4) beside its bound, 2 (K + 1) real FFTs of the frame.
+ *       minus best of R runs of 2, over 4; R = --rl-reps, default --reps, 0: not timed) beside
+ *       its bound, 2 (K + 1) real FFTs of the frame.
  *   bench_variant params --map MAP.yaml --out STEM
  *       The map's FWHM (px) and beta at every pixel: STEM.fwhm.npy, STEM.beta.npy.
  *   bench_variant plot OUT.png [=TITLE] @LABEL t e t e ... [@LABEL t e ...]
@@ -554,6 +556,7 @@ static int cmd_ops(int argc, char **argv)
     const char *map = arg_str(argc, argv, "--map", NULL);
     const int reps = (int)arg_num(argc, argv, "--reps", 3);
     const int probes = (int)arg_num(argc, argv, "--probes", 12);
+    const int rl_reps = (int)arg_num(argc, argv, "--rl-reps", reps);
     const char *reprs_s = arg_str(argc, argv, "--reprs", "auto:1e-3");
     const char *ref_x = arg_str(argc, argv, "--ref-x", NULL);
     const char *ref_y = arg_str(argc, argv, "--ref-y", NULL);
@@ -579,7 +582,7 @@ static int cmd_ops(int argc, char **argv)
         timing tm;
         if (!time_interleaved(b, 1, x, y, xa, reps, &tm)) return fail("invariant operator");
         double rl_bound = NAN;
-        const double rl_it = rl_iteration(b, 1, x, xa, reps, &rl_bound);
+        const double rl_it = rl_reps > 0 ? rl_iteration(b, 1, x, xa, rl_reps, &rl_bound) : NAN;
         printf("{\"kind\": \"invariant\", \"label\": \"centre PSF\", \"K\": 1, \"size\": %d, "
                "\"build_s\": %.6g, \"apply_s\": %.6g, \"adjoint_s\": %.6g, \"ffts_s\": %.6g, "
                "\"rl_iteration_s\": %s, \"rl_bound_s\": %s, \"ref_error\": %s, "
@@ -623,7 +626,7 @@ static int cmd_ops(int argc, char **argv)
         if (!time_interleaved(b, K, x, y, xa, reps, &tm)) return fail(label);
         double t_probe = 0, rl_bound = NAN;
         const double err = probes > 0 ? probe_error(b, f, n, support, probes, &t_probe) : NAN;
-        const double rl_it = rl_iteration(b, K, x, xa, reps, &rl_bound);
+        const double rl_it = rl_reps > 0 ? rl_iteration(b, K, x, xa, rl_reps, &rl_bound) : NAN;
         const double rerr = ref_error(b, ref_x, ref_y);
         char chosen[64];
         if (in.representation == SVP_VARIANT_LOWRANK)
