@@ -12,11 +12,12 @@
  *                   carries both the truncated spectrum's tail and the interpolation between
  *                   the samples.
  * The cost model counts FFTs of the frame: an application and its adjoint are 2 (K + 1) for K
- * terms, times the expected number of applications, plus the build (a node or sample kernel
- * about one FFT, a low-rank sample 1.5, the Gram matrix S² m / (2 N log2 N)). The cheapest
- * candidate within the
- * budget and within the memory limit wins; when none meets the budget, the cheapest whose
- * error is within 1.25 x the smallest estimated. */
+ * terms, times the H + Hᵀ pairs the caller expects (options->applications: svpsf correct
+ * passes the count its method runs, e.g. 2 x 75 for --method r on one field), plus the build
+ * (a node or sample kernel about one FFT, a low-rank sample 1.5, the Gram matrix
+ * S² m / (2 N log2 N)). The cheapest candidate within the budget and within the memory limit
+ * wins; when none meets the budget, the cheapest whose error is within 1.25 x the smallest
+ * estimated. */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
@@ -93,8 +94,9 @@ static svp_status compact_kernel(const est_ctx *c, double x, double y, double *o
     double sum = 0;
     for (size_t i = 0; i < c->mc; i++) sum += out[i];
     if (!(sum > 0) || !isfinite(sum))
-        return svp_fail(SVP_ERR_NUMERIC, "PSF kernel at (%g, %g) has no flux on its %d x %d support",
-                        x, y, 2 * c->rc + 1, 2 * c->rc + 1);
+        return svp_fail(SVP_ERR_NUMERIC,
+                        "PSF kernel at (%g, %g) has no flux on its %d x %d support", x, y,
+                        2 * c->rc + 1, 2 * c->rc + 1);
     double R = c->support > 0 ? c->support : 0.0;
     double ee = svp_psf_encircled_energy(&psf, c->rc + 0.5, R);
     if (!(ee > 0 && ee <= 1)) /* heavy tails over the whole field: the image's extent */
