@@ -365,6 +365,7 @@ static int correct_compute(cli_run *run, struct correct_args *a, struct correct_
     const int w = maps->pl->width, h = maps->pl->height;
     int code;
     cli_stage_begin(run, "plan");
+    job->psf.variant.applications = cli_correct_applications(opt, maps->n_fields); /* cost model */
     if ((code = cli_psf_blur(run, &job->psf, w + 2 * opt->margin, h + 2 * opt->margin,
                              maps->boundary, &job->blur)))
         return code;

@@ -64,6 +64,7 @@ int cmd_forward(int argc, char **argv)
     const int w = maps.pl->width, h = maps.pl->height;
 
     cli_stage_begin(&run, "plan");
+    psf.variant.applications = 1; /* the cost model: one application each, no adjoint */
     if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
 
     cli_stage_begin(&run, "transform");
