@@ -494,7 +494,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
-    'double' | 'single'; acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
+    'double' | 'single' (default double, where `svpsf correct` takes single for r and
+    rl-signed with one PSF); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
     PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
     gain, offset of the PL's camera; field_sigma one σ map per field.
     None = the library's default (svp_correct_defaults: the program's defaults). psf as for

@@ -73,9 +73,10 @@ def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     plf = write(tmp_path, "pl_app.npy", apparent.pl)
     b1 = write(tmp_path, "Bx.npy", apparent.fields[0])
     b2 = write(tmp_path, "Bz.npy", apparent.fields[1])
-    # the CLI's default margin for r is auto, the library's (and so Python's) 0
+    # the CLI's default margin for r is auto and its precision single, the library's (and so
+    # Python's) 0 and double
     cli("correct", "--pl", plf, "--field", b1, "--field", b2, "--psf", pf, "-o",
-        tmp_path / "out", "--margin", "0", *COMMON, *args)
+        tmp_path / "out", "--margin", "0", "--precision", "double", *COMMON, *args)
     r = svpsf.correct(apparent.pl, apparent.fields, pf, **kwargs)
     out = tmp_path / "out"
     assert np.array_equal(r.pl, np.load(out / "pl.npy"))
