@@ -405,14 +405,14 @@ class Blur:
         return self._apply(lib.svp_blur_adjoint, y, out)
 
 
-def _blur_for(psf, shape, boundary, nodes, rank, applications=None):
+def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None):
     if isinstance(psf, Blur):
         if psf.shape != tuple(shape):
             raise ValueError("the Blur is for images of shape %s, the inputs are %s"
                              % (psf.shape, tuple(shape)))
         return psf
     return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank,
-                applications=applications)
+                operator_tol=operator_tol, applications=applications)
 
 
 def _correct_applications(opt, n_fields):
@@ -490,14 +490,15 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             pl_floor=None, shift=None, cg_max_steps=None, precision="double",
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
             keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
-            field_names=None):
+            field_names=None, operator_tol=1e-2):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
     'double' | 'single' (default double, where `svpsf correct` takes single for r and
     rl-signed with one PSF); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
     PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
-    gain, offset of the PL's camera; field_sigma one σ map per field.
+    gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
+    operator error budget (default 1e-2, as `svpsf correct`).
     None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
@@ -557,7 +558,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     opt.reports = reports
     h, w = pl.shape
     blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank,
-                     applications=_correct_applications(opt, len(fl)))
+                     applications=_correct_applications(opt, len(fl)),
+                     operator_tol=operator_tol)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
     val, val_i = imgs.out(pl.shape)

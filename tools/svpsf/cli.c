@@ -947,7 +947,7 @@ int cli_variant_option(const cli_run *run, svp_variant_options *variant, int opt
     return 0;
 }
 
-void cli_print_variant_help(FILE *out)
+void cli_print_variant_help(FILE *out, double default_tol)
 {
     fputs("PSF maps (--psf a PSF-map YAML file of kind grid, poly or regions; docs/cli.md):\n"
           "  --nodes NxM           tent node grid of the space-variant operator (default 8x8;\n"
@@ -955,9 +955,10 @@ void cli_print_variant_help(FILE *out)
           "  --rank R              use the low-rank (eigen-PSF) operator with R terms instead,\n"
           "                        the PSF sampled on the --nodes grid (R <= N M)\n"
           "  --operator-tol TOL    without --nodes / --rank: the cheapest tent grid or low rank\n"
-          "                        whose estimated relative operator error is <= TOL (default\n"
-          "                        1e-3; docs/model.md section 9)\n"
-          "  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
+          "                        whose estimated relative operator error is <= TOL (default\n",
+          out);
+    fprintf(out, "                        %g; docs/model.md section 9)\n", default_tol);
+    fputs("  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
           "                        $SVPSF_MAX_MEMORY, else the physical memory)\n",
           out);
 }

@@ -287,7 +287,8 @@ void cli_variant_defaults(svp_variant_options *variant);
 /* 0, or CLI_EXIT_USAGE after a message naming the option. */
 int cli_variant_option(const cli_run *run, svp_variant_options *variant, int option,
                        const char *arg);
-void cli_print_variant_help(FILE *out);
+/* default_tol: the command's --operator-tol default (forward 1e-3, correct 1e-2). */
+void cli_print_variant_help(FILE *out, double default_tol);
 /* " Operator: ..." for the report paragraph (the representation, its estimated error, build
  * time, the time of one application and adjoint when cli_psf_blur measured them, and memory);
  * "" for operators that are not space-variant. */

@@ -25,7 +25,7 @@ static void print_help(const cli_run *run, FILE *out)
           "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
           "                        PSF file's boundary, else zero)\n",
           out);
-    cli_print_variant_help(out);
+    cli_print_variant_help(out, 1e-3);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: pl.EXT (apparent PL), field.EXT (apparent field; field_<stem>.EXT\n"
