@@ -327,11 +327,14 @@ class Blur:
     svp_blur_new_kernel (a kernel image, normalised, centre at (w // 2, h // 2)) or
     svp_blur_new_field (a PSFMap: tent nodes, or rank R eigen-PSFs on the nodes grid, as
     `--nodes`/`--rank`; neither: the representation chosen by operator_tol, default 1e-3, as
-    `--operator-tol`). psf may also be a file name (read_psf); boundary None = the file's,
+    `--operator-tol`; applications: the H + Hᵀ pairs its cost model counts, default 50;
+    forward() and correct() pass what they run, as the program does). psf may also be a file
+    name (read_psf); boundary None = the file's,
     else 'zero'. Building it plans the FFTs once: reuse it for many images of one size. One
     Blur must not be used from two threads at once."""
 
-    def __init__(self, psf, shape, boundary=None, nodes=None, rank=None, operator_tol=None):
+    def __init__(self, psf, shape, boundary=None, nodes=None, rank=None, operator_tol=None,
+                 applications=None):
         if isinstance(psf, (str, bytes, os.PathLike)):
             f = read_psf(psf)
             psf = f.psf
@@ -352,6 +355,8 @@ class Blur:
                 v.representation = lib.SVP_VARIANT_TENT
             if operator_tol is not None:
                 v.tolerance = float(operator_tol)
+            if applications is not None:
+                v.applications = int(applications)
             if rank is not None:
                 v.representation = lib.SVP_VARIANT_LOWRANK
                 v.rank = int(rank)
@@ -400,13 +405,29 @@ class Blur:
         return self._apply(lib.svp_blur_adjoint, y, out)
 
 
-def _blur_for(psf, shape, boundary, nodes, rank):
+def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None):
     if isinstance(psf, Blur):
         if psf.shape != tuple(shape):
             raise ValueError("the Blur is for images of shape %s, the inputs are %s"
                              % (psf.shape, tuple(shape)))
         return psf
-    return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank)
+    return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank,
+                operator_tol=operator_tol, applications=applications)
+
+
+def _correct_applications(opt, n_fields):
+    """The H + Hᵀ pairs a correction runs, as `svpsf correct` counts them (docs/cli.md): RL
+    iterations per Richardson-Lucy deconvolution, about 40 CG steps per Wiener one of a
+    space-variant operator (17 solves with balance 'auto')."""
+    cg = 40 * (17 if opt.balance_auto else 1)
+    rl = opt.deconv.iterations
+    if opt.method == _METHODS["rw"]:
+        pairs = rl + n_fields * cg
+    elif opt.method == _METHODS["w"]:
+        pairs = (1 + n_fields) * cg
+    else:
+        pairs = (1 + n_fields) * rl
+    return max(1, min(pairs, 1000000))
 
 
 def _fields(fields, name):
@@ -440,7 +461,7 @@ def forward(pl, fields, psf, boundary=None, nodes=None, rank=None):
     pl = _input(pl, "pl")
     fl, single = _fields(fields, "field")
     _same_shape([pl] + fl, ["pl"] + ["field[%d]" % i for i in range(len(fl))])
-    blur = _blur_for(psf, pl.shape, boundary, nodes, rank)
+    blur = _blur_for(psf, pl.shape, boundary, nodes, rank, applications=1)
     imgs = _Images()
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
@@ -469,13 +490,15 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             pl_floor=None, shift=None, cg_max_steps=None, precision="double",
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
             keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
-            field_names=None):
+            field_names=None, operator_tol=1e-2):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
-    'double' | 'single'; acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
+    'double' | 'single' (default double, where `svpsf correct` takes single for r and
+    rl-signed with one PSF); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
     PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
-    gain, offset of the PL's camera; field_sigma one σ map per field.
+    gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
+    operator error budget (default 1e-2, as `svpsf correct`).
     None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
@@ -534,7 +557,9 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     opt.summary = summary
     opt.reports = reports
     h, w = pl.shape
-    blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank)
+    blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank,
+                     applications=_correct_applications(opt, len(fl)),
+                     operator_tol=operator_tol)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
     val, val_i = imgs.out(pl.shape)

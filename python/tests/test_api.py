@@ -73,9 +73,10 @@ def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     plf = write(tmp_path, "pl_app.npy", apparent.pl)
     b1 = write(tmp_path, "Bx.npy", apparent.fields[0])
     b2 = write(tmp_path, "Bz.npy", apparent.fields[1])
-    # the CLI's default margin for r is auto, the library's (and so Python's) 0
+    # the CLI's default margin for r is auto and its precision single, the library's (and so
+    # Python's) 0 and double
     cli("correct", "--pl", plf, "--field", b1, "--field", b2, "--psf", pf, "-o",
-        tmp_path / "out", "--margin", "0", *COMMON, *args)
+        tmp_path / "out", "--margin", "0", "--precision", "double", *COMMON, *args)
     r = svpsf.correct(apparent.pl, apparent.fields, pf, **kwargs)
     out = tmp_path / "out"
     assert np.array_equal(r.pl, np.load(out / "pl.npy"))
@@ -100,6 +101,27 @@ def test_correct_with_a_psf_map_and_missing_pixels_equals_cli(cli, tmp_path, map
     assert r.n_missing == 6
     assert np.array_equal(r.fields, np.load(tmp_path / "out" / "field.npy"))
     assert np.all(np.isfinite(r.fields))
+
+
+def test_automatic_representation_equals_cli(cli, tmp_path, maps):
+    """Without nodes / rank both choose the representation by operator_tol with the same cost
+    model (the H + Hᵀ pairs the command runs: 1 for forward, 2 x 10 for r at 10 iterations)."""
+    pl, field = maps
+    pf = write(tmp_path, "map.yaml", GRID)
+    cli("forward", "--pl", write(tmp_path, "pl0.npy", pl), "--field",
+        write(tmp_path, "B0.npy", field), "--psf", pf, "--operator-tol", "1e-2", "-o",
+        tmp_path / "fwd", *COMMON)
+    a = svpsf.forward(pl, field, svpsf.Blur(svpsf.read_psf(pf).psf, pl.shape,
+                                            operator_tol=1e-2, applications=1))
+    assert np.array_equal(a.pl, np.load(tmp_path / "fwd" / "pl.npy"))
+    cli("correct", "--pl", write(tmp_path, "pl.npy", a.pl), "--field",
+        write(tmp_path, "B.npy", a.fields), "--psf", pf, "--method", "r", "--iterations", "10",
+        "--margin", "0", "-o", tmp_path / "out", *COMMON)
+    r = svpsf.correct(a.pl, a.fields, pf, method="r", iterations=10)
+    assert np.array_equal(r.fields, np.load(tmp_path / "out" / "field.npy"))
+    settings = json.load(open(tmp_path / "out" / "summary.json"))["settings"]
+    assert settings["operator_applications"] == 20
+    assert settings["operator_apply_s"] > 0 and settings["operator_adjoint_s"] > 0
 
 
 @pytest.mark.parametrize("args, kwargs", [

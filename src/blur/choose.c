@@ -12,11 +12,12 @@
  *                   carries both the truncated spectrum's tail and the interpolation between
  *                   the samples.
  * The cost model counts FFTs of the frame: an application and its adjoint are 2 (K + 1) for K
- * terms, times the expected number of applications, plus the build (a node or sample kernel
- * about one FFT, a low-rank sample 1.5, the Gram matrix S² m / (2 N log2 N)). The cheapest
- * candidate within the
- * budget and within the memory limit wins; when none meets the budget, the cheapest whose
- * error is within 1.25 x the smallest estimated. */
+ * terms, times the H + Hᵀ pairs the caller expects (options->applications: svpsf correct
+ * passes the count its method runs, e.g. 2 x 75 for --method r on one field), plus the build
+ * (a node or sample kernel about one FFT, a low-rank sample 1.5, the Gram matrix
+ * S² m / (2 N log2 N)). The cheapest candidate within the budget and within the memory limit
+ * wins; when none meets the budget, the cheapest whose error is within 1.25 x the smallest
+ * estimated. */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
@@ -44,11 +45,20 @@ typedef struct est_ctx {
     double norm2;     /* Σ_p ‖k_p‖² */
 } est_ctx;
 
+/* Σ a_i b_i in a fixed order: four interleaved partial sums (independent chains the compiler
+ * can pipeline and vectorise), then the tail. */
 static double dotp(const double *a, const double *b, size_t n)
 {
-    double s = 0;
-    for (size_t i = 0; i < n; i++) s += a[i] * b[i];
-    return s;
+    double s0 = 0, s1 = 0, s2 = 0, s3 = 0;
+    size_t i = 0;
+    for (; i + 4 <= n; i += 4) {
+        s0 += a[i] * b[i];
+        s1 += a[i + 1] * b[i + 1];
+        s2 += a[i + 2] * b[i + 2];
+        s3 += a[i + 3] * b[i + 3];
+    }
+    for (; i < n; i++) s0 += a[i] * b[i];
+    return (s0 + s1) + (s2 + s3);
 }
 
 static double node_at(int i, int g, int size)
@@ -73,22 +83,69 @@ static void hat_of(double x, int g, int size, int *i0, double *t)
 }
 
 /* The field's kernel at (x, y) on the compact radius, scaled to the share of the flux the
- * operator's kernel has there (its encircled energy). */
+ * operator's kernel has there (its encircled energy). Serial (the callers run kernels in
+ * parallel), so every value is the same on any number of threads. */
 static svp_status compact_kernel(const est_ctx *c, double x, double y, double *out)
 {
     svp_psf psf;
     SVP_CHECK(svp_psf_field_at(c->field, x, y, &psf));
     psf.support = c->support;
-    svp_image *k = NULL;
-    SVP_CHECK(svp_psf_render(&psf, c->rc, c->rc, &k));
+    SVP_CHECK(svp_psf_render_rows(&psf, c->rc, c->rc, 0, 2 * c->rc + 1, out));
+    double sum = 0;
+    for (size_t i = 0; i < c->mc; i++) sum += out[i];
+    if (!(sum > 0) || !isfinite(sum))
+        return svp_fail(SVP_ERR_NUMERIC,
+                        "PSF kernel at (%g, %g) has no flux on its %d x %d support", x, y,
+                        2 * c->rc + 1, 2 * c->rc + 1);
     double R = c->support > 0 ? c->support : 0.0;
     double ee = svp_psf_encircled_energy(&psf, c->rc + 0.5, R);
     if (!(ee > 0 && ee <= 1)) /* heavy tails over the whole field: the image's extent */
         ee = svp_psf_encircled_energy(&psf, c->rc + 0.5, fmax(c->width, c->height));
     if (!(ee > 0 && ee <= 1)) ee = 1;
-    for (size_t i = 0; i < c->mc; i++) out[i] = ee * k->data[i];
-    svp_image_free(k);
+    const double scale = ee / sum;
+    for (size_t i = 0; i < c->mc; i++) out[i] *= scale;
     return SVP_OK;
+}
+
+/* compact_kernel at n positions (x[i], y[i]) into out + i mc, in parallel; the first failure's
+ * status (its message set again on the calling thread). */
+static svp_status compact_kernels(const est_ctx *c, int n, const double *x, const double *y,
+                                  double *out)
+{
+    int bad = -1;
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int i = 0; i < n; i++) {
+        int failed;
+#pragma omp atomic read
+        failed = bad;
+        if (failed >= 0) continue;
+        if (compact_kernel(c, x[i], y[i], out + (size_t)i * c->mc) != SVP_OK) {
+#pragma omp critical(svp_choose_bad)
+            if (bad < 0 || i < bad) bad = i;
+        }
+    }
+    if (bad >= 0) return compact_kernel(c, x[bad], y[bad], out + (size_t)bad * c->mc);
+    return SVP_OK;
+}
+
+/* Kernels at the nodes of a gx x gy grid (x fastest), into out. */
+static svp_status grid_kernels(const est_ctx *c, int gx, int gy, double *out)
+{
+    const int n = gx * gy;
+    double *x = malloc((size_t)n * sizeof(double)), *y = malloc((size_t)n * sizeof(double));
+    if (!x || !y) {
+        free(x);
+        free(y);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for estimates");
+    }
+    for (int k = 0; k < n; k++) {
+        x[k] = node_at(k % gx, gx, c->width);
+        y[k] = node_at(k / gx, gy, c->height);
+    }
+    svp_status st = compact_kernels(c, n, x, y, out);
+    free(x);
+    free(y);
+    return st;
 }
 
 static void est_release(est_ctx *c)
@@ -139,12 +196,11 @@ static svp_status est_init(est_ctx *c, const svp_psf_field *field, int width, in
         c->px[p] = u * (width - 1);
         c->py[p] = v * (height - 1);
     }
-    svp_status st = SVP_OK;
+    svp_status st = compact_kernels(c, PROBES, c->px, c->py, c->pk);
     c->norm2 = 0;
     for (int p = 0; p < PROBES && st == SVP_OK; p++) {
-        double *k = c->pk + (size_t)p * c->mc;
-        st = compact_kernel(c, c->px[p], c->py[p], k);
-        if (st == SVP_OK) c->norm2 += dotp(k, k, c->mc);
+        const double *k = c->pk + (size_t)p * c->mc;
+        c->norm2 += dotp(k, k, c->mc);
     }
     if (st != SVP_OK) est_release(c);
     return st;
@@ -157,9 +213,7 @@ static svp_status est_tent(const est_ctx *c, int gx, int gy, double *err)
     double *nodes = malloc((size_t)gx * gy * mc * sizeof(double));
     double *r = malloc(mc * sizeof(double));
     svp_status st = nodes && r ? SVP_OK : svp_fail(SVP_ERR_NOMEM, "out of memory for estimates");
-    for (int k = 0; k < gx * gy && st == SVP_OK; k++)
-        st = compact_kernel(c, node_at(k % gx, gx, c->width), node_at(k / gx, gy, c->height),
-                            nodes + (size_t)k * mc);
+    if (st == SVP_OK) st = grid_kernels(c, gx, gy, nodes);
     double e2 = 0;
     for (int p = 0; p < c->probes && st == SVP_OK; p++) {
         int i0, j0;
@@ -201,14 +255,14 @@ static svp_status est_lowrank(const est_ctx *c, int sx, int sy, int nr, double *
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for estimates");
         goto done;
     }
-    for (int j = 0; j < S && st == SVP_OK; j++)
-        st = compact_kernel(c, node_at(j % sx, sx, c->width), node_at(j / sx, sy, c->height),
-                            k + (size_t)j * mc);
+    st = grid_kernels(c, sx, sy, k);
     if (st != SVP_OK) goto done;
     for (int j = 0; j < S; j++)
         for (size_t i = 0; i < mc; i++) mean[i] += k[(size_t)j * mc + i] / S;
     for (int j = 0; j < S; j++)
         for (size_t i = 0; i < mc; i++) k[(size_t)j * mc + i] -= mean[i];
+    /* the Gram matrix, each entry one serial dot product (the same on any thread count) */
+#pragma omp parallel for schedule(dynamic, 1)
     for (int j = 0; j < S; j++)
         for (int i = j; i < S; i++)
             g[(size_t)j * S + i] = g[(size_t)i * S + j] =

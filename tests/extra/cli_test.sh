@@ -450,6 +450,21 @@ fi
 awk -F': ' '/"operator_estimated_error"/ { gsub(/,/, "", $2); exit !($2 + 0 <= 0.03) }' map_auto/summary.json &&
     pass "--operator-tol 3e-2: the choice's estimated error is within it" ||
     fail "--operator-tol estimate" "$(grep operator_estimated_error map_auto/summary.json)"
+# the choice's cost model counts the correction's own H + Hᵀ pairs (r: RL iterations on the PL
+# and on the numerator; w: about 40 CG steps per Wiener deconvolution; forward: 1), and correct
+# records one application's and one adjoint's measured time
+expect_ok map_corr_auto correct --field map_auto/field.txt --pl map_auto/pl.txt --psf map_grid.yaml --operator-tol 3e-2 \
+    --method r --iterations 7 -o map_ca --format txt $FAST
+expect_ok map_corr_auto_w correct --field map_auto/field.txt --pl map_auto/pl.txt --psf map_grid.yaml --operator-tol 3e-2 \
+    --method w --balance 1e-3 -o map_caw --format txt $FAST
+if grep -q '"operator_applications": 14' map_ca/summary.json && grep -q '"operator_applications": 80' map_caw/summary.json &&
+    grep -qE '"operator_applications": 1(,|$)' map_auto/summary.json &&
+    awk -F': ' '/"operator_(apply|adjoint)_s"/ { gsub(/,/, "", $2); n++; if (!($2 + 0 > 0)) bad = 1 } END { exit !(n == 2 && !bad) }' map_ca/summary.json &&
+    grep -q 'Operator: .*built in .*one application .* s (adjoint .* s)' out.map_corr_auto; then
+    pass "--operator-tol: the cost model counts the method's applications (r 7 it: 14, w: 80, forward: 1); correct records and reports one application's and adjoint's time"
+else
+    fail "operator applications / apply time" "$(grep -hE 'operator_(appl|adj)' map_ca/summary.json map_caw/summary.json map_auto/summary.json) / $(cat out.map_corr_auto)"
+fi
 expect_bad map_bad_tol "--operator-tol|0|(0, 1)" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --operator-tol 0 -o bad $FAST
 expect_bad map_bad_mem "--max-memory|12x" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --max-memory 12x -o bad $FAST
 # an operator beyond the memory limit is refused up front (exit 1) with what it would need

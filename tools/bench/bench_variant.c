@@ -17,6 +17,21 @@
  *       with each representation (and a single central PSF) for each iteration count. Reports
  *       time and the max / rms error of the corrected field over lit pixels relative to the
  *       field's peak.
+ *   bench_variant ops --map MAP.yaml [--reprs auto:1e-3,t8,r4x8,...] [--reps R] [--probes P]
+ *                     [--rl-reps R] [--ref-x X.npy --ref-y Y.npy]
+ *       The operators of a PSF-map file (square, its own size, zero boundary): first the
+ *       invariant operator of the centre PSF, then per representation (auto:TOL = chosen by
+ *       the error budget TOL, tN = tent N x N, rR or rRxS = low rank R on S x S samples) what
+ *       was built, its build time, best-of-R application / adjoint times and (K + 1) FFTs of
+ *       its frame (as apply), memory, the estimated operator error and the error measured
+ *       against the exact per-source operator at P probe sources (one application each, the
+ *       exact column rendered over the operator's whole support; --probes 0: none), with
+ *       --ref-x X.npy --ref-y Y.npy the relative error of H X against Y (a reference's blur
+ *       of X), and the time of one Richardson-Lucy iteration (best of R runs of 6 iterations
+ *       minus best of R runs of 2, over 4; R = --rl-reps, default --reps, 0: not timed) beside
+ *       its bound, 2 (K + 1) real FFTs of the frame.
+ *   bench_variant params --map MAP.yaml --out STEM
+ *       The map's FWHM (px) and beta at every pixel: STEM.fwhm.npy, STEM.beta.npy.
  *   bench_variant plot OUT.png [=TITLE] @LABEL t e t e ... [@LABEL t e ...]
  *       Error versus time per application, log-log (log10 of both on linear axes), one curve
  *       per @LABEL (up to 10), drawn with the library's own cairo line plot.
@@ -30,6 +45,7 @@
 
 #include "blur/blur_internal.h"
 #include "figure/figure.h"
+#include "psf/field_internal.h"
 
 #include <math.h>
 #include <stdint.h>
@@ -50,12 +66,12 @@ static double arg_num(int argc, char **argv, const char *name, double def)
     return s ? atof(s) : def;
 }
 
-/* A JSON number, null for NaN / Inf (one of two rotating buffers). */
+/* A JSON number, null for NaN / Inf (one of eight rotating buffers). */
 static const char *jnum(double v)
 {
-    static char buf[2][32];
+    static char buf[8][32];
     static int k;
-    k ^= 1;
+    k = (k + 1) & 7;
     if (isfinite(v))
         snprintf(buf[k], sizeof buf[k], "%.6g", v);
     else
@@ -411,6 +427,266 @@ static int cmd_inverse(int argc, char **argv)
     return 0;
 }
 
+/* Relative operator error of b against the exact per-source operator of field f, sampled at
+ * `probes` sources (a jittered grid, none of the chooser's probe lattice): for each, H e_s
+ * against the exact column, the kernel of the PSF at s over every offset the operator's
+ * support reaches (radius rx, ry: the whole view for support 0), normalised there and cropped
+ * by the zero boundary: sqrt(Σ ‖H e_s − k_s‖² / Σ ‖k_s‖²). */
+static double probe_error(svp_blur *b, const svp_psf_field *f, int n, double support, int probes,
+                          double *seconds)
+{
+    const double t0 = bench_now();
+    const int r = support > 0 && ceil(support) < n - 1 ? (int)ceil(support) : n - 1;
+    svp_image *x = NULL, *y = NULL;
+    if (svp_image_new(n, n, &x) != SVP_OK || svp_image_new(n, n, &y) != SVP_OK) return NAN;
+    int side = 1;
+    while (side * side < probes) side++;
+    double e2 = 0, n2 = 0;
+    for (int p = 0; p < probes; p++) {
+        /* cell (p % side, p / side) of a side x side grid, jittered inside it */
+        const double jx = fmod(0.31 + 0.7548776662466927 * (p + 1), 1.0);
+        const double jy = fmod(0.47 + 0.5698402909980532 * (p + 1), 1.0);
+        const int sx = (int)(((p % side) + 0.15 + 0.7 * jx) * n / side);
+        const int sy = (int)(((p / side) + 0.15 + 0.7 * jy) * n / side);
+        memset(x->data, 0, (size_t)n * n * sizeof(double));
+        x->data[(size_t)sy * n + sx] = 1;
+        svp_psf ps;
+        svp_image *k = NULL;
+        if (svp_blur_apply(b, x, y) != SVP_OK || svp_psf_field_at(f, sx, sy, &ps) != SVP_OK)
+            return NAN;
+        ps.support = support;
+        if (svp_psf_render(&ps, r, r, &k) != SVP_OK) return NAN;
+        const int kw = 2 * r + 1;
+        for (int Y = 0; Y < n; Y++) {
+            const int dy = Y - sy;
+            for (int X = 0; X < n; X++) {
+                const int dx = X - sx;
+                const double ke = abs(dx) <= r && abs(dy) <= r
+                                      ? k->data[(size_t)(dy + r) * kw + (dx + r)]
+                                      : 0.0;
+                const double d = y->data[(size_t)Y * n + X] - ke;
+                e2 += d * d;
+                n2 += ke * ke;
+            }
+        }
+        svp_image_free(k);
+    }
+    svp_image_free(x);
+    svp_image_free(y);
+    *seconds = bench_now() - t0;
+    return sqrt(e2 / n2);
+}
+
+/* Seconds of one Richardson-Lucy iteration on b: (best of `reps` runs of 6 iterations − best
+ * of `reps` runs of 2) / 4, the runs interleaved after an untimed one of each; *bound = the
+ * best time of 2 (K + 1) real FFTs of b's frame (H and Hᵀ), taken between them. */
+static double rl_iteration(svp_blur *b, int K, const svp_image *y, svp_image *x, int reps,
+                           double *bound)
+{
+    const svp_frame *f = &b->frame;
+    double *r = svp_alloc((size_t)f->ny * f->nx * sizeof(double));
+    fftw_complex *c = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
+    double best[2] = {INFINITY, INFINITY}, bbest = INFINITY;
+    int ok = r && c;
+    for (int rep = -1; ok && rep < reps; rep++) {
+        for (int k = 0; k < 2 && ok; k++) {
+            svp_deconv_options o;
+            svp_deconv_defaults(&o);
+            o.iterations = k ? 6 : 2;
+            const double t0 = bench_now();
+            ok = svp_deconv_rl(b, y, &o, x) == SVP_OK;
+            if (rep >= 0) best[k] = fmin(best[k], bench_now() - t0);
+        }
+        for (size_t i = 0; i < (size_t)f->ny * f->nx; i++) r[i] = (double)(i % 7);
+        const double t0 = bench_now();
+        for (int k = 0; k < 2 * K + 1; k++) svp_fft_forward(f->plan, r, c);
+        svp_fft_inverse_unscaled(f->plan, c, r);
+        if (rep >= 0) bbest = fmin(bbest, bench_now() - t0);
+    }
+    svp_free(r);
+    svp_free(c);
+    *bound = bbest;
+    return ok ? (best[1] - best[0]) / 4 : NAN;
+}
+
+/* ‖H x − y_ref‖ / ‖y_ref‖ for the images in files x_path, y_path (NaN when absent). */
+static double ref_error(svp_blur *b, const char *x_path, const char *y_path)
+{
+    if (!x_path || !y_path) return NAN;
+    svp_image *x = NULL, *yr = NULL, *y = NULL;
+    double e = NAN;
+    if (svp_image_read(x_path, &x) == SVP_OK && svp_image_read(y_path, &yr) == SVP_OK &&
+        svp_image_new(x->width, x->height, &y) == SVP_OK && svp_blur_apply(b, x, y) == SVP_OK)
+        e = rel_l2(y, yr);
+    svp_image_free(x);
+    svp_image_free(yr);
+    svp_image_free(y);
+    return e;
+}
+
+/* One representation of `ops`: "auto:TOL", "tN" (tent N x N) or "rR" / "rRxS" (low rank R on
+ * S x S samples, default 8). */
+static int parse_repr(const char *tok, svp_variant_options *o, char *label, size_t size)
+{
+    svp_variant_defaults(o);
+    if (!strncmp(tok, "auto:", 5)) {
+        o->representation = SVP_VARIANT_AUTO;
+        o->tolerance = atof(tok + 5);
+        snprintf(label, size, "auto %s", tok + 5);
+    } else if (tok[0] == 't') {
+        o->representation = SVP_VARIANT_TENT;
+        o->grid_x = o->grid_y = atoi(tok + 1);
+        snprintf(label, size, "tent %dx%d", o->grid_x, o->grid_y);
+    } else if (tok[0] == 'r') {
+        o->representation = SVP_VARIANT_LOWRANK;
+        int s = 8;
+        const char *xs = strchr(tok, 'x');
+        if (xs) s = atoi(xs + 1);
+        o->rank = atoi(tok + 1);
+        o->samples_x = o->samples_y = s;
+        snprintf(label, size, "low rank %d (%dx%d)", o->rank, s, s);
+    } else
+        return 0;
+    return 1;
+}
+
+/* bench_variant ops: a PSF-map file's operators, see the head of this file. */
+static int cmd_ops(int argc, char **argv)
+{
+    const char *map = arg_str(argc, argv, "--map", NULL);
+    const int reps = (int)arg_num(argc, argv, "--reps", 3);
+    const int probes = (int)arg_num(argc, argv, "--probes", 12);
+    const int rl_reps = (int)arg_num(argc, argv, "--rl-reps", reps);
+    const char *reprs_s = arg_str(argc, argv, "--reprs", "auto:1e-3");
+    const char *ref_x = arg_str(argc, argv, "--ref-x", NULL);
+    const char *ref_y = arg_str(argc, argv, "--ref-y", NULL);
+    if (!map) return fprintf(stderr, "bench_variant ops: --map FILE is required\n"), 1;
+    svp_psf_field *f = NULL;
+    double pixel_um = 0;
+    if (svp_psf_field_read(map, &f, &pixel_um) != SVP_OK) return fail(map);
+    const int n = svp_psf_field_width(f);
+    if (n != svp_psf_field_height(f)) return fail("ops: a square map");
+    const double support = svp_psf_field_base(f)->support;
+    svp_image *x = random_image(n, 1), *y = NULL, *xa = NULL;
+    if (!x || svp_image_new(n, n, &y) != SVP_OK || svp_image_new(n, n, &xa) != SVP_OK)
+        return fail("images");
+    {
+        /* the floor: the invariant operator of the centre PSF against its 2 FFTs */
+        svp_psf pc;
+        svp_blur *b = NULL;
+        double t0 = bench_now();
+        if (svp_psf_field_at(f, 0.5 * (n - 1), 0.5 * (n - 1), &pc) != SVP_OK ||
+            svp_blur_new(&pc, n, n, SVP_BOUNDARY_ZERO, &b) != SVP_OK)
+            return fail("invariant operator");
+        const double t_build = bench_now() - t0;
+        timing tm;
+        if (!time_interleaved(b, 1, x, y, xa, reps, &tm)) return fail("invariant operator");
+        double rl_bound = NAN;
+        const double rl_it = rl_reps > 0 ? rl_iteration(b, 1, x, xa, rl_reps, &rl_bound) : NAN;
+        printf("{\"kind\": \"invariant\", \"label\": \"centre PSF\", \"K\": 1, \"size\": %d, "
+               "\"build_s\": %.6g, \"apply_s\": %.6g, \"adjoint_s\": %.6g, \"ffts_s\": %.6g, "
+               "\"rl_iteration_s\": %s, \"rl_bound_s\": %s, \"ref_error\": %s, "
+               "\"operator_mb\": %.2f, \"threads\": %d}\n",
+               n, t_build, tm.apply, tm.adjoint, tm.ffts, jnum(rl_it), jnum(rl_bound),
+               jnum(ref_error(b, ref_x, ref_y)), svp_blur_memory(b) / 1048576.0,
+               svp_get_threads());
+        fflush(stdout);
+        svp_blur_free(b);
+    }
+    char buf[512];
+    snprintf(buf, sizeof buf, "%s", reprs_s);
+    char *save = NULL;
+    for (char *tok = strtok_r(buf, ",", &save); tok; tok = strtok_r(NULL, ",", &save)) {
+        svp_variant_options o;
+        char label[64];
+        if (!parse_repr(tok, &o, label, sizeof label)) return fail("ops: unknown representation");
+        svp_blur *b = NULL;
+        const double t0 = bench_now();
+        if (svp_blur_new_field(f, n, n, SVP_BOUNDARY_ZERO, &o, &b) != SVP_OK) {
+            printf("{\"kind\": \"variant\", \"label\": \"%s\", \"size\": %d, \"skipped\": "
+                   "\"%s\"}\n",
+                   label, n, svp_last_error());
+            fflush(stdout);
+            continue;
+        }
+        const double t_build = bench_now() - t0;
+        svp_variant_info in;
+        if (svp_blur_variant_info(b, &in) != SVP_OK) return fail("info");
+        const int K = in.representation == SVP_VARIANT_LOWRANK ? in.rank : in.grid_x * in.grid_y;
+        if (!isfinite(in.estimated_error)) {
+            svp_variant_options forced = o;
+            if (o.representation == SVP_VARIANT_AUTO) { /* not reached: auto estimates */
+                forced.representation = in.representation;
+            }
+            if (svp_variant_estimate(f, n, n, SVP_BOUNDARY_ZERO, &forced, &in.estimated_error) !=
+                SVP_OK)
+                in.estimated_error = NAN;
+        }
+        timing tm;
+        if (!time_interleaved(b, K, x, y, xa, reps, &tm)) return fail(label);
+        double t_probe = 0, rl_bound = NAN;
+        const double err = probes > 0 ? probe_error(b, f, n, support, probes, &t_probe) : NAN;
+        const double rl_it = rl_reps > 0 ? rl_iteration(b, K, x, xa, rl_reps, &rl_bound) : NAN;
+        const double rerr = ref_error(b, ref_x, ref_y);
+        char chosen[64];
+        if (in.representation == SVP_VARIANT_LOWRANK)
+            snprintf(chosen, sizeof chosen, "low rank %d (%dx%d)", in.rank, in.grid_x, in.grid_y);
+        else
+            snprintf(chosen, sizeof chosen, "tent %dx%d", in.grid_x, in.grid_y);
+        printf("{\"kind\": \"variant\", \"label\": \"%s\", \"chosen\": \"%s\", \"K\": %d, "
+               "\"size\": %d, \"tolerance\": %s, \"estimated_error\": %s, \"probe_error\": %s, "
+               "\"probes\": %d, \"probe_s\": %.3g, \"ref_error\": %s, \"rl_iteration_s\": %s, "
+               "\"rl_bound_s\": %s, \"tolerance_met\": %d, \"build_s\": %.6g, \"estimate_s\": %.6g, "
+               "\"apply_s\": %.6g, \"adjoint_s\": %.6g, \"ffts_s\": %.6g, \"operator_mb\": %.2f, "
+               "\"peak_estimate_mb\": %.1f, \"peak_rss_mb\": %.1f, \"threads\": %d}\n",
+               label, chosen, K, n, jnum(o.representation == SVP_VARIANT_AUTO ? o.tolerance : NAN),
+               jnum(in.estimated_error), jnum(err), probes, t_probe, jnum(rerr), jnum(rl_it),
+               jnum(rl_bound), in.tolerance_met, t_build,
+               in.estimate_seconds, tm.apply, tm.adjoint, tm.ffts,
+               svp_blur_memory(b) / 1048576.0, in.peak_bytes / 1048576.0, bench_maxrss_mb(),
+               svp_get_threads());
+        fflush(stdout);
+        svp_blur_free(b);
+    }
+    svp_image_free(x);
+    svp_image_free(y);
+    svp_image_free(xa);
+    svp_psf_field_free(f);
+    return 0;
+}
+
+/* bench_variant params: the map's FWHM (px) and beta at every pixel, as two .npy images. */
+static int cmd_params(int argc, char **argv)
+{
+    const char *map = arg_str(argc, argv, "--map", NULL);
+    const char *out = arg_str(argc, argv, "--out", NULL);
+    if (!map || !out) return fprintf(stderr, "bench_variant params --map F --out STEM\n"), 1;
+    svp_psf_field *f = NULL;
+    double pixel_um = 0;
+    if (svp_psf_field_read(map, &f, &pixel_um) != SVP_OK) return fail(map);
+    const int w = svp_psf_field_width(f), h = svp_psf_field_height(f);
+    svp_image *fw = NULL, *be = NULL;
+    if (svp_image_new(w, h, &fw) != SVP_OK || svp_image_new(w, h, &be) != SVP_OK)
+        return fail("images");
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            double p[SVP_FIELD_NPARAM];
+            if (svp_psf_field_params_at(f, x, y, p) != SVP_OK) return fail("params");
+            fw->data[(size_t)y * w + x] = p[SVP_FIELD_FWHM];
+            be->data[(size_t)y * w + x] = p[SVP_FIELD_BETA];
+        }
+    char path[1024];
+    snprintf(path, sizeof path, "%s.fwhm.npy", out);
+    if (svp_image_write(path, fw, SVP_FORMAT_NPY, 1) != SVP_OK) return fail(path);
+    snprintf(path, sizeof path, "%s.beta.npy", out);
+    if (svp_image_write(path, be, SVP_FORMAT_NPY, 1) != SVP_OK) return fail(path);
+    printf("{\"kind\": \"params\", \"width\": %d, \"height\": %d}\n", w, h);
+    svp_image_free(fw);
+    svp_image_free(be);
+    svp_psf_field_free(f);
+    return 0;
+}
+
 static int cmd_plot(int argc, char **argv)
 {
     if (argc < 4) return fprintf(stderr, "bench_variant plot OUT.png @LABEL t e ...\n"), 1;
@@ -454,7 +730,7 @@ static int cmd_plot(int argc, char **argv)
 int main(int argc, char **argv)
 {
     if (argc < 2) {
-        fprintf(stderr, "usage: bench_variant apply|inverse|plot [options] (see the source)\n");
+        fprintf(stderr, "usage: bench_variant apply|inverse|ops|params|plot [options] (see the source)\n");
         return 1;
     }
     svp_set_fft_effort(SVP_FFT_MEASURE);
@@ -463,6 +739,10 @@ int main(int argc, char **argv)
         rc = cmd_apply(argc, argv);
     else if (!strcmp(argv[1], "inverse"))
         rc = cmd_inverse(argc, argv);
+    else if (!strcmp(argv[1], "ops"))
+        rc = cmd_ops(argc, argv);
+    else if (!strcmp(argv[1], "params"))
+        rc = cmd_params(argc, argv);
     else if (!strcmp(argv[1], "plot"))
         rc = cmd_plot(argc, argv);
     else {

@@ -1,19 +1,33 @@
 #!/usr/bin/python3
 """Benchmark section: space-variant PSFs, what accuracy costs in time.
 
-usage: section_variant.py [--build DIR] [--quick]
+usage: section_variant.py [--build DIR] [--quick] [--part all|apply|correct]
+                          [--corr-sizes N,N] [--corr-threads T]
 
-Runs tools/bench/bench_variant (apply: relative error against the exact per-source operator and
+Part *apply* (section "Space-variant PSFs: what accuracy costs in time"): runs
+tools/bench/bench_variant (apply: relative error against the exact per-source operator and
 time per application for tent grids 1²..16² and low ranks 1..12, on a mild and a strong field,
 against (K + 1) real FFTs of the padded frame timed in the same process; inverse: T⁻¹ end to
 end), draws docs/performance/variant-accuracy-time.png and prints its markdown section of
 docs/performance.md on stdout; progress on stderr.
+
+Part *correct* (section "Space-variant correction: what accuracy costs in time"): at 512²,
+1024², 2048² (--quick: 256² and 20 RL iterations; --corr-sizes to choose) a smooth polynomial
+Moffat map and metal / oxide region maps (tools/bench/variant_data.py), foreign data blurred by
+numpy models of the exact per-source operator, `svpsf correct --method r` with the centre PSF
+alone, the automatic choice at three tolerances, tent 8 x 8 and low rank 4 (time, peak memory,
+field error against the truth, the operator's build and apply times from summary.json), and
+`bench_variant ops` for the operators' errors against the exact operator at probe sources and
+their FFT bounds; then the issue's targets.
 """
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
+import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from benchlib import ROOT, log  # noqa: E402
@@ -55,16 +69,8 @@ def adj_cells(r, digits=3):
     return f"{r['adjoint_s'] * 1e3:.{digits}g} | {r['adjoint_ratio']:.2f}"
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--build", default=os.path.join(ROOT, "build"))
-    ap.add_argument("--quick", action="store_true", help="small sizes, few repetitions")
-    ap.add_argument("--threads", type=int, default=1,
-                    help="threads of the apply runs (default 1: the cleanest ratio to the FFTs)")
-    args = ap.parse_args()
-    exe = os.path.join(args.build, "tools", "bench", "bench_variant")
-    if not os.access(exe, os.X_OK):
-        sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
+def apply_section(args, exe):
+    """The section 'Space-variant PSFs: what accuracy costs in time' (the operator alone)."""
     n_acc = 128 if args.quick else 256
     big = [256] if args.quick else [1024, 2048]
     reps = "2" if args.quick else "5"
@@ -261,7 +267,403 @@ def main():
     out.append("")
     if failed:
         out.append("Failures: " + "; ".join(str(f) for f in failed) + "\n")
-    print("\n".join(out))
+    return "\n".join(out), failed
+
+
+# ---- the space-variant correction end to end (svpsf correct --method r) -------------------
+
+CORR_TARGET_TIME = 3.0      # default correct --method r vs the centre PSF alone (512², 1024²)
+CORR_TARGET_ERR = 0.7       # its field error vs the centre PSF's
+CORR_TARGET_BUILD = 1.0     # s, low rank on 64 samples at 1024², whole field
+CORR_TARGET_ITER = 1.3      # variant RL iteration vs its R + 1 FFT pairs
+CORR_TARGET_MEM_GB = 12.0   # 2048² default, peak RSS
+# svpsf correct's settings per row: (label, extra arguments; None = the centre PSF file)
+CORR_ROWS = [("centre PSF only", None), ("auto, --operator-tol 1e-2", ["--operator-tol", "1e-2"]),
+             ("auto, default (1e-3)", []), ("auto, --operator-tol 1e-4", ["--operator-tol", "1e-4"]),
+             ("tent 8x8 (--nodes 8x8)", ["--nodes", "8x8"]),
+             ("low rank 4 (--rank 4, 8x8 samples)", ["--nodes", "8x8", "--rank", "4"])]
+# bench_variant ops representations matching the rows
+CORR_OPS = {"auto, --operator-tol 1e-2": "auto:1e-2", "auto, default (1e-3)": "auto:1e-3",
+            "auto, --operator-tol 1e-4": "auto:1e-4", "tent 8x8 (--nodes 8x8)": "t8",
+            "low rank 4 (--rank 4, 8x8 samples)": "r4x8"}
+
+
+def corr_plan(n, quick):
+    """(map, rows) pairs run at size n (what 15 minutes allow): at 512² every row on the smooth
+    map and the centre PSF, 1e-2 and the default on the region maps; at 1024² neither tent 8 x 8
+    (64 whole-field spectra, 2.2 GB, minutes an application) nor 1e-4, the sharp region map
+    with the centre PSF and the default; at 2048² the smooth map's centre PSF and default."""
+    labels = [r[0] for r in CORR_ROWS]
+    if n >= 2048:
+        return [("smooth", labels[:1] + labels[2:3])]
+    if n >= 1024 and not quick:
+        return [("smooth", labels[:3] + labels[5:]), ("regions, sharp", [labels[0], labels[2]])]
+    few = labels[:3]
+    if quick:
+        return [("smooth", labels[:3] + labels[5:]), ("regions, sharp", [labels[0], labels[2]])]
+    smooth = labels if n <= 512 else [l for l in labels if not l.startswith("tent")]
+    plan = [("smooth", smooth), ("regions, sharp", few)]
+    if n <= 512:
+        plan.append(("regions, blended", few))
+    return plan
+
+
+def run_rss(cmd, env=None):
+    """(exit status, wall seconds, peak RSS MB, stderr tail) of one process. The peak is the
+    child's own VmHWM (/proc/PID/status), sampled every 20 ms while it runs: its rusage
+    maxrss would start at this (numpy-holding) process's, which exec carries over."""
+    t0 = time.monotonic()
+    errf = tempfile.TemporaryFile(mode="w+")
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errf, env=env)
+    peak_kb = 0
+    status_path = f"/proc/{p.pid}/status"
+    while True:
+        try:
+            with open(status_path) as f:
+                for line in f:
+                    if line.startswith("VmHWM:"):
+                        peak_kb = max(peak_kb, int(line.split()[1]))
+        except (OSError, ValueError):
+            pass
+        pid, status = os.waitpid(p.pid, os.WNOHANG)
+        if pid:
+            break
+        time.sleep(0.02)
+    p.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.monotonic() - t0
+    errf.seek(0)
+    err = errf.read().strip()[-300:]
+    errf.close()
+    return p.returncode, wall, peak_kb / 1024.0, err
+
+
+def corr_data(exe, n, work, maps):
+    """Writes the maps, the truth and the foreign data of size n into work/<map>/; returns the
+    truth, the masks and what the numpy models cost and measure."""
+    import numpy as np
+    import variant_data as vd
+    pl, bz, labels = vd.scene(n)
+    # white noise for the operators' whole-frame error against the same numpy model
+    noise = np.random.default_rng(3).standard_normal((n, n))
+    info = {}
+    g = 10 if n <= 1024 else 6
+    for name in maps:
+        d = os.path.join(work, name.replace(", ", "-"))
+        os.makedirs(d, exist_ok=True)
+        t0 = time.monotonic()
+        if name == "smooth":
+            vd.write_smooth_map(os.path.join(d, "map.yaml"), n)
+            plb, numb, ref = vd.blur_smooth([pl, bz * pl, noise], n, g)
+            fw, be = vd.smooth_params(n)
+            info[name] = {"model": f"cubic interpolation of the kernels between {g} x {g} nodes",
+                          "model_error": vd.smooth_model_error(n, g, 4 if n > 1024 else 6)}
+        else:
+            vd.write_region_map(os.path.join(d, "map.yaml"), labels,
+                                1.0 if name.endswith("blended") else 0.0)
+            rows = run_lines([exe, "params",
+                              "--map", os.path.join(d, "map.yaml"), "--out",
+                              os.path.join(d, "params")])
+            if any("error" in r for r in rows):
+                raise RuntimeError(f"bench_variant params: {rows}")
+            fw = np.load(os.path.join(d, "params.fwhm.npy"))
+            be = np.load(os.path.join(d, "params.beta.npy"))
+            plb, numb, ref = vd.blur_regions([pl, bz * pl, noise], fw, be)
+            info[name] = {"model": "exact per region" if name.endswith("sharp") else
+                          "exact per region, the blend binned into 12 levels",
+                          "model_error": 0.0 if name.endswith("sharp") else None}
+        info[name]["seconds"] = time.monotonic() - t0
+        np.save(os.path.join(d, "noise.npy"), noise)
+        np.save(os.path.join(d, "noise_ref.npy"), ref)
+        np.save(os.path.join(d, "pl.npy"), plb)
+        np.save(os.path.join(d, "field.npy"), numb / plb)
+        c = (n - 1) // 2
+        with open(os.path.join(d, "centre.yaml"), "w") as f:
+            f.write(f"pixel_um: {vd.PIXEL_UM}\npsf: {{model: moffat, fwhm_um: "
+                    f"{fw[c, c] * vd.PIXEL_UM:.6g}, beta: {be[c, c]:.6g}}}\n")
+        info[name]["apparent"] = {k: vd.rel_rms(numb / plb, bz, m)
+                                  for k, m in vd.masks(pl, bz).items()}
+    return pl, bz, vd.masks(pl, bz), info
+
+
+def corr_run(svpsf, d, label, extra, wisdom, threads, truth, masks, iterations=None):
+    import numpy as np
+    import variant_data as vd
+    out = os.path.join(d, "out_" + "".join(ch if ch.isalnum() else "_" for ch in label))
+    psf = os.path.join(d, "centre.yaml" if extra is None else "map.yaml")
+    cmd = [svpsf, "correct", "--field", os.path.join(d, "field.npy"), "--pl",
+           os.path.join(d, "pl.npy"), "--psf", psf, "--method", "r", "-o", out, "--format",
+           "npy", "--force", "--quiet", "--threads", str(threads), "--wisdom", wisdom] + \
+        (extra or [])
+    if iterations:
+        cmd += ["--iterations", str(iterations)]
+    log(" ".join(os.path.relpath(c, ROOT) if c.startswith(ROOT) else c for c in cmd))
+    code, wall, rss, err = run_rss(cmd)
+    res = {"label": label, "exit": code, "seconds": wall, "rss_mb": rss}
+    if code != 0:
+        res["error"] = err
+        log(f"  failed ({code}): {err}")
+        return res
+    b = np.load(os.path.join(out, "field.npy"))
+    for k, m in masks.items():
+        res[k] = vd.rel_rms(b, truth, m)
+    with open(os.path.join(out, "summary.json")) as f:
+        s = json.load(f)
+    st, tm = s.get("settings", {}), s.get("timings_s", {})
+    res.update(plan_s=tm.get("plan"), transform_s=tm.get("transform"), total_s=tm.get("total"),
+               margin=st.get("margin"), iterations=s.get("results", {}).get("rl_iterations"))
+    for k in ("psf_representation", "psf_rank", "psf_samples", "psf_nodes",
+              "operator_estimated_error", "operator_build_s", "operator_estimate_s",
+              "operator_apply_s", "operator_adjoint_s", "psf_operator_bytes",
+              "operator_tolerance_met"):
+        if k in st:
+            res[k] = st[k]
+    return res
+
+
+def ops_label(tok):
+    """bench_variant ops' label of a representation token."""
+    if tok.startswith("auto:"):
+        return "auto " + tok[5:]
+    if tok.startswith("t"):
+        return f"tent {tok[1:]}x{tok[1:]}"
+    if tok.startswith("r"):
+        r, _, smp = tok[1:].partition("x")
+        return f"low rank {r} ({smp or 8}x{smp or 8})"
+    return tok
+
+
+def chosen_name(r):
+    if r.get("psf_representation") == "low rank":
+        return f"low rank {r.get('psf_rank')} ({r.get('psf_samples', '').replace(' ', '')})"
+    if r.get("psf_representation") == "tent":
+        return f"tent {r.get('psf_nodes', '').replace(' ', '')}"
+    return "invariant"
+
+
+def correct_section(args, exe):
+    """The section 'Space-variant correction: what accuracy costs in time'."""
+    svpsf = os.path.join(args.build, "tools", "svpsf", "svpsf")
+    sizes = [int(s) for s in args.corr_sizes.split(",")] if args.corr_sizes else \
+        ([256] if args.quick else [512, 1024, 2048])
+    threads = args.corr_threads
+    iterations = 20 if args.quick else None
+    results, failed = {}, []
+    t_start = time.monotonic()
+    for n in sizes:
+        work = tempfile.mkdtemp(prefix=f"svpsf-bench-variant-{n}-")
+        plan = corr_plan(n, args.quick)
+        try:
+            truth_pl, truth_b, masks, info = corr_data(exe, n, work, [m for m, _ in plan])
+        except Exception as e:  # noqa: BLE001 (reported in the page)
+            failed.append(f"{n}²: data: {e}")
+            continue
+        wisdom = os.path.join(work, "wisdom")
+        for mname, rows in plan:
+            d = os.path.join(work, mname.replace(", ", "-"))
+            # FFTW wisdom for both frames first (an untimed run of each with 1 iteration), as
+            # on a machine where svpsf has run at this size before
+            for extra in (None, ["--nodes", "1x1"]):
+                corr_run(svpsf, d, "warm-up", extra, wisdom, threads, truth_b, masks, 1)
+            runs = []
+            for label in rows:
+                extra = dict(CORR_ROWS)[label]
+                r = corr_run(svpsf, d, label, extra, wisdom, threads, truth_b, masks,
+                             iterations)
+                if "error" in r:
+                    failed.append(f"{n}² {mname} {label}: {r['error']}")
+                runs.append(r)
+            # the operators alone (none at 2048², where one build is minutes: the table keeps
+            # the program's estimate); the tent 8 x 8 (64 terms) with fewer probes and no RL
+            # timing, so the full run stays within 15 minutes
+            reprs = [CORR_OPS[l] for l in rows if l in CORR_OPS] if n < 2048 else []
+            probes = "8" if n >= 1024 else "12"
+            reps = "2" if n >= 1024 else "3"
+            ops = []
+            for group, extra in (([r for r in reprs if r != "t8"], ["--probes", probes, "--reps",
+                                                                   reps, "--rl-reps", reps]),
+                                 ([r for r in reprs if r == "t8"], ["--probes", "4", "--reps",
+                                                                   "1", "--rl-reps", "0"])):
+                if not group:
+                    continue
+                rows_ops = run_lines([exe, "ops", "--map", os.path.join(d, "map.yaml"),
+                                      "--reprs", ",".join(group), *extra,
+                                      "--ref-x", os.path.join(d, "noise.npy"),
+                                      "--ref-y", os.path.join(d, "noise_ref.npy")],
+                                     threads=threads)
+                ops += [r for r in rows_ops if not (ops and r.get("kind") == "invariant")]
+            failed += [f"{n}² {mname} ops: {r}" for r in ops if "error" in r]
+            results[(n, mname)] = {"runs": runs, "ops": ops, "info": info[mname]}
+        shutil.rmtree(work, ignore_errors=True)
+    elapsed = time.monotonic() - t_start
+    return render_correct(results, sizes, threads, iterations, failed, elapsed, args.quick)
+
+
+def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
+    its = iterations or 75
+    out = ["## Space-variant correction: what accuracy costs in time\n"]
+    out.append(
+        "Method: `svpsf correct --method r` (the default method; "
+        f"{its} RL iterations, {threads} threads, `--wisdom` of the same run: an untimed "
+        "1-iteration run of each frame size first, as on a machine where svpsf has run at that "
+        "size before) on foreign data, and `tools/bench/bench_variant ops` for the operators "
+        "alone (same threads). Maps (0.1 µm pixels, whole-field support, zero boundary; "
+        "`tools/bench/variant_data.py`): *smooth* = polynomial Moffat map, FWHM 0.8 µm ± 0.25 µm "
+        "across the view, β 1.6 ∓ 0.4; *regions* = metal / oxide, the scene's 1 µm current "
+        "strip metal (FWHM 1.05 µm, β 1.25), the rest oxide (0.7 µm, β 1.9), *sharp* boundary "
+        "or *blended* over 1 µm. Truth: the wire scene of `tools/bench/foreign.py` (the strip "
+        "quenches the PL to 5 % under a Gaussian spot; strip field plus a dipole). Data: PL and "
+        "field × PL blurred by a numpy model of the exact per-source operator, never by the "
+        "operator under test (smooth: each source's kernel interpolated between 10 × 10 nodes "
+        "by cubic Lagrange weights (6 × 6 at 2048²), its error against the exact kernels at "
+        "probe sources given below; regions: exact per region, a blended boundary's parameters "
+        "binned in 12 levels); no noise. **Field error**: relative rms of the corrected field "
+        "against the truth over the lit and dark significant pixels (as docs/accuracy.md). "
+        "*centre PSF only*: the invariant correction with the map's PSF at the view's centre "
+        "(with its default margin). **Operator error** (docs/model.md §9's relative Frobenius "
+        "error), three ways: *probes* = ‖H e_s − k_s‖ over the whole frame against the exact "
+        "column at sources on a jittered grid (12 at 512², 8 at 1024², 4 for tent 8 × 8; few, "
+        "so noisy where the PSF changes in a small region; none at 2048², where the table "
+        "gives the program's estimate only); *frame* = ‖H x − H_ref x‖ / ‖H_ref x‖ "
+        "for white noise x, H_ref the numpy model above (the expected value is the Frobenius "
+        "ratio; for the centre PSF it says how wrong ignoring the variation is); *est.* = the "
+        "chooser's estimate. **Build**: construction plus the choice's estimates "
+        "(`operator_build_s` + `operator_estimate_s` of summary.json). **Apply**: best of the "
+        "`ops` repetitions of one H (and Hᵀ). **RL iteration**: one Richardson-Lucy iteration "
+        "in the `ops` process (best run of 6 iterations minus best of 2, over 4) against its bound, "
+        "2 (K + 1) real FFTs of the operator's frame with the same plans. **Total**: wall "
+        "clock of the whole `svpsf correct` (reading, choice, build, both deconvolutions, "
+        "writing). **Peak**: the process's maximum resident set (VmHWM, sampled every 20 ms).\n")
+    tgt = []
+    for n in sizes:
+        for (m_n, mname), res in results.items():
+            if m_n != n:
+                continue
+            info, runs = res["info"], res["runs"]
+            ops = {r.get("label"): r for r in res["ops"]}
+            ops_inv = next((r for r in res["ops"] if r.get("kind") == "invariant"), {})
+            me = info.get("model_error")
+            out.append(f"### {n} × {n}, {mname} map\n")
+            out.append(f"Data model: {info['model']}"
+                       + (f", error against the exact kernels {me:.1e}" if me else "")
+                       + f" ({info['seconds']:.0f} s). Uncorrected field error lit "
+                       f"{info['apparent']['lit']:.3f}, dark {info['apparent']['dark']:.3f}.\n")
+            out.append("| correction | operator | K | operator error: probes / frame (est.) | "
+                       "field error lit / dark | build s | apply ms (adjoint) | RL iteration ms "
+                       "/ bound (ratio) | total s | × centre | peak MB |")
+            out.append("|---|---|---|---|---|---|---|---|---|---|---|")
+            base = next((r for r in runs if r["label"] == "centre PSF only" and
+                         r.get("exit") == 0), None)
+            for r in runs:
+                if r.get("exit") != 0:
+                    out.append(f"| {r['label']} | failed: {r.get('error', '')[:120]} "
+                               "| | | | | | | | | |")
+                    continue
+                inv = r["label"] == "centre PSF only"
+                o = ops_inv if inv else ops.get(ops_label(CORR_OPS.get(r["label"], "")), {})
+                if inv:
+                    K = 1
+                elif r.get("psf_representation") == "tent":
+                    gx, gy = (int(v) for v in r["psf_nodes"].split(" x "))
+                    K = gx * gy
+                else:
+                    K = r.get("psf_rank")
+                build = None if inv else (r.get("operator_build_s") or 0) + \
+                    (r.get("operator_estimate_s") or 0)
+                err = f"— / {fmt(o.get('ref_error'), '.2e')}" if inv else \
+                    (f"{fmt(o.get('probe_error'), '.2e')} / {fmt(o.get('ref_error'), '.2e')} "
+                     f"({fmt(r.get('operator_estimated_error'), '.2e')})")
+                it, bound = o.get("rl_iteration_s"), o.get("rl_bound_s")
+                it_ratio = it / bound if it and bound else None
+                ratio = r["seconds"] / base["seconds"] if base else None
+                name = "invariant" if inv else chosen_name(r)
+                if r.get("operator_tolerance_met") == 0:
+                    name += " (budget not met: the cheapest near the smallest error)"
+                apply = "–" if not o.get("apply_s") else \
+                    f"{o['apply_s'] * 1e3:.3g} ({o['adjoint_s'] * 1e3:.3g})"
+                itcell = "–" if not it else \
+                    f"{it * 1e3:.3g} / {bound * 1e3:.3g} ({it_ratio:.2f})"
+                out.append(
+                    f"| {r['label']} | {name} | {K} | {err} | "
+                    f"{r['lit']:.4f} / {r['dark']:.4f} | {fmt(build, '.2f')} | {apply} | "
+                    f"{itcell} | {r['seconds']:.2f} | {fmt(ratio, '.2f')} | {r['rss_mb']:.0f} |")
+                r["K"], r["it_ratio"], r["ratio"] = K, it_ratio, ratio
+            out.append("")
+            tgt.append((n, mname, runs, base, ops))
+    out.append("### Targets (space-variant correction)\n")
+    if quick:
+        out.append(f"_Quick run ({', '.join(f'{n}²' for n in sizes)}, {its} iterations): the "
+                   "targets name 512², 1024² and 2048²; judged here on the sizes run._\n")
+    for n, mname, runs, base, ops in tgt:
+        if mname != "smooth" or not base:
+            continue
+        d = next((r for r in runs if r["label"] == "auto, default (1e-3)" and r.get("exit") == 0),
+                 None)
+        if d and n < 2048:
+            er = max(d["lit"] / base["lit"], d["dark"] / base["dark"])
+            out.append(f"- {n}², smooth map, default `correct --method r` ≤ {CORR_TARGET_TIME:g}× "
+                       f"the centre PSF's time: {d['ratio']:.2f}× ({d['seconds']:.1f} s vs "
+                       f"{base['seconds']:.1f} s) — {verdict(d['ratio'] <= CORR_TARGET_TIME)}; "
+                       f"field error ≤ {CORR_TARGET_ERR:g}× the centre PSF's: {er:.2f}× (the "
+                       f"worse of lit and dark) — {verdict(er <= CORR_TARGET_ERR)}")
+        elif d:
+            out.append(f"- {n}², smooth map, default within {CORR_TARGET_MEM_GB:g} GB: peak "
+                       f"{d['rss_mb'] / 1024:.1f} GB — "
+                       f"{verdict(d['rss_mb'] / 1024 <= CORR_TARGET_MEM_GB)}; ≤ "
+                       f"{CORR_TARGET_TIME:g}× the invariant correction's time: {d['ratio']:.2f}× "
+                       f"— {verdict(d['ratio'] <= CORR_TARGET_TIME)}")
+        loose = next((r for r in runs if r["label"] == "auto, --operator-tol 1e-2" and
+                      r.get("exit") == 0), None)
+        if d and loose:
+            out.append(f"- ({n}², smooth map: `--operator-tol 1e-2` gives field error lit "
+                       f"{loose['lit']:.4f} / dark {loose['dark']:.4f} against the default's "
+                       f"{d['lit']:.4f} / {d['dark']:.4f}, in {loose['ratio']:.2f}× the centre "
+                       f"PSF's time instead of {d['ratio']:.2f}×: {chosen_name(loose)} against "
+                       f"{chosen_name(d)})")
+        for r in runs:
+            if r.get("it_ratio") and r.get("psf_representation") == "low rank":
+                out.append(f"- {n}², {r['label']} (rank {r['K']}): one RL iteration "
+                           f"{r['it_ratio']:.2f}× its {r['K'] + 1} FFT pairs (target ≤ "
+                           f"{CORR_TARGET_ITER:g}×) — {verdict(r['it_ratio'] <= CORR_TARGET_ITER)}")
+        lr = ops.get(ops_label("r4x8"))
+        if lr and lr.get("build_s") is not None:
+            if n == 1024:
+                out.append(f"- low-rank build, 64 samples, 1024², whole field: "
+                           f"{lr['build_s']:.2f} s (target ≤ {CORR_TARGET_BUILD:g} s, {threads} "
+                           f"threads) — {verdict(lr['build_s'] <= CORR_TARGET_BUILD)}")
+            else:
+                out.append(f"- (low-rank build, 64 samples, whole field, at {n}²: "
+                           f"{lr['build_s']:.2f} s; the target is at 1024²)")
+    out.append(f"\nThis part ran {elapsed:.0f} s.\n")
+    if failed:
+        out.append("Failures: " + "; ".join(str(f) for f in failed) + "\n")
+    return "\n".join(out), failed
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--build", default=os.path.join(ROOT, "build"))
+    ap.add_argument("--quick", action="store_true", help="small sizes, few repetitions")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="threads of the apply runs (default 1: the cleanest ratio to the FFTs)")
+    ap.add_argument("--part", choices=("all", "apply", "correct"), default="all")
+    ap.add_argument("--corr-sizes", default="",
+                    help="sizes of the correction part (default 512,1024,2048; quick 256)")
+    ap.add_argument("--corr-threads", type=int, default=2,
+                    help="threads of the correction part (default 2)")
+    args = ap.parse_args()
+    exe = os.path.join(args.build, "tools", "bench", "bench_variant")
+    if not os.access(exe, os.X_OK):
+        sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
+    texts, failed = [], []
+    if args.part in ("all", "apply"):
+        t, f = apply_section(args, exe)
+        texts.append(t)
+        failed += f
+    if args.part in ("all", "correct"):
+        t, f = correct_section(args, exe)
+        texts.append(t)
+        failed += f
+    print("\n".join(texts))
     return 1 if failed else 0
 
 

@@ -761,6 +761,56 @@ static svp_status check_invariant_memory(const cli_psf *psf, int width, int heig
     return svp_io_check_memory(psf->path, what, bytes);
 }
 
+/* The last space-variant operator's measured application and adjoint times (cli_psf_blur), for
+ * its report sentence (cli_variant_sentence). */
+static struct {
+    const svp_blur *blur;
+    double apply_s, adjoint_s;
+} last_times;
+
+/* One application H x and one adjoint Hᵀ x of a space-variant operator, timed on a constant
+ * image (the cost does not depend on the values): what one of the correction's iterations
+ * costs, recorded in the summary and the report. */
+static void time_variant_apply(cli_run *run, svp_blur *blur)
+{
+    svp_image *x = NULL, *y = NULL;
+    const int w = svp_blur_width(blur), h = svp_blur_height(blur);
+    if (svp_image_new(w, h, &x) != SVP_OK || svp_image_new(w, h, &y) != SVP_OK) {
+        svp_image_free(x);
+        return; /* only a figure of the report is lost */
+    }
+    for (size_t i = 0; i < (size_t)w * h; i++) x->data[i] = 1.0;
+    const double t0 = cli_now();
+    const int ok = svp_blur_apply(blur, x, y) == SVP_OK;
+    const double t1 = cli_now();
+    const int ok_adj = ok && svp_blur_adjoint(blur, x, y) == SVP_OK;
+    const double t2 = cli_now();
+    svp_image_free(x);
+    svp_image_free(y);
+    if (!ok || !ok_adj) return;
+    last_times.blur = blur;
+    last_times.apply_s = t1 - t0;
+    last_times.adjoint_s = t2 - t1;
+    cli_setting_num(run, "operator_apply_s", t1 - t0);
+    cli_setting_num(run, "operator_adjoint_s", t2 - t1);
+}
+
+int cli_correct_applications(const svp_correct_options *o, int n_fields)
+{
+    /* a Wiener deconvolution of a space-variant operator is CG on the normal equations: about
+     * 40 steps of one H and one Hᵀ each (20-80 measured, docs/model.md §6), 17 solves with
+     * the discrepancy principle's search */
+    const int cg = 40 * (o->balance_auto ? 17 : 1);
+    const int rl = o->deconv.iterations;
+    long pairs;
+    switch (o->method) {
+    case SVP_METHOD_RW: pairs = rl + (long)n_fields * cg; break;
+    case SVP_METHOD_W: pairs = (long)(1 + n_fields) * cg; break;
+    default: pairs = (long)(1 + n_fields) * rl; break; /* R, RL_SIGNED */
+    }
+    return pairs > 1000000 ? 1000000 : (int)(pairs > 1 ? pairs : 1);
+}
+
 int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_boundary boundary,
                  svp_blur **out)
 {
@@ -807,6 +857,8 @@ int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_bo
             cli_setting_num(run, "operator_build_s", in.build_seconds);
             cli_setting_int(run, "operator_peak_bytes_estimate", (long long)in.peak_bytes);
             if (vo.max_memory > 0) cli_setting_num(run, "max_memory_bytes", vo.max_memory);
+            cli_setting_int(run, "operator_applications", vo.applications);
+            if (vo.applications > 1) time_variant_apply(run, *out);
         }
     } else if (psf->is_model)
         st = svp_blur_new(&psf->model, width, height, boundary, out);
@@ -842,8 +894,12 @@ void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size)
                  in.tolerance, in.tolerance_met ? "" : ", not met: the cheapest near the smallest error");
     else if (isfinite(in.estimated_error))
         snprintf(err, sizeof err, ", estimated error %.2g", in.estimated_error);
-    snprintf(buf, size, " Operator: %s%s, built in %.2f s, %.0f MB.", what, err,
-             in.build_seconds, in.memory_bytes / 1e6);
+    char apply[96] = "";
+    if (last_times.blur == blur)
+        snprintf(apply, sizeof apply, ", one application %.3f s (adjoint %.3f s)",
+                 last_times.apply_s, last_times.adjoint_s);
+    snprintf(buf, size, " Operator: %s%s, built in %.2f s%s, %.0f MB.", what, err,
+             in.build_seconds, apply, in.memory_bytes / 1e6);
 }
 
 void cli_variant_defaults(svp_variant_options *variant)
@@ -891,7 +947,7 @@ int cli_variant_option(const cli_run *run, svp_variant_options *variant, int opt
     return 0;
 }
 
-void cli_print_variant_help(FILE *out)
+void cli_print_variant_help(FILE *out, double default_tol)
 {
     fputs("PSF maps (--psf a PSF-map YAML file of kind grid, poly or regions; docs/cli.md):\n"
           "  --nodes NxM           tent node grid of the space-variant operator (default 8x8;\n"
@@ -899,9 +955,10 @@ void cli_print_variant_help(FILE *out)
           "  --rank R              use the low-rank (eigen-PSF) operator with R terms instead,\n"
           "                        the PSF sampled on the --nodes grid (R <= N M)\n"
           "  --operator-tol TOL    without --nodes / --rank: the cheapest tent grid or low rank\n"
-          "                        whose estimated relative operator error is <= TOL (default\n"
-          "                        1e-3; docs/model.md section 9)\n"
-          "  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
+          "                        whose estimated relative operator error is <= TOL (default\n",
+          out);
+    fprintf(out, "                        %g; docs/model.md section 9)\n", default_tol);
+    fputs("  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
           "                        $SVPSF_MAX_MEMORY, else the physical memory)\n",
           out);
 }

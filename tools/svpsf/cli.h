@@ -287,10 +287,16 @@ void cli_variant_defaults(svp_variant_options *variant);
 /* 0, or CLI_EXIT_USAGE after a message naming the option. */
 int cli_variant_option(const cli_run *run, svp_variant_options *variant, int option,
                        const char *arg);
-void cli_print_variant_help(FILE *out);
+/* default_tol: the command's --operator-tol default (forward 1e-3, correct 1e-2). */
+void cli_print_variant_help(FILE *out, double default_tol);
 /* " Operator: ..." for the report paragraph (the representation, its estimated error, build
- * time and memory); "" for operators that are not space-variant. */
+ * time, the time of one application and adjoint when cli_psf_blur measured them, and memory);
+ * "" for operators that are not space-variant. */
 void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size);
+/* The H + Hᵀ pairs a correction with options o on n_fields field maps runs (the cost model of
+ * the representation's choice, svp_variant_options.applications): Richardson-Lucy iterations
+ * per RL deconvolution, about 40 CG steps per Wiener one (17 solves with balance auto). */
+int cli_correct_applications(const svp_correct_options *o, int n_fields);
 int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
                      cli_psf *psf);
 /* Before any output is written: a PSF map fits a width x height image and its options are

@@ -39,6 +39,12 @@ static int auto_margin(const cli_psf *psf, int w, int h)
     return m < cap ? m : cap;
 }
 
+/* correct's --operator-tol default: the field error of a correction is dominated by the
+ * deconvolution's own (iterations, noise), not by an operator error of 1e-2; measured on the
+ * smooth-map benchmark (docs/performance.md, space-variant correction) the field error is the
+ * same to three digits as at 1e-3, at about half the time (docs/model.md §9). */
+#define CORRECT_OPERATOR_TOL 1e-2
+
 static const char *const method_names[] = {"rw", "r", "w", "rl-signed", NULL};
 static const svp_method method_values[] = {SVP_METHOD_RW, SVP_METHOD_R, SVP_METHOD_W,
                                            SVP_METHOD_RL_SIGNED};
@@ -134,7 +140,7 @@ static void print_help(const cli_run *run, FILE *out)
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
             d.pl_floor);
-    cli_print_variant_help(out);
+    cli_print_variant_help(out, CORRECT_OPERATOR_TOL);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: pl.EXT (recovered PL), field.EXT (recovered field; field_<stem>.EXT\n"
@@ -253,6 +259,7 @@ static int parse_correct_args(cli_run *run, struct correct_args *a)
     };
     memset(a, 0, sizeof *a);
     cli_maps_init(&a->maps);
+    a->maps.variant.tolerance = CORRECT_OPERATOR_TOL;
     svp_correct_defaults(&a->opt);
     cli_deconv_init(&a->deconv, &a->opt.deconv);
     while (method_values[a->method] != a->opt.method) a->method++; /* the library's default */
@@ -365,6 +372,7 @@ static int correct_compute(cli_run *run, struct correct_args *a, struct correct_
     const int w = maps->pl->width, h = maps->pl->height;
     int code;
     cli_stage_begin(run, "plan");
+    job->psf.variant.applications = cli_correct_applications(opt, maps->n_fields); /* cost model */
     if ((code = cli_psf_blur(run, &job->psf, w + 2 * opt->margin, h + 2 * opt->margin,
                              maps->boundary, &job->blur)))
         return code;

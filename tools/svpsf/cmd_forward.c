@@ -29,7 +29,7 @@ static void print_help(const cli_run *run, FILE *out)
           "                        its spectra in float: half their memory); within 2e-6 of\n"
           "                        the peak of double (docs/cli.md)\n",
           out);
-    cli_print_variant_help(out);
+    cli_print_variant_help(out, 1e-3);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: pl.EXT (apparent PL), field.EXT (apparent field; field_<stem>.EXT\n"
@@ -78,6 +78,7 @@ int cmd_forward(int argc, char **argv)
     const int w = maps.pl->width, h = maps.pl->height;
 
     cli_stage_begin(&run, "plan");
+    psf.variant.applications = 1; /* the cost model: one application each, no adjoint */
     if ((code = cli_psf_blur(&run, &psf, w, h, maps.boundary, &blur))) goto cleanup;
     if (precision == 1) {
         svp_status pst = svp_blur_set_precision(blur, 1);
