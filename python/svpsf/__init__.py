@@ -495,7 +495,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
     'double' | 'single' (default double, where `svpsf correct` takes single for r and
-    rl-signed with one PSF); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
+    rl-signed with one PSF from 1024² pixels); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
     PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
     gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
     operator error budget (default 1e-2, as `svpsf correct`).

@@ -200,15 +200,28 @@ check_close "T^-1(T(B)), signed RL 500 iterations, zero boundary, float32 TIFF: 
 expect_ok corr_r32 correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
     --method rl-signed --iterations 500 --precision single --margin 0 -o corr_r32 --format txt $FAST
 check_close "correct --precision single (500 iterations) agrees with double" corr_r/field.txt corr_r32/field.txt 1e-3
-# the default precision: single for r and rl-signed with one PSF (the same numbers as
-# --precision single), double for rw
+# the default precision: double below 1024² pixels (the same numbers as --precision double),
+# single from 1024² for r and rl-signed with one PSF, double for rw
 expect_ok corr_rdef correct --field fwd_z/field.tif --pl fwd_z/pl.tif --psf moffat.yaml \
     --method rl-signed --iterations 500 --margin 0 -o corr_rdef --format txt $FAST
-cmp -s corr_rdef/field.txt corr_r32/field.txt && grep -q '"precision": "single"' corr_rdef/summary.json &&
-    pass "correct r/rl-signed defaults to --precision single" ||
-    fail "default precision of rl-signed" "$(grep precision corr_rdef/summary.json)"
+cmp -s corr_rdef/field.txt corr_r/field.txt && grep -q '"precision": "double"' corr_rdef/summary.json &&
+    pass "correct rl-signed at 32² defaults to --precision double" ||
+    fail "default precision of rl-signed at 32²" "$(grep precision corr_rdef/summary.json)"
 grep -q '"precision": "double"' corr_rw/summary.json && pass "correct rw defaults to double" ||
     fail "default precision of rw" "$(grep precision corr_rw/summary.json)"
+awk 'BEGIN { for (y = 0; y < 1024; y++) { l = ""; for (x = 0; x < 1024; x++)
+    l = l (x ? " " : "") (1 + ((x + y) % 7)); print l } }' >pl1024.txt
+awk 'BEGIN { for (y = 0; y < 1024; y++) { l = ""; for (x = 0; x < 1024; x++)
+    l = l (x ? " " : "") ((x % 5) - 2); print l } }' >b1024.txt
+printf 'pixel_um: 0.5\npsf: {model: moffat, fwhm_um: 1.0, beta: 2.5, support_um: 2}\n' >moffat_s.yaml
+for m in r rw; do
+    expect_ok corr_1024$m correct --field b1024.txt --pl pl1024.txt --psf moffat_s.yaml --method $m \
+        --iterations 2 --margin 0 -o corr_1024$m --format npy $FAST
+done
+grep -q '"precision": "single"' corr_1024r/summary.json &&
+    grep -q '"precision": "double"' corr_1024rw/summary.json &&
+    pass "correct at 1024²: r defaults to single precision, rw to double" ||
+    fail "default precision at 1024²" "$(grep -h precision corr_1024r*/summary.json)"
 expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
     --psf moffat_periodic.yaml --method w --precision single -o corr_w32
 if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then
