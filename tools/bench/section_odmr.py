@@ -70,7 +70,8 @@ def python_overhead(build, work, reps):
     """svpsf.fit_odmr against svp_odmr_fit_maps called through cffi with prebuilt structs,
     interleaved; the wrapper's own work with the library call stubbed out."""
     import glob
-    libs = sorted(glob.glob(os.path.join(build, "libsvpsf.so.*")), key=len)
+    libs = sorted((p for p in glob.glob(os.path.join(build, "libsvpsf.so.*"))
+                   if os.path.isfile(p)), key=len)
     if not libs:
         return None
     os.environ["SVPSF_LIBRARY"] = libs[0]

@@ -29,7 +29,8 @@ TARGET_SPEEDUP = 1.6    # the issue's: 2 workers >= 1.6 x one worker on 8 datase
 
 
 def setup(build):
-    libs = sorted(glob.glob(os.path.join(build, "libsvpsf.so.*")), key=len)
+    libs = sorted((p for p in glob.glob(os.path.join(build, "libsvpsf.so.*"))
+                   if os.path.isfile(p)), key=len)
     if not libs:
         sys.exit(f"no libsvpsf.so.* in {build}: build first")
     os.environ["SVPSF_LIBRARY"] = libs[0]
