@@ -41,8 +41,8 @@ static int auto_margin(const cli_psf *psf, int w, int h)
 
 /* correct's --operator-tol default: the field error of a correction is dominated by the
  * deconvolution's own (iterations, noise), not by an operator error of 1e-2; measured on the
- * smooth-map benchmark (docs/performance.md, space-variant correction) the field error is the
- * same to three digits as at 1e-3, at about half the time (docs/model.md §9). */
+ * smooth-map benchmark (docs/performance.md, space-variant correction) the field error is within
+ * 1.5 % of 1e-3's, at about half the time (docs/cli.md). */
 #define CORRECT_OPERATOR_TOL 1e-2
 /* the default precision is single from this many pixels (r, rl-signed, one PSF) */
 #define SINGLE_FROM_PIXELS ((size_t)1024 * 1024)
