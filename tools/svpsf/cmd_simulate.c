@@ -95,105 +95,128 @@ static void print_headline(const svp_scene_result *result)
     }
 }
 
+struct simulate_args {
+    int dry_run;      /* --dry-run */
+    const char *path; /* the scene file */
+};
+
+static int parse_simulate_args(cli_run *run, struct simulate_args *a)
+{
+    static const struct option own[] = {
+        {"dry-run", no_argument, NULL, OPT_DRY_RUN},
+        {NULL, 0, NULL, 0},
+    };
+    memset(a, 0, sizeof *a);
+    int c;
+    while ((c = cli_next_option(run, own)) != CLI_OPTIONS_DONE) {
+        switch (c) {
+        case CLI_OPTION_HELP: print_help(run, stdout); return CLI_OPTION_HELP;
+        case CLI_OPTION_ERROR: return CLI_EXIT_USAGE;
+        case OPT_DRY_RUN: a->dry_run = 1; break;
+        default: return cli_error(run, "internal: option %d", c);
+        }
+    }
+    if (optind >= run->argc) return cli_error(run, "a scene file is required (see --help)");
+    if (optind + 1 < run->argc)
+        return cli_error(run, "one scene file at a time (got '%s' and '%s')", run->argv[optind],
+                         run->argv[optind + 1]);
+    a->path = run->argv[optind];
+    if (!a->dry_run && !run->output) return cli_error(run, "-o DIR is required (or --dry-run)");
+    return 0;
+}
+
+/* --dry-run: the scene, its plan and the files it would write; nothing computed. */
+static void simulate_dry_run(const cli_run *run, const svp_scene *scene, const char *path)
+{
+    const svp_scene_stage *stages = NULL;
+    const int n = svp_scene_plan(scene, &stages);
+    double pixel_um = 0;
+    int vw = 0, vh = 0, cw = 0, ch = 0;
+    svp_scene_geometry(scene, &pixel_um, &vw, &vh, &cw, &ch);
+    printf("scene %s (%s): view %d x %d px of %g um, canvas %d x %d\n", svp_scene_name(scene), path,
+           vw, vh, pixel_um, cw, ch);
+    printf("plan (%d stages):\n", n);
+    for (int i = 0; i < n; i++)
+        printf("  %2d. %-12s %s\n", i + 1, stages[i].name, stages[i].detail);
+    int no = svp_scene_n_outputs(scene);
+    printf("outputs (%d files%s%s):\n", no, run->output ? " in " : "",
+           run->output ? run->output : "");
+    for (int i = 0; i < no; i++) printf("  %s\n", svp_scene_output(scene, i));
+    printf("dry run: nothing was computed or written\n");
+}
+
+/* The scene run into run->output, with progress and the whole command line in summary.json. */
+static int simulate_run_scene(cli_run *run, const svp_scene *scene, const char *path)
+{
+    const svp_scene_stage *stages = NULL;
+    const int n = svp_scene_plan(scene, &stages);
+    double pixel_um = 0;
+    int vw = 0, vh = 0, cw = 0, ch = 0;
+    svp_scene_geometry(scene, &pixel_um, &vw, &vh, &cw, &ch);
+    svp_scene_options o;
+    svp_scene_defaults(&o);
+    o.overwrite = run->force;
+    o.keep_maps = 0;
+    o.progress = cli_progress;
+    o.progress_user = run;
+    o.on_stage = on_stage;
+    o.stage_user = run;
+    /* the whole command line, as typed, goes into summary.json */
+    char **full = malloc((size_t)(run->argc + 2) * sizeof *full);
+    if (full) {
+        full[0] = "svpsf";
+        for (int i = 0; i < run->argc; i++) full[i + 1] = run->argv[i];
+        o.argc = run->argc + 1;
+        o.argv = full;
+    }
+    /* the library creates DIR and its maps/, figures/, tables/: recorded so that a failed run
+     * leaves none of them behind when empty (cli_remove_created_dirs) */
+    cli_expect_dirs(run->output);
+    static const char *const subdirs[] = {"maps", "figures", "tables"};
+    for (int i = 0; i < 3; i++) {
+        char sub[4096];
+        snprintf(sub, sizeof sub, "%s/%s", run->output, subdirs[i]);
+        cli_expect_dirs(sub);
+    }
+    svp_scene_result *result = NULL;
+    cli_progress_start(run, "simulate");
+    double t0 = cli_now();
+    svp_status st = svp_scene_run(scene, run->output, &o, &result);
+    cli_progress_done(run);
+    free(full);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    printf("svpsf simulate: scene %s, %d stages in %.2f s (view %d x %d, canvas %d x %d)\n",
+           svp_scene_name(scene), n, cli_now() - t0, vw, vh, cw, ch);
+    print_headline(result);
+    printf("  report:  %s/report.md\n", run->output);
+    printf("  figures: %s/figures/\n", run->output);
+    printf("  summary: %s/summary.json (plan, stage times, every metric)\n", run->output);
+    svp_scene_result_free(result);
+    return 0;
+}
+
+static int run_simulate(cli_run *run, const struct simulate_args *a)
+{
+    svp_scene *scene = NULL;
+    svp_status st = svp_scene_load(a->path, &scene);
+    if (st != SVP_OK) return cli_fail(run, st, NULL);
+    int code = 0;
+    if (a->dry_run)
+        simulate_dry_run(run, scene, a->path);
+    else
+        code = simulate_run_scene(run, scene, a->path);
+    svp_scene_free(scene);
+    if (!a->dry_run) svp_figure_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
+    return code;
+}
+
 int cmd_simulate(int argc, char **argv)
 {
     cli_run run;
     cli_run_init(&run, "simulate", argc, argv, CLI_COMMON_OUTPUT | CLI_COMMON_FFT);
     run.fft_measure = 0; /* many one-off sizes: planning by measurement would not pay */
-    static const struct option own[] = {
-        {"dry-run", no_argument, NULL, OPT_DRY_RUN},
-        {NULL, 0, NULL, 0},
-    };
-    int dry_run = 0, code = 0;
-    int c;
-    while ((c = cli_next_option(&run, own)) != CLI_OPTIONS_DONE) {
-        switch (c) {
-        case CLI_OPTION_HELP: print_help(&run, stdout); return cli_run_finish(&run, 0);
-        case CLI_OPTION_ERROR: return cli_run_finish(&run, CLI_EXIT_USAGE);
-        case OPT_DRY_RUN: dry_run = 1; break;
-        default: return cli_run_finish(&run, cli_error(&run, "internal: option %d", c));
-        }
-    }
-    if (optind >= argc)
-        return cli_run_finish(&run, cli_error(&run, "a scene file is required (see --help)"));
-    if (optind + 1 < argc)
-        return cli_run_finish(&run, cli_error(&run,
-                                              "one scene file at a time (got '%s' and "
-                                              "'%s')",
-                                              argv[optind], argv[optind + 1]));
-    const char *path = argv[optind];
-    if (!dry_run && !run.output)
-        return cli_run_finish(&run, cli_error(&run, "-o DIR is required (or --dry-run)"));
-
-    svp_scene *scene = NULL;
-    svp_scene_result *result = NULL;
-    svp_status st = svp_scene_load(path, &scene);
-    if (st != SVP_OK) return cli_run_finish(&run, cli_fail(&run, st, NULL));
-
-    const svp_scene_stage *stages = NULL;
-    int n = svp_scene_plan(scene, &stages);
-    double pixel_um = 0;
-    int vw = 0, vh = 0, cw = 0, ch = 0;
-    svp_scene_geometry(scene, &pixel_um, &vw, &vh, &cw, &ch);
-    if (dry_run) {
-        printf("scene %s (%s): view %d x %d px of %g um, canvas %d x %d\n", svp_scene_name(scene),
-               path, vw, vh, pixel_um, cw, ch);
-        printf("plan (%d stages):\n", n);
-        for (int i = 0; i < n; i++)
-            printf("  %2d. %-12s %s\n", i + 1, stages[i].name, stages[i].detail);
-        int no = svp_scene_n_outputs(scene);
-        printf("outputs (%d files%s%s):\n", no, run.output ? " in " : "",
-               run.output ? run.output : "");
-        for (int i = 0; i < no; i++) printf("  %s\n", svp_scene_output(scene, i));
-        printf("dry run: nothing was computed or written\n");
-        svp_scene_free(scene);
-        return cli_run_finish(&run, 0);
-    }
-
-    svp_scene_options o;
-    svp_scene_defaults(&o);
-    o.overwrite = run.force;
-    o.keep_maps = 0;
-    o.progress = cli_progress;
-    o.progress_user = &run;
-    o.on_stage = on_stage;
-    o.stage_user = &run;
-    /* the whole command line, as typed, goes into summary.json */
-    char **full = malloc((size_t)(argc + 2) * sizeof *full);
-    if (full) {
-        full[0] = "svpsf";
-        for (int i = 0; i < argc; i++) full[i + 1] = argv[i];
-        o.argc = argc + 1;
-        o.argv = full;
-    }
-    /* the library creates DIR and its maps/, figures/, tables/: recorded so that a failed run
-     * leaves none of them behind when empty (cli_remove_created_dirs) */
-    cli_expect_dirs(run.output);
-    static const char *const subdirs[] = {"maps", "figures", "tables"};
-    for (int i = 0; i < 3; i++) {
-        char sub[4096];
-        snprintf(sub, sizeof sub, "%s/%s", run.output, subdirs[i]);
-        cli_expect_dirs(sub);
-    }
-    cli_progress_start(&run, "simulate");
-    double t0 = cli_now();
-    st = svp_scene_run(scene, run.output, &o, &result);
-    cli_progress_done(&run);
-    free(full);
-    if (st != SVP_OK) {
-        code = cli_fail(&run, st, path);
-        goto cleanup;
-    }
-    printf("svpsf simulate: scene %s, %d stages in %.2f s (view %d x %d, canvas %d x %d)\n",
-           svp_scene_name(scene), n, cli_now() - t0, vw, vh, cw, ch);
-    print_headline(result);
-    printf("  report:  %s/report.md\n", run.output);
-    printf("  figures: %s/figures/\n", run.output);
-    printf("  summary: %s/summary.json (plan, stage times, every metric)\n", run.output);
-
-cleanup:
-    svp_scene_result_free(result);
-    svp_scene_free(scene);
-    svp_figure_cleanup(); /* cairo's font caches: a clean exit for leak checkers */
-    return cli_run_finish(&run, code);
+    struct simulate_args args;
+    int code = parse_simulate_args(&run, &args);
+    if (code == 0) code = run_simulate(&run, &args);
+    return cli_run_finish(&run, cli_parsed_status(code));
 }
