@@ -237,6 +237,10 @@ SVP_API double svp_psf_encircled_energy(const svp_psf *psf, double r, double R);
  * its peak, at most the support when one is set: the PSF's significant reach (level 0.01 gives
  * `svpsf correct --margin auto`, docs/model.md §3). 0 for a level outside (0, 1). */
 SVP_API double svp_psf_reach(const svp_psf *psf, double level);
+/* The margin (pixels per side) `svpsf correct --margin auto` and scenes' `margin: auto` take for
+ * a width x height view: ceil(svp_psf_reach(psf, 0.01)), at most a quarter of the larger side;
+ * 0 for a PSF with a halo, whose flux a margin's unknowns could take up (docs/model.md §3). */
+SVP_API int svp_psf_auto_margin(const svp_psf *psf, int width, int height);
 /* Radius (pixels) enclosing `fraction` of the flux over a disc of radius R. */
 SVP_API svp_status svp_psf_encircled_radius(const svp_psf *psf, double fraction, double R,
                                             double *radius);

@@ -375,6 +375,12 @@ static void test_correct_margin(void **state)
     assert_int_equal((int)value(r, "correct/half_um/margin_px"), 5);
     const svp_image *pla = map(r, "pl_apparent");
     const int w = pla->width, h = pla->height;
+    /* the library's rule: the reach rounded up, at most a quarter of the view, 0 with a halo */
+    assert_int_equal(svp_psf_auto_margin(&psf, w, h), m_auto);
+    assert_int_equal(svp_psf_auto_margin(&psf, 20, 12), 5);
+    svp_psf haloed = psf;
+    haloed.halo = 0.2;
+    assert_int_equal(svp_psf_auto_margin(&haloed, w, h), 0);
     const int margins[2] = {m_auto, 5};
     const char *names[2] = {"B_z_corrected_auto", "B_z_corrected_half_um"};
     for (int k = 0; k < 2; k++) {

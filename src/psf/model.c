@@ -131,6 +131,16 @@ double svp_psf_reach(const svp_psf *psf, double level)
     return r;
 }
 
+/* `margin auto` (docs/model.md §3): the reach at 1 % of the peak, rounded up, at most a quarter
+ * of the larger side; 0 with a halo, whose flux a margin's unknowns could take up. */
+int svp_psf_auto_margin(const svp_psf *psf, int width, int height)
+{
+    if (psf->halo > 0) return 0;
+    const int cap = (width > height ? width : height) / 4;
+    const int r = (int)ceil(svp_psf_reach(psf, 0.01));
+    return r < cap ? r : cap;
+}
+
 /* Fraction of flux within radius r of a disc of radius R (circular profile with the
  * geometric-mean FWHM for elliptical ones). */
 double svp_psf_encircled_energy(const svp_psf *psf, double r, double R)

@@ -825,14 +825,7 @@ static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, 
         *m = cr->margin_px;
         return SVP_OK;
     }
-    *m = 0;
-    /* with a halo (light spread evenly over the view) a margin's unknowns can hold the halo's
-     * flux, which the data cannot tell apart: no margin (docs/model.md §3) */
-    if (one_psf && psf->boundary == SVP_BOUNDARY_ZERO && !(psf->psf.halo > 0)) {
-        const int cap = (w > h ? w : h) / 4;
-        const int r = (int)ceil(svp_psf_reach(&psf->psf, 0.01));
-        *m = r < cap ? r : cap;
-    }
+    *m = one_psf && psf->boundary == SVP_BOUNDARY_ZERO ? svp_psf_auto_margin(&psf->psf, w, h) : 0;
     return SVP_OK;
 }
 

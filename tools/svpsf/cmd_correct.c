@@ -26,16 +26,11 @@ static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound"
  * whose margin unknowns can take up halo flux (docs/model.md §3). */
 static int auto_margin(const cli_psf *psf, int w, int h)
 {
+    if (psf->is_model) return svp_psf_auto_margin(&psf->model, w, h);
+    if (!psf->kernel_raw) return 0;
     const int cap = (w > h ? w : h) / 4;
-    double r = 0;
-    if (psf->is_model) {
-        if (psf->model.halo > 0) return 0;
-        r = svp_psf_reach(&psf->model, 0.01);
-    } else if (psf->kernel_raw) {
-        const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
-        r = 0.5 * (kw > kh ? kw : kh);
-    }
-    int m = (int)ceil(r);
+    const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
+    const int m = (int)ceil(0.5 * (kw > kh ? kw : kh));
     return m < cap ? m : cap;
 }
 
