@@ -668,25 +668,47 @@ static svp_status variant_adjoint_single(svp_blur *b, const double *restrict y,
     return SVP_OK;
 }
 
+/* The K float spectra from the double ones (ns complex values a term; real parts only when the
+ * spectra are real). drop: each term's double spectrum is freed once converted, so the peak
+ * does not grow, and the double arrays go. */
+static svp_status float_spectra(svp_variant_data *v, size_t ns, int drop)
+{
+    const int K = v->n_terms;
+    v->f_real = v->otf_re != NULL;
+    v->otf_f = calloc((size_t)K, sizeof *v->otf_f);
+    if (!v->otf_f) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
+    const size_t nv = v->f_real ? ns : 2 * ns;
+    for (int k = 0; k < K; k++) {
+        float *o = v->otf_f[k] = svp_alloc(nv * sizeof(float));
+        if (!o) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
+        const double *d = v->f_real ? v->otf_re[k] : (const double *)v->otf[k];
+        for (size_t i = 0; i < nv; i++) o[i] = (float)d[i];
+        if (!drop) continue;
+        if (v->otf) {
+            svp_free(v->otf[k]);
+            v->otf[k] = NULL;
+        }
+        if (v->otf_re) {
+            svp_free(v->otf_re[k]);
+            v->otf_re[k] = NULL;
+        }
+    }
+    if (drop) {
+        free(v->otf);
+        free(v->otf_re);
+        v->otf = NULL;
+        v->otf_re = NULL;
+    }
+    return SVP_OK;
+}
+
 /* The float spectra (from the double ones), buffers and plans, once. */
 static svp_status single_setup(svp_blur *b)
 {
     svp_variant_data *v = b->variant;
     const svp_frame *f = &b->frame;
     const size_t ns = (size_t)f->ny * f->ncx;
-    const int K = v->n_terms;
-    if (!v->otf_f) {
-        v->f_real = v->otf_re != NULL;
-        v->otf_f = calloc((size_t)K, sizeof *v->otf_f);
-        if (!v->otf_f) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
-        for (int k = 0; k < K; k++) {
-            const size_t nv = v->f_real ? ns : 2 * ns;
-            float *o = v->otf_f[k] = svp_alloc(nv * sizeof(float));
-            if (!o) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
-            const double *d = v->f_real ? v->otf_re[k] : (const double *)v->otf[k];
-            for (size_t i = 0; i < nv; i++) o[i] = (float)d[i];
-        }
-    }
+    if (!v->otf_f) SVP_CHECK(float_spectra(v, ns, 0));
     if (!v->fr_f) {
         SVP_CHECK(svp_fftf_rows_get(f->ny, f->nx, b->height, &v->rows_img));
         v->rows_win = v->rows_img;
@@ -725,30 +747,11 @@ svp_status svp_variant_set_single(svp_blur *b, int on)
 static svp_status drop_double(svp_blur *b)
 {
     svp_variant_data *v = b->variant;
-    const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
-    const int K = v->n_terms;
     svp_free(v->acc);
     svp_free(v->spec2);
     v->acc = NULL;
     v->spec2 = NULL;
-    v->f_real = v->otf_re != NULL;
-    v->otf_f = calloc((size_t)K, sizeof *v->otf_f);
-    if (!v->otf_f) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
-    for (int k = 0; k < K; k++) {
-        const size_t nv = v->f_real ? ns : 2 * ns;
-        float *o = v->otf_f[k] = svp_alloc(nv * sizeof(float));
-        if (!o) return svp_fail(SVP_ERR_NOMEM, "out of memory for %d float spectra", K);
-        const double *d = v->f_real ? v->otf_re[k] : (const double *)v->otf[k];
-        for (size_t i = 0; i < nv; i++) o[i] = (float)d[i];
-        if (v->otf) svp_free(v->otf[k]);
-        if (v->otf_re) svp_free(v->otf_re[k]);
-        if (v->otf) v->otf[k] = NULL;
-        if (v->otf_re) v->otf_re[k] = NULL;
-    }
-    free(v->otf);
-    free(v->otf_re);
-    v->otf = NULL;
-    v->otf_re = NULL;
+    SVP_CHECK(float_spectra(v, (size_t)b->frame.ny * b->frame.ncx, 1));
     v->double_gone = 1;
     return svp_variant_set_single(b, 1);
 }

@@ -122,6 +122,15 @@ def one_run(svpsf, data, label, extra, threads, wisdom):
     return res
 
 
+def make_dataset(data, scene, size, counts, fwhm_err, beta_err, extra=()):
+    """A foreign dataset in folder data (tools/bench/foreign.py), its seed from the photon
+    count; returns data."""
+    foreign.main(["make", "-o", data, "--scene", scene, "--size", str(size), "--counts",
+                  str(counts), "--fwhm-err", str(fwhm_err), "--beta-err", str(beta_err),
+                  "--seed", str(7 + int(counts) % 97)] + list(extra))
+    return data
+
+
 def uncorrected(data):
     b = np.load(os.path.join(data, "field.npy"))
     truth = np.load(os.path.join(data, "truth_field.npy"))
@@ -345,14 +354,12 @@ def main():
         for scene in scenes:
             for c in counts:
                 for fe, be in psf_errors:
-                    data = os.path.join(tmp, f"{scene}_{c}_{fe}")
-                    foreign.main(["make", "-o", data, "--scene", scene, "--size", str(size),
-                                  "--counts", str(c), "--fwhm-err", str(fe), "--beta-err",
-                                  str(be), "--seed", str(7 + int(c) % 97)]
-                                 + (["--gain", str(camera[0]), "--offset", str(camera[1]),
-                                     "--read-noise", str(camera[2])] if camera else [])
-                                 + (["--field-noise-ut", str(args.field_noise_ut)]
-                                    if args.field_noise_ut is not None else []))
+                    data = make_dataset(os.path.join(tmp, f"{scene}_{c}_{fe}"), scene, size,
+                                        c, fe, be,
+                                        (["--gain", str(camera[0]), "--offset", str(camera[1]),
+                                          "--read-noise", str(camera[2])] if camera else [])
+                                        + (["--field-noise-ut", str(args.field_noise_ut)]
+                                           if args.field_noise_ut is not None else []))
                     u = uncorrected(data)
                     for label, args_ in sets:
                         r = one_run(args.svpsf, data, label, args_, args.threads,
@@ -367,10 +374,8 @@ def main():
         if not args.quick and not args.no_sensitivity:
             for scene in scenes:
                 for fe, be in SENSITIVITY:
-                    data = os.path.join(tmp, f"sens_{scene}_{fe}_{be}")
-                    foreign.main(["make", "-o", data, "--scene", scene, "--size", str(size),
-                                  "--counts", "10000", "--fwhm-err", str(fe), "--beta-err",
-                                  str(be), "--seed", str(7 + 10000 % 97)])
+                    data = make_dataset(os.path.join(tmp, f"sens_{scene}_{fe}_{be}"), scene,
+                                        size, 10000, fe, be)
                     u = uncorrected(data)
                     for label, args_ in SENSITIVITY_SETS:
                         r = one_run(args.svpsf, data, label, args_, args.threads,

@@ -102,3 +102,27 @@ def describe_error(r):
         return "not implemented yet"
     return f"failed ({r.get('error')})"
 
+
+def built_library(build):
+    """The shared libsvpsf.so.MAJOR... file of a build tree (meson's libsvpsf.so.p/ is a
+    folder, not the library), or None."""
+    import glob
+    libs = sorted((p for p in glob.glob(os.path.join(build, "libsvpsf.so.*"))
+                   if os.path.isfile(p)), key=len)
+    return libs[0] if libs else None
+
+
+def interleaved(wrapped, raw, reps):
+    """Times wrapped() and raw() (which must return 0) one after the other, reps times: the two
+    lists of seconds, each pair taken moments apart."""
+    import time
+    tw, tr = [], []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        wrapped()
+        t1 = time.perf_counter()
+        assert raw() == 0
+        t2 = time.perf_counter()
+        tw.append(t1 - t0)
+        tr.append(t2 - t1)
+    return tw, tr

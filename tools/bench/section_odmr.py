@@ -25,7 +25,8 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, loadavg, log, ok, run_json  # noqa: E402
+from benchlib import (ROOT, built_library, interleaved, loadavg, log, ok,  # noqa: E402
+                      run_json)
 
 TARGET_RATIO = 1.5        # the issue's: fit-odmr within 1.5 x of the scene engine's fitter
 SCENE_FIGURE = 3.2e5      # the scene engine's fits per second on 2 threads (scene section, 256²)
@@ -69,12 +70,10 @@ def cli_runs(svpsf, work, reps):
 def python_overhead(build, work, reps):
     """svpsf.fit_odmr against svp_odmr_fit_maps called through cffi with prebuilt structs,
     interleaved; the wrapper's own work with the library call stubbed out."""
-    import glob
-    libs = sorted((p for p in glob.glob(os.path.join(build, "libsvpsf.so.*"))
-                   if os.path.isfile(p)), key=len)
-    if not libs:
+    library = built_library(build)
+    if not library:
         return None
-    os.environ["SVPSF_LIBRARY"] = libs[0]
+    os.environ["SVPSF_LIBRARY"] = library
     sys.path.insert(0, os.path.join(ROOT, "python"))
     try:
         import numpy as np
@@ -121,15 +120,7 @@ def python_overhead(build, work, reps):
 
     log("python overhead: fit_odmr")
     wrapped(), raw()
-    tw, tr = [], []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        wrapped()
-        t1 = time.perf_counter()
-        assert raw() == 0
-        t2 = time.perf_counter()
-        tw.append(t1 - t0)
-        tr.append(t2 - t1)
+    tw, tr = interleaved(wrapped, raw, reps)
     real = svpsf.lib
 
     class Stub:

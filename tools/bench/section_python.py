@@ -14,7 +14,6 @@ stub that returns at once). Batch: 8 datasets of 512² corrected by svpsf.batch 
 LocalCluster of 1 and of 2 single-threaded workers (cluster start-up excluded), interleaved.
 """
 import argparse
-import glob
 import os
 import statistics
 import sys
@@ -22,18 +21,17 @@ import tempfile
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, loadavg, log  # noqa: E402
+from benchlib import ROOT, built_library, interleaved, loadavg, log  # noqa: E402
 
 TARGET_OVERHEAD = 0.05  # the issue's: Python overhead per call <= 5 % at 512²
 TARGET_SPEEDUP = 1.6    # the issue's: 2 workers >= 1.6 x one worker on 8 datasets
 
 
 def setup(build):
-    libs = sorted((p for p in glob.glob(os.path.join(build, "libsvpsf.so.*"))
-                   if os.path.isfile(p)), key=len)
-    if not libs:
+    library = built_library(build)
+    if not library:
         sys.exit(f"no libsvpsf.so.* in {build}: build first")
-    os.environ["SVPSF_LIBRARY"] = libs[0]
+    os.environ["SVPSF_LIBRARY"] = library
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     sys.path.insert(0, os.path.join(ROOT, "python"))
 
@@ -112,15 +110,7 @@ def overhead(reps):
     for name, fn, wrapped, raw in cases:
         log(f"python overhead: {name}")
         wrapped(), raw()  # warm
-        tw, tr = [], []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            wrapped()
-            t1 = time.perf_counter()
-            assert raw() == 0
-            t2 = time.perf_counter()
-            tw.append(t1 - t0)
-            tr.append(t2 - t1)
+        tw, tr = interleaved(wrapped, raw, reps)
         diff = statistics.median(w - r for w, r in zip(tw, tr))
         # the wrapper's own work, the library call stubbed out
         real = svpsf.lib
