@@ -3,6 +3,7 @@
 
 #include <math.h>
 #include <stdlib.h>
+#include <string.h>
 
 void svp_psf_defaults(svp_psf *psf)
 {
@@ -238,8 +239,14 @@ __attribute__((target("avx2"))) svp_m4d _ZGVdN4v_log1p(svp_m4d);
 __attribute__((target("avx2"))) static void profile_values_avx2(const profile_eval *e,
                                                                 double *q, int n)
 {
-    const int gauss = e->model == SVP_PSF_GAUSSIAN;
-    for (int i = 0; i < n; i += 4) {
+    const int gauss = e->model == SVP_PSF_GAUSSIAN, n4 = n & ~3;
+    for (int i = 0; i < n4; i += 4) {
+        svp_m4d x;
+        memcpy(&x, q + i, sizeof x);
+        x = gauss ? _ZGVdN4v_exp(-0.5 * x) : _ZGVdN4v_exp(-e->beta * _ZGVdN4v_log1p(x));
+        memcpy(q + i, &x, sizeof x);
+    }
+    for (int i = n4; i < n; i += 4) {
         svp_m4d x = {0, 0, 0, 0};
         const int k = n - i < 4 ? n - i : 4;
         for (int t = 0; t < k; t++) x[t] = q[i + t];
@@ -279,7 +286,9 @@ static void profile_values(const profile_eval *e, double *q, int n)
 
 /* n values of the unnormalised kernel at offsets (dx0 + i, dy), i = 0 .. n − 1: the profile at
  * the pixel centres (profile_values, a batch at a time), the sub-pixel mean where it curves
- * within a pixel, 0 beyond the support. */
+ * within a pixel, 0 beyond the support. A span all of whose pixels are centre-sampled (most
+ * of them) takes its q values in place and the profile over all of them at once: the same
+ * values, without the batches' gathers and scatters, which cost more than the vector maths. */
 static void render_offsets(const svp_psf *psf, const profile_eval *e, int dy, int dx0, int n,
                            double *restrict out)
 {
@@ -289,6 +298,20 @@ static void render_offsets(const svp_psf *psf, const profile_eval *e, int dy, in
     const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
     const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
     const double ddy = dy;
+    /* every pixel at its centre (none beyond the support or in the sub-sampled disc, which a
+     * row crosses at most once each): q in place, then the profile */
+    const double dxa = fabs((double)dx0), dxb = fabs((double)dx0 + n - 1);
+    const double near = dx0 <= 0 && dx0 + n - 1 >= 0 ? 0 : fmin(dxa, dxb), far = fmax(dxa, dxb);
+    if (n > 0 && far * far + ddy * ddy <= support2 &&
+        (ns == 1 || near * near + ddy * ddy > sub_radius2)) {
+        for (int x = 0; x < n; x++) {
+            const double dx = dx0 + x;
+            const double u = dx * e->c + ddy * e->s, v = -dx * e->s + ddy * e->c;
+            out[x] = u * u * e->ia2 + v * v * e->ib2;
+        }
+        profile_values(e, out, n);
+        return;
+    }
     enum { BATCH = 256 };
     double qb[BATCH];
     int xb[BATCH], nb = 0;
