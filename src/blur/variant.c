@@ -1544,8 +1544,8 @@ size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threa
     if (chunks > 16) chunks = 16;
     return (size_t)threads * S * GRAM_ROWS * kw * sizeof(double) /* row blocks */
            + (chunks + 2) * S * S * sizeof(double)                /* Gram, partials, vectors */
-           + (size_t)rank * half * sizeof(double)                 /* eigen-PSF halves */
-           + kw * kh * sizeof(double);                            /* one whole eigen-PSF */
+           + (size_t)rank * half * sizeof(double) /* eigen-PSF folds (a half at most) */
+           + ((size_t)threads * kw + kh) * sizeof(double); /* kernel rows, row sums */
 }
 
 /* g (S x S, column-major, lower triangle and diagonal) += Σ_p a_i[p] a_j[p] over the n pixels
@@ -1605,14 +1605,16 @@ static void gram_accumulate(const double *const *a, int S, size_t n, double *res
  * dx >= dy >= 0 (svp_psf_render_fold); hr = ry + 1 rows in each case, row t's pixels at
  * rowoff[t] .. rowoff[t + 1] − 1 of the n rendered; nblk blocks of GRAM_ROWS rows (at most bp
  * pixels), the pass-1 partial Gram matrices of `chunks` chunks (Sp x Sp each), and the arrays
- * named at gram_alloc and gram_layout (krow: one kernel row, wx: its columns' frame columns). */
+ * named at gram_alloc and gram_layout (krow: a kernel row per thread, wx: its columns' frame
+ * columns, rsum: the rows' sums, placed: the frame gram_otf places a kernel on). */
 typedef struct gram_build {
     int S, Sp, R, Q, centred, rx, ry, kw, kh, hr, nblk, chunks, threads, sym;
     size_t m, n, bp;
     size_t *rowoff;
     int *wx;
     svp_psf *psf;
-    double *blk, *part, *zeros, *cval, *psum, *g, *z, *lam, *sum, *zx, *eh, *flux, *krow;
+    double *blk, *part, *zeros, *cval, *psum, *g, *z, *lam, *sum, *zx, *eh, *flux, *krow, *rsum;
+    double *placed;
     const double **rowp;
     lapack_int *isuppz;
 } gram_build;
@@ -1634,6 +1636,8 @@ static void gram_free(gram_build *gb)
     free(gb->eh);
     free(gb->flux);
     free(gb->krow);
+    free(gb->rsum);
+    svp_free(gb->placed);
     free(gb->wx);
     free(gb->rowoff);
     free(gb->isuppz);
@@ -1674,11 +1678,12 @@ static svp_status gram_alloc(gram_build *gb, const svp_variant_data *v,
     gb->flux = calloc((size_t)R, sizeof(double));
     gb->isuppz = malloc(2 * (size_t)S * sizeof(lapack_int));
     gb->rowoff = malloc((size_t)(gb->hr + 1) * sizeof *gb->rowoff);
-    gb->krow = malloc((size_t)gb->kw * sizeof(double));
+    gb->krow = malloc((size_t)gb->threads * gb->kw * sizeof(double));
+    gb->rsum = malloc((size_t)gb->kh * sizeof(double));
     gb->wx = malloc((size_t)gb->kw * sizeof(int));
     if (!gb->psf || !gb->part || !gb->rowp || !gb->cval || !gb->psum || !gb->g || !gb->z ||
         !gb->lam || !gb->sum || !gb->zx || !gb->flux || !gb->isuppz || !gb->rowoff || !gb->krow ||
-        !gb->wx)
+        !gb->rsum || !gb->wx)
         return svp_fail(SVP_ERR_NOMEM,
                         "out of memory for the low-rank build (%d samples of %d x %d pixels)", S,
                         gb->kw, gb->kh);
@@ -1953,34 +1958,36 @@ static int wrap_index(int d, int n)
 
 /* Term r's spectrum as term_otf's (the whole kernel placed on the frame as
  * svp_frame_set_kernel places it, scaled by 1 / (nx ny), transformed), placed row by row from
- * its fold (kernel_row) with no whole-kernel image; *flux = the whole kernel's sum. */
+ * its fold (kernel_row) into gb->placed, with no whole-kernel image; *flux = the whole kernel's
+ * sum (row sums added in order). The rows are placed in parallel when no two of them alias
+ * (then each frame row is written by one thread). */
 static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **otf, double *flux)
 {
     const svp_frame *f = &b->frame;
-    const int zero = b->boundary == SVP_BOUNDARY_ZERO, rx = gb->rx, ry = gb->ry;
+    const int zero = b->boundary == SVP_BOUNDARY_ZERO, rx = gb->rx, ry = gb->ry, kw = gb->kw;
     *otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
-    double *placed = svp_calloc((size_t)f->ny * f->nx, sizeof(double));
-    if (!*otf || !placed) {
-        svp_free(placed);
-        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d spectrum", f->nx, f->ny);
-    }
-    for (int x = 0; x < gb->kw; x++) /* offsets beyond the image join no pixels (zero) */
+    if (!*otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d spectrum", f->nx, f->ny);
+    for (int x = 0; x < kw; x++) /* offsets beyond the image join no pixels (zero) */
         gb->wx[x] = zero && abs(x - rx) > f->width - 1 ? -1 : wrap_index(x - rx, f->nx);
+    const int reach = zero && ry > f->height - 1 ? f->height - 1 : ry; /* rows placed: ±reach */
     const double inv = 1.0 / ((double)f->nx * f->ny), *e = gb->eh + (size_t)r * gb->n;
-    double total = 0;
-    for (int y = 0; y < gb->kh; y++) { /* serial: aliased offsets add into the same cell */
-        double *k = gb->krow, rs = 0;
+    double *placed = gb->placed;
+    memset(placed, 0, (size_t)f->ny * f->nx * sizeof(double));
+#pragma omp parallel for schedule(static) if (2 * reach + 1 <= f->ny)
+    for (int y = 0; y < gb->kh; y++) {
+        double *k = gb->krow + (size_t)omp_get_thread_num() * kw, rs = 0;
         kernel_row(gb, e, y, k);
-        for (int x = 0; x < gb->kw; x++) rs += k[x];
-        total += rs;
-        if (zero && abs(y - ry) > f->height - 1) continue;
+        for (int x = 0; x < kw; x++) rs += k[x];
+        gb->rsum[y] = rs;
+        if (abs(y - ry) > reach) continue;
         double *row = placed + (size_t)wrap_index(y - ry, f->ny) * f->nx;
-        for (int x = 0; x < gb->kw; x++)
+        for (int x = 0; x < kw; x++)
             if (gb->wx[x] >= 0) row[gb->wx[x]] += inv * k[x];
     }
+    double total = 0;
+    for (int y = 0; y < gb->kh; y++) total += gb->rsum[y];
     *flux = total;
     svp_fft_forward(f->plan, placed, *otf);
-    svp_free(placed);
     return SVP_OK;
 }
 
@@ -2015,6 +2022,14 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
     }
     if (st == SVP_OK) st = gram_terms(&gb, v);
     if (st == SVP_OK) gram_halves(&gb);
+    if (st == SVP_OK) {
+        free(gb.blk); /* the row blocks are done with */
+        gb.blk = NULL;
+        gb.placed = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
+        if (!gb.placed)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d frame", b->frame.nx,
+                          b->frame.ny);
+    }
     for (int r = 0; r < gb.R && st == SVP_OK; r++) {
         st = gram_otf(b, &gb, r, &v->otf[r], &gb.flux[r]);
         if (st == SVP_OK)
