@@ -1553,11 +1553,11 @@ size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threa
  * samples point at zeros). Tiles of 4 x 2 rows, pixels in chunks that stay in cache, four
  * pixels per vector lane set; the lanes are summed in a fixed order (deterministic). The tile's
  * eight accumulators are named one by one: held in an array, GCC keeps them in memory, which
- * made the loop three times slower. On x86-64 with GCC an x86-64-v3 clone (AVX2 and FMA) is
- * chosen at run time when the CPU has it. */
+ * made the loop three times slower. On x86-64 with GCC an AVX2 clone is chosen at run time
+ * when the CPU has it (no FMA: C11 mode keeps products and sums apart). */
 typedef double svp_v4d __attribute__((vector_size(32)));
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
-__attribute__((target_clones("arch=x86-64-v3", "default")))
+__attribute__((target_clones("avx2", "default")))
 #endif
 static void gram_accumulate(const double *const *a, int S, size_t n, double *restrict g)
 {
