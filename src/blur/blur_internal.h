@@ -203,11 +203,12 @@ svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
                              svp_boundary boundary, double support, svp_blur_kind kind,
                              svp_blur **out, int *rx, int *ry, double *support_used);
 /* svp_blur_new_field with the low-rank terms from the dense SVD of the whole sampled-kernel
- * matrix (dense_svd 1, LAPACKE_dgesdd; at most 2^27 values) or from its Gram matrix (0, the
- * default build, variant.c). Tests compare both. */
+ * matrix (build 1, LAPACKE_dgesdd; at most 2^27 values) or from its Gram matrix (0, the
+ * default build, on the fold the kernels' symmetry allows, variant.c; 2, the same on the
+ * point-symmetric half whatever the symmetry). Tests compare them. */
 svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int height,
                                     svp_boundary boundary, const svp_variant_options *options,
-                                    int dense_svd, svp_blur **out);
+                                    int build, svp_blur **out);
 /* Term r of a tent / low-rank operator: its spectrum (ny x ncx, scaled by 1 / (nx ny)) in *re
  * when stored real, else in *c, and for low rank its coefficients at the samples; returns the
  * number of terms (0 when r is out of range or the operator is not tent / low rank). */
