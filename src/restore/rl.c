@@ -5,7 +5,8 @@
  * boundary weights (with options->boundary_weights = 0 the scalar mean of Hᵀm instead: plain
  * RL, exact for a periodic unit-flux operator without missing data), floor = options->floor ·
  * max(y). Started flat at the mean of the finite data (RL forgets the start's scale after one
- * iteration). */
+ * iteration). In single precision H and Hᵀ transform only deviations from known levels (see
+ * rl_level_setup), so their float round-off scales with the deviations. */
 #include "restore_internal.h"
 
 #include <float.h>
@@ -110,6 +111,11 @@ typedef struct rl_run {
     double y_max;
     const double *var_map; /* the stopping rule's noise variance: a map, or */
     double var_const;      /* one σ² (and the floor under the map) */
+    /* single precision only (rl_level_setup; else NULL): H x = λ₁ H1 + λ₂ Hs + H(x − λ₁ − λ₂ s)
+     * and Hᵀq = μ₁ Hᵀm + μ₂ Hᵀs + Hᵀ(q − μ₁ m − μ₂ s), q the ratio, s = m y / H1 the data's
+     * shape, the four transforms of the levels once in double */
+    double *shape, *h_one, *h_s, *ht_mask, *ht_s;
+    double sum_s, sum_ss; /* Σ s, Σ s² */
 } rl_run;
 
 /* One pass: the finite mask folded into y (missing → 0), the range and the count; the data
@@ -152,6 +158,65 @@ static svp_status rl_scan(rl_run *r)
     return SVP_OK;
 }
 
+/* Single precision: float round-off is relative to what is transformed, and RL's iterates
+ * and ratios are mostly a known part plus a smaller deviation: with the signed shift of T⁻¹ the
+ * data are c Ĩ + B̃Ĩ, c ≫ |B̃|, so the iterate is mostly level and data shape (a flat start, then
+ * the PL's deconvolution scaled by c) and the ratio m y / Hx mostly m (s / a at the start).
+ * So H and Hᵀ transform only the deviation from the least-squares fit of their input by
+ * λ₁ (1 or m) + λ₂ s (rl_fit_levels; s = m y / H1, the data's shape, flat edges where light
+ * leaves a zero-boundary field), and the fit's transforms, made here once in double, are added
+ * back. Nothing in double, nor for an operator built in single precision (no double spectra:
+ * the levels' own transforms would carry the float round-off this avoids). */
+static svp_status rl_level_setup(rl_run *r)
+{
+    svp_blur *blur = r->blur;
+    if (!blur->single || !svp_blur_has_double(blur)) return SVP_OK;
+    const size_t n = r->n;
+    double **bufs[5] = {&r->shape, &r->h_one, &r->h_s, &r->ht_mask, &r->ht_s};
+    for (int k = 0; k < 5; k++)
+        if (!(*bufs[k] = svp_alloc(n * sizeof(double))))
+            return svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for %d x %d buffers",
+                            r->w, r->h);
+    const double *yd = r->yd, *y_masked = r->y_masked;
+    double *buf = r->blurred, *shape = r->shape, *h_one = r->h_one;
+    SVP_CHECK(svp_blur_set_single(blur, 0));
+    svp_image img_buf = {r->w, r->h, buf}, img_s = {r->w, r->h, shape};
+    svp_image out[4] = {{r->w, r->h, h_one}, {r->w, r->h, r->h_s}, {r->w, r->h, r->ht_mask},
+                        {r->w, r->h, r->ht_s}};
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) buf[i] = 1.0;
+    svp_status st = svp_blur_apply(blur, &img_buf, &out[0]);
+    const double dim = 1e-3 * svp_max(h_one, n); /* pixels the operator barely reaches: s = 0 */
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) shape[i] = h_one[i] > dim ? y_masked[i] / h_one[i] : 0.0;
+    if (st == SVP_OK) st = svp_blur_apply(blur, &img_s, &out[1]);
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) buf[i] = isfinite(yd[i]) ? 1.0 : 0.0;
+    if (st == SVP_OK) st = svp_blur_adjoint(blur, &img_buf, &out[2]);
+    if (st == SVP_OK) st = svp_blur_adjoint(blur, &img_s, &out[3]);
+    r->sum_s = svp_sum(shape, n);
+    r->sum_ss = svp_dot(shape, shape, buf, n);
+    const svp_status back = svp_blur_set_single(blur, 1);
+    return st != SVP_OK ? st : back;
+}
+
+/* The least-squares fit v ≈ l[0] e + l[1] s (e: 1 everywhere, count = n; or the finite mask,
+ * count = n_finite, v 0 where it is 0; s the data's shape, 0 there too); the constant alone
+ * (l[1] = 0) when s is nearly flat. scratch: n values. */
+static void rl_fit_levels(const rl_run *r, const double *v, double count, double *scratch,
+                          double l[2])
+{
+    const double sv = svp_sum(v, r->n), svs = svp_dot(v, r->shape, scratch, r->n);
+    const double det = count * r->sum_ss - r->sum_s * r->sum_s;
+    if (!(det > 1e-9 * count * r->sum_ss)) {
+        l[0] = sv / count;
+        l[1] = 0.0;
+        return;
+    }
+    l[0] = (r->sum_ss * sv - r->sum_s * svs) / det;
+    l[1] = (count * svs - r->sum_s * sv) / det;
+}
+
 /* The normalisation 1 / Hᵀm (m = 1 without missing data) into inv_norm, computed once: per
  * pixel with boundary weights (0 where no finite datum sees the pixel), else its mean. */
 static svp_status rl_normalisation(rl_run *r)
@@ -160,9 +225,13 @@ static svp_status rl_normalisation(rl_run *r)
     const double *yd = r->yd;
     double *blurred = r->blurred, *inv_norm = r->inv_norm;
     svp_image img_blurred = {r->w, r->h, blurred}, img_norm = {r->w, r->h, inv_norm};
+    if (r->ht_mask) {
+        memcpy(inv_norm, r->ht_mask, n * sizeof(double));
+    } else {
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) blurred[i] = isfinite(yd[i]) ? 1.0 : 0.0;
-    SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_norm));
+        for (size_t i = 0; i < n; i++) blurred[i] = isfinite(yd[i]) ? 1.0 : 0.0;
+        SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_norm));
+    }
     if (r->o->boundary_weights) {
         /* Pixels no finite datum sees (Hᵀm ~ 0) keep their value: 0 marks them. */
         const double tiny = 1e-12 * svp_max(inv_norm, n);
@@ -197,20 +266,58 @@ static svp_status rl_variance(rl_run *r, const svp_image *y)
     return SVP_OK;
 }
 
-/* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx in `blurred`;
- * g (or NULL) receives the step x_new − x. */
-static svp_status rl_step(rl_run *r, double *restrict xd, double *restrict g, double floor_abs)
+/* Hx into `blurred`; in single precision by the levels' fit (rl_level_setup). */
+static svp_status rl_forward(rl_run *r, double *restrict xd)
 {
     const size_t n = r->n;
-    double *blurred = r->blurred;
-    const double *y_masked = r->y_masked, *inv_norm = r->inv_norm, *correction = r->correction;
-    svp_image img_blurred = {r->w, r->h, blurred}, img_correction = {r->w, r->h, r->correction};
+    svp_image img_x = {r->w, r->h, xd}, img_blurred = {r->w, r->h, r->blurred};
+    if (!r->h_one) return svp_blur_apply(r->blur, &img_x, &img_blurred);
+    double *restrict dev = r->correction, *restrict blurred = r->blurred;
+    const double *restrict h_one = r->h_one, *restrict h_s = r->h_s, *restrict sv = r->shape;
+    double l[2];
+    rl_fit_levels(r, xd, (double)n, dev, l);
+    svp_image img_dev = {r->w, r->h, dev};
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) dev[i] = xd[i] - l[0] - l[1] * sv[i];
+    SVP_CHECK(svp_blur_apply(r->blur, &img_dev, &img_blurred));
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) blurred[i] += l[0] * h_one[i] + l[1] * h_s[i];
+    return SVP_OK;
+}
+
+/* Hᵀ(m y / max(Hx, floor)) into `correction`, with Hx in `blurred` (overwritten); in single
+ * precision by the levels' fit (rl_level_setup). */
+static svp_status rl_ratio_adjoint(rl_run *r, double floor_abs)
+{
+    const size_t n = r->n;
+    double *restrict blurred = r->blurred, *restrict correction = r->correction;
+    const double *restrict y_masked = r->y_masked, *restrict yd = r->yd;
+    svp_image img_blurred = {r->w, r->h, blurred}, img_correction = {r->w, r->h, correction};
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
     for (size_t i = 0; i < n; i++) {
         double hx = blurred[i];
         blurred[i] = y_masked[i] / (hx > floor_abs ? hx : floor_abs);
     }
+    if (!r->ht_mask) return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
+    const double *restrict ht_mask = r->ht_mask, *restrict ht_s = r->ht_s, *restrict sv = r->shape;
+    double l[2];
+    rl_fit_levels(r, blurred, (double)r->n_finite, correction, l);
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++)
+        blurred[i] = isfinite(yd[i]) ? blurred[i] - l[0] - l[1] * sv[i] : 0.0;
     SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_correction));
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) correction[i] += l[0] * ht_mask[i] + l[1] * ht_s[i];
+    return SVP_OK;
+}
+
+/* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx in `blurred`;
+ * g (or NULL) receives the step x_new − x. */
+static svp_status rl_step(rl_run *r, double *restrict xd, double *restrict g, double floor_abs)
+{
+    const size_t n = r->n;
+    const double *inv_norm = r->inv_norm, *correction = r->correction;
+    SVP_CHECK(rl_ratio_adjoint(r, floor_abs));
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
     for (size_t i = 0; i < n; i++) {
         if (inv_norm[i] == 0) {
@@ -258,7 +365,6 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
     /* floor > 0 keeps y / Hx finite; 1e-300 y_max guards floor = 0 without overflowing */
     const double floor_abs = fmax(o->floor * r->y_max, 1e-300 * r->y_max);
     double *restrict xd = x->data;
-    svp_image img_x = {r->w, r->h, x->data}, img_blurred = {r->w, r->h, r->blurred};
     const int auto_stop = o->auto_stop, accel = r->x_prev != NULL;
     double chi2_history[STALL_SPAN + 1] = {0};
     int done = 0, stop = auto_stop ? SVP_RL_STOP_CAP : SVP_RL_STOP_COUNT;
@@ -267,7 +373,7 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
         if (accel)
             extrapolate(xd, r->x_prev, r->step_1, r->step_2, r->correction, n, k, alpha_in,
                         alpha_out);
-        SVP_CHECK(svp_blur_apply(r->blur, &img_x, &img_blurred));
+        SVP_CHECK(rl_forward(r, xd));
         if (auto_stop) {
             chi2 = residual_chi2(r->yd, r->blurred, r->var_map, r->var_const, r->correction, n) /
                    (double)r->n_finite;
@@ -337,7 +443,8 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                                      (double)k / options->iterations);
         goto cleanup;
     }
-    if ((st = rl_normalisation(&r)) != SVP_OK) goto cleanup;
+    if ((st = rl_level_setup(&r)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
+        goto cleanup;
     rl_start(&r, x);
     if ((st = rl_variance(&r, y)) != SVP_OK || (st = rl_alloc_acceleration(&r)) != SVP_OK)
         goto cleanup;
@@ -348,6 +455,11 @@ cleanup:
     svp_free(r.blurred);
     svp_free(r.correction);
     svp_free(r.inv_norm);
+    svp_free(r.shape);
+    svp_free(r.h_one);
+    svp_free(r.h_s);
+    svp_free(r.ht_mask);
+    svp_free(r.ht_s);
     svp_free(r.x_prev);
     svp_free(r.step_1); /* rl_iterate swaps the two steps: both are freed either way */
     svp_free(r.step_2);
