@@ -727,13 +727,13 @@ static double signed_single_vs_double(svp_blur *op_d, svp_blur *op_s, const svp_
 }
 
 /* Single precision with the signed shift: the numerator's data are (B̃ + c) Ĩ with c = 100
- * max|B̃|, so float round-off relative to what H and Hᵀ transform would be 100 × the field's own
- * (measured before RL transformed only deviations from its levels: 2.6e-4 – 1.1e-3 of the
- * field's peak here, and 3.4e-4 on a 600² micromagnet). RL transforms the deviation of its
- * iterate from the fit λ₁ + λ₂ y and of its ratio from μ₁ m + μ₂ y, the levels' transforms made
- * once in double, so the float error scales with the deviations. Bound 1e-5 of the field's peak
- * for a uniform PL, a Gaussian beam and a band pattern, zero and periodic boundaries, one PSF
- * and a tent / low-rank map (the same RL); measured 1.2e-8 – 7.1e-6 (before: 2.4e-4 – 6.5e-4).
+ * max|B̃|, so float round-off relative to what H and Hᵀ transform would be 100 × the field's own.
+ * RL transforms the deviation of its iterate from the fit λ₁ + λ₂ s and of its ratio from
+ * μ₁ m + μ₂ s (s = m y / H1), the levels' transforms made once in double, so the float error
+ * scales with the deviations. Zero and periodic boundaries, one PSF and (bands) a tent /
+ * low-rank map (the same RL); bounds (measured) for a uniform PL 1e-7 (1.2e-8 – 2.1e-8), a
+ * Gaussian beam 5e-6 (7.0e-7 – 1.0e-6), a band pattern 0.3 / 1 with sharp edges 2e-5 (5.8e-6 –
+ * 7.9e-6); when RL transformed its iterate: 2.4e-4 – 6.5e-4, every bound failed (12 – 6500 ×).
  * An operator built in single precision has no double spectra for the levels' transforms and
  * keeps the plain float transforms: 2.4e-4, bound 1e-3. */
 static void test_rl_single_precision_level(void **state)
@@ -753,6 +753,7 @@ static void test_rl_single_precision_level(void **state)
     psf.model = SVP_PSF_GAUSSIAN;
     psf.fwhm = 3;
     const char *pl_names[] = {"uniform", "beam", "bands"};
+    const double bound[] = {1e-7, 5e-6, 2e-5};
     for (int kind = 0; kind < 3; kind++) {
         for (int j = 0; j < h; j++)
             for (int i = 0; i < w; i++) {
@@ -768,7 +769,7 @@ static void test_rl_single_precision_level(void **state)
             const double rel = signed_single_vs_double(op, op, pl, field);
             print_message("signed R, %s PL, %s: single vs double %.3g of the field's peak\n",
                           pl_names[kind], mode_names[m], rel);
-            assert_true(rel > 0 && rel < 1e-5);
+            assert_true(rel > 0 && rel < bound[kind]);
             svp_blur_free(op);
         }
     }
@@ -799,7 +800,7 @@ static void test_rl_single_precision_level(void **state)
         const double rel = signed_single_vs_double(op, kind == 2 ? op_s : op, pl, field);
         print_message("signed R, bands PL, %s: single vs double %.3g of the field's peak\n",
                       op_names[kind], rel);
-        assert_true(rel > 0 && rel < (kind == 2 ? 1e-3 : 1e-5));
+        assert_true(rel > 0 && rel < (kind == 2 ? 1e-3 : 2e-5));
         svp_blur_free(op);
         svp_blur_free(op_s);
     }
