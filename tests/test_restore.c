@@ -577,8 +577,8 @@ static void test_variant_operator(void **state)
  * space-variant operators; H and Hᵀ stay adjoint to float precision; threads change nothing
  * beyond it; the exact per-source operator is refused. Measured
  * max |single − double| / max |double|: 1e-15 after 1 iteration (the flat start's H is the
- * level's, in double), 1.1e-8 – 3.4e-8 after 10, 1.9e-8 – 4.2e-8 after 100, 3e-8 – 9.4e-8 after
- * 1000 (before RL transformed only deviations from its levels: 2e-7 – 8e-7, 1e-6 – 3e-6,
+ * level's, in double), 1.1e-8 – 3.4e-8 after 10, 1.7e-8 – 4.1e-8 after 100, 3.3e-8 – 9.7e-8
+ * after 1000 (before RL transformed only deviations from its levels: 2e-7 – 8e-7, 1e-6 – 3e-6,
  * 8e-6 – 2e-5, 6e-5 – 1.6e-4: RL's late iterations amplify what the float round-off adds);
  * bound 1e-6 at every count. */
 static void test_rl_single_precision(void **state)
