@@ -176,6 +176,9 @@ svp_status svp_blur_set_single(svp_blur *b, int on);
  * the float ones and cannot return to double: SVP_ERR_UNSUPPORTED), float transforms on the
  * same frames. SVP_ERR_UNSUPPORTED for the exact operator. */
 svp_status svp_variant_set_single(svp_blur *b, int on);
+/* 1 when the operator can transform in double (everything but a tent / low-rank operator built
+ * with svp_variant_options.single_precision, which keeps only float spectra). */
+int svp_blur_has_double(const svp_blur *b);
 void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
 /* Invariant zero-boundary operators, for solvers whose data lie on the view `margin` pixels in
  * from every side of the operator's grid (T⁻¹ with a margin, docs/model.md §3): margin > 0 puts

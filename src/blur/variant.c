@@ -742,6 +742,12 @@ svp_status svp_variant_set_single(svp_blur *b, int on)
     return SVP_OK;
 }
 
+int svp_blur_has_double(const svp_blur *b)
+{
+    if (b->kind != SVP_BLUR_TENT && b->kind != SVP_BLUR_LOWRANK) return 1;
+    return !b->variant->double_gone;
+}
+
 /* Built in single precision: the float spectra replace the double ones (a term at a time, so
  * the build's peak does not grow), and the double path's spectral buffers go. */
 static svp_status drop_double(svp_blur *b)

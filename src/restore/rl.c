@@ -5,7 +5,8 @@
  * boundary weights (with options->boundary_weights = 0 the scalar mean of Hᵀm instead: plain
  * RL, exact for a periodic unit-flux operator without missing data), floor = options->floor ·
  * max(y). Started flat at the mean of the finite data (RL forgets the start's scale after one
- * iteration). */
+ * iteration). In single precision H and Hᵀ transform only deviations from known levels (see
+ * rl_level_setup), so their float round-off scales with the deviations. */
 #include "restore_internal.h"
 
 #include <float.h>
@@ -15,6 +16,8 @@
 
 /* Pointwise loops run in parallel only above this many pixels (below, threads cost more). */
 #define PAR_MIN 32768
+/* single precision: the levels' fits (rl_fit_levels) run on about this many rows */
+#define FIT_ROWS 64
 /* auto_stop: stalled when χ² fell by less than STALL_FALL of itself over STALL_SPAN iterations */
 #define STALL_SPAN 10
 #define STALL_FALL 0.001
@@ -110,6 +113,16 @@ typedef struct rl_run {
     double y_max;
     const double *var_map; /* the stopping rule's noise variance: a map, or */
     double var_const;      /* one σ² (and the floor under the map) */
+    /* single precision only (rl_level_setup; else NULL): H x = λ₁ H1 + λ₂ Hs + H(x − λ₁ − λ₂ s)
+     * and Hᵀq = μ₁ Hᵀm + μ₂ Hᵀs + Hᵀ(q − μ₁ m − μ₂ s), q the ratio, s = m y / H1 the data's
+     * shape, the four transforms of the levels once in double */
+    double *shape, *h_one, *h_s, *ht_mask, *ht_s;
+    /* the fits run on every fit_step-th row: there Σ 1, Σ m, Σ s, Σ s² */
+    int fit_step;
+    double fit_n, fit_n_finite, fit_s, fit_ss;
+    double lambda[2]; /* the iterate's fit: its part λ₁ H1 + λ₂ Hs not yet in `blurred`, */
+    int lambda_pending; /* when this is 1 (rl_forward) */
+    double mu[2];       /* the ratio's fit, whose part rl_step adds */
 } rl_run;
 
 /* One pass: the finite mask folded into y (missing → 0), the range and the count; the data
@@ -152,6 +165,84 @@ static svp_status rl_scan(rl_run *r)
     return SVP_OK;
 }
 
+/* Single precision: float round-off is relative to what is transformed, and RL's iterates
+ * and ratios are mostly a known part plus a smaller deviation: with the signed shift of T⁻¹ the
+ * data are c Ĩ + B̃Ĩ, c ≫ |B̃|, so the iterate is mostly level and data shape (a flat start, then
+ * the PL's deconvolution scaled by c) and the ratio m y / Hx mostly m (s / a at the start).
+ * So H and Hᵀ transform only the deviation from the least-squares fit of their input by
+ * λ₁ (1 or m) + λ₂ s (rl_fit_levels; s = m y / H1, the data's shape, flat edges where light
+ * leaves a zero-boundary field), and the fit's transforms, made here once in double, are added
+ * back. Nothing in double, nor for an operator built in single precision (no double spectra:
+ * the levels' own transforms would carry the float round-off this avoids). */
+static svp_status rl_level_setup(rl_run *r)
+{
+    svp_blur *blur = r->blur;
+    if (!blur->single || !svp_blur_has_double(blur)) return SVP_OK;
+    const size_t n = r->n;
+    double **bufs[5] = {&r->shape, &r->h_one, &r->h_s, &r->ht_mask, &r->ht_s};
+    for (int k = 0; k < 5; k++)
+        if (!(*bufs[k] = svp_alloc(n * sizeof(double))))
+            return svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for %d x %d buffers",
+                            r->w, r->h);
+    const double *yd = r->yd, *y_masked = r->y_masked;
+    double *buf = r->blurred, *shape = r->shape, *h_one = r->h_one;
+    SVP_CHECK(svp_blur_set_single(blur, 0));
+    svp_image img_buf = {r->w, r->h, buf}, img_s = {r->w, r->h, shape};
+    svp_image out[4] = {{r->w, r->h, h_one}, {r->w, r->h, r->h_s}, {r->w, r->h, r->ht_mask},
+                        {r->w, r->h, r->ht_s}};
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) buf[i] = 1.0;
+    svp_status st = svp_blur_apply(blur, &img_buf, &out[0]);
+    const double dim = 1e-3 * svp_max(h_one, n); /* pixels the operator barely reaches: s = 0 */
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) shape[i] = h_one[i] > dim ? y_masked[i] / h_one[i] : 0.0;
+    if (st == SVP_OK) st = svp_blur_apply(blur, &img_s, &out[1]);
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) buf[i] = isfinite(yd[i]) ? 1.0 : 0.0;
+    if (st == SVP_OK) st = svp_blur_adjoint(blur, &img_buf, &out[2]);
+    if (st == SVP_OK) st = svp_blur_adjoint(blur, &img_s, &out[3]);
+    r->fit_step = r->h > FIT_ROWS ? r->h / FIT_ROWS : 1;
+    for (int j = 0; j < r->h; j += r->fit_step)
+        for (size_t i = (size_t)j * r->w; i < (size_t)(j + 1) * r->w; i++) {
+            r->fit_n += 1.0;
+            r->fit_n_finite += isfinite(yd[i]) ? 1.0 : 0.0;
+            r->fit_s += shape[i];
+            r->fit_ss += shape[i] * shape[i];
+        }
+    const svp_status back = svp_blur_set_single(blur, 1);
+    return st != SVP_OK ? st : back;
+}
+
+/* The least-squares fit v ≈ l[0] e + l[1] s on every fit_step-th row (any fit keeps (11b)
+ * exact; a good one keeps the deviation small): v = x and e = 1 (ratio 0), or v = the ratio
+ * m y / max(Hx, floor) from Hx in `blurred` and e = m (ratio 1); s the data's shape (0 where y
+ * is missing); the constant alone (l[1] = 0) when s is nearly flat. */
+static void rl_fit_levels(const rl_run *r, const double *x, int ratio, double floor_abs,
+                          double l[2])
+{
+    const double *restrict s = r->shape, *restrict y = r->y_masked, *restrict hd = r->blurred;
+    const double *restrict h1 = r->h_one, *restrict hs = r->h_s;
+    const double l0 = r->lambda_pending ? r->lambda[0] : 0.0;
+    const double l1 = r->lambda_pending ? r->lambda[1] : 0.0;
+    double sv = 0, svs = 0;
+    for (int j = 0; j < r->h; j += r->fit_step)
+        for (size_t i = (size_t)j * r->w; i < (size_t)(j + 1) * r->w; i++) {
+            const double hx = hd[i] + l0 * h1[i] + l1 * hs[i];
+            const double v = ratio ? y[i] / (hx > floor_abs ? hx : floor_abs) : x[i];
+            sv += v;
+            svs += v * s[i];
+        }
+    const double count = ratio ? r->fit_n_finite : r->fit_n;
+    const double det = count * r->fit_ss - r->fit_s * r->fit_s;
+    if (!(det > 1e-9 * count * r->fit_ss)) {
+        l[0] = sv / count;
+        l[1] = 0.0;
+        return;
+    }
+    l[0] = (r->fit_ss * sv - r->fit_s * svs) / det;
+    l[1] = (count * svs - r->fit_s * sv) / det;
+}
+
 /* The normalisation 1 / Hᵀm (m = 1 without missing data) into inv_norm, computed once: per
  * pixel with boundary weights (0 where no finite datum sees the pixel), else its mean. */
 static svp_status rl_normalisation(rl_run *r)
@@ -160,9 +251,13 @@ static svp_status rl_normalisation(rl_run *r)
     const double *yd = r->yd;
     double *blurred = r->blurred, *inv_norm = r->inv_norm;
     svp_image img_blurred = {r->w, r->h, blurred}, img_norm = {r->w, r->h, inv_norm};
+    if (r->ht_mask) {
+        memcpy(inv_norm, r->ht_mask, n * sizeof(double));
+    } else {
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) blurred[i] = isfinite(yd[i]) ? 1.0 : 0.0;
-    SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_norm));
+        for (size_t i = 0; i < n; i++) blurred[i] = isfinite(yd[i]) ? 1.0 : 0.0;
+        SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_norm));
+    }
     if (r->o->boundary_weights) {
         /* Pixels no finite datum sees (Hᵀm ~ 0) keep their value: 0 marks them. */
         const double tiny = 1e-12 * svp_max(inv_norm, n);
@@ -197,20 +292,73 @@ static svp_status rl_variance(rl_run *r, const svp_image *y)
     return SVP_OK;
 }
 
+/* Hx into `blurred`; in single precision by the levels' fit (rl_level_setup), whose part
+ * λ₁ H1 + λ₂ Hs is added here when `whole`, else left pending for rl_ratio_adjoint. */
+static svp_status rl_forward(rl_run *r, double *restrict xd, int whole)
+{
+    const size_t n = r->n;
+    svp_image img_x = {r->w, r->h, xd}, img_blurred = {r->w, r->h, r->blurred};
+    if (!r->h_one) return svp_blur_apply(r->blur, &img_x, &img_blurred);
+    double *restrict dev = r->correction, *restrict blurred = r->blurred;
+    const double *restrict h_one = r->h_one, *restrict h_s = r->h_s, *restrict sv = r->shape;
+    r->lambda_pending = 0;
+    double *l = r->lambda;
+    rl_fit_levels(r, xd, 0, 0.0, l);
+    svp_image img_dev = {r->w, r->h, dev};
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) dev[i] = xd[i] - l[0] - l[1] * sv[i];
+    SVP_CHECK(svp_blur_apply(r->blur, &img_dev, &img_blurred));
+    r->lambda_pending = !whole;
+    if (whole) {
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+        for (size_t i = 0; i < n; i++) blurred[i] += l[0] * h_one[i] + l[1] * h_s[i];
+    }
+    return SVP_OK;
+}
+
+/* Hᵀ(m y / max(Hx, floor)) into `correction`, with Hx in `blurred` (overwritten); in single
+ * precision the deviation from the levels' fit r->mu (rl_level_setup), whose part rl_step
+ * adds. */
+static svp_status rl_ratio_adjoint(rl_run *r, double floor_abs)
+{
+    const size_t n = r->n;
+    double *restrict blurred = r->blurred, *restrict correction = r->correction;
+    const double *restrict y_masked = r->y_masked, *restrict yd = r->yd;
+    svp_image img_blurred = {r->w, r->h, blurred}, img_correction = {r->w, r->h, correction};
+    if (!r->ht_mask) {
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+        for (size_t i = 0; i < n; i++) {
+            double hx = blurred[i];
+            blurred[i] = y_masked[i] / (hx > floor_abs ? hx : floor_abs);
+        }
+        return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
+    }
+    rl_fit_levels(r, NULL, 1, floor_abs, r->mu);
+    const double mu0 = r->mu[0], mu1 = r->mu[1], *restrict sv = r->shape;
+    const double l0 = r->lambda_pending ? r->lambda[0] : 0.0;
+    const double l1 = r->lambda_pending ? r->lambda[1] : 0.0;
+    const double *restrict h1 = r->h_one, *restrict hs = r->h_s;
+    const int all_finite = r->n_finite == n;
+#pragma omp parallel for schedule(static) if (n > PAR_MIN)
+    for (size_t i = 0; i < n; i++) {
+        const double hx = blurred[i] + l0 * h1[i] + l1 * hs[i];
+        blurred[i] = all_finite || isfinite(yd[i])
+                         ? y_masked[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i]
+                         : 0.0;
+    }
+    r->lambda_pending = 0;
+    return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
+}
+
 /* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx in `blurred`;
  * g (or NULL) receives the step x_new − x. */
 static svp_status rl_step(rl_run *r, double *restrict xd, double *restrict g, double floor_abs)
 {
     const size_t n = r->n;
-    double *blurred = r->blurred;
-    const double *y_masked = r->y_masked, *inv_norm = r->inv_norm, *correction = r->correction;
-    svp_image img_blurred = {r->w, r->h, blurred}, img_correction = {r->w, r->h, r->correction};
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) {
-        double hx = blurred[i];
-        blurred[i] = y_masked[i] / (hx > floor_abs ? hx : floor_abs);
-    }
-    SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_correction));
+    const double *inv_norm = r->inv_norm, *correction = r->correction;
+    const double *ht_mask = r->ht_mask, *ht_s = r->ht_s;
+    SVP_CHECK(rl_ratio_adjoint(r, floor_abs));
+    const double mu0 = r->mu[0], mu1 = r->mu[1];
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
     for (size_t i = 0; i < n; i++) {
         if (inv_norm[i] == 0) {
@@ -218,7 +366,9 @@ static svp_status rl_step(rl_run *r, double *restrict xd, double *restrict g, do
             continue;
         }
         const double old = xd[i];
-        double v = old * correction[i] * inv_norm[i];
+        /* single precision: the levels' part of Hᵀ(...) (rl_ratio_adjoint) */
+        const double c = ht_mask ? correction[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : correction[i];
+        double v = old * c * inv_norm[i];
         /* round-off can make Hᵀ(...) slightly negative; NaN/Inf never leave */
         v = (v > 0 && v <= DBL_MAX) ? v : 0.0;
         xd[i] = v;
@@ -258,7 +408,6 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
     /* floor > 0 keeps y / Hx finite; 1e-300 y_max guards floor = 0 without overflowing */
     const double floor_abs = fmax(o->floor * r->y_max, 1e-300 * r->y_max);
     double *restrict xd = x->data;
-    svp_image img_x = {r->w, r->h, x->data}, img_blurred = {r->w, r->h, r->blurred};
     const int auto_stop = o->auto_stop, accel = r->x_prev != NULL;
     double chi2_history[STALL_SPAN + 1] = {0};
     int done = 0, stop = auto_stop ? SVP_RL_STOP_CAP : SVP_RL_STOP_COUNT;
@@ -267,7 +416,7 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
         if (accel)
             extrapolate(xd, r->x_prev, r->step_1, r->step_2, r->correction, n, k, alpha_in,
                         alpha_out);
-        SVP_CHECK(svp_blur_apply(r->blur, &img_x, &img_blurred));
+        SVP_CHECK(rl_forward(r, xd, auto_stop)); /* the stopping rule needs Hx whole */
         if (auto_stop) {
             chi2 = residual_chi2(r->yd, r->blurred, r->var_map, r->var_const, r->correction, n) /
                    (double)r->n_finite;
@@ -337,7 +486,8 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                                      (double)k / options->iterations);
         goto cleanup;
     }
-    if ((st = rl_normalisation(&r)) != SVP_OK) goto cleanup;
+    if ((st = rl_level_setup(&r)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
+        goto cleanup;
     rl_start(&r, x);
     if ((st = rl_variance(&r, y)) != SVP_OK || (st = rl_alloc_acceleration(&r)) != SVP_OK)
         goto cleanup;
@@ -348,6 +498,11 @@ cleanup:
     svp_free(r.blurred);
     svp_free(r.correction);
     svp_free(r.inv_norm);
+    svp_free(r.shape);
+    svp_free(r.h_one);
+    svp_free(r.h_s);
+    svp_free(r.ht_mask);
+    svp_free(r.ht_s);
     svp_free(r.x_prev);
     svp_free(r.step_1); /* rl_iterate swaps the two steps: both are freed either way */
     svp_free(r.step_2);
