@@ -242,6 +242,82 @@ static void test_real_otf(void **state)
     }
 }
 
+/* svp_blur_set_view (zero boundary): on the frame for the view `m` pixels in from every side,
+ * H x agrees with the full frame's on the view and Hᵀ y, for y zero outside the view, on the
+ * whole grid; the frame is smaller (full-grid reach: 40 x 27 for 45 x 35); margin 0 brings the
+ * full frame back, exact everywhere again; single precision follows the frame. A kernel whose
+ * reach is below the margin, an asymmetric one, and a mirror operator (no view frame). */
+static void test_view_frame(void **state)
+{
+    (void)state;
+    const int w = 23, h = 17;
+    svp_image *x = test_random_image(w, h, 31), *yv = test_random_image(w, h, 32);
+    svp_image *full_h = test_image(w, h), *full_t = test_image(w, h);
+    svp_image *y = test_image(w, h), *xt = test_image(w, h);
+    for (int kind = 0; kind < 2; kind++) {
+        /* 0: every offset of the grid (2w − 1 x 2h − 1), 1: radius 2 */
+        const int kw = kind ? 5 : 2 * w - 1, kh = kind ? 5 : 2 * h - 1;
+        svp_image *k = test_random_image(kw, kh, 33 + kind);
+        for (int m = 3; m <= 7; m += 4) {
+            svp_blur *op = NULL;
+            ASSERT_OK(svp_blur_new_kernel(k, kw / 2, kh / 2, 1, w, h, SVP_BOUNDARY_ZERO, &op));
+            const int nx = op->frame.nx, ny = op->frame.ny;
+            /* y zero outside the view */
+            svp_image *yview = test_image(w, h);
+            for (int j = m; j < h - m; j++)
+                for (int i = m; i < w - m; i++)
+                    yview->data[(size_t)j * w + i] = yv->data[(size_t)j * w + i];
+            ASSERT_OK(svp_blur_apply(op, x, full_h));
+            ASSERT_OK(svp_blur_adjoint(op, yview, full_t));
+            for (int single = 0; single < 2; single++) {
+                const double tol = single ? 1e-5 : 1e-13;
+                ASSERT_OK(svp_blur_set_single(op, single));
+                int applied = -1;
+                ASSERT_OK(svp_blur_set_view(op, m, &applied));
+                assert_int_equal(applied, 1);
+                assert_true((size_t)op->frame.nx * op->frame.ny < (size_t)nx * ny);
+                if (!kind && m == 3) assert_true(op->frame.nx == 40 && op->frame.ny == 27);
+                assert_int_equal(op->single, single);
+                ASSERT_OK(svp_blur_apply(op, x, y));
+                double d = 0;
+                for (int j = m; j < h - m; j++)
+                    for (int i = m; i < w - m; i++)
+                        d = fmax(
+                            d, fabs(y->data[(size_t)j * w + i] - full_h->data[(size_t)j * w + i]));
+                ASSERT_CLOSE(d / test_max_abs(full_h), 0, tol);
+                ASSERT_OK(svp_blur_adjoint(op, yview, xt));
+                ASSERT_CLOSE(test_max_abs_diff(xt, full_t) / test_max_abs(full_t), 0, tol);
+                ASSERT_OK(svp_blur_set_view(op, 0, &applied));
+                assert_int_equal(applied, 0);
+                assert_true(op->frame.nx == nx && op->frame.ny == ny && !op->full.plan);
+                assert_int_equal(op->single, single);
+                ASSERT_OK(svp_blur_apply(op, x, y));
+                ASSERT_CLOSE(test_max_abs_diff(y, full_h) / test_max_abs(full_h), 0, tol);
+            }
+            ASSERT_OK(svp_blur_set_single(op, 0));
+            int applied = -1;
+            assert_int_equal(svp_blur_set_view(op, (w + 1) / 2, &applied), SVP_ERR_INVALID);
+            assert_int_equal(applied, 0);
+            assert_true(op->frame.nx == nx && op->frame.ny == ny);
+            svp_image_free(yview);
+            svp_blur_free(op);
+        }
+        svp_blur *mirror = NULL;
+        ASSERT_OK(svp_blur_new_kernel(k, kw / 2, kh / 2, 1, w, h, SVP_BOUNDARY_MIRROR, &mirror));
+        int applied = -1;
+        ASSERT_OK(svp_blur_set_view(mirror, 3, &applied));
+        assert_int_equal(applied, 0);
+        svp_blur_free(mirror);
+        svp_image_free(k);
+    }
+    svp_image_free(x);
+    svp_image_free(yv);
+    svp_image_free(full_h);
+    svp_image_free(full_t);
+    svp_image_free(y);
+    svp_image_free(xt);
+}
+
 /* The row-block transforms (SVP_FFT_BLOCK rows and a one-row tail, rows bx apart) with a
  * frame's column plans equal FFTW's 2-D r2c and c2r, for odd and even widths and heights that
  * are and are not a multiple of the block. */
@@ -396,6 +472,7 @@ int main(void)
         cmocka_unit_test(test_unit_flux),          cmocka_unit_test(test_linearity_and_delta),
         cmocka_unit_test(test_real_otf),           cmocka_unit_test(test_block_transforms),
         cmocka_unit_test(test_bad_arguments),      cmocka_unit_test(test_plan_callback_and_wisdom),
+        cmocka_unit_test(test_view_frame),
     };
     int rc = cmocka_run_group_tests_name("operator", tests, NULL, NULL);
     svp_fft_cleanup();

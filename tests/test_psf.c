@@ -4,6 +4,7 @@
 #include "test_helpers.h"
 
 #include "core/internal.h"
+#include "psf/field_internal.h"
 
 #include <stdio.h>
 
@@ -499,6 +500,64 @@ static void test_render_matches_profile(void **state)
 }
 
 
+/* The symmetry classes (svp_psf_symmetry) and the fold the low-rank build renders
+ * (svp_psf_render_fold) against svp_psf_render_rows's whole kernel: a circular PSF's octant, an
+ * axis-aligned ellipse's quadrant (angle 0 and π / 2). At angle 0 the fold's pixel-centre values
+ * are the kernel's bit for bit at (dx, dy) and at every mirror (x, y, and x ↔ y for an octant);
+ * at π / 2 (cos ≠ 0 in floating point) and in the sub-sampled centre to round-off. */
+static void test_render_fold(void **state)
+{
+    (void)state;
+    const int r = 40;
+    for (int c = 0; c < 6; c++) {
+        svp_psf p;
+        svp_psf_defaults(&p);
+        p.model = c == 1 ? SVP_PSF_GAUSSIAN : SVP_PSF_MOFFAT;
+        p.fwhm = c == 2 ? 1.5 : 5.0; /* 1.5: sub-sampled centre */
+        p.beta = 1.7;
+        p.support = c == 3 ? 30.5 : 0;
+        if (c == 3) p.fwhm_minor = 5.0; /* circular too */
+        if (c >= 4) p.fwhm_minor = 3.0;
+        if (c == 5) p.angle = 0.5 * 3.14159265358979323846;
+        const int sym = svp_psf_symmetry(&p), want = c <= 3 ? 2 : 1, octant = sym == 2;
+        assert_int_equal(sym, want);
+        const int w = 2 * r + 1;
+        double *k = malloc((size_t)w * w * sizeof(double));
+        double *f = malloc((size_t)w * w * sizeof(double));
+        assert_non_null(k);
+        assert_non_null(f);
+        ASSERT_OK(svp_psf_render_rows(&p, r, r, 0, w, k));
+        const double peak = k[(size_t)r * w + r];
+        svp_psf_render_fold(&p, r, octant, 0, 7, f); /* rows in two calls */
+        size_t n7 = 0;
+        for (int dy = 0; dy < 7; dy++) n7 += (size_t)(r + 1 - (octant ? dy : 0));
+        svp_psf_render_fold(&p, r, octant, 7, r + 1 - 7, f + n7);
+        double worst = 0;
+        size_t i = 0;
+        for (int dy = 0; dy <= r; dy++)
+            for (int dx = octant ? dy : 0; dx <= r; dx++, i++) {
+                const int sub = dx * dx + dy * dy <= 400; /* inside the sub-sampled disc */
+                for (int m = 0; m < (octant ? 8 : 4); m++) {
+                    const int sx = m & 1 ? -1 : 1, sy = m & 2 ? -1 : 1, swap = m & 4;
+                    const int x = r + sx * (swap ? dy : dx), y = r + sy * (swap ? dx : dy);
+                    const double kv = k[(size_t)y * w + x];
+                    if (c != 5 && !(c == 2 && sub)) assert_true(f[i] == kv);
+                    worst = fmax(worst, fabs(f[i] - kv) / peak);
+                }
+            }
+        print_message("fold %d (symmetry %d): %zu pixels, max difference %.1e of the peak\n", c,
+                      sym, i, worst);
+        assert_true(worst <= 1e-15);
+        free(k);
+        free(f);
+    }
+    svp_psf rot;
+    svp_psf_defaults(&rot);
+    rot.fwhm_minor = 1.0;
+    rot.angle = 0.3;
+    assert_int_equal(svp_psf_symmetry(&rot), 0);
+}
+
 static void test_validation(void **state)
 {
     (void)state;
@@ -558,6 +617,7 @@ int main(void)
         cmocka_unit_test(test_subpixel_integration),
         cmocka_unit_test(test_elliptical_orientation),
         cmocka_unit_test(test_render_matches_profile),
+        cmocka_unit_test(test_render_fold),
         cmocka_unit_test(test_validation),
     };
     int failed = cmocka_run_group_tests_name("psf", tests, NULL, NULL);

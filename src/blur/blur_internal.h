@@ -17,6 +17,9 @@ typedef struct svp_frame {
     int width, height; /* image size */
     int nx, ny, ncx;   /* frame size (real), ncx = nx / 2 + 1 */
     int off_x, off_y;
+    /* zero mode: 0, or the margin of svp_blur_set_view (the frame is exact for data on the
+     * view `margin` pixels in from every side only) */
+    int margin;
     int *src_x, *src_y;
     const svp_fft_plan *plan;
     fftw_complex *otf; /* ny x ncx, NULL until a kernel is set or when otf_re holds it */
@@ -156,6 +159,10 @@ struct svp_blur {
     float *work_rf;
     fftwf_complex *work_cf;
     fftwf_complex *otf_f;
+    /* svp_blur_set_view: while a view's frame is in `frame`, the full frame and its pruned
+     * plan wait here (full.plan NULL otherwise) */
+    svp_frame full;
+    const svp_fft_pruned *full_pruned;
 };
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
@@ -174,6 +181,17 @@ svp_status svp_blur_set_single(svp_blur *b, int on);
  * same frames. SVP_ERR_UNSUPPORTED for the exact operator. */
 svp_status svp_variant_set_single(svp_blur *b, int on);
 void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
+/* Invariant zero-boundary operators, for solvers whose data lie on the view `margin` pixels in
+ * from every side of the operator's grid (T⁻¹ with a margin, docs/model.md §3): margin > 0 puts
+ * the smallest frame that is exact for such data in use — H x exact on the view (not beyond),
+ * Hᵀ y exact on the whole grid for y zero outside the view: offsets that join no grid pixel to
+ * the view are dropped and only the view is kept free of wrap-around, a frame of
+ * good(2 (w − m) − 1) instead of good(2 w − 1) for a whole-grid kernel — and margin 0 returns
+ * to the full frame (kept meanwhile). The single-precision state follows the frame. *applied:
+ * 1 when a view's frame is in use, 0 when none is (margin 0; other kinds or boundaries; a
+ * view frame no smaller than the full one). Only H x on the view and Hᵀ of data on the view
+ * may be used meanwhile (Richardson–Lucy with the margin missing). */
+svp_status svp_blur_set_view(svp_blur *b, int margin, int *applied);
 
 /* The parts of tent / low rank / exact operators that other files of blur/ share. */
 /* Tent / low rank: 1 when the term spectra are stored real (every term's kernel point-symmetric
@@ -189,11 +207,12 @@ svp_status svp_variant_begin(const svp_psf_field *field, int width, int height,
                              svp_boundary boundary, double support, svp_blur_kind kind,
                              svp_blur **out, int *rx, int *ry, double *support_used);
 /* svp_blur_new_field with the low-rank terms from the dense SVD of the whole sampled-kernel
- * matrix (dense_svd 1, LAPACKE_dgesdd; at most 2^27 values) or from its Gram matrix (0, the
- * default build, variant.c). Tests compare both. */
+ * matrix (build 1, LAPACKE_dgesdd; at most 2^27 values) or from its Gram matrix (0, the
+ * default build, on the fold the kernels' symmetry allows, variant.c; 2, the same on the
+ * point-symmetric half whatever the symmetry). Tests compare them. */
 svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int height,
                                     svp_boundary boundary, const svp_variant_options *options,
-                                    int dense_svd, svp_blur **out);
+                                    int build, svp_blur **out);
 /* Term r of a tent / low-rank operator: its spectrum (ny x ncx, scaled by 1 / (nx ny)) in *re
  * when stored real, else in *c, and for low rank its coefficients at the samples; returns the
  * number of terms (0 when r is out of range or the operator is not tent / low rank). */

@@ -16,13 +16,18 @@ static int reflect(int t, int size)
     return t < size ? t : period - 1 - t;
 }
 
-static svp_status axis_init(int size, int r, svp_boundary b, int *n, int *off, int **src)
+/* margin (zero mode only): the data lie on the inner view, `margin` pixels in from each end;
+ * offsets that join no grid pixel to the view (beyond size − margin − 1) are dropped, and the
+ * frame only has to keep the view free of wrap-around: size − margin + r values suffice
+ * (at least size, to hold the grid). margin 0: the plain linear convolution, size + r. */
+static svp_status axis_init(int size, int r, svp_boundary b, int margin, int *n, int *off,
+                            int **src)
 {
     int single = 0;
     switch (b) {
     case SVP_BOUNDARY_ZERO:
-        if (r > size - 1) r = size - 1;
-        *n = svp_fft_good_size(size + r);
+        if (r > size - margin - 1) r = size - margin - 1;
+        *n = svp_fft_good_size(size - margin + r > size ? size - margin + r : size);
         *off = 0;
         break;
     case SVP_BOUNDARY_PERIODIC:
@@ -60,14 +65,16 @@ static svp_status axis_init(int size, int r, svp_boundary b, int *n, int *off, i
     return SVP_OK;
 }
 
-svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
-                          svp_boundary boundary)
+/* svp_frame_init, or with margin > 0 (zero mode) the frame for data on the inner view */
+static svp_status frame_init(svp_frame *f, int width, int height, int rx, int ry,
+                             svp_boundary boundary, int margin)
 {
     memset(f, 0, sizeof *f);
     f->width = width;
     f->height = height;
-    svp_status st = axis_init(width, rx, boundary, &f->nx, &f->off_x, &f->src_x);
-    if (st == SVP_OK) st = axis_init(height, ry, boundary, &f->ny, &f->off_y, &f->src_y);
+    f->margin = margin;
+    svp_status st = axis_init(width, rx, boundary, margin, &f->nx, &f->off_x, &f->src_x);
+    if (st == SVP_OK) st = axis_init(height, ry, boundary, margin, &f->ny, &f->off_y, &f->src_y);
     if (st == SVP_OK) st = svp_fft_plan_get(f->ny, f->nx, &f->plan);
     if (st != SVP_OK) {
         svp_frame_release(f);
@@ -77,14 +84,20 @@ svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
     return SVP_OK;
 }
 
+svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
+                          svp_boundary boundary)
+{
+    return frame_init(f, width, height, rx, ry, boundary, 0);
+}
+
 svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
                           int *ny)
 {
     int off, *src = NULL;
-    svp_status st = axis_init(width, rx, boundary, nx, &off, &src);
+    svp_status st = axis_init(width, rx, boundary, 0, nx, &off, &src);
     free(src);
     src = NULL;
-    if (st == SVP_OK) st = axis_init(height, ry, boundary, ny, &off, &src);
+    if (st == SVP_OK) st = axis_init(height, ry, boundary, 0, ny, &off, &src);
     free(src);
     return st;
 }
@@ -167,13 +180,13 @@ svp_status svp_frame_set_kernel(svp_frame *f, const svp_image *kernel, int cx, i
     /* Serial over rows: aliased offsets add into the same cell. */
     for (int y = 0; y < kh; y++) {
         int dy = y - cy;
-        if (boundary == SVP_BOUNDARY_ZERO && abs(dy) > f->height - 1) continue;
+        if (boundary == SVP_BOUNDARY_ZERO && abs(dy) > f->height - f->margin - 1) continue;
         int fy = wrap(dy, f->ny);
         double *row = placed + (size_t)fy * f->nx;
         const double *krow = kernel->data + (size_t)y * kw;
         for (int x = 0; x < kw; x++) {
             int dx = x - cx;
-            if (boundary == SVP_BOUNDARY_ZERO && abs(dx) > f->width - 1) continue;
+            if (boundary == SVP_BOUNDARY_ZERO && abs(dx) > f->width - f->margin - 1) continue;
             row[wrap(dx, f->nx)] += krow[x];
         }
     }
@@ -303,16 +316,29 @@ void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int
 
 /* ---- the operator ------------------------------------------------------------------------ */
 
+/* The frame of an invariant operator (margin > 0: for data on the inner view), its OTF (real
+ * when the kernel is point-symmetric) and, in zero mode with rows below the image, the pruned
+ * plan (*pruned NULL otherwise). */
+static svp_status invariant_frame(const svp_blur *b, int margin, svp_frame *f,
+                                  const svp_fft_pruned **pruned)
+{
+    const svp_image *k = b->kernel;
+    const int rx = k->width - 1 - b->kcx > b->kcx ? k->width - 1 - b->kcx : b->kcx;
+    const int ry = k->height - 1 - b->kcy > b->kcy ? k->height - 1 - b->kcy : b->kcy;
+    *pruned = NULL;
+    svp_status st = frame_init(f, b->width, b->height, rx, ry, b->boundary, margin);
+    if (st == SVP_OK) st = svp_frame_set_kernel(f, k, b->kcx, b->kcy, b->boundary);
+    if (st == SVP_OK) svp_frame_keep_real(f);
+    /* zero mode: the image fills only the first height rows of the frame */
+    if (st == SVP_OK && b->boundary == SVP_BOUNDARY_ZERO && f->ny > b->height)
+        st = svp_fft_pruned_get(f->ny, f->nx, b->height, pruned);
+    if (st != SVP_OK) svp_frame_release(f);
+    return st;
+}
+
 static svp_status blur_finish(svp_blur *b, svp_blur **out)
 {
-    int rx = b->kernel->width - 1 - b->kcx > b->kcx ? b->kernel->width - 1 - b->kcx : b->kcx;
-    int ry = b->kernel->height - 1 - b->kcy > b->kcy ? b->kernel->height - 1 - b->kcy : b->kcy;
-    svp_status st = svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary);
-    if (st == SVP_OK) st = svp_frame_set_kernel(&b->frame, b->kernel, b->kcx, b->kcy, b->boundary);
-    if (st == SVP_OK) svp_frame_keep_real(&b->frame);
-    /* zero mode: the image fills only the first height rows of the frame */
-    if (st == SVP_OK && b->boundary == SVP_BOUNDARY_ZERO && b->frame.ny > b->height)
-        st = svp_fft_pruned_get(b->frame.ny, b->frame.nx, b->height, &b->pruned);
+    svp_status st = invariant_frame(b, 0, &b->frame, &b->pruned);
     if (st == SVP_OK) {
         b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
         b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
@@ -420,6 +446,7 @@ void svp_blur_free(svp_blur *b)
     if (b->ops) b->ops->release(b);
     if (b->restore.release) b->restore.release(b->restore.data);
     svp_frame_release(&b->frame);
+    svp_frame_release(&b->full);
     svp_image_free(b->kernel);
     svp_free(b->work_r);
     svp_free(b->work_c);
@@ -542,6 +569,64 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
     return SVP_OK;
 }
 
+/* The float frame, spectrum and OTF freed (svp_blur_set_single makes them again, for the frame
+ * then in use); the plans stay in the cache. */
+static void drop_single(svp_blur *b)
+{
+    svp_free(b->work_rf);
+    svp_free(b->work_cf);
+    svp_free(b->otf_f);
+    b->work_rf = NULL;
+    b->work_cf = NULL;
+    b->otf_f = NULL;
+    b->rows_f = NULL;
+}
+
+/* Puts `f` (pruned plan p) in use, the single-precision state remade for it when on. The work
+ * buffers serve: a view's frame is never larger than the full one. */
+static svp_status use_frame(svp_blur *b, const svp_frame *f, const svp_fft_pruned *p)
+{
+    const int single = b->single;
+    b->frame = *f;
+    b->pruned = p;
+    drop_single(b);
+    b->single = 0;
+    return single ? svp_blur_set_single(b, 1) : SVP_OK;
+}
+
+svp_status svp_blur_set_view(svp_blur *b, int margin, int *applied)
+{
+    *applied = 0;
+    if (!b || margin < 0)
+        return svp_fail(SVP_ERR_INVALID, "svp_blur_set_view: no operator, or margin %d < 0",
+                        margin);
+    if (b->full.plan) { /* back to the full frame first */
+        svp_frame_release(&b->frame);
+        const svp_frame full = b->full;
+        memset(&b->full, 0, sizeof b->full);
+        SVP_CHECK(use_frame(b, &full, b->full_pruned));
+        b->full_pruned = NULL;
+    }
+    if (margin == 0 || b->kind != SVP_BLUR_INVARIANT || b->boundary != SVP_BOUNDARY_ZERO)
+        return SVP_OK;
+    if (2 * margin >= b->width || 2 * margin >= b->height)
+        return svp_fail(SVP_ERR_INVALID,
+                        "svp_blur_set_view: a margin of %d pixels leaves no view of the %d x %d "
+                        "grid",
+                        margin, b->width, b->height);
+    svp_frame view;
+    const svp_fft_pruned *p = NULL;
+    SVP_CHECK(invariant_frame(b, margin, &view, &p));
+    if ((size_t)view.nx * view.ny >= (size_t)b->frame.nx * b->frame.ny) {
+        svp_frame_release(&view); /* nothing to gain */
+        return SVP_OK;
+    }
+    b->full = b->frame;
+    b->full_pruned = b->pruned;
+    *applied = 1;
+    return use_frame(b, &view, p);
+}
+
 svp_status svp_blur_set_precision(svp_blur *blur, int single)
 {
     return svp_blur_set_single(blur, single != 0);
@@ -609,8 +694,11 @@ static size_t invariant_memory(const svp_blur *b)
     if (b->rows_f)
         single = (size_t)b->frame.ny * b->frame.nx * sizeof(float) +
                  2 * (size_t)b->frame.ny * b->frame.ncx * sizeof(fftwf_complex);
-    return svp_frame_memory(&b->frame) + (size_t)b->frame.ny * b->frame.nx * sizeof(double) +
-           (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex) +
+    /* a view's frame in use (svp_blur_set_view): the full frame waits, the buffers are its */
+    const svp_frame *big = b->full.plan ? &b->full : &b->frame;
+    const size_t waiting = b->full.plan ? svp_frame_memory(&b->full) : 0;
+    return svp_frame_memory(&b->frame) + waiting + (size_t)big->ny * big->nx * sizeof(double) +
+           (size_t)big->ny * big->ncx * sizeof(fftw_complex) +
            (size_t)b->kernel->width * b->kernel->height * sizeof(double) + single;
 }
 

@@ -1584,15 +1584,17 @@ size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threa
     if (chunks > 16) chunks = 16;
     return (size_t)threads * S * GRAM_ROWS * kw * sizeof(double) /* row blocks */
            + (chunks + 2) * S * S * sizeof(double)                /* Gram, partials, vectors */
-           + (size_t)rank * half * sizeof(double)                 /* eigen-PSF halves */
-           + kw * kh * sizeof(double);                            /* one whole eigen-PSF */
+           + (size_t)rank * half * sizeof(double) /* eigen-PSF folds (a half at most) */
+           + ((size_t)threads * kw + kh) * sizeof(double); /* kernel rows, row sums */
 }
 
 /* g (S x S, column-major, lower triangle and diagonal) += Σ_p a_i[p] a_j[p] over the n pixels
  * of the S rows a_i (a[i] points at sample i's pixels; S a multiple of 4, rows beyond the
  * samples point at zeros). Tiles of 4 x 2 rows, pixels in chunks that stay in cache, four
- * pixels per vector lane set; the lanes are summed in a fixed order (deterministic). On x86-64
- * with GCC an AVX2 clone is chosen at run time when the CPU has it. */
+ * pixels per vector lane set; the lanes are summed in a fixed order (deterministic). The tile's
+ * eight accumulators are named one by one: held in an array, GCC keeps them in memory, which
+ * made the loop three times slower. On x86-64 with GCC an AVX2 clone is chosen at run time
+ * when the CPU has it (no FMA: C11 mode keeps products and sums apart). */
 typedef double svp_v4d __attribute__((vector_size(32)));
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
 __attribute__((target_clones("avx2", "default")))
@@ -1604,17 +1606,28 @@ static void gram_accumulate(const double *const *a, int S, size_t n, double *res
         const size_t pn = n - p0 < CHUNK ? n - p0 : CHUNK, pv = pn & ~(size_t)3;
         for (int i = 0; i < S; i += 4)
             for (int j = 0; j <= i + 2; j += 2) {
-                svp_v4d acc[4][2];
-                memset(acc, 0, sizeof acc);
                 const double *ai[4] = {a[i] + p0, a[i + 1] + p0, a[i + 2] + p0, a[i + 3] + p0};
                 const double *aj[2] = {a[j] + p0, a[j + 1] + p0};
+                svp_v4d c00 = {0}, c01 = {0}, c10 = {0}, c11 = {0}, c20 = {0}, c21 = {0},
+                        c30 = {0}, c31 = {0};
                 for (size_t p = 0; p < pv; p += 4) {
-                    svp_v4d x[4], y[2];
-                    for (int u = 0; u < 4; u++) memcpy(&x[u], ai[u] + p, sizeof x[u]);
-                    for (int u = 0; u < 2; u++) memcpy(&y[u], aj[u] + p, sizeof y[u]);
-                    for (int u = 0; u < 4; u++)
-                        for (int w = 0; w < 2; w++) acc[u][w] += x[u] * y[w];
+                    svp_v4d x0, x1, x2, x3, y0, y1;
+                    memcpy(&x0, ai[0] + p, sizeof x0);
+                    memcpy(&x1, ai[1] + p, sizeof x1);
+                    memcpy(&x2, ai[2] + p, sizeof x2);
+                    memcpy(&x3, ai[3] + p, sizeof x3);
+                    memcpy(&y0, aj[0] + p, sizeof y0);
+                    memcpy(&y1, aj[1] + p, sizeof y1);
+                    c00 += x0 * y0;
+                    c01 += x0 * y1;
+                    c10 += x1 * y0;
+                    c11 += x1 * y1;
+                    c20 += x2 * y0;
+                    c21 += x2 * y1;
+                    c30 += x3 * y0;
+                    c31 += x3 * y1;
                 }
+                const svp_v4d acc[4][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31}};
                 for (int u = 0; u < 4; u++)
                     for (int w = 0; w < 2; w++) {
                         if (j + w > i + u) continue; /* above the diagonal */
@@ -1627,14 +1640,21 @@ static void gram_accumulate(const double *const *a, int S, size_t n, double *res
 }
 
 /* The Gram build's state (build_lowrank_gram's stages): S samples, R terms (Q of them from
- * eigenvectors), kernels of radius rx, ry of which the hr = ry + 1 rows are rendered, in nblk
- * blocks of GRAM_ROWS rows (bp pixels), the pass-1 partial Gram matrices of `chunks` chunks
- * (Sp x Sp each), and the arrays named at gram_alloc. */
+ * eigenvectors), kernels of radius rx, ry, of which a fold is rendered (gram_layout): sym 0
+ * the rows 0 .. ry (point symmetry), sym 1 the quadrant dx, dy >= 0, sym 2 the octant
+ * dx >= dy >= 0 (svp_psf_render_fold); hr = ry + 1 rows in each case, row t's pixels at
+ * rowoff[t] .. rowoff[t + 1] − 1 of the n rendered; nblk blocks of GRAM_ROWS rows (at most bp
+ * pixels), the pass-1 partial Gram matrices of `chunks` chunks (Sp x Sp each), and the arrays
+ * named at gram_alloc and gram_layout (krow: a kernel row per thread, wx: its columns' frame
+ * columns, rsum: the rows' sums, placed: the frame gram_otf places a kernel on). */
 typedef struct gram_build {
-    int S, Sp, R, Q, centred, rx, ry, kw, kh, hr, nblk, chunks, threads;
-    size_t m, half, bp;
+    int S, Sp, R, Q, centred, rx, ry, kw, kh, hr, nblk, chunks, threads, sym;
+    size_t m, n, bp;
+    size_t *rowoff;
+    int *wx;
     svp_psf *psf;
-    double *blk, *part, *zeros, *cval, *psum, *g, *z, *lam, *sum, *zx, *eh, *flux;
+    double *blk, *part, *zeros, *cval, *psum, *g, *z, *lam, *sum, *zx, *eh, *flux, *krow, *rsum;
+    double *placed;
     const double **rowp;
     lapack_int *isuppz;
 } gram_build;
@@ -1655,6 +1675,11 @@ static void gram_free(gram_build *gb)
     free(gb->zx);
     free(gb->eh);
     free(gb->flux);
+    free(gb->krow);
+    free(gb->rsum);
+    svp_free(gb->placed);
+    free(gb->wx);
+    free(gb->rowoff);
     free(gb->isuppz);
 }
 
@@ -1671,9 +1696,7 @@ static svp_status gram_alloc(gram_build *gb, const svp_variant_data *v,
     gb->kh = 2 * ry + 1;
     gb->hr = ry + 1; /* rows rendered */
     gb->m = (size_t)gb->kw * gb->kh;
-    gb->half = (size_t)gb->hr * gb->kw;
     gb->nblk = (gb->hr + GRAM_ROWS - 1) / GRAM_ROWS;
-    gb->bp = (size_t)GRAM_ROWS * gb->kw; /* pixels per block */
     gb->threads = omp_get_max_threads();
     int chunks = (int)(GRAM_PARTIAL_BYTES / ((size_t)S * S * sizeof(double) + 1));
     if (chunks < 1) chunks = 1;
@@ -1683,10 +1706,8 @@ static svp_status gram_alloc(gram_build *gb, const svp_variant_data *v,
     if (gb->Q > S) return svp_fail(SVP_ERR_INVALID, "low rank %d exceeds the %d samples", R, S);
     const int Sp = gb->Sp = (S + 3) & ~3; /* padded to the Gram kernel's tiles */
     gb->psf = malloc((size_t)S * sizeof *gb->psf);
-    gb->blk = malloc((size_t)gb->threads * S * gb->bp * sizeof(double));
     gb->part = calloc((size_t)chunks * Sp * Sp, sizeof(double));
     gb->rowp = malloc((size_t)gb->threads * Sp * sizeof *gb->rowp);
-    gb->zeros = calloc(gb->bp, sizeof(double));
     gb->cval = calloc((size_t)S, sizeof(double));
     gb->psum = calloc((size_t)gb->nblk * S, sizeof(double));
     gb->g = malloc((size_t)S * S * sizeof(double));
@@ -1694,27 +1715,98 @@ static svp_status gram_alloc(gram_build *gb, const svp_variant_data *v,
     gb->lam = malloc((size_t)S * sizeof(double));
     gb->sum = calloc((size_t)S, sizeof(double));
     gb->zx = malloc((size_t)S * (R + 1) * sizeof(double));
-    gb->eh = malloc((size_t)(R > 0 ? R : 1) * gb->half * sizeof(double));
     gb->flux = calloc((size_t)R, sizeof(double));
     gb->isuppz = malloc(2 * (size_t)S * sizeof(lapack_int));
-    if (!gb->psf || !gb->blk || !gb->part || !gb->rowp || !gb->zeros || !gb->cval || !gb->psum ||
-        !gb->g || !gb->z || !gb->lam || !gb->sum || !gb->zx || !gb->eh || !gb->flux ||
-        !gb->isuppz)
+    gb->rowoff = malloc((size_t)(gb->hr + 1) * sizeof *gb->rowoff);
+    gb->krow = malloc((size_t)gb->threads * gb->kw * sizeof(double));
+    gb->rsum = malloc((size_t)gb->kh * sizeof(double));
+    gb->wx = malloc((size_t)gb->kw * sizeof(int));
+    if (!gb->psf || !gb->part || !gb->rowp || !gb->cval || !gb->psum || !gb->g || !gb->z ||
+        !gb->lam || !gb->sum || !gb->zx || !gb->flux || !gb->isuppz || !gb->rowoff || !gb->krow ||
+        !gb->rsum || !gb->wx)
         return svp_fail(SVP_ERR_NOMEM,
                         "out of memory for the low-rank build (%d samples of %d x %d pixels)", S,
                         gb->kw, gb->kh);
     return SVP_OK;
 }
 
-/* Pass 1: the raw Gram matrix (lower triangle, into g) and the kernels' sums. Weight 2 on rows
- * < ry and on row ry left of the centre (a contiguous prefix of the rendered pixels), 1 at the
- * centre, 0 right of it: the chunks' partials hold the prefix's unweighted sums, the centre is
- * added at the end; chunks and blocks are summed in a fixed order. */
+/* The fold the samples share (the lowest svp_psf_symmetry; the octant needs rx = ry; half = 1:
+ * point symmetry only, the tests' reference), its rows' offsets and the arrays sized by it: the
+ * row blocks, the eigen-PSFs' folds (eh, term r at eh + r n). */
+static svp_status gram_layout(gram_build *gb, int half)
+{
+    int sym = half ? 0 : 2;
+    for (int j = 0; j < gb->S; j++) {
+        const int s = svp_psf_symmetry(&gb->psf[j]);
+        if (s < sym) sym = s;
+    }
+    if (sym == 2 && gb->rx != gb->ry) sym = 1;
+    gb->sym = sym;
+    gb->rowoff[0] = 0;
+    for (int t = 0; t < gb->hr; t++)
+        gb->rowoff[t + 1] = gb->rowoff[t] + (size_t)(sym == 0   ? gb->kw
+                                                     : sym == 1 ? gb->rx + 1
+                                                                : gb->rx + 1 - t);
+    gb->n = gb->rowoff[gb->hr];
+    gb->bp = 0;
+    for (int y0 = 0; y0 < gb->hr; y0 += GRAM_ROWS) {
+        const int y1 = y0 + GRAM_ROWS < gb->hr ? y0 + GRAM_ROWS : gb->hr;
+        const size_t np = gb->rowoff[y1] - gb->rowoff[y0];
+        if (np > gb->bp) gb->bp = np;
+    }
+    const int R = gb->R;
+    gb->blk = malloc((size_t)gb->threads * gb->S * gb->bp * sizeof(double));
+    gb->zeros = calloc(gb->bp, sizeof(double));
+    gb->eh = malloc((size_t)(R > 0 ? R : 1) * gb->n * sizeof(double));
+    if (!gb->blk || !gb->zeros || !gb->eh)
+        return svp_fail(SVP_ERR_NOMEM,
+                        "out of memory for the low-rank build (%d samples of %d x %d pixels)",
+                        gb->S, gb->kw, gb->kh);
+    return SVP_OK;
+}
+
+/* Rows y0 .. y0 + nr − 1 of sample j's fold, unnormalised, packed into out. */
+static void gram_render(const gram_build *gb, int j, int y0, int nr, double *out)
+{
+    if (gb->sym)
+        svp_psf_render_fold(&gb->psf[j], gb->rx, gb->sym == 2, y0, nr, out);
+    else
+        svp_psf_render_rows(&gb->psf[j], gb->rx, gb->ry, y0, nr, out);
+}
+
+/* A quadrant's or octant's rows y0 .. y0 + nr − 1 (packed in a): returns Σ w a over them, w the
+ * number of kernel pixels each stands for, and scales a by √w (Σ_p w a_i a_j is then the plain
+ * product). A row's first pixel is the centre (w 1) on row 0, else on the axis dx = 0 (quadrant,
+ * w 2) or the diagonal (octant, w 4); the others lie on the axis dy = 0 on row 0 (w 2, 4), else
+ * inside (w 4, 8). */
+static double fold_weigh(const gram_build *gb, int y0, int nr, double *restrict a)
+{
+    const double oct = gb->sym == 2 ? 2 : 1;
+    double acc = 0;
+    for (int t = y0; t < y0 + nr; t++) {
+        const size_t len = gb->rowoff[t + 1] - gb->rowoff[t];
+        const double wf = t == 0 ? 1 : 2 * oct, wr = (t == 0 ? 2 : 4) * oct;
+        double rest = 0;
+        for (size_t i = 1; i < len; i++) rest += a[i];
+        acc += wf * a[0] + wr * rest;
+        const double sf = sqrt(wf), sr = sqrt(wr);
+        a[0] *= sf;
+        for (size_t i = 1; i < len; i++) a[i] *= sr;
+        a += len;
+    }
+    return acc;
+}
+
+/* Pass 1: the raw Gram matrix (lower triangle, into g) and the kernels' sums. A fold's pixels
+ * are weighted by fold_weigh. The rows 0 .. ry (sym 0): weight 2 on rows < ry and on row ry
+ * left of the centre (a contiguous prefix of the rendered pixels), 1 at the centre, 0 right of
+ * it: the chunks' partials hold the prefix's unweighted sums, the centre is added at the end.
+ * Chunks and blocks are summed in a fixed order. */
 static void gram_raw(gram_build *gb)
 {
     const int S = gb->S, Sp = gb->Sp, rx = gb->rx, ry = gb->ry, kw = gb->kw, hr = gb->hr;
-    const int nblk = gb->nblk, chunks = gb->chunks;
-    const size_t p2 = (size_t)ry * kw + rx; /* pixels of weight 2 */
+    const int nblk = gb->nblk, chunks = gb->chunks, sym = gb->sym;
+    const size_t p2 = (size_t)ry * kw + rx; /* sym 0: pixels of weight 2 */
 #pragma omp parallel for schedule(static, 1)
     for (int c = 0; c < chunks; c++) {
         double *a = gb->blk + (size_t)omp_get_thread_num() * S * gb->bp;
@@ -1722,19 +1814,27 @@ static void gram_raw(gram_build *gb)
         double *gc = gb->part + (size_t)c * Sp * Sp;
         for (int ib = c; ib < nblk; ib += chunks) {
             const int y0 = ib * GRAM_ROWS, nr = hr - y0 < GRAM_ROWS ? hr - y0 : GRAM_ROWS;
-            const size_t np = (size_t)nr * kw, p0 = (size_t)y0 * kw;
-            const size_t n2 = p2 > p0 ? (p2 - p0 < np ? p2 - p0 : np) : 0;
-            const int centre = n2 < np && p0 + n2 == p2;
+            const size_t p0 = gb->rowoff[y0], np = gb->rowoff[y0 + nr] - p0;
+            size_t n2 = np;
+            int centre = 0;
+            if (!sym) {
+                n2 = p2 > p0 ? (p2 - p0 < np ? p2 - p0 : np) : 0;
+                centre = n2 < np && p0 + n2 == p2;
+            }
             for (int j = 0; j < Sp; j++) rows[j] = j < S ? a + (size_t)j * np : gb->zeros;
             for (int j = 0; j < S; j++) {
                 double *aj = a + (size_t)j * np;
-                svp_psf_render_rows(&gb->psf[j], rx, ry, y0, nr, aj);
+                gram_render(gb, j, y0, nr, aj);
                 double acc = 0;
-                for (size_t i = 0; i < n2; i++) acc += aj[i];
-                acc *= 2;
-                if (centre) {
-                    acc += aj[n2];
-                    gb->cval[j] = aj[n2];
+                if (sym)
+                    acc = fold_weigh(gb, y0, nr, aj);
+                else {
+                    for (size_t i = 0; i < n2; i++) acc += aj[i];
+                    acc *= 2;
+                    if (centre) {
+                        acc += aj[n2];
+                        gb->cval[j] = aj[n2];
+                    }
                 }
                 gb->psum[(size_t)ib * S + j] = acc;
             }
@@ -1747,9 +1847,10 @@ static void gram_raw(gram_build *gb)
         for (int j = 0; j < S; j++)
             for (int i = j; i < S; i++)
                 g[(size_t)j * S + i] += gb->part[((size_t)c * Sp + j) * Sp + i];
-    for (int j = 0; j < S; j++)
-        for (int i = j; i < S; i++)
-            g[(size_t)j * S + i] = 2 * g[(size_t)j * S + i] + gb->cval[i] * gb->cval[j];
+    if (!sym)
+        for (int j = 0; j < S; j++)
+            for (int i = j; i < S; i++)
+                g[(size_t)j * S + i] = 2 * g[(size_t)j * S + i] + gb->cval[i] * gb->cval[j];
     for (int ib = 0; ib < nblk; ib++)
         for (int j = 0; j < S; j++) gb->sum[j] += gb->psum[(size_t)ib * S + j];
 }
@@ -1827,26 +1928,25 @@ static svp_status gram_terms(gram_build *gb, svp_variant_data *v)
     return SVP_OK;
 }
 
-/* Pass 2: eigen-PSF halves E = A_raw zx (minus the mean times Σ z for centred terms) into eh,
- * term r's half at eh + r half (the mean, centred, is term 0). */
+/* Pass 2: the eigen-PSFs' folds E = A_raw zx (minus the mean times Σ z for centred terms) into
+ * eh, term r's at eh + r n (the mean, centred, is term 0). */
 static void gram_halves(gram_build *gb)
 {
-    const int S = gb->S, rx = gb->rx, ry = gb->ry, kw = gb->kw, hr = gb->hr;
+    const int S = gb->S, hr = gb->hr;
     const int cols = gb->Q + 1, centred = gb->centred;
     const int skip = centred ? 0 : 1; /* plain: the mean column is not stored */
 #pragma omp parallel for schedule(static)
     for (int ib = 0; ib < gb->nblk; ib++) {
         double *a = gb->blk + (size_t)omp_get_thread_num() * S * gb->bp;
         const int y0 = ib * GRAM_ROWS, nr = hr - y0 < GRAM_ROWS ? hr - y0 : GRAM_ROWS;
-        const size_t np = (size_t)nr * kw, p0 = (size_t)y0 * kw;
-        for (int j = 0; j < S; j++)
-            svp_psf_render_rows(&gb->psf[j], rx, ry, y0, nr, a + (size_t)j * np);
+        const size_t p0 = gb->rowoff[y0], np = gb->rowoff[y0 + nr] - p0;
+        for (int j = 0; j < S; j++) gram_render(gb, j, y0, nr, a + (size_t)j * np);
         /* e_q = Σ_j zx_jq a_j over pixel chunks that stay in cache */
         enum { CH = 512 };
         for (size_t c0 = 0; c0 < np; c0 += CH) {
             const size_t cn = np - c0 < CH ? np - c0 : CH;
             for (int q = skip; q < cols; q++) {
-                double *restrict e = gb->eh + (size_t)(q - skip) * gb->half + p0 + c0;
+                double *restrict e = gb->eh + (size_t)(q - skip) * gb->n + p0 + c0;
                 const double *zq = gb->zx + (size_t)q * S;
                 memset(e, 0, cn * sizeof(double));
                 for (int j = 0; j < S; j++) {
@@ -1864,51 +1964,119 @@ static void gram_halves(gram_build *gb)
     }
 }
 
+/* Row y (0 .. kh − 1) of the whole kernel whose fold (gram_layout) is e, into k (kw values):
+ * sym 0 mirrors the rows below ry and the centre row's right half through the centre; a
+ * quadrant is mirrored in x and y, an octant also through the diagonal. */
+static void kernel_row(const gram_build *gb, const double *e, int y, double *restrict k)
+{
+    const int rx = gb->rx, ry = gb->ry, kw = gb->kw;
+    if (gb->sym == 0) {
+        const double *s = e + (size_t)(y <= ry ? y : 2 * ry - y) * kw;
+        if (y < ry)
+            memcpy(k, s, (size_t)kw * sizeof(double));
+        else
+            for (int x = 0; x < kw; x++)
+                k[x] = y > ry || x <= rx ? s[y > ry ? kw - 1 - x : x] : s[2 * rx - x];
+        return;
+    }
+    const int dy = abs(y - ry);
+    double *right = k + rx; /* right[dx], dx = 0 .. rx */
+    if (gb->sym == 1)
+        memcpy(right, e + gb->rowoff[dy], ((size_t)rx + 1) * sizeof(double));
+    else {
+        for (int dx = 0; dx < dy; dx++) right[dx] = e[gb->rowoff[dx] + (size_t)(dy - dx)];
+        memcpy(right + dy, e + gb->rowoff[dy], ((size_t)rx + 1 - dy) * sizeof(double));
+    }
+    for (int dx = 1; dx <= rx; dx++) k[rx - dx] = right[dx];
+}
+
+static int wrap_index(int d, int n)
+{
+    d %= n;
+    return d < 0 ? d + n : d;
+}
+
+/* Term r's spectrum as term_otf's (the whole kernel placed on the frame as
+ * svp_frame_set_kernel places it, scaled by 1 / (nx ny), transformed), placed row by row from
+ * its fold (kernel_row) into gb->placed, with no whole-kernel image; *flux = the whole kernel's
+ * sum (row sums added in order). The rows are placed in parallel when no two of them alias
+ * (then each frame row is written by one thread). */
+static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **otf, double *flux)
+{
+    const svp_frame *f = &b->frame;
+    const int zero = b->boundary == SVP_BOUNDARY_ZERO, rx = gb->rx, ry = gb->ry, kw = gb->kw;
+    *otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
+    if (!*otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d spectrum", f->nx, f->ny);
+    for (int x = 0; x < kw; x++) /* offsets beyond the image join no pixels (zero) */
+        gb->wx[x] = zero && abs(x - rx) > f->width - 1 ? -1 : wrap_index(x - rx, f->nx);
+    const int reach = zero && ry > f->height - 1 ? f->height - 1 : ry; /* rows placed: ±reach */
+    const double inv = 1.0 / ((double)f->nx * f->ny), *e = gb->eh + (size_t)r * gb->n;
+    double *placed = gb->placed;
+    memset(placed, 0, (size_t)f->ny * f->nx * sizeof(double));
+#pragma omp parallel for schedule(static) if (2 * reach + 1 <= f->ny)
+    for (int y = 0; y < gb->kh; y++) {
+        double *k = gb->krow + (size_t)omp_get_thread_num() * kw, rs = 0;
+        kernel_row(gb, e, y, k);
+        for (int x = 0; x < kw; x++) rs += k[x];
+        gb->rsum[y] = rs;
+        if (abs(y - ry) > reach) continue;
+        double *row = placed + (size_t)wrap_index(y - ry, f->ny) * f->nx;
+        for (int x = 0; x < kw; x++)
+            if (gb->wx[x] >= 0) row[gb->wx[x]] += inv * k[x];
+    }
+    double total = 0;
+    for (int y = 0; y < gb->kh; y++) total += gb->rsum[y];
+    *flux = total;
+    svp_fft_forward(f->plan, placed, *otf);
+    return SVP_OK;
+}
+
 /* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
  * kernel matrix A: G = Aᵀ A = V Λ Vᵀ (LAPACKE_dsyevr), then the left singular vectors
  * u_r = A v_r / σ_r, σ_r = √λ_r (the same eigen-PSFs and coefficients σ_r v_r as the SVD, up to
- * sign). The kernels are point-symmetric (every PSF model is), so only their rows 0 .. ry are
- * rendered (row ry's centre counted once, every other pixel twice); both passes stream them
- * in blocks of GRAM_ROWS rows for all samples at once (gram_raw: gram_accumulate into the Gram
- * matrix; gram_halves: the eigen-PSFs' halves as combinations of the samples): no kernel
- * matrix is held whole, and the cost is O(S² · kernel pixels / 2) in cache-blocked vector
- * loops. The first pass renders the kernels unnormalised (their sums are not known yet): G of
- * the normalised, mean-centred kernels K_j / s_j − K̄ follows from the raw Gram and the sums
+ * sign). Only a fold of the kernels is rendered (gram_layout): every PSF model is
+ * point-symmetric (rows 0 .. ry, row ry's centre counted once, every other pixel twice), a
+ * circular one also in x, y and x ↔ y (an octant, an eighth of the pixels, each weighted by the
+ * number it stands for), an ellipse on the grid's axes in x and y (a quadrant). Both passes
+ * stream the fold in blocks of GRAM_ROWS rows for all samples at once (gram_raw:
+ * gram_accumulate into the Gram matrix; gram_halves: the eigen-PSFs' folds as combinations of
+ * the samples): no kernel matrix is held whole, and the cost is O(S² · fold pixels) in
+ * cache-blocked vector loops. The fold is unfolded only when placed on the frame for the FFT
+ * (gram_otf). The first pass renders the kernels unnormalised (their sums are not known yet): G
+ * of the normalised, mean-centred kernels K_j / s_j − K̄ follows from the raw Gram and the sums
  * exactly, C D G D C (D = diag(1/s), C = I − 11ᵀ/S), which costs about log10(|K|² / |K − K̄|²)
  * digits (gram_eigen). The blocks' partial Gram matrices are summed in a fixed order
  * (deterministic for any thread count). A term with λ <= 0 keeps e = A v, coefficient v (its
- * product, the one that matters, is the same). */
+ * product, the one that matters, is the same). half = 1: the point symmetry only (tests). */
 static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, double support,
-                                     int rx, int ry)
+                                     int rx, int ry, int half)
 {
     svp_variant_data *v = b->variant;
     gram_build gb;
-    svp_image *whole = NULL;
     svp_status st = gram_alloc(&gb, v, o, rx, ry);
     if (st == SVP_OK) st = sample_psfs(b, support, gb.psf);
-    if (st == SVP_OK) st = svp_image_new(gb.kw, gb.kh, &whole);
+    if (st == SVP_OK) st = gram_layout(&gb, half);
     if (st == SVP_OK) {
         gram_raw(&gb);
         st = gram_eigen(&gb, v);
     }
     if (st == SVP_OK) st = gram_terms(&gb, v);
     if (st == SVP_OK) gram_halves(&gb);
-    /* whole eigen-PSFs (point-symmetric: k[i] = k[m − 1 − i]) and their spectra */
-    const int R = gb.R, kw = gb.kw;
-    const size_t m = gb.m;
-    for (int r = 0; r < R && st == SVP_OK; r++) {
-        const double *e = gb.eh + (size_t)r * gb.half;
-        double *k = whole->data;
-        memcpy(k, e, ((size_t)ry * kw + rx + 1) * sizeof(double));
-        for (size_t i = (size_t)ry * kw + rx + 1; i < m; i++) k[i] = k[m - 1 - i];
-        gb.flux[r] = svp_sum(k, m);
-        st = term_otf(b, whole, rx, ry, &v->otf[r]);
-        if (st == SVP_OK)
-            st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / R);
+    if (st == SVP_OK) {
+        free(gb.blk); /* the row blocks are done with */
+        gb.blk = NULL;
+        gb.placed = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
+        if (!gb.placed)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d frame", b->frame.nx,
+                          b->frame.ny);
     }
-    if (st == SVP_OK && o->renormalise) st = lowrank_renormalise(b, R, gb.flux);
+    for (int r = 0; r < gb.R && st == SVP_OK; r++) {
+        st = gram_otf(b, &gb, r, &v->otf[r], &gb.flux[r]);
+        if (st == SVP_OK)
+            st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / gb.R);
+    }
+    if (st == SVP_OK && o->renormalise) st = lowrank_renormalise(b, gb.R, gb.flux);
     gram_free(&gb);
-    svp_image_free(whole);
     return st;
 }
 
@@ -1976,7 +2144,7 @@ svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
 
 svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int height,
                                     svp_boundary boundary, const svp_variant_options *options,
-                                    int dense_svd, svp_blur **out)
+                                    int build, svp_blur **out)
 {
     if (!out) return svp_fail(SVP_ERR_INVALID, "svp_blur_new_field: out is NULL");
     *out = NULL;
@@ -2041,10 +2209,10 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
             for (size_t i = 0; i < n; i++) v->scale[i] = 1.0 - v->alpha[i];
     }
     if (st == SVP_OK)
-        st = regions     ? build_regions(b, &o, support, rx, ry)
-             : !lowrank  ? build_tent(b, &o, support, rx, ry)
-             : dense_svd ? build_lowrank(b, &o, support, rx, ry)
-                         : build_lowrank_gram(b, &o, support, rx, ry);
+        st = regions      ? build_regions(b, &o, support, rx, ry)
+             : !lowrank   ? build_tent(b, &o, support, rx, ry)
+             : build == 1 ? build_lowrank(b, &o, support, rx, ry)
+                          : build_lowrank_gram(b, &o, support, rx, ry, build == 2);
     if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
     if (st == SVP_OK && regions) {

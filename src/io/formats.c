@@ -10,6 +10,7 @@
 #include <fcntl.h>
 #include <limits.h>
 #include <math.h>
+#include <signal.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -70,6 +71,27 @@ static void fsync_folder(const char *path)
     }
 }
 
+/* Creates the temporary file (mkstemp on the template tmp) and registers it for removal by
+ * the CLI's signal handler, with SIGTERM, SIGINT, SIGHUP and SIGQUIT held back in between: a
+ * signal arriving right after the file appears would otherwise find it not yet registered and
+ * leave it behind. A held signal is delivered on return, when the name is registered. */
+static int temp_create(char *tmp, int *slot)
+{
+    sigset_t hold, old;
+    sigemptyset(&hold);
+    sigaddset(&hold, SIGTERM);
+    sigaddset(&hold, SIGINT);
+    sigaddset(&hold, SIGHUP);
+    sigaddset(&hold, SIGQUIT);
+    int masked = pthread_sigmask(SIG_BLOCK, &hold, &old) == 0;
+    int fd = mkstemp(tmp);
+    int err = errno;
+    *slot = fd >= 0 ? svp_io_temp_register(tmp) : -1;
+    if (masked) pthread_sigmask(SIG_SETMASK, &old, NULL);
+    errno = err;
+    return fd;
+}
+
 svp_status svp_io_atomic_write_bytes(const char *path, const void *data, size_t size, int overwrite)
 {
     if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "output path is empty");
@@ -100,9 +122,9 @@ svp_status svp_io_atomic_write_bytes(const char *path, const void *data, size_t 
     snprintf(tmp, tmp_size, "%.*s.%s" SVP_IO_TEMP_TAG "%ld-XXXXXX", (int)folder_len, path, base,
              (long)getpid());
     svp_status st = SVP_OK;
-    int fd = mkstemp(tmp);
+    int slot;
+    int fd = temp_create(tmp, &slot);
     int tmp_exists = fd >= 0;
-    int slot = tmp_exists ? svp_io_temp_register(tmp) : -1;
     if (fd < 0) {
         st = svp_fail(SVP_ERR_IO, "%s: cannot write (%s)", path, strerror(errno));
         goto cleanup;

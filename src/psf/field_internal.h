@@ -46,4 +46,18 @@ void svp_psf_field_region_psf(const svp_psf_field *field, int label, svp_psf *ou
 svp_status svp_psf_render_rows(const svp_psf *psf, int rx, int ry, int y0, int rows,
                                double *out);
 
+/* The symmetry of svp_psf_render's kernel beyond the point symmetry every model has:
+ * 2 = circular (fwhm_minor 0 or equal to fwhm): k(dx, dy) = k(±dx, ±dy) = k(dy, dx);
+ * 1 = an ellipse whose axes are the grid's (angle a multiple of π / 2): k(dx, dy) = k(±dx, ±dy);
+ * 0 = neither. Exact at the pixel centres for angle 0 (a rotated frame's, and the sub-pixel
+ * means', to round-off). */
+int svp_psf_symmetry(const svp_psf *psf);
+
+/* The kernel's fold (symmetry >= 1): rows dy = y0 .. y0 + rows − 1 of its quadrant dx, dy >= 0,
+ * dx <= rx, from dx = dy when octant (symmetry 2, dx >= dy), before svp_psf_render's
+ * normalisation (the same values up to round-off), packed row after row (row dy holds
+ * rx + 1 − (octant ? dy : 0) values). The PSF must be valid. Serial. */
+void svp_psf_render_fold(const svp_psf *psf, int rx, int octant, int y0, int rows,
+                         double *out);
+
 #endif

@@ -3,6 +3,7 @@
 
 #include <math.h>
 #include <stdlib.h>
+#include <string.h>
 
 void svp_psf_defaults(svp_psf *psf)
 {
@@ -238,8 +239,14 @@ __attribute__((target("avx2"))) svp_m4d _ZGVdN4v_log1p(svp_m4d);
 __attribute__((target("avx2"))) static void profile_values_avx2(const profile_eval *e,
                                                                 double *q, int n)
 {
-    const int gauss = e->model == SVP_PSF_GAUSSIAN;
-    for (int i = 0; i < n; i += 4) {
+    const int gauss = e->model == SVP_PSF_GAUSSIAN, n4 = n & ~3;
+    for (int i = 0; i < n4; i += 4) {
+        svp_m4d x;
+        memcpy(&x, q + i, sizeof x);
+        x = gauss ? _ZGVdN4v_exp(-0.5 * x) : _ZGVdN4v_exp(-e->beta * _ZGVdN4v_log1p(x));
+        memcpy(q + i, &x, sizeof x);
+    }
+    for (int i = n4; i < n; i += 4) {
         svp_m4d x = {0, 0, 0, 0};
         const int k = n - i < 4 ? n - i : 4;
         for (int t = 0; t < k; t++) x[t] = q[i + t];
@@ -277,43 +284,98 @@ static void profile_values(const profile_eval *e, double *q, int n)
 #endif
 }
 
-/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out): the
- * profile at the pixel centres (profile_values, a batch at a time), the sub-pixel mean where it
- * curves within a pixel. An unrotated profile (sin θ = 0: u = ±dx, v = dy exactly) has
- * k(−dx) = k(dx) bit for bit at the pixel centres: the right half of the row copies the left
- * one there (the sub-pixel means are summed in another order, so they are computed). */
-static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry, int y,
-                       double *restrict out)
+/* n values of the unnormalised kernel at offsets (dx0 + i, dy), i = 0 .. n − 1: the profile at
+ * the pixel centres (profile_values, a batch at a time), the sub-pixel mean where it curves
+ * within a pixel, 0 beyond the support. A span all of whose pixels are centre-sampled (most
+ * of them) takes its q values in place and the profile over all of them at once: the same
+ * values, without the batches' gathers and scatters, which cost more than the vector maths. */
+static void render_offsets(const svp_psf *psf, const profile_eval *e, int dy, int dx0, int n,
+                           double *restrict out)
 {
     const int ns = auto_subsample(psf);
     /* Pixel integration only where the profile curves within a pixel. */
     const double fwhm_max = psf->fwhm_minor > psf->fwhm ? psf->fwhm_minor : psf->fwhm;
     const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
     const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
-    const int w = 2 * rx + 1, mirror = e->s == 0.0, xend = mirror ? rx + 1 : w;
-    const double dy = y - ry;
+    const double ddy = dy;
+    /* every pixel at its centre (none beyond the support or in the sub-sampled disc, which a
+     * row crosses at most once each): q in place, then the profile */
+    const double dxa = fabs((double)dx0), dxb = fabs((double)dx0 + n - 1);
+    const double near = dx0 <= 0 && dx0 + n - 1 >= 0 ? 0 : fmin(dxa, dxb), far = fmax(dxa, dxb);
+    if (n > 0 && far * far + ddy * ddy <= support2 &&
+        (ns == 1 || near * near + ddy * ddy > sub_radius2)) {
+        for (int x = 0; x < n; x++) {
+            const double dx = dx0 + x;
+            const double u = dx * e->c + ddy * e->s, v = -dx * e->s + ddy * e->c;
+            out[x] = u * u * e->ia2 + v * v * e->ib2;
+        }
+        profile_values(e, out, n);
+        return;
+    }
     enum { BATCH = 256 };
     double qb[BATCH];
     int xb[BATCH], nb = 0;
-    for (int x = 0; x <= w; x++) {
-        if (nb == BATCH || (x == xend && nb > 0)) {
+    for (int x = 0; x <= n; x++) {
+        if (nb == BATCH || (x == n && nb > 0)) {
             profile_values(e, qb, nb);
             for (int t = 0; t < nb; t++) out[xb[t]] = qb[t];
             nb = 0;
         }
-        if (x == w) break;
+        if (x == n) break;
+        const double dx = dx0 + x, r2 = dx * dx + ddy * ddy;
+        if (!(r2 <= support2))
+            out[x] = 0;
+        else if (ns > 1 && r2 <= sub_radius2)
+            out[x] = render_subsampled(e, ns, dx, ddy);
+        else {
+            const double u = dx * e->c + ddy * e->s, v = -dx * e->s + ddy * e->c;
+            qb[nb] = u * u * e->ia2 + v * v * e->ib2; /* as profile_at */
+            xb[nb++] = x;
+        }
+    }
+}
+
+/* Row y (0 .. 2 ry) of the unnormalised kernel of radius rx (2 rx + 1 values into out)
+ * (render_offsets). An unrotated profile (sin θ = 0: u = ±dx, v = dy exactly) has
+ * k(−dx) = k(dx) bit for bit at the pixel centres: the right half of the row copies the left
+ * one there (the sub-pixel means are summed in another order, so they are computed). */
+static void render_row(const svp_psf *psf, const profile_eval *e, int rx, int ry, int y,
+                       double *restrict out)
+{
+    const int w = 2 * rx + 1, mirror = e->s == 0.0, xend = mirror ? rx + 1 : w;
+    const double dy = y - ry;
+    render_offsets(psf, e, y - ry, -rx, xend, out);
+    if (!mirror) return;
+    const int ns = auto_subsample(psf);
+    const double fwhm_max = psf->fwhm_minor > psf->fwhm ? psf->fwhm_minor : psf->fwhm;
+    const double sub_radius2 = pow(fmax(3.0, 4.0 * fwhm_max), 2);
+    const double support2 = psf->support > 0 ? psf->support * psf->support : INFINITY;
+    for (int x = xend; x < w; x++) {
         const double dx = x - rx, r2 = dx * dx + dy * dy;
         if (!(r2 <= support2))
             out[x] = 0;
         else if (ns > 1 && r2 <= sub_radius2)
             out[x] = render_subsampled(e, ns, dx, dy);
-        else if (x >= xend)
+        else
             out[x] = out[2 * rx - x];
-        else {
-            const double u = dx * e->c + dy * e->s, v = -dx * e->s + dy * e->c;
-            qb[nb] = u * u * e->ia2 + v * v * e->ib2; /* as profile_at */
-            xb[nb++] = x;
-        }
+    }
+}
+
+int svp_psf_symmetry(const svp_psf *psf)
+{
+    if (psf->fwhm_minor == 0 || psf->fwhm_minor == psf->fwhm) return 2;
+    return remainder(psf->angle, 0.5 * 3.14159265358979323846) == 0 ? 1 : 0;
+}
+
+void svp_psf_render_fold(const svp_psf *psf, int rx, int octant, int y0, int rows,
+                         double *out)
+{
+    profile_eval e;
+    profile_setup(psf, &e);
+    for (int dy = y0; dy < y0 + rows; dy++) {
+        const int x0 = octant ? dy : 0;
+        render_offsets(psf, &e, dy, x0, rx + 1 - x0, out);
+        out += rx + 1 - x0;
     }
 }
 

@@ -993,9 +993,19 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
         const svp_image *const *s_in =
             m > 0 ? (opt.field_sigma ? (const svp_image *const *)sigma_in : NULL) : opt.field_sigma;
         size_t miss = 0;
-        st = inverse_core(blur, copy_pl ? pl_in : pl_apparent, f_in, n_fields, &opt, s_in,
-                          m > 0 ? pl_out : pl_true, f_out, valid, reports, shifts, &miss,
-                          n_repaired);
+        /* Richardson–Lucy on both halves uses H x on the data (the view) and Hᵀ of data on the
+         * view only: the operator's frame for the view serves, smaller than the grid's */
+        int view = 0;
+        if (m > 0 && uses_rl_for_pl(opt.method) && uses_rl_for_field(opt.method))
+            st = svp_blur_set_view(blur, m, &view);
+        if (st == SVP_OK)
+            st = inverse_core(blur, copy_pl ? pl_in : pl_apparent, f_in, n_fields, &opt, s_in,
+                              m > 0 ? pl_out : pl_true, f_out, valid, reports, shifts, &miss,
+                              n_repaired);
+        if (view) {
+            svp_status back = svp_blur_set_view(blur, 0, &view);
+            if (st == SVP_OK) st = back;
+        }
         if (st != SVP_OK) goto cleanup;
         if (n_missing) *n_missing = miss - ((size_t)pw * ph - n);
     }

@@ -170,8 +170,9 @@ def render_cli(res, w):
       "a 6 µm margin); `correct` with its defaults (R, 75 iterations, margin auto = 26 px, "
       "single precision at this size) and with each default turned off; 2 threads, FFTW "
       "wisdom warmed by an untimed run, the best of two. *bound*: the two RLs' 2 × 75 "
-      "iterations at the RL benchmark's 1024² bound per iteration above (its 2048² frame; the "
-      "margin's frame is 2160², ≈ 11 % more points).\n")
+      "iterations at the RL benchmark's 1024² bound per iteration above (its 2048² frame; with "
+      "the margin the RLs transform on the view's frame, 2100², ≈ 5 % more points: "
+      "docs/model.md §5).\n")
     w("| correct | margin px | precision | total s | transform s | bound s | ratio | target | "
       "peak MB |")
     w("|---|---|---|---|---|---|---|---|---|")

@@ -212,12 +212,14 @@ def blur_regions(images, fwhm_px, beta, bins=12):
     return blur_sets(images, weights, params, n)
 
 
-def scene(n):
-    """True PL (peak 1), true field (µT) and the metal labels (the strip) of the n x n view."""
-    import foreign  # tools/bench/foreign.py: the wire scene
+def scene(n, kind="wire"):
+    """True PL (peak 1), true field (µT) and the metal labels (the strip) of the n x n view:
+    foreign.py's scene `kind` (wire: the strip quenched to 5 %; oxide: a PL ramp over 4 µm
+    instead, the same field)."""
+    import foreign  # tools/bench/foreign.py: the wire and oxide scenes
 
     rng = np.random.default_rng(1)
-    pl, bz = foreign.scene_maps("wire", n, PIXEL_UM, rng)
+    pl, bz = foreign.scene_maps(kind, n, PIXEL_UM, rng)
     c = 0.5 * (n - 1)
     x_um = (np.arange(n) - c) * PIXEL_UM
     half = c * PIXEL_UM
