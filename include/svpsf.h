@@ -282,7 +282,8 @@ SVP_API svp_status svp_blur_adjoint(svp_blur *blur, const svp_image *y, svp_imag
 SVP_API size_t svp_blur_memory(const svp_blur *blur);
 /* H and Hᵀ of this operator in single precision (single 1: float FFTs, fftw3f, on the same
  * frames; the float spectra are made on first use and kept, counted by svp_blur_memory) or
- * double (0). Invariant, tent and low-rank operators; agreement with double: docs/model.md §9.
+ * double (0). Invariant, tent, low-rank and region operators; agreement with double:
+ * docs/model.md §9.
  * SVP_ERR_UNSUPPORTED for the exact operator, and for returning to double an operator built
  * with svp_variant_options.single_precision. */
 SVP_API svp_status svp_blur_set_precision(svp_blur *blur, int single);
