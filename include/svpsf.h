@@ -282,7 +282,8 @@ SVP_API svp_status svp_blur_adjoint(svp_blur *blur, const svp_image *y, svp_imag
 SVP_API size_t svp_blur_memory(const svp_blur *blur);
 /* H and Hᵀ of this operator in single precision (single 1: float FFTs, fftw3f, on the same
  * frames; the float spectra are made on first use and kept, counted by svp_blur_memory) or
- * double (0). Invariant, tent and low-rank operators; agreement with double: docs/model.md §9.
+ * double (0). Invariant, tent, low-rank and region operators; agreement with double:
+ * docs/model.md §9.
  * SVP_ERR_UNSUPPORTED for the exact operator, and for returning to double an operator built
  * with svp_variant_options.single_precision. */
 SVP_API svp_status svp_blur_set_precision(svp_blur *blur, int single);
@@ -708,8 +709,17 @@ typedef enum svp_variant_repr {
     SVP_VARIANT_LOWRANK = 1,
     /* default: the cheapest tent grid or low rank whose estimated relative operator error
      * (docs/model.md §9, "Choosing the representation") is at most `tolerance`, by a cost model
-     * of `applications` applications plus the build; grid_x / samples_x etc. are ignored */
-    SVP_VARIANT_AUTO = 2
+     * of `applications` applications plus the build; grid_x / samples_x etc. are ignored.
+     * For region maps the region representation is a candidate too */
+    SVP_VARIANT_AUTO = 2,
+    /* PSF maps of kind regions only (else SVP_ERR_INVALID): one term per label that has a
+     * pixel, H x = Σ_k e_k ⊛ (c_k (1 − α) ⊙ x) + <α x>_FOV with e_k the normalised kernel of
+     * label k's PSF and c_k its blend weight map (one-hot for a sharp map). Exact to round-off
+     * against svp_blur_new_exact for sharp maps; for blended ones (transition > 0) the field
+     * blends PSF parameters, so blending kernels is an approximation (its error is estimated
+     * like the others'). Built and applied as low rank (single precision included); memory:
+     * one spectrum and a per-pixel weight table per term (docs/model.md §9, "Region maps"). */
+    SVP_VARIANT_REGIONS = 3
 } svp_variant_repr;
 
 typedef struct svp_variant_options {
@@ -739,9 +749,9 @@ typedef struct svp_variant_options {
  * NaN when not estimated (a forced representation estimates only through
  * svp_variant_estimate). */
 typedef struct svp_variant_info {
-    svp_variant_repr representation; /* SVP_VARIANT_TENT or SVP_VARIANT_LOWRANK */
-    int grid_x, grid_y;              /* tent nodes, or low-rank samples */
-    int rank;                        /* low rank: terms; tent: 0 */
+    svp_variant_repr representation; /* SVP_VARIANT_TENT, _LOWRANK or _REGIONS */
+    int grid_x, grid_y;              /* tent nodes, or low-rank samples; regions: 0 */
+    int rank;                        /* low rank: terms; regions: region kernels; tent: 0 */
     double estimated_error;
     double tolerance;                /* the budget (auto), else 0 */
     int tolerance_met;               /* auto: 1 when the choice meets the budget */
@@ -753,8 +763,9 @@ typedef struct svp_variant_info {
 } svp_variant_info;
 
 SVP_API svp_status svp_blur_variant_info(const svp_blur *blur, svp_variant_info *info);
-/* Estimated relative operator error (as svp_variant_info.estimated_error) of the tent grid or
- * low rank that options force (representation TENT or LOWRANK). */
+/* Estimated relative operator error (as svp_variant_info.estimated_error) of the tent grid,
+ * low rank or regions that options force (representation TENT, LOWRANK or REGIONS; REGIONS on
+ * a field not of kind regions: SVP_ERR_INVALID). */
 SVP_API svp_status svp_variant_estimate(const svp_psf_field *field, int width, int height,
                                         svp_boundary boundary,
                                         const svp_variant_options *options, double *error);

@@ -326,7 +326,8 @@ class Blur:
     """The blur operator H for an image shape (height, width): svp_blur_new (a PSF),
     svp_blur_new_kernel (a kernel image, normalised, centre at (w // 2, h // 2)) or
     svp_blur_new_field (a PSFMap: tent nodes, or rank R eigen-PSFs on the nodes grid, as
-    `--nodes`/`--rank`; neither: the representation chosen by operator_tol, default 1e-3, as
+    `--nodes`/`--rank`; regions=True: one kernel per region of a map of kind regions, as
+    `--regions`; none: the representation chosen by operator_tol, default 1e-3, as
     `--operator-tol`; applications: the H + Hᵀ pairs its cost model counts, default 50;
     forward() and correct() pass what they run, as the program does). psf may also be a file
     name (read_psf); boundary None = the file's,
@@ -334,7 +335,7 @@ class Blur:
     Blur must not be used from two threads at once."""
 
     def __init__(self, psf, shape, boundary=None, nodes=None, rank=None, operator_tol=None,
-                 applications=None):
+                 applications=None, regions=False):
         if isinstance(psf, (str, bytes, os.PathLike)):
             f = read_psf(psf)
             psf = f.psf
@@ -346,6 +347,8 @@ class Blur:
         if isinstance(psf, PSF):
             _check(lib.svp_blur_new(psf._c, w, h, _boundary(boundary), out))
         elif isinstance(psf, PSFMap):
+            if regions and (nodes is not None or rank is not None):
+                raise ValueError("regions cannot be combined with nodes or rank")
             v = ffi.new("svp_variant_options *")
             lib.svp_variant_defaults(v)
             if nodes is not None:
@@ -360,6 +363,8 @@ class Blur:
             if rank is not None:
                 v.representation = lib.SVP_VARIANT_LOWRANK
                 v.rank = int(rank)
+            if regions:
+                v.representation = lib.SVP_VARIANT_REGIONS
             _check(lib.svp_blur_new_field(psf._ptr, w, h, _boundary(boundary), v, out))
         else:
             imgs = _Images()
@@ -372,6 +377,23 @@ class Blur:
     @property
     def memory(self):
         return lib.svp_blur_memory(self._ptr)
+
+    _REPRESENTATIONS = {0: "tent", 1: "low rank", 3: "regions"}
+
+    @property
+    def variant(self):
+        """A space-variant operator's representation (svp_blur_variant_info): a dict with
+        representation ('tent', 'low rank' or 'regions'), nodes (tent nodes or low-rank samples
+        (x, y); regions (0, 0)), rank (low-rank terms or region kernels; tent 0) and
+        estimated_error (NaN when not estimated); None for other operators."""
+        if not self.is_variant:
+            return None
+        info = ffi.new("svp_variant_info *")
+        if lib.svp_blur_variant_info(self._ptr, info) != lib.SVP_OK:
+            return None
+        return {"representation": self._REPRESENTATIONS.get(info.representation),
+                "nodes": (info.grid_x, info.grid_y), "rank": info.rank,
+                "estimated_error": info.estimated_error}
 
     @property
     def is_variant(self):
@@ -405,14 +427,15 @@ class Blur:
         return self._apply(lib.svp_blur_adjoint, y, out)
 
 
-def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None):
+def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None,
+              regions=False):
     if isinstance(psf, Blur):
         if psf.shape != tuple(shape):
             raise ValueError("the Blur is for images of shape %s, the inputs are %s"
                              % (psf.shape, tuple(shape)))
         return psf
     return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank,
-                operator_tol=operator_tol, applications=applications)
+                operator_tol=operator_tol, applications=applications, regions=regions)
 
 
 def _correct_applications(opt, n_fields):
@@ -453,7 +476,7 @@ def _same_shape(arrays, names):
 ForwardResult = namedtuple("ForwardResult", "pl fields validity")
 
 
-def forward(pl, fields, psf, boundary=None, nodes=None, rank=None):
+def forward(pl, fields, psf, boundary=None, nodes=None, rank=None, regions=False):
     """The forward transform T (eq. 3 of docs/model.md): what a blurred measurement of the true
     PL and field map(s) reports; `svpsf forward`. fields: one 2-D map or a list. psf: a PSF,
     PSFMap, kernel image, file name or a Blur of the maps' shape. Returns (pl, fields,
@@ -461,7 +484,7 @@ def forward(pl, fields, psf, boundary=None, nodes=None, rank=None):
     pl = _input(pl, "pl")
     fl, single = _fields(fields, "field")
     _same_shape([pl] + fl, ["pl"] + ["field[%d]" % i for i in range(len(fl))])
-    blur = _blur_for(psf, pl.shape, boundary, nodes, rank, applications=1)
+    blur = _blur_for(psf, pl.shape, boundary, nodes, rank, applications=1, regions=regions)
     imgs = _Images()
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
@@ -490,7 +513,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             pl_floor=None, shift=None, cg_max_steps=None, precision="double",
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
             keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
-            field_names=None, operator_tol=1e-2):
+            field_names=None, operator_tol=1e-2, regions=False):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
@@ -498,8 +521,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     rl-signed with one PSF from 1024² pixels); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
     PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
     gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
-    operator error budget (default 1e-2, as `svpsf correct`).
-    None = the library's default (svp_correct_defaults: the program's defaults). psf as for
+    operator error budget (default 1e-2, as `svpsf correct`); regions=True one kernel per region
+    of a map of kind regions (`--regions`). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
     deconvolution ([0] the PL's, [1 + c] field c's numerator). Raises DoubtfulError (the
@@ -559,7 +582,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     h, w = pl.shape
     blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank,
                      applications=_correct_applications(opt, len(fl)),
-                     operator_tol=operator_tol)
+                     operator_tol=operator_tol, regions=regions)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
     val, val_i = imgs.out(pl.shape)
@@ -579,14 +602,15 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
 
 
 def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=50,
-               precision="double", cg_max_steps=400, boundary=None, nodes=None, rank=None):
+               precision="double", cg_max_steps=400, boundary=None, nodes=None, rank=None,
+               regions=False):
     """One image ⊘ one PSF: Wiener–Hunt ('wiener'; balance λ or 'auto' by the discrepancy
     principle, noise σ or 0 = estimated) or Richardson–Lucy ('rl'); `svpsf deconvolve`.
     Returns (x, report): the deconvolved image and a dict of what was done."""
     y = _input(image, "image")
     if method not in ("wiener", "rl"):
         raise ValueError("method %r: wiener or rl" % (method,))
-    blur = _blur_for(psf, y.shape, boundary, nodes, rank)
+    blur = _blur_for(psf, y.shape, boundary, nodes, rank, regions=regions)
     opt = ffi.new("svp_deconv_options *")
     lib.svp_deconv_defaults(opt)
     opt.iterations = int(iterations)

@@ -124,6 +124,40 @@ def test_automatic_representation_equals_cli(cli, tmp_path, maps):
     assert settings["operator_apply_s"] > 0 and settings["operator_adjoint_s"] > 0
 
 
+def test_regions_equals_cli(cli, tmp_path, maps):
+    """regions=True is `--regions` (one kernel per region of a region map): forward and correct
+    equal the program's bit for bit, the Blur reports the representation and its two kernels;
+    with nodes, or on a map that is not of kind regions, it is refused."""
+    pl, field = maps
+    labels = np.zeros(pl.shape, dtype=np.int32)
+    labels[:, 30:52] = 1
+    np.save(tmp_path / "map.labels.npy", labels)
+    pf = write(tmp_path, "map.yaml",
+               "pixel_um: 0.1\nimage: {width: %d, height: %d}\nmodel: moffat\nkind: regions\n"
+               "labels_file: map.labels.npy\nregions:\n  - {label: 0, fwhm_um: 0.5, beta: 2.5}\n"
+               "  - {label: 1, fwhm_um: 0.9, beta: 1.3, halo: 0.05}\n" % (pl.shape[1], pl.shape[0]))
+    cli("forward", "--pl", write(tmp_path, "pl0.npy", pl), "--field",
+        write(tmp_path, "B0.npy", field), "--psf", pf, "--regions", "-o", tmp_path / "fwd",
+        *COMMON)
+    a = svpsf.forward(pl, field, pf, regions=True)
+    assert np.array_equal(a.pl, np.load(tmp_path / "fwd" / "pl.npy"))
+    assert np.array_equal(a.fields, np.load(tmp_path / "fwd" / "field.npy"))
+    cli("correct", "--pl", write(tmp_path, "pl.npy", a.pl), "--field",
+        write(tmp_path, "B.npy", a.fields), "--psf", pf, "--regions", "--method", "r",
+        "--iterations", "10", "--margin", "0", "--precision", "double", "-o", tmp_path / "out",
+        *COMMON)
+    r = svpsf.correct(a.pl, a.fields, pf, method="r", iterations=10, regions=True)
+    assert np.array_equal(r.fields, np.load(tmp_path / "out" / "field.npy"))
+    settings = json.load(open(tmp_path / "out" / "summary.json"))["settings"]
+    assert settings["psf_representation"] == "regions" and settings["psf_region_kernels"] == 2
+    v = svpsf.Blur(svpsf.read_psf(pf).psf, pl.shape, regions=True).variant
+    assert v["representation"] == "regions" and v["rank"] == 2 and v["nodes"] == (0, 0)
+    with pytest.raises(ValueError, match="regions cannot be combined"):
+        svpsf.Blur(svpsf.read_psf(pf).psf, pl.shape, regions=True, nodes=4)
+    with pytest.raises(svpsf.Error, match="kind regions"):
+        svpsf.forward(pl, field, write(tmp_path, "grid.yaml", GRID), regions=True)
+
+
 @pytest.mark.parametrize("args, kwargs", [
     (["--method", "wiener", "--balance", "auto"], dict(method="wiener", balance="auto")),
     (["--method", "rl", "--iterations", "30"], dict(method="rl", iterations=30)),

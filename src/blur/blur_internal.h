@@ -87,7 +87,8 @@ void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int
 typedef enum svp_blur_kind {
     SVP_BLUR_INVARIANT = 0,
     SVP_BLUR_TENT = 1,    /* space-variant: tent-weighted overlap-add (variant.c) */
-    SVP_BLUR_LOWRANK = 2, /* space-variant: eigen-PSFs and coefficient maps (variant.c) */
+    SVP_BLUR_LOWRANK = 2, /* space-variant: eigen-PSFs and coefficient maps (variant.c); also
+                             the region representation (regions.c) */
     SVP_BLUR_EXACT = 3    /* space-variant: the per-source reference sum (exact.c) */
 } svp_blur_kind;
 
@@ -106,6 +107,9 @@ typedef struct svp_blur_ops {
     const double *(*halo_map)(const svp_blur *b); /* per-pixel halo (svp_blur_halo_map) */
 } svp_blur_ops;
 extern const svp_blur_ops svp_invariant_ops, svp_tent_ops, svp_lowrank_ops, svp_exact_ops;
+/* The region representation (kind SVP_BLUR_LOWRANK: the low-rank apply and adjoint with one
+ * term per used label and per-pixel coefficient maps; variant.c, regions.c). */
+extern const svp_blur_ops svp_regions_ops;
 /* The common part only (what svp_variant_begin made), until a constructor sets its table. */
 extern const svp_blur_ops svp_variant_common_ops;
 
@@ -231,6 +235,25 @@ size_t svp_variant_peak_bytes(int width, int height, svp_boundary boundary, int 
                               int S, int rx, int ry);
 /* Bytes the Gram low-rank build holds while it runs (besides the operator itself). */
 size_t svp_lowrank_build_memory(int samples, int rank, int rx, int ry, int threads);
+/* Region maps (regions.c, docs/model.md §9 "Region maps"). The terms of the region
+ * representation: K used labels (those with a pixel), label[k] their label, psf[k] their PSF
+ * (svp_psf_field_region_psf) and weight + k N their blend weight maps (N = width x height;
+ * one-hot for a sharp map), all malloc'd. */
+typedef struct svp_region_terms {
+    int K;
+    int *label;
+    svp_psf *psf;
+    double *weight;
+} svp_region_terms;
+/* SVP_ERR_INVALID unless the field is of kind regions. */
+svp_status svp_region_check(const svp_psf_field *field);
+/* Labels with at least one pixel (0 for other kinds). */
+int svp_region_count(const svp_psf_field *field);
+svp_status svp_region_terms_make(const svp_psf_field *field, svp_region_terms *t);
+void svp_region_terms_free(svp_region_terms *t);
+/* Bytes the region operator of K terms holds at its peak while built (an upper estimate, as
+ * svp_variant_peak_bytes). */
+size_t svp_region_peak_bytes(int width, int height, svp_boundary boundary, int K, int rx, int ry);
 /* svp_blur_new_exact with the kernel table forced on (1), off (0) or automatic (-1: on when
  * N · kernel area <= 2^23 values). Tests compare both paths. */
 svp_status svp_blur_new_exact_tab(const svp_psf_field *field, int width, int height,

@@ -85,10 +85,9 @@ static void hat_of(double x, int g, int size, int *i0, double *t)
 /* The field's kernel at (x, y) on the compact radius, scaled to the share of the flux the
  * operator's kernel has there (its encircled energy). Serial (the callers run kernels in
  * parallel), so every value is the same on any number of threads. */
-static svp_status compact_kernel(const est_ctx *c, double x, double y, double *out)
+static svp_status compact_psf_kernel(const est_ctx *c, svp_psf psf, double x, double y,
+                                     double *out)
 {
-    svp_psf psf;
-    SVP_CHECK(svp_psf_field_at(c->field, x, y, &psf));
     psf.support = c->support;
     SVP_CHECK(svp_psf_render_rows(&psf, c->rc, c->rc, 0, 2 * c->rc + 1, out));
     double sum = 0;
@@ -105,6 +104,13 @@ static svp_status compact_kernel(const est_ctx *c, double x, double y, double *o
     const double scale = ee / sum;
     for (size_t i = 0; i < c->mc; i++) out[i] *= scale;
     return SVP_OK;
+}
+
+static svp_status compact_kernel(const est_ctx *c, double x, double y, double *out)
+{
+    svp_psf psf;
+    SVP_CHECK(svp_psf_field_at(c->field, x, y, &psf));
+    return compact_psf_kernel(c, psf, x, y, out);
 }
 
 /* compact_kernel at n positions (x[i], y[i]) into out + i mc, in parallel; the first failure's
@@ -319,6 +325,64 @@ done:
     return st;
 }
 
+/* Relative error of the region representation (docs/model.md §9, "Region maps"): zero at
+ * every pixel whose weights are one-hot (its kernel is its label's), so the probes are spread
+ * over the M "mixed" pixels (some weight in (0, 1)) only, in raster order, and
+ * ε² = (M / N) mean_probes ‖k_s − Σ_k w_k(s) e_k‖² / (mean ‖k_p‖² over the usual probes).
+ * A sharp map has M = 0: ε = 0. */
+static svp_status est_regions(const est_ctx *c, double *err)
+{
+    svp_region_terms t;
+    SVP_CHECK(svp_region_terms_make(c->field, &t));
+    const size_t n = (size_t)c->width * c->height, mc = c->mc;
+    const int K = t.K;
+    size_t *mixed = malloc(n * sizeof(size_t));
+    double *ek = malloc((size_t)K * mc * sizeof(double));
+    double *px = malloc(PROBES * sizeof(double)), *py = malloc(PROBES * sizeof(double));
+    double *pk = malloc(PROBES * mc * sizeof(double));
+    svp_status st = mixed && ek && px && py && pk
+                        ? SVP_OK
+                        : svp_fail(SVP_ERR_NOMEM, "out of memory for the region estimate");
+    size_t M = 0;
+    for (size_t i = 0; i < n && st == SVP_OK; i++) {
+        int one_hot = 0;
+        for (int k = 0; k < K; k++) one_hot |= t.weight[(size_t)k * n + i] >= 1.0 - 1e-12;
+        if (!one_hot) mixed[M++] = i;
+    }
+    *err = 0;
+    if (st == SVP_OK && M > 0) {
+        for (int k = 0; k < K && st == SVP_OK; k++)
+            st = compact_psf_kernel(c, t.psf[k], 0.5 * (c->width - 1), 0.5 * (c->height - 1),
+                                    ek + (size_t)k * mc);
+        const int P = M < PROBES ? (int)M : PROBES;
+        for (int p = 0; p < P; p++) {
+            const size_t i = mixed[(size_t)((p + 0.5) * M / P)];
+            mixed[p] = i; /* the probe's pixel (p <= its index in mixed) */
+            px[p] = (double)(i % (size_t)c->width);
+            py[p] = (double)(i / (size_t)c->width);
+        }
+        if (st == SVP_OK) st = compact_kernels(c, P, px, py, pk);
+        double e2 = 0;
+        for (int p = 0; p < P && st == SVP_OK; p++) {
+            double *kp = pk + (size_t)p * mc;
+            for (int k = 0; k < K; k++) {
+                const double w = t.weight[(size_t)k * n + mixed[p]];
+                const double *e = ek + (size_t)k * mc;
+                for (size_t i = 0; i < mc; i++) kp[i] -= w * e[i];
+            }
+            e2 += dotp(kp, kp, mc);
+        }
+        if (st == SVP_OK) *err = sqrt((double)M / n * (e2 / P) / (c->norm2 / c->probes));
+    }
+    svp_region_terms_free(&t);
+    free(mixed);
+    free(ek);
+    free(px);
+    free(py);
+    free(pk);
+    return st;
+}
+
 /* Kernel radii and support as svp_variant_begin chooses them. */
 static void radii(const svp_psf_field *field, int width, int height, double support, int *rx,
                   int *ry)
@@ -426,6 +490,25 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
             if (nc < MAX_CAND) cands[nc] = cand, cerr[nc] = err[R - 1], ccost[nc++] = cost;
         }
     }
+    if (st == SVP_OK && svp_psf_field_get_kind(field) == SVP_FIELD_REGIONS) {
+        /* one term per used label, built like a tent node */
+        const int K = svp_region_count(field);
+        const double bytes = (double)svp_region_peak_bytes(width, height, boundary, K, rx, ry);
+        double err;
+        if (bytes <= limit) st = est_regions(&c, &err);
+        if (bytes <= limit && st == SVP_OK) {
+            n++;
+            const double cost = cost_of(K, 0, apps, kernel_px, frame_px);
+            svp_variant_options cand = *o;
+            cand.representation = SVP_VARIANT_REGIONS;
+            if (err <= o->tolerance && cost < best_cost) {
+                best_cost = cost;
+                best_err = err;
+                best = cand;
+            }
+            if (nc < MAX_CAND) cands[nc] = cand, cerr[nc] = err, ccost[nc++] = cost;
+        }
+    }
     est_release(&c);
     if (st != SVP_OK) return st;
     if (n == 0)
@@ -463,13 +546,17 @@ svp_status svp_variant_estimate(const svp_psf_field *field, int width, int heigh
         o = *options;
     else
         svp_variant_defaults(&o);
-    if (o.representation != SVP_VARIANT_TENT && o.representation != SVP_VARIANT_LOWRANK)
+    if (o.representation != SVP_VARIANT_TENT && o.representation != SVP_VARIANT_LOWRANK &&
+        o.representation != SVP_VARIANT_REGIONS)
         return svp_fail(SVP_ERR_INVALID,
-                        "svp_variant_estimate: the options must force tent or low rank");
+                        "svp_variant_estimate: the options must force tent, low rank or regions");
+    if (o.representation == SVP_VARIANT_REGIONS) SVP_CHECK(svp_region_check(field));
     est_ctx c;
     SVP_CHECK(est_init(&c, field, width, height, o.support));
     svp_status st;
-    if (o.representation == SVP_VARIANT_TENT) {
+    if (o.representation == SVP_VARIANT_REGIONS) {
+        st = est_regions(&c, error);
+    } else if (o.representation == SVP_VARIANT_TENT) {
         st = est_tent(&c, o.grid_x < width ? o.grid_x : width,
                       o.grid_y < height ? o.grid_y : height, error);
     } else {

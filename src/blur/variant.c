@@ -24,6 +24,7 @@
 #include <lapacke.h>
 #include <math.h>
 #include <omp.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -1012,6 +1013,8 @@ const svp_blur_ops svp_tent_ops = {"tent",         variant_apply,   variant_adjo
                                    variant_memory, variant_release, variant_halo_map};
 const svp_blur_ops svp_lowrank_ops = {"low rank",     variant_apply,   variant_adjoint,
                                       variant_memory, variant_release, variant_halo_map};
+const svp_blur_ops svp_regions_ops = {"regions",      variant_apply,   variant_adjoint,
+                                      variant_memory, variant_release, variant_halo_map};
 
 int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
                      const double **coef)
@@ -1056,10 +1059,10 @@ svp_status svp_blur_psf_at(const svp_blur *b, double x, double y, svp_psf *out)
 static svp_status check_options(const svp_variant_options *o)
 {
     if (o->representation != SVP_VARIANT_TENT && o->representation != SVP_VARIANT_LOWRANK &&
-        o->representation != SVP_VARIANT_AUTO)
+        o->representation != SVP_VARIANT_AUTO && o->representation != SVP_VARIANT_REGIONS)
         return svp_fail(SVP_ERR_INVALID,
-                        "variant representation %d is not tent (0), low rank (1) or automatic "
-                        "(2)",
+                        "variant representation %d is not tent (0), low rank (1), automatic "
+                        "(2) or regions (3)",
                         (int)o->representation);
     if (o->representation == SVP_VARIANT_AUTO && (!(o->tolerance > 0) || !isfinite(o->tolerance)))
         return svp_fail(SVP_ERR_INVALID, "operator tolerance must be > 0, got %g", o->tolerance);
@@ -1516,6 +1519,43 @@ cleanup:
     free(sv);
     free(vt);
     free(flux);
+    return st;
+}
+
+/* Regions (regions.c): term k is used label k's normalised kernel with its weight map as the
+ * coefficients at "samples" on every pixel (gx = width, gy = height: the bilinear weights
+ * between samples are then 1 and 0, exact), so setup_fill makes the per-pixel tables. The
+ * weights sum to 1 and every kernel to 1: unit flux per source, no renormalisation. */
+static svp_status build_regions(svp_blur *b, const svp_variant_options *o, double support,
+                                int rx, int ry)
+{
+    svp_variant_data *v = b->variant;
+    svp_region_terms t;
+    SVP_CHECK(svp_region_terms_make(b->field, &t));
+    svp_status st = SVP_OK;
+    v->otf = calloc((size_t)t.K, sizeof *v->otf);
+    if (!v->otf) st = svp_fail(SVP_ERR_NOMEM, "out of memory for %d region spectra", t.K);
+    if (st == SVP_OK) {
+        v->n_terms = t.K;
+        v->coef = t.weight; /* coef[(r gy + y) gx + x] = weight[r N + y w + x] */
+        t.weight = NULL;
+    }
+    for (int k = 0; k < t.K && st == SVP_OK; k++) {
+        svp_psf psf = t.psf[k];
+        svp_image *kernel = NULL;
+        psf.support = support;
+        st = svp_psf_render(&psf, rx, ry, &kernel);
+        if (st != SVP_OK) {
+            st = svp_fail_context(st, "PSF of region %d (fwhm %g, beta %g)", t.label[k], psf.fwhm,
+                                  psf.beta);
+            break;
+        }
+        st = term_otf(b, kernel, rx, ry, &v->otf[k]);
+        svp_image_free(kernel);
+        if (st == SVP_OK)
+            st = svp_report_progress(o->progress, o->progress_user, (k + 1.0) / t.K);
+    }
+    svp_region_terms_free(&t);
     return st;
 }
 
@@ -2067,6 +2107,40 @@ static svp_status keep_real_spectra(svp_variant_data *v, size_t ns)
     return SVP_OK;
 }
 
+/* The memory the operator needs (info->peak_bytes), checked against the limit before anything
+ * large is allocated. */
+static svp_status check_peak(const svp_psf_field *field, int width, int height,
+                             svp_boundary boundary, const svp_variant_options *o,
+                             svp_variant_info *info)
+{
+    const int lowrank = o->representation == SVP_VARIANT_LOWRANK;
+    const int regions = o->representation == SVP_VARIANT_REGIONS;
+    const double sup = o->support > 0 ? o->support : svp_psf_field_base(field)->support;
+    const int krx = sup > 0 ? (int)ceil(sup) : width - 1, kry = sup > 0 ? (int)ceil(sup)
+                                                                       : height - 1;
+    const int gx = lowrank ? o->samples_x : o->grid_x, gy = lowrank ? o->samples_y : o->grid_y;
+    const int S = (gx < width ? gx : width) * (gy < height ? gy : height);
+    const int K = regions ? svp_region_count(field) : lowrank ? o->rank : S;
+    const size_t need =
+        regions ? svp_region_peak_bytes(width, height, boundary, K, krx, kry)
+                : svp_variant_peak_bytes(width, height, boundary, lowrank, K, lowrank ? S : 0, krx,
+                                         kry);
+    const double limit = svp_variant_memory_limit(o);
+    info->peak_bytes = need;
+    if ((double)need <= limit) return SVP_OK;
+    char what[64];
+    if (regions)
+        snprintf(what, sizeof what, "regions, %d region kernels", K);
+    else
+        snprintf(what, sizeof what, "%s, %d x %d %s", lowrank ? "low rank" : "tent", gx, gy,
+                 lowrank ? "samples" : "nodes");
+    return svp_fail(SVP_ERR_INVALID,
+                    "the space-variant operator (%s) for %d x %d with kernels of %d x %d pixels "
+                    "needs about %.0f MB, more than the memory limit of %.0f MB; set a smaller "
+                    "support, fewer terms or a larger limit",
+                    what, width, height, 2 * krx + 1, 2 * kry + 1, need / 1e6, limit / 1e6);
+}
+
 svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
                               svp_boundary boundary, const svp_variant_options *options,
                               svp_blur **out)
@@ -2100,34 +2174,17 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
         o = chosen;
     }
     const int lowrank = o.representation == SVP_VARIANT_LOWRANK;
-    {
-        /* the memory it needs, before anything large is allocated */
-        const double sup = o.support > 0 ? o.support : svp_psf_field_base(field)->support;
-        const int krx = sup > 0 ? (int)ceil(sup) : width - 1, kry = sup > 0 ? (int)ceil(sup)
-                                                                           : height - 1;
-        const int gx = lowrank ? o.samples_x : o.grid_x, gy = lowrank ? o.samples_y : o.grid_y;
-        const int S = (gx < width ? gx : width) * (gy < height ? gy : height);
-        const size_t need = svp_variant_peak_bytes(width, height, boundary, lowrank,
-                                                   lowrank ? o.rank : S, lowrank ? S : 0, krx, kry);
-        const double limit = svp_variant_memory_limit(&o);
-        info.peak_bytes = need;
-        if ((double)need > limit)
-            return svp_fail(SVP_ERR_INVALID,
-                            "the space-variant operator (%s, %d x %d %s%s) for %d x %d with "
-                            "kernels of %d x %d pixels needs about %.0f MB, more than the "
-                            "memory limit of %.0f MB; set a smaller support, fewer terms or a "
-                            "larger limit",
-                            lowrank ? "low rank" : "tent", gx, gy, lowrank ? "samples" : "nodes",
-                            lowrank ? "" : "", width, height, 2 * krx + 1, 2 * kry + 1,
-                            need / 1e6, limit / 1e6);
-    }
+    const int regions = o.representation == SVP_VARIANT_REGIONS;
+    if (regions) SVP_CHECK(svp_region_check(field));
+    SVP_CHECK(check_peak(field, width, height, boundary, &o, &info));
     const double t_build = omp_get_wtime();
     svp_blur *b = NULL;
     int rx, ry;
     double support;
     SVP_CHECK(svp_variant_begin(field, width, height, boundary, o.support,
-                                lowrank ? SVP_BLUR_LOWRANK : SVP_BLUR_TENT, &b, &rx, &ry,
-                                &support));
+                                lowrank || regions ? SVP_BLUR_LOWRANK : SVP_BLUR_TENT, &b, &rx,
+                                &ry, &support));
+    if (regions) b->ops = &svp_regions_ops;
     svp_status st = svp_frame_init(&b->frame, width, height, rx, ry, boundary);
     svp_variant_data *v = NULL;
     if (st == SVP_OK) {
@@ -2141,8 +2198,8 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     }
     if (st == SVP_OK) {
         /* no more nodes than pixels along an axis */
-        v->gx = lowrank ? o.samples_x : o.grid_x;
-        v->gy = lowrank ? o.samples_y : o.grid_y;
+        v->gx = regions ? width : lowrank ? o.samples_x : o.grid_x;
+        v->gy = regions ? height : lowrank ? o.samples_y : o.grid_y;
         if (v->gx > width) v->gx = width;
         if (v->gy > height) v->gy = height;
         st = axis_hats(v->gx, width, &v->ix0, &v->fx);
@@ -2158,20 +2215,26 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
             for (size_t i = 0; i < n; i++) v->scale[i] = 1.0 - v->alpha[i];
     }
     if (st == SVP_OK)
-        st = !lowrank    ? build_tent(b, &o, support, rx, ry)
+        st = regions      ? build_regions(b, &o, support, rx, ry)
+             : !lowrank   ? build_tent(b, &o, support, rx, ry)
              : build == 1 ? build_lowrank(b, &o, support, rx, ry)
-                         : build_lowrank_gram(b, &o, support, rx, ry, build == 2);
+                          : build_lowrank_gram(b, &o, support, rx, ry, build == 2);
     if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
+    if (st == SVP_OK && regions) {
+        /* the per-pixel maps are in the weight tables now */
+        free(v->coef);
+        v->coef = NULL;
+    }
     if (st == SVP_OK && o.single_precision) st = drop_double(b);
     if (st != SVP_OK) {
         svp_blur_free(b);
         return st;
     }
     info.representation = o.representation;
-    info.grid_x = v->gx;
-    info.grid_y = v->gy;
-    info.rank = lowrank ? o.rank : 0;
+    info.grid_x = regions ? 0 : v->gx;
+    info.grid_y = regions ? 0 : v->gy;
+    info.rank = lowrank ? o.rank : regions ? v->n_terms : 0;
     info.build_seconds = omp_get_wtime() - t_build;
     info.memory_bytes = svp_blur_memory(b);
     b->info = info;
@@ -2184,7 +2247,7 @@ svp_status svp_blur_variant_info(const svp_blur *b, svp_variant_info *info)
     if (!b || !info) return svp_fail(SVP_ERR_INVALID, "svp_blur_variant_info: NULL argument");
     if (b->kind != SVP_BLUR_TENT && b->kind != SVP_BLUR_LOWRANK)
         return svp_fail(SVP_ERR_UNSUPPORTED,
-                        "the operator is not a tent or low-rank space-variant operator");
+                        "the operator is not a tent, low-rank or region space-variant operator");
     *info = b->info;
     return SVP_OK;
 }

@@ -326,10 +326,9 @@ svp_status svp_psf_field_new_regions(int width, int height, const int *labels, i
         }
         for (int l = 0; l < n_labels; l++) {
             size_t count = 0;
-            for (size_t i = 0; i < n; i++) count += onehot[i] = labels[i] == l;
-            if (!count) continue;
-            st = smooth_map(onehot, width, height, transition / TRANSITION_PER_SIGMA);
+            st = svp_psf_field_region_weight(f, l, onehot, &count);
             if (st != SVP_OK) goto cleanup;
+            if (!count) continue;
             const double *pl = f->region_p + (size_t)l * SVP_FIELD_NPARAM;
             for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
                 double *mq = f->pmap + (size_t)q * n;
@@ -442,6 +441,26 @@ static void clamp_params(double p[SVP_FIELD_NPARAM])
     }
     p[SVP_FIELD_BETA] = clamp(p[SVP_FIELD_BETA], BETA_MIN, 1e6);
     p[SVP_FIELD_HALO] = clamp(p[SVP_FIELD_HALO], 0.0, HALO_MAX);
+}
+
+svp_status svp_psf_field_region_weight(const svp_psf_field *f, int label, double *w,
+                                       size_t *count)
+{
+    const size_t n = (size_t)f->width * f->height;
+    size_t c = 0;
+    for (size_t i = 0; i < n; i++) c += (w[i] = f->labels[i] == label) != 0;
+    *count = c;
+    if (c && f->transition > 0)
+        return smooth_map(w, f->width, f->height, f->transition / TRANSITION_PER_SIGMA);
+    return SVP_OK;
+}
+
+void svp_psf_field_region_psf(const svp_psf_field *f, int label, svp_psf *out)
+{
+    double p[SVP_FIELD_NPARAM];
+    memcpy(p, f->region_p + (size_t)label * SVP_FIELD_NPARAM, sizeof p);
+    clamp_params(p);
+    svp_psf_from_params(&f->base, p, out);
 }
 
 svp_status svp_psf_field_params_at(const svp_psf_field *f, double x, double y,

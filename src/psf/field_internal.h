@@ -31,6 +31,15 @@ struct svp_psf_field {
 /* The field's common model / support / subsample. */
 const svp_psf *svp_psf_field_base(const svp_psf_field *field);
 
+/* Region fields: label's blend weight w_l at every pixel into w (width x height): its one-hot
+ * map, smoothed as the field blends parameters when the transition is > 0 (the weights of all
+ * labels are >= 0 and sum to 1); *count = the label's pixels (0: w is all zero). */
+svp_status svp_psf_field_region_weight(const svp_psf_field *field, int label, double *w,
+                                       size_t *count);
+/* Region fields: the PSF of label `label` itself, as svp_psf_field_at gives it at a pixel of
+ * that label in a sharp map (the same parameters, clamped, the same round trip). */
+void svp_psf_field_region_psf(const svp_psf_field *field, int label, svp_psf *out);
+
 /* Rows y0 .. y0 + rows − 1 of svp_psf_render's (2 rx + 1) x (2 ry + 1) kernel before its
  * normalisation (the same values), rows 2 rx + 1 apart in out; the PSF must be valid
  * (svp_psf_validate). Serial: callers render blocks of rows in parallel (model.c). */

@@ -412,8 +412,8 @@ awk 'BEGIN { for (y = 0; y < 32; y++) { l = ""; for (x = 0; x < 32; x++) l = l (
     printf '  - {label: 0, name: oxide, fwhm_um: 1.0, beta: 2.5}\n'
     printf '  - {label: 1, name: metal, fwhm_um: 2.0, beta: 1.3}\n'
 } >map_regions.yaml
-check_help forward --nodes --rank --operator-tol --max-memory
-check_help correct --nodes --rank --operator-tol --max-memory
+check_help forward --nodes --rank --regions --operator-tol --max-memory
+check_help correct --nodes --rank --regions --operator-tol --max-memory
 expect_ok map_fwd_plain forward --field Bz.txt --pl pl.txt --psf moffat.yaml --boundary mirror -o map_plain --format txt $FAST
 expect_ok map_fwd_uniform forward --field Bz.txt --pl pl.txt --psf map_uniform.yaml --boundary mirror -o map_uni --format txt $FAST
 check_close "PSF map of kind uniform = the plain PSF file (forward field)" map_plain/field.txt map_uni/field.txt 1e-12
@@ -447,6 +447,41 @@ if grep -q '"psf_map_kind": "regions"' map_r/summary.json && grep -q '"psf_rank"
     pass "regions map with a label image, low rank 4 on 6 x 6 samples: summary records it"
 else
     fail "regions map summary" "$(grep psf map_r/summary.json)"
+fi
+# --regions: one kernel per region (docs/model.md §9 "Region maps"), for forward and correct; on
+# a sharp map it is exact, and the automatic choice (--operator-tol 1e-3) picks it too (no tent
+# grid or low rank meets that budget on a sharp boundary): the same fields to round-off
+sed 's/transition_um: 0.5/transition_um: 0/' map_regions.yaml >map_regions_sharp.yaml
+expect_ok map_fwd_regions_forced forward --field Bz.txt --pl pl.txt --psf map_regions_sharp.yaml --regions \
+    --boundary mirror -o map_rf --format txt $FAST
+expect_ok map_fwd_regions_auto forward --field Bz.txt --pl pl.txt --psf map_regions_sharp.yaml --operator-tol 1e-3 \
+    --boundary mirror -o map_ra --format txt $FAST
+if grep -q '"psf_representation": "regions"' map_rf/summary.json && grep -q '"psf_region_kernels": 2' map_rf/summary.json &&
+    grep -q '"psf_representation_chosen_by": "option"' map_rf/summary.json &&
+    grep -q 'Operator: regions (2 region kernels)' out.map_fwd_regions_forced &&
+    grep -q '"psf_representation": "regions"' map_ra/summary.json &&
+    grep -q '"psf_representation_chosen_by": "operator-tol"' map_ra/summary.json &&
+    grep -q '"operator_tolerance_met": 1' map_ra/summary.json; then
+    pass "--regions: summary.json and the report record regions and 2 region kernels; --operator-tol 1e-3 picks it on a sharp map"
+else
+    fail "--regions summary" "$(grep -hE 'psf_rep|region|tolerance' map_rf/summary.json map_ra/summary.json) / $(cat out.map_fwd_regions_forced)"
+fi
+check_close "sharp region map: --regions = the automatic choice (forward field)" map_rf/field.txt map_ra/field.txt 1e-12
+expect_ok map_corr_regions correct --field map_rf/field.txt --pl map_rf/pl.txt --psf map_regions_sharp.yaml --regions \
+    --boundary mirror --method r --iterations 20 -o map_rc --format txt $FAST
+if grep -q '"psf_representation": "regions"' map_rc/summary.json && grep -q '"psf_region_kernels": 2' map_rc/summary.json &&
+    grep -q 'Operator: regions (2 region kernels)' out.map_corr_regions; then
+    pass "correct --regions: summary.json and the report record the region operator"
+else
+    fail "correct --regions" "$(grep -hE 'psf_rep|region' map_rc/summary.json) / $(cat out.map_corr_regions)"
+fi
+expect_bad map_regions_on_grid "kind regions|kind grid" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --regions \
+    -o map_rg --format txt $FAST
+run map_regions_nodes forward --field Bz.txt --pl pl.txt --psf map_regions.yaml --regions --nodes 4 -o map_rn --format txt
+if [ "$(cat rc.map_regions_nodes)" != 0 ] && grep -qF -- "--nodes cannot be combined with --regions" err.map_regions_nodes; then
+    pass "--regions with --nodes is refused"
+else
+    fail "--regions with --nodes" "exit $(cat rc.map_regions_nodes): $(cat err.map_regions_nodes)"
 fi
 # without --nodes / --rank the representation is chosen by --operator-tol: summary and report
 expect_ok map_fwd_auto forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --operator-tol 3e-2 -o map_auto --format txt $FAST

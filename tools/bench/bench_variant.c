@@ -21,7 +21,8 @@
  *                     [--rl-reps R] [--ref-x X.npy --ref-y Y.npy]
  *       The operators of a PSF-map file (square, its own size, zero boundary): first the
  *       invariant operator of the centre PSF, then per representation (auto:TOL = chosen by
- *       the error budget TOL, tN = tent N x N, rR or rRxS = low rank R on S x S samples) what
+ *       the error budget TOL, tN = tent N x N, rR or rRxS = low rank R on S x S samples,
+ *       regions = one kernel per region of a region map) what
  *       was built, its build time, best-of-R application / adjoint times and (K + 1) FFTs of
  *       its frame (as apply), memory, the estimated operator error and the error measured
  *       against the exact per-source operator at P probe sources (one application each, the
@@ -524,12 +525,15 @@ static double ref_error(svp_blur *b, const char *x_path, const char *y_path)
     return e;
 }
 
-/* One representation of `ops`: "auto:TOL", "tN" (tent N x N) or "rR" / "rRxS" (low rank R on
- * S x S samples, default 8). */
+/* One representation of `ops`: "auto:TOL", "tN" (tent N x N), "rR" / "rRxS" (low rank R on
+ * S x S samples, default 8) or "regions" (one kernel per region of a region map). */
 static int parse_repr(const char *tok, svp_variant_options *o, char *label, size_t size)
 {
     svp_variant_defaults(o);
-    if (!strncmp(tok, "auto:", 5)) {
+    if (!strcmp(tok, "regions")) {
+        o->representation = SVP_VARIANT_REGIONS;
+        snprintf(label, size, "regions");
+    } else if (!strncmp(tok, "auto:", 5)) {
         o->representation = SVP_VARIANT_AUTO;
         o->tolerance = atof(tok + 5);
         snprintf(label, size, "auto %s", tok + 5);
@@ -612,7 +616,9 @@ static int cmd_ops(int argc, char **argv)
         const double t_build = bench_now() - t0;
         svp_variant_info in;
         if (svp_blur_variant_info(b, &in) != SVP_OK) return fail("info");
-        const int K = in.representation == SVP_VARIANT_LOWRANK ? in.rank : in.grid_x * in.grid_y;
+        const int K = in.representation == SVP_VARIANT_LOWRANK || in.representation == SVP_VARIANT_REGIONS
+                          ? in.rank
+                          : in.grid_x * in.grid_y;
         if (!isfinite(in.estimated_error)) {
             svp_variant_options forced = o;
             if (o.representation == SVP_VARIANT_AUTO) { /* not reached: auto estimates */
@@ -629,7 +635,9 @@ static int cmd_ops(int argc, char **argv)
         const double rl_it = rl_reps > 0 ? rl_iteration(b, K, x, xa, rl_reps, &rl_bound) : NAN;
         const double rerr = ref_error(b, ref_x, ref_y);
         char chosen[64];
-        if (in.representation == SVP_VARIANT_LOWRANK)
+        if (in.representation == SVP_VARIANT_REGIONS)
+            snprintf(chosen, sizeof chosen, "regions (%d kernels)", in.rank);
+        else if (in.representation == SVP_VARIANT_LOWRANK)
             snprintf(chosen, sizeof chosen, "low rank %d (%dx%d)", in.rank, in.grid_x, in.grid_y);
         else
             snprintf(chosen, sizeof chosen, "tent %dx%d", in.grid_x, in.grid_y);

@@ -15,7 +15,8 @@ Part *correct* (section "Space-variant correction: what accuracy costs in time")
 1024², 2048² (--quick: 256² and 20 RL iterations; --corr-sizes to choose) a smooth polynomial
 Moffat map and metal / oxide region maps (tools/bench/variant_data.py), foreign data blurred by
 numpy models of the exact per-source operator, `svpsf correct --method r` with the centre PSF
-alone, the automatic choice at three tolerances, tent 8 x 8 and low rank 4 (time, peak memory,
+alone, the automatic choice at three tolerances, tent 8 x 8, low rank 4 and (region maps)
+`--regions` (time, peak memory,
 field error against the truth, the operator's build and apply times from summary.json), and
 `bench_variant ops` for the operators' errors against the exact operator at probe sources and
 their FFT bounds; then the issue's targets.
@@ -282,33 +283,42 @@ CORR_ROWS = [("centre PSF only", None), ("auto, default (1e-2)", []),
              ("auto, --operator-tol 1e-3", ["--operator-tol", "1e-3"]),
              ("auto, --operator-tol 1e-4", ["--operator-tol", "1e-4"]),
              ("tent 8x8 (--nodes 8x8)", ["--nodes", "8x8"]),
-             ("low rank 4 (--rank 4, 8x8 samples)", ["--nodes", "8x8", "--rank", "4"])]
+             ("low rank 4 (--rank 4, 8x8 samples)", ["--nodes", "8x8", "--rank", "4"]),
+             ("regions (--regions)", ["--regions"]),
+             ("tent 1x1 (--nodes 1x1)", ["--nodes", "1x1"])]
 # bench_variant ops representations matching the rows
 CORR_OPS = {"auto, default (1e-2)": "auto:1e-2", "auto, --operator-tol 1e-3": "auto:1e-3",
             "auto, --operator-tol 1e-4": "auto:1e-4", "tent 8x8 (--nodes 8x8)": "t8",
-            "low rank 4 (--rank 4, 8x8 samples)": "r4x8"}
+            "low rank 4 (--rank 4, 8x8 samples)": "r4x8", "regions (--regions)": "regions",
+            "tent 1x1 (--nodes 1x1)": "t1"}
+# region maps only: the region operator, and tent 1 x 1 (≈ the centre PSF), which the automatic
+# choice took on them before the region operator existed (issue 17)
+REGIONS_ROW = "regions (--regions)"
+TENT1_ROW = "tent 1x1 (--nodes 1x1)"
 
 
 def corr_plan(n, quick):
-    """(map, rows) pairs run at size n (what 15 minutes allow): at 512² every row on the smooth
-    map and the centre PSF, the default and 1e-3 on the region maps; at 1024² neither tent 8 x 8
-    (64 whole-field spectra, 2.2 GB, minutes an application) nor 1e-4, the sharp region map
-    with the centre PSF and the default; at 2048² the smooth map's centre PSF and default."""
-    labels = [r[0] for r in CORR_ROWS]
+    """(map, rows) pairs run at size n (what 15 minutes allow): at 512² every row but the
+    region-map ones on the smooth map, the centre PSF, the default and 1e-3 on the smooth map
+    over the oxide scene, and those plus tent 1 x 1 and `--regions` on the region maps; at 1024²
+    neither tent 8 x 8 (64 whole-field spectra, 2.2 GB, minutes an application) nor 1e-4, the
+    sharp region map with the centre PSF, the default, tent 1 x 1 and `--regions`; at 2048² the
+    smooth map's centre PSF and default."""
+    labels = [r[0] for r in CORR_ROWS if r[0] not in (REGIONS_ROW, TENT1_ROW)]
     oxide = ("smooth, oxide scene", labels[:2])
+    region_rows = [labels[0], labels[1], TENT1_ROW, REGIONS_ROW]
     if n >= 2048:
         return [("smooth", labels[:2])]
     if n >= 1024 and not quick:
-        return [("smooth", labels[:3] + labels[5:]), oxide,
-                ("regions, sharp", [labels[0], labels[1]])]
+        return [("smooth", labels[:3] + labels[5:]), oxide, ("regions, sharp", region_rows)]
     few = labels[:3]
     if quick:
-        return [("smooth", labels[:3] + labels[5:]), oxide,
-                ("regions, sharp", [labels[0], labels[1]])]
+        return [("smooth", labels[:3] + labels[5:]), oxide, ("regions, sharp", region_rows)]
     smooth = labels if n <= 512 else [l for l in labels if not l.startswith("tent")]
-    plan = [("smooth", smooth), ("smooth, oxide scene", few), ("regions, sharp", few)]
+    few_regions = few + [TENT1_ROW, REGIONS_ROW]
+    plan = [("smooth", smooth), ("smooth, oxide scene", few), ("regions, sharp", few_regions)]
     if n <= 512:
-        plan.append(("regions, blended", few))
+        plan.append(("regions, blended", few_regions))
     return plan
 
 
@@ -423,7 +433,7 @@ def corr_run(svpsf, d, label, extra, wisdom, threads, truth, masks, iterations=N
     st, tm = s.get("settings", {}), s.get("timings_s", {})
     res.update(plan_s=tm.get("plan"), transform_s=tm.get("transform"), total_s=tm.get("total"),
                margin=st.get("margin"), iterations=s.get("results", {}).get("rl_iterations"))
-    for k in ("psf_representation", "psf_rank", "psf_samples", "psf_nodes",
+    for k in ("psf_representation", "psf_rank", "psf_samples", "psf_nodes", "psf_region_kernels",
               "operator_estimated_error", "operator_build_s", "operator_estimate_s",
               "operator_apply_s", "operator_adjoint_s", "psf_operator_bytes",
               "operator_tolerance_met"):
@@ -434,6 +444,8 @@ def corr_run(svpsf, d, label, extra, wisdom, threads, truth, masks, iterations=N
 
 def ops_label(tok):
     """bench_variant ops' label of a representation token."""
+    if tok == "regions":
+        return "regions"
     if tok.startswith("auto:"):
         return "auto " + tok[5:]
     if tok.startswith("t"):
@@ -445,6 +457,8 @@ def ops_label(tok):
 
 
 def chosen_name(r):
+    if r.get("psf_representation") == "regions":
+        return f"regions ({r.get('psf_region_kernels')} kernels)"
     if r.get("psf_representation") == "low rank":
         return f"low rank {r.get('psf_rank')} ({r.get('psf_samples', '').replace(' ', '')})"
     if r.get("psf_representation") == "tent":
@@ -584,6 +598,8 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
                 elif r.get("psf_representation") == "tent":
                     gx, gy = (int(v) for v in r["psf_nodes"].split(" x "))
                     K = gx * gy
+                elif r.get("psf_representation") == "regions":
+                    K = r.get("psf_region_kernels")
                 else:
                     K = r.get("psf_rank")
                 build = None if inv else (r.get("operator_build_s") or 0) + \

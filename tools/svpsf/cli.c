@@ -827,24 +827,30 @@ int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_bo
                              "SVPSF_MAX_MEMORY='%s' is not a size in bytes (a number > 0, "
                              "optionally with k, M, G or T: powers of 1024)",
                              env);
-        if (vo.representation != SVP_VARIANT_AUTO &&
+        /* automatic and regions: sized by the library itself (peak_bytes vs max_memory) */
+        if (vo.representation != SVP_VARIANT_AUTO && vo.representation != SVP_VARIANT_REGIONS &&
             (st = check_variant_memory(psf, width, height)) != SVP_OK)
             return cli_fail(run, st, NULL);
         st = svp_blur_new_field(psf->field, width, height, boundary, &vo, out);
         svp_variant_info in;
         if (st == SVP_OK && svp_blur_variant_info(*out, &in) == SVP_OK) {
             const int lowrank = in.representation == SVP_VARIANT_LOWRANK;
+            const int regions = in.representation == SVP_VARIANT_REGIONS;
             char buf[64];
             if (!isfinite(in.estimated_error) &&
                 svp_variant_estimate(psf->field, width, height, boundary, &vo,
                                      &in.estimated_error) != SVP_OK)
                 in.estimated_error = NAN;
             cli_setting_int(run, "psf_operator_bytes", (long long)in.memory_bytes);
-            cli_setting_str(run, "psf_representation", lowrank ? "low rank" : "tent");
+            cli_setting_str(run, "psf_representation",
+                            regions ? "regions" : lowrank ? "low rank" : "tent");
             cli_setting_str(run, "psf_representation_chosen_by",
                             vo.representation == SVP_VARIANT_AUTO ? "operator-tol" : "option");
             snprintf(buf, sizeof buf, "%d x %d", in.grid_x, in.grid_y);
-            cli_setting_str(run, lowrank ? "psf_samples" : "psf_nodes", buf);
+            if (regions)
+                cli_setting_int(run, "psf_region_kernels", in.rank);
+            else
+                cli_setting_str(run, lowrank ? "psf_samples" : "psf_nodes", buf);
             if (lowrank) cli_setting_int(run, "psf_rank", in.rank);
             if (vo.representation == SVP_VARIANT_AUTO) {
                 cli_setting_num(run, "operator_tolerance", in.tolerance);
@@ -884,7 +890,10 @@ void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size)
         return;
     }
     char what[96], err[96] = "";
-    if (in.representation == SVP_VARIANT_LOWRANK)
+    if (in.representation == SVP_VARIANT_REGIONS)
+        snprintf(what, sizeof what, "regions (%d region kernel%s)", in.rank,
+                 in.rank == 1 ? "" : "s");
+    else if (in.representation == SVP_VARIANT_LOWRANK)
         snprintf(what, sizeof what, "low rank %d (%d x %d samples)", in.rank, in.grid_x,
                  in.grid_y);
     else
@@ -912,6 +921,17 @@ void cli_variant_defaults(svp_variant_options *variant)
 int cli_variant_option(const cli_run *run, svp_variant_options *variant, int option,
                        const char *arg)
 {
+    if (option == CLI_OPT_REGIONS) {
+        if (variant->representation == SVP_VARIANT_TENT ||
+            variant->representation == SVP_VARIANT_LOWRANK)
+            return cli_error(run, "--regions cannot be combined with --nodes or --rank");
+        variant->representation = SVP_VARIANT_REGIONS;
+        return 0;
+    }
+    if ((option == CLI_OPT_RANK || option == CLI_OPT_NODES) &&
+        variant->representation == SVP_VARIANT_REGIONS)
+        return cli_error(run, "%s cannot be combined with --regions",
+                         option == CLI_OPT_RANK ? "--rank" : "--nodes");
     if (option == CLI_OPT_RANK) {
         if (cli_parse_int(run, "--rank", arg, 1, 4096, &variant->rank)) return CLI_EXIT_USAGE;
         variant->representation = SVP_VARIANT_LOWRANK;
@@ -954,8 +974,11 @@ void cli_print_variant_help(FILE *out, double default_tol)
           "                        N alone = NxN; error falls as the node spacing squared)\n"
           "  --rank R              use the low-rank (eigen-PSF) operator with R terms instead,\n"
           "                        the PSF sampled on the --nodes grid (R <= N M)\n"
-          "  --operator-tol TOL    without --nodes / --rank: the cheapest tent grid or low rank\n"
-          "                        whose estimated relative operator error is <= TOL (default\n",
+          "  --regions             one kernel per region (label) of a map of kind regions:\n"
+          "                        exact for sharp region boundaries\n"
+          "  --operator-tol TOL    without --nodes / --rank / --regions: the cheapest tent\n"
+          "                        grid, low rank or (region maps) regions whose estimated\n"
+          "                        relative operator error is <= TOL (default\n",
           out);
     fprintf(out, "                        %g; docs/model.md section 9)\n", default_tol);
     fputs("  --max-memory BYTES    refuse an operator needing more (suffix k, M, G, T; default\n"
@@ -1029,6 +1052,10 @@ void cli_psf_describe(cli_run *run, const cli_psf *psf)
         if (v->representation == SVP_VARIANT_AUTO) {
             cli_setting_str(run, "psf_representation", "chosen by --operator-tol");
             return; /* the choice is recorded when the operator is built (cli_psf_blur) */
+        }
+        if (v->representation == SVP_VARIANT_REGIONS) {
+            cli_setting_str(run, "psf_representation", "regions");
+            return; /* the number of kernels is recorded when it is built (cli_psf_blur) */
         }
         cli_setting_str(run, "psf_representation", lowrank ? "low rank" : "tent");
         snprintf(buf, sizeof buf, "%d x %d", lowrank ? v->samples_x : v->grid_x,
@@ -1627,6 +1654,7 @@ int cli_maps_option(cli_run *run, cli_maps *maps, int option, const char *arg)
     case CLI_OPT_RANK:
     case CLI_OPT_OPERATOR_TOL:
     case CLI_OPT_MAX_MEMORY:
+    case CLI_OPT_REGIONS:
         maps->variant_given = 1;
         return cli_variant_option(run, &maps->variant, option, arg);
     default: return -1;
@@ -1651,7 +1679,7 @@ int cli_maps_open(cli_run *run, cli_maps *maps, cli_psf *psf)
     cli_stage_begin(run, "read");
     if ((code = cli_psf_load_map(run, psf_path, &maps->variant, psf))) return code;
     if (maps->variant_given && !psf->field)
-        cli_note(run, "--nodes / --rank ignored: %s is a single PSF, not a space-variant map",
+        cli_note(run, "--nodes / --rank / --regions ignored: %s is a single PSF, not a space-variant map",
                  psf_path);
     if ((code = cli_maps_read(run, maps))) return code;
     if (!maps->boundary_given && psf->has_boundary) maps->boundary = psf->boundary;

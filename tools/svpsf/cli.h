@@ -271,17 +271,19 @@ void cli_psf_describe(cli_run *run, const cli_psf *psf);
 /* PSF maps (forward, correct): --psf may also be a PSF-map file (svp_psf_field_read; a map of
  * kind uniform or a plain PSF file is the single-PSF case above). A command adds
  * CLI_VARIANT_LONGOPTS to its option table, calls cli_variant_defaults once, passes
- * CLI_OPT_NODES / CLI_OPT_RANK to cli_variant_option, loads with cli_psf_load_map and prints
+ * CLI_OPT_NODES / CLI_OPT_RANK / CLI_OPT_REGIONS to cli_variant_option, loads with cli_psf_load_map and prints
  * cli_print_variant_help in its --help. --nodes NxM: tent node grid (default 8x8; "N" = NxN);
- * --rank R: low rank with R eigen-PSFs sampled on the --nodes grid instead; neither: the
+ * --rank R: low rank with R eigen-PSFs sampled on the --nodes grid instead; --regions: one
+ * kernel per region of a map of kind regions (not with --nodes / --rank); none: the
  * representation chosen by --operator-tol TOL (default 1e-3); --max-memory BYTES (or the
  * environment's SVPSF_MAX_MEMORY) bounds the operator's memory. */
-enum { CLI_OPT_NODES = 1900, CLI_OPT_RANK, CLI_OPT_OPERATOR_TOL, CLI_OPT_MAX_MEMORY };
+enum { CLI_OPT_NODES = 1900, CLI_OPT_RANK, CLI_OPT_OPERATOR_TOL, CLI_OPT_MAX_MEMORY, CLI_OPT_REGIONS };
 /* clang-format off */
 #define CLI_VARIANT_LONGOPTS \
     {"nodes", required_argument, NULL, CLI_OPT_NODES}, {"rank", required_argument, NULL, CLI_OPT_RANK}, \
     {"operator-tol", required_argument, NULL, CLI_OPT_OPERATOR_TOL}, \
-    {"max-memory", required_argument, NULL, CLI_OPT_MAX_MEMORY}
+    {"max-memory", required_argument, NULL, CLI_OPT_MAX_MEMORY}, \
+    {"regions", no_argument, NULL, CLI_OPT_REGIONS}
 /* clang-format on */
 void cli_variant_defaults(svp_variant_options *variant);
 /* 0, or CLI_EXIT_USAGE after a message naming the option. */
