@@ -634,12 +634,18 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
         d = next((r for r in runs if r["label"] == "auto, default (1e-2)" and r.get("exit") == 0),
                  None)
         if d and n < 2048:
-            er = max(d["lit"] / base["lit"], d["dark"] / base["dark"])
+            # lit / dark: a scene may have no significant pixel of one kind at a size (NaN)
+            ratios = {k: d[k] / base[k] for k in ("lit", "dark")
+                      if d[k] == d[k] and base[k] == base[k] and base[k] > 0}
+            er = max(ratios.values()) if ratios else float("nan")
+            which = "the worse of lit and dark" if len(ratios) == 2 else \
+                (f"{next(iter(ratios))} only: no significant pixel of the other kind"
+                 if ratios else "no significant pixels")
             out.append(f"- {n}², {mname} map, default `correct --method r` ≤ {CORR_TARGET_TIME:g}× "
                        f"the centre PSF's time: {d['ratio']:.2f}× ({d['seconds']:.1f} s vs "
                        f"{base['seconds']:.1f} s) — {verdict(d['ratio'] <= CORR_TARGET_TIME)}; "
-                       f"field error ≤ {CORR_TARGET_ERR:g}× the centre PSF's: {er:.2f}× (the "
-                       f"worse of lit and dark) — {verdict(er <= CORR_TARGET_ERR)}")
+                       f"field error ≤ {CORR_TARGET_ERR:g}× the centre PSF's: {er:.2f}× ({which}) "
+                       f"— {verdict(er <= CORR_TARGET_ERR)}")
         elif d:
             out.append(f"- {n}², smooth map, default within {CORR_TARGET_MEM_GB:g} GB: peak "
                        f"{d['rss_mb'] / 1024:.1f} GB — "
