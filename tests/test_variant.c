@@ -683,6 +683,58 @@ static void test_second_order_convergence(void **state)
  *   plain  rank 1 0.236, 2 0.047, 4 0.022, 8 0.0022; max raw flux error 0.60, 0.22, 0.078,
  *          0.0064
  *   mean   rank 1 0.107, 2 0.041, 4 0.0124, 8 0.0025; max raw flux error <= 1.3e-15. */
+/* The default low-rank build (svp_blur_new_field_build 0) against another (`build`) on one
+ * field: operator and adjoint within op_bound of the peak, and the same eigen-PSFs (term
+ * spectra) and coefficients up to sign within 1e-8; the worst of each into *worst_op /
+ * *worst_term. */
+static void compare_builds(const svp_psf_field *f, int w, int h, svp_boundary mode, int samples,
+                           int mean, int build, uint64_t seed, double op_bound, const char *what,
+                           int c, double *worst_op, double *worst_term)
+{
+    svp_variant_options o = lowrank_options(samples, 5, 1);
+    o.lowrank_mean = mean;
+    svp_blur *g = NULL, *d = NULL;
+    ASSERT_OK(svp_blur_new_field_build(f, w, h, mode, &o, 0, &g));
+    ASSERT_OK(svp_blur_new_field_build(f, w, h, mode, &o, build, &d));
+    svp_image *x = test_random_image(w, h, seed), *yg = test_image(w, h);
+    svp_image *yd = test_image(w, h);
+    ASSERT_OK(svp_blur_apply(g, x, yg));
+    ASSERT_OK(svp_blur_apply(d, x, yd));
+    double e = test_max_abs_diff(yg, yd) / test_max_abs(yd);
+    ASSERT_OK(svp_blur_adjoint(g, x, yg));
+    ASSERT_OK(svp_blur_adjoint(d, x, yd));
+    e = fmax(e, test_max_abs_diff(yg, yd) / test_max_abs(yd));
+    if (!(e <= op_bound)) fail_msg("case %d: %s operator %g", c, what, e);
+    *worst_op = fmax(*worst_op, e);
+    const size_t ns = (size_t)g->frame.ny * g->frame.ncx;
+    for (int r = 0; r < o.rank; r++) {
+        const double *gre, *dre, *gco, *dco;
+        const fftw_complex *gc, *dc;
+        assert_int_equal(svp_variant_term(g, r, &gre, &gc, &gco), o.rank);
+        assert_int_equal(svp_variant_term(d, r, &dre, &dc, &dco), o.rank);
+        assert_non_null(gre); /* point-symmetric kernels: real spectra */
+        assert_non_null(dre);
+        double dot = 0, nd = 0;
+        for (size_t i = 0; i < ns; i++) dot += gre[i] * dre[i], nd += dre[i] * dre[i];
+        const double sign = dot < 0 ? -1 : 1;
+        double diff = 0;
+        for (size_t i = 0; i < ns; i++) diff += pow(gre[i] - sign * dre[i], 2);
+        double te = sqrt(diff / nd), cmax = 0, cdiff = 0;
+        for (int j = 0; j < samples * samples; j++) {
+            cmax = fmax(cmax, fabs(dco[j]));
+            cdiff = fmax(cdiff, fabs(gco[j] - sign * dco[j]));
+        }
+        te = fmax(te, cdiff / cmax);
+        if (!(te <= 1e-8)) fail_msg("case %d term %d: %s eigen-PSF %g", c, r, what, te);
+        *worst_term = fmax(*worst_term, te);
+    }
+    svp_blur_free(g);
+    svp_blur_free(d);
+    svp_image_free(x);
+    svp_image_free(yg);
+    svp_image_free(yd);
+}
+
 /* The Gram build of the low-rank operator (the default: eigen-decomposition of the S x S Gram
  * matrix of the sampled kernels, streamed) against the dense SVD of the whole kernel matrix:
  * the same eigen-PSFs and coefficients up to sign (compared as term spectra), the same operator
@@ -699,48 +751,8 @@ static void test_lowrank_gram(void **state)
         const int samples = c % 2 ? 5 : 4, mean = c != 1, halo = c >= 2;
         const svp_boundary mode = modes[c % 3];
         svp_psf_field *f = poly_field(w, h, support, 1.5, halo);
-        svp_variant_options o = lowrank_options(samples, 5, 1);
-        o.lowrank_mean = mean;
-        svp_blur *g = NULL, *d = NULL;
-        ASSERT_OK(svp_blur_new_field_build(f, w, h, mode, &o, 0, &g));
-        ASSERT_OK(svp_blur_new_field_build(f, w, h, mode, &o, 1, &d));
-        svp_image *x = test_random_image(w, h, 31 + c), *yg = test_image(w, h);
-        svp_image *yd = test_image(w, h);
-        ASSERT_OK(svp_blur_apply(g, x, yg));
-        ASSERT_OK(svp_blur_apply(d, x, yd));
-        double e = test_max_abs_diff(yg, yd) / test_max_abs(yd);
-        ASSERT_OK(svp_blur_adjoint(g, x, yg));
-        ASSERT_OK(svp_blur_adjoint(d, x, yd));
-        e = fmax(e, test_max_abs_diff(yg, yd) / test_max_abs(yd));
-        if (!(e <= 1e-11)) fail_msg("case %d: Gram vs dense operator %g", c, e);
-        worst_op = fmax(worst_op, e);
-        const size_t ns = (size_t)g->frame.ny * g->frame.ncx;
-        for (int r = 0; r < o.rank; r++) {
-            const double *gre, *dre, *gco, *dco;
-            const fftw_complex *gc, *dc;
-            assert_int_equal(svp_variant_term(g, r, &gre, &gc, &gco), o.rank);
-            assert_int_equal(svp_variant_term(d, r, &dre, &dc, &dco), o.rank);
-            assert_non_null(gre); /* point-symmetric kernels: real spectra */
-            assert_non_null(dre);
-            double dot = 0, nd = 0;
-            for (size_t i = 0; i < ns; i++) dot += gre[i] * dre[i], nd += dre[i] * dre[i];
-            const double sign = dot < 0 ? -1 : 1;
-            double diff = 0;
-            for (size_t i = 0; i < ns; i++) diff += pow(gre[i] - sign * dre[i], 2);
-            double te = sqrt(diff / nd), cmax = 0, cdiff = 0;
-            for (int j = 0; j < samples * samples; j++) {
-                cmax = fmax(cmax, fabs(dco[j]));
-                cdiff = fmax(cdiff, fabs(gco[j] - sign * dco[j]));
-            }
-            te = fmax(te, cdiff / cmax);
-            if (!(te <= 1e-8)) fail_msg("case %d term %d: Gram vs dense eigen-PSF %g", c, r, te);
-            worst_term = fmax(worst_term, te);
-        }
-        svp_blur_free(g);
-        svp_blur_free(d);
-        svp_image_free(x);
-        svp_image_free(yg);
-        svp_image_free(yd);
+        compare_builds(f, w, h, mode, samples, mean, 1, 31 + c, 1e-11, "Gram vs dense", c,
+                       &worst_op, &worst_term);
         svp_psf_field_free(f);
     }
     print_message("low rank, Gram vs dense SVD build: operator %.1e, eigen-PSFs / coefficients "
@@ -778,48 +790,8 @@ static void test_lowrank_fold(void **state)
             co[SVP_FIELD_BETA * nt + 2] = 1.0;
             ASSERT_OK(svp_psf_field_new_poly(&base, w, h, 2, co, &f));
         }
-        svp_variant_options o = lowrank_options(samples, 5, 1);
-        o.lowrank_mean = mean;
-        svp_blur *g = NULL, *d = NULL;
-        ASSERT_OK(svp_blur_new_field_build(f, w, h, mode, &o, 0, &g));
-        ASSERT_OK(svp_blur_new_field_build(f, w, h, mode, &o, 2, &d));
-        svp_image *x = test_random_image(w, h, 41 + c), *yg = test_image(w, h);
-        svp_image *yd = test_image(w, h);
-        ASSERT_OK(svp_blur_apply(g, x, yg));
-        ASSERT_OK(svp_blur_apply(d, x, yd));
-        double e = test_max_abs_diff(yg, yd) / test_max_abs(yd);
-        ASSERT_OK(svp_blur_adjoint(g, x, yg));
-        ASSERT_OK(svp_blur_adjoint(d, x, yd));
-        e = fmax(e, test_max_abs_diff(yg, yd) / test_max_abs(yd));
-        if (!(e <= 1e-12)) fail_msg("case %d: fold vs half operator %g", c, e);
-        worst_op = fmax(worst_op, e);
-        const size_t ns = (size_t)g->frame.ny * g->frame.ncx;
-        for (int r = 0; r < o.rank; r++) {
-            const double *gre, *dre, *gco, *dco;
-            const fftw_complex *gc, *dc;
-            assert_int_equal(svp_variant_term(g, r, &gre, &gc, &gco), o.rank);
-            assert_int_equal(svp_variant_term(d, r, &dre, &dc, &dco), o.rank);
-            assert_non_null(gre);
-            assert_non_null(dre);
-            double dot = 0, nd = 0;
-            for (size_t i = 0; i < ns; i++) dot += gre[i] * dre[i], nd += dre[i] * dre[i];
-            const double sign = dot < 0 ? -1 : 1;
-            double diff = 0;
-            for (size_t i = 0; i < ns; i++) diff += pow(gre[i] - sign * dre[i], 2);
-            double te = sqrt(diff / nd), cmax = 0, cdiff = 0;
-            for (int j = 0; j < samples * samples; j++) {
-                cmax = fmax(cmax, fabs(dco[j]));
-                cdiff = fmax(cdiff, fabs(gco[j] - sign * dco[j]));
-            }
-            te = fmax(te, cdiff / cmax);
-            if (!(te <= 1e-8)) fail_msg("case %d term %d: fold vs half eigen-PSF %g", c, r, te);
-            worst_term = fmax(worst_term, te);
-        }
-        svp_blur_free(g);
-        svp_blur_free(d);
-        svp_image_free(x);
-        svp_image_free(yg);
-        svp_image_free(yd);
+        compare_builds(f, w, h, mode, samples, mean, 2, 41 + c, 1e-12, "fold vs half", c,
+                       &worst_op, &worst_term);
         svp_psf_field_free(f);
     }
     print_message("low rank, fold vs half Gram build: operator %.1e, eigen-PSFs / coefficients "
