@@ -742,10 +742,6 @@ typedef struct svp_variant_options {
     int single_precision;  /* 1: the terms' spectra kept in float only (half the memory) and H,
                               Hᵀ transformed in float (fftw3f) on the same frames, always; the
                               build itself is double (docs/model.md §9). Default 0 */
-    int auto_no_regions;   /* SVP_VARIANT_AUTO: 1 = never choose SVP_VARIANT_REGIONS (what
-                              svpsf correct does: with RL at its iteration counts the exact
-                              region operator gave larger field errors than the centre PSF,
-                              docs/model.md §9 "Region maps"); default 0 (forward, the API) */
 } svp_variant_options;
 
 /* What svp_blur_new_field built (svp_blur_variant_info). estimated_error: the relative

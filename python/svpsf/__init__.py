@@ -328,15 +328,14 @@ class Blur:
     svp_blur_new_field (a PSFMap: tent nodes, or rank R eigen-PSFs on the nodes grid, as
     `--nodes`/`--rank`; regions=True: one kernel per region of a map of kind regions, as
     `--regions`; none: the representation chosen by operator_tol, default 1e-3, as
-    `--operator-tol` (auto_regions=False leaves the region operator out of that choice, as
-    `svpsf correct` and correct() do; docs/model.md §9); applications: the H + Hᵀ pairs its cost model counts, default 50;
+    `--operator-tol`; applications: the H + Hᵀ pairs its cost model counts, default 50;
     forward() and correct() pass what they run, as the program does). psf may also be a file
     name (read_psf); boundary None = the file's,
     else 'zero'. Building it plans the FFTs once: reuse it for many images of one size. One
     Blur must not be used from two threads at once."""
 
     def __init__(self, psf, shape, boundary=None, nodes=None, rank=None, operator_tol=None,
-                 applications=None, regions=False, auto_regions=True):
+                 applications=None, regions=False):
         if isinstance(psf, (str, bytes, os.PathLike)):
             f = read_psf(psf)
             psf = f.psf
@@ -366,7 +365,6 @@ class Blur:
                 v.rank = int(rank)
             if regions:
                 v.representation = lib.SVP_VARIANT_REGIONS
-            v.auto_no_regions = 0 if auto_regions else 1
             _check(lib.svp_blur_new_field(psf._ptr, w, h, _boundary(boundary), v, out))
         else:
             imgs = _Images()
@@ -430,15 +428,14 @@ class Blur:
 
 
 def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None,
-              regions=False, auto_regions=True):
+              regions=False):
     if isinstance(psf, Blur):
         if psf.shape != tuple(shape):
             raise ValueError("the Blur is for images of shape %s, the inputs are %s"
                              % (psf.shape, tuple(shape)))
         return psf
     return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank,
-                operator_tol=operator_tol, applications=applications, regions=regions,
-                auto_regions=auto_regions)
+                operator_tol=operator_tol, applications=applications, regions=regions)
 
 
 def _correct_applications(opt, n_fields):
@@ -585,7 +582,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     h, w = pl.shape
     blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank,
                      applications=_correct_applications(opt, len(fl)),
-                     operator_tol=operator_tol, regions=regions, auto_regions=False)
+                     operator_tol=operator_tol, regions=regions)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
     val, val_i = imgs.out(pl.shape)

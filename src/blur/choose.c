@@ -490,7 +490,7 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
             if (nc < MAX_CAND) cands[nc] = cand, cerr[nc] = err[R - 1], ccost[nc++] = cost;
         }
     }
-    if (st == SVP_OK && !o->auto_no_regions && svp_psf_field_get_kind(field) == SVP_FIELD_REGIONS) {
+    if (st == SVP_OK && svp_psf_field_get_kind(field) == SVP_FIELD_REGIONS) {
         /* one term per used label, built like a tent node */
         const int K = svp_region_count(field);
         const double bytes = (double)svp_region_peak_bytes(width, height, boundary, K, rx, ry);

@@ -475,18 +475,6 @@ if grep -q '"psf_representation": "regions"' map_rc/summary.json && grep -q '"ps
 else
     fail "correct --regions" "$(grep -hE 'psf_rep|region' map_rc/summary.json) / $(cat out.map_corr_regions)"
 fi
-# correct's automatic choice leaves the region operator out (docs/model.md §9 "Region maps"):
-# on the same sharp map, where forward's picks it, correct's picks another and says the
-# budget is not met
-expect_ok map_corr_regions_auto correct --field map_rf/field.txt --pl map_rf/pl.txt --psf map_regions_sharp.yaml \
-    --operator-tol 1e-3 --boundary mirror --method r --iterations 20 -o map_rca --format txt $FAST
-if grep -q '"psf_representation"' map_rca/summary.json &&
-    ! grep -q '"psf_representation": "regions"' map_rca/summary.json &&
-    grep -q '"operator_tolerance_met": 0' map_rca/summary.json; then
-    pass "correct's automatic choice on a sharp region map: $(grep -o '"psf_representation": "[a-z ]*"' map_rca/summary.json), budget not met"
-else
-    fail "correct automatic choice without regions" "$(grep -hE 'psf_rep|tolerance' map_rca/summary.json)"
-fi
 expect_bad map_regions_on_grid "kind regions|kind grid" forward --field Bz.txt --pl pl.txt --psf map_grid.yaml --regions \
     -o map_rg --format txt $FAST
 run map_regions_nodes forward --field Bz.txt --pl pl.txt --psf map_regions.yaml --regions --nodes 4 -o map_rn --format txt

@@ -257,9 +257,6 @@ static int parse_correct_args(cli_run *run, struct correct_args *a)
     memset(a, 0, sizeof *a);
     cli_maps_init(&a->maps);
     a->maps.variant.tolerance = CORRECT_OPERATOR_TOL;
-    /* the automatic choice leaves the region operator out (docs/model.md §9, "Region maps");
-     * --regions still forces it */
-    a->maps.variant.auto_no_regions = 1;
     svp_correct_defaults(&a->opt);
     cli_deconv_init(&a->deconv, &a->opt.deconv);
     while (method_values[a->method] != a->opt.method) a->method++; /* the library's default */
