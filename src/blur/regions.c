@@ -8,7 +8,6 @@
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
-#include <omp.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -95,17 +94,10 @@ size_t svp_region_peak_bytes(int width, int height, svp_boundary boundary, int K
 {
     int nx = 0, ny = 0;
     if (svp_frame_size(width, height, rx, ry, boundary, &nx, &ny) != SVP_OK) return SIZE_MAX;
-    const size_t spectrum = (size_t)ny * (nx / 2 + 1) * sizeof(fftw_complex);
-    const size_t frame = (size_t)nx * ny * sizeof(double);
     const size_t image = (size_t)width * height * sizeof(double);
-    const size_t kernel = (size_t)(2 * rx + 1) * (2 * ry + 1) * sizeof(double);
-    const int threads = omp_get_max_threads();
-    return (size_t)K * spectrum             /* the terms' spectra, complex until made real */
-           + 3 * spectrum                   /* work_c, accumulator, second spectrum */
-           + 2 * frame                      /* adjoint accumulator, the FFT's real frame */
-           + 2 * kernel                     /* the stand-in and a term's kernel */
-           + 4 * image                      /* work image, scale, halo map, smoothing */
-           + (size_t)K * image              /* the weight maps while the tables are made */
-           + (size_t)K * height * nx * sizeof(double) /* the weight tables on the frame */
-           + (size_t)threads * 3 * SVP_FFT_BLOCK * (size_t)nx * sizeof(double);
+    /* a tent of K nodes (K spectra, the same work buffers, one kernel while a spectrum is
+     * made), plus: the smoothing buffer, the K weight maps while the tables are made, and the
+     * weight tables on the frame's columns (K x height x nx; the tent counts K x nx) */
+    return svp_variant_peak_bytes(width, height, boundary, 0, K, 0, rx, ry) + image +
+           (size_t)K * image + (size_t)K * (height - 1) * nx * sizeof(double);
 }
