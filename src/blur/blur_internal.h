@@ -227,6 +227,12 @@ int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_com
 svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
                               svp_boundary boundary, const svp_variant_options *options,
                               svp_variant_options *chosen, svp_variant_info *info);
+/* The chooser's cost model of the representation options force (tent, low rank, regions), in
+ * real FFTs of the operator's frame: *build once, *pair per H + Hᵀ pair (half: the low-rank
+ * build on the point symmetry only, svp_blur_new_field_build's build 2). */
+svp_status svp_variant_cost(const svp_psf_field *field, int width, int height,
+                            svp_boundary boundary, const svp_variant_options *options, int half,
+                            double *build, double *pair);
 /* options->max_memory, or the physical memory when 0. */
 double svp_variant_memory_limit(const svp_variant_options *options);
 /* Bytes a tent (lowrank 0: K nodes) or low-rank (1: K terms from S samples) operator holds at
