@@ -329,8 +329,9 @@ done:
  * every pixel whose weights are one-hot (its kernel is its label's), so the probes are spread
  * over the M "mixed" pixels (some weight in (0, 1)) only, in raster order, and
  * ε² = (M / N) mean_probes ‖k_s − Σ_k w_k(s) e_k‖² / (mean ‖k_p‖² over the usual probes).
- * A sharp map has M = 0: ε = 0. */
-static svp_status est_regions(const est_ctx *c, double *err)
+ * A sharp map has M = 0: ε = 0. keep (may be NULL): the terms made, handed over on success
+ * (the build uses them: the weight maps are smoothed once). */
+static svp_status est_regions(const est_ctx *c, svp_region_terms *keep, double *err)
 {
     svp_region_terms t;
     SVP_CHECK(svp_region_terms_make(c->field, &t));
@@ -374,7 +375,10 @@ static svp_status est_regions(const est_ctx *c, double *err)
         }
         if (st == SVP_OK) *err = sqrt((double)M / n * (e2 / P) / (c->norm2 / c->probes));
     }
-    svp_region_terms_free(&t);
+    if (keep && st == SVP_OK)
+        *keep = t;
+    else
+        svp_region_terms_free(&t);
     free(mixed);
     free(ek);
     free(px);
@@ -516,8 +520,10 @@ svp_status svp_variant_cost(const svp_psf_field *field, int width, int height,
 
 svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
                               svp_boundary boundary, const svp_variant_options *o,
-                              svp_variant_options *chosen, svp_variant_info *info)
+                              svp_variant_options *chosen, svp_variant_info *info,
+                              svp_region_terms *terms)
 {
+    if (terms) memset(terms, 0, sizeof *terms);
     const double t0 = omp_get_wtime();
     *chosen = *o;
     memset(info, 0, sizeof *info);
@@ -602,7 +608,7 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
         const int K = svp_region_count(field);
         const double bytes = (double)svp_region_peak_bytes(width, height, boundary, K, rx, ry);
         double err;
-        if (bytes <= limit) st = est_regions(&c, &err);
+        if (bytes <= limit) st = est_regions(&c, terms, &err);
         if (bytes <= limit && st == SVP_OK) {
             n++;
             double build, pair;
@@ -620,13 +626,15 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
     }
     est_release(&c);
     if (st != SVP_OK) return st;
-    if (n == 0)
+    if (n == 0) {
+        if (terms) svp_region_terms_free(terms);
         return svp_fail(SVP_ERR_INVALID,
                         "space-variant operator for %d x %d: even a 1 x 1 tent needs about %.0f "
                         "MB, more than the memory limit of %.0f MB",
                         width, height,
                         svp_variant_peak_bytes(width, height, boundary, 0, 1, 0, rx, ry) / 1e6,
                         limit / 1e6);
+    }
     double emin = INFINITY, fcost = INFINITY;
     for (int i = 0; i < nc; i++) emin = fmin(emin, cerr[i]);
     for (int i = 0; i < nc; i++)
@@ -664,7 +672,7 @@ svp_status svp_variant_estimate(const svp_psf_field *field, int width, int heigh
     SVP_CHECK(est_init(&c, field, width, height, o.support));
     svp_status st;
     if (o.representation == SVP_VARIANT_REGIONS) {
-        st = est_regions(&c, error);
+        st = est_regions(&c, NULL, error);
     } else if (o.representation == SVP_VARIANT_TENT) {
         st = est_tent(&c, o.grid_x < width ? o.grid_x : width,
                       o.grid_y < height ? o.grid_y : height, error);
