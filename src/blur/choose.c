@@ -405,7 +405,7 @@ double svp_variant_memory_limit(const svp_variant_options *o)
 }
 
 /* The geometry a candidate's cost depends on: the frame's and the kernel's pixels, the image's,
- * the radii, and one FFT's flop count 5 N log2 N. */
+ * the radii, and one FFT's cost in pixel work, f = 5 N log2 N (1 + N / (N + 2^19)) (cost_of). */
 typedef struct cost_geom {
     double frame_px, kernel_px, image_px, fft;
     int rx, ry;
