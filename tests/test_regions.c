@@ -199,8 +199,9 @@ static void test_blended_estimate(void **state)
 }
 
 /* (e) SVP_VARIANT_AUTO on a sharp map at the default budget 1e-3 picks regions (no tent grid or
- * low rank reaches it on a sharp boundary) and meets it against the exact operator; with
- * max_memory below the region operator's need it is not a candidate. */
+ * low rank reaches it on a sharp boundary) and meets it against the exact operator, on a blended
+ * one the same operator as forced (the chooser's weight maps reused); with max_memory below the
+ * region operator's need it is not a candidate. */
 static void test_auto_picks_regions(void **state)
 {
     (void)state;
@@ -231,6 +232,25 @@ static void test_auto_picks_regions(void **state)
     ASSERT_OK(svp_blur_variant_info(b, &info));
     assert_int_equal(info.representation, SVP_VARIANT_REGIONS);
     assert_true(info.tolerance_met && info.estimated_error > 0 && info.estimated_error <= 0.05);
+    /* the build takes the chooser's smoothed weight maps over (smoothed once): the operator is
+     * the forced one's bit for bit, H and Hᵀ */
+    {
+        svp_variant_options fo = regions_options();
+        svp_blur *bf = NULL;
+        ASSERT_OK(svp_blur_new_field(fb, w, h, SVP_BOUNDARY_MIRROR, &fo, &bf));
+        svp_image *x = test_random_image(w, h, 31), *ya = test_image(w, h), *yf = test_image(w, h);
+        const size_t bytes = (size_t)w * h * sizeof(double);
+        ASSERT_OK(svp_blur_apply(b, x, ya));
+        ASSERT_OK(svp_blur_apply(bf, x, yf));
+        assert_memory_equal(ya->data, yf->data, bytes);
+        ASSERT_OK(svp_blur_adjoint(b, x, ya));
+        ASSERT_OK(svp_blur_adjoint(bf, x, yf));
+        assert_memory_equal(ya->data, yf->data, bytes);
+        svp_image_free(x);
+        svp_image_free(ya);
+        svp_image_free(yf);
+        svp_blur_free(bf);
+    }
     svp_blur_free(b);
     svp_psf_field_free(fb);
     /* forced, over the memory limit: refused before the build, naming the representation */

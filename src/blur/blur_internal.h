@@ -221,12 +221,12 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
  * number of terms (0 when r is out of range or the operator is not tent / low rank). */
 int svp_variant_term(const svp_blur *b, int r, const double **re, const fftw_complex **c,
                      const double **coef);
-/* Representation choice by error budget (choose.c, docs/model.md §9): *chosen = options with
- * the cheapest tent / low rank whose estimated error is within options->tolerance (else the
- * most accurate), info filled with the estimate. */
-svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
-                              svp_boundary boundary, const svp_variant_options *options,
-                              svp_variant_options *chosen, svp_variant_info *info);
+/* The chooser's cost model of the representation options force (tent, low rank, regions), in
+ * real FFTs of the operator's frame: *build once, *pair per H + Hᵀ pair (half: the low-rank
+ * build on the point symmetry only, svp_blur_new_field_build's build 2). */
+svp_status svp_variant_cost(const svp_psf_field *field, int width, int height,
+                            svp_boundary boundary, const svp_variant_options *options, int half,
+                            double *build, double *pair);
 /* options->max_memory, or the physical memory when 0. */
 double svp_variant_memory_limit(const svp_variant_options *options);
 /* Bytes a tent (lowrank 0: K nodes) or low-rank (1: K terms from S samples) operator holds at
@@ -251,6 +251,15 @@ svp_status svp_region_check(const svp_psf_field *field);
 int svp_region_count(const svp_psf_field *field);
 svp_status svp_region_terms_make(const svp_psf_field *field, svp_region_terms *t);
 void svp_region_terms_free(svp_region_terms *t);
+/* Representation choice by error budget (choose.c, docs/model.md §9): *chosen = options with
+ * the cheapest tent / low rank / regions whose estimated error is within options->tolerance
+ * (else the cheapest near the most accurate), info filled with the estimate. terms (may be
+ * NULL): on a region map, the region terms the estimate made (K = 0 when none), the caller's
+ * to free or to hand to the build (their weight maps smoothed once). */
+svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
+                              svp_boundary boundary, const svp_variant_options *options,
+                              svp_variant_options *chosen, svp_variant_info *info,
+                              svp_region_terms *terms);
 /* Bytes the region operator of K terms holds at its peak while built (an upper estimate, as
  * svp_variant_peak_bytes). */
 size_t svp_region_peak_bytes(int width, int height, svp_boundary boundary, int K, int rx, int ry);

@@ -14,10 +14,10 @@
  * The cost model counts FFTs of the frame: an application and its adjoint are 2 (K + 1) for K
  * terms, times the H + Hᵀ pairs the caller expects (options->applications: svpsf correct
  * passes the count its method runs, e.g. 2 x 75 for --method r on one field), plus the build
- * (a node or sample kernel about one FFT, a low-rank sample 1.5, the Gram matrix
- * S² m / (2 N log2 N)). The cheapest candidate within the budget and within the memory limit
- * wins; when none meets the budget, the cheapest whose error is within 1.25 x the smallest
- * estimated. */
+ * (cost_of: per-pixel work of renders and Gram products in FFT-equivalents, the low-rank one
+ * over the fold of the kernels the Gram build renders). The cheapest candidate within the
+ * budget and within the memory limit wins; when none meets the budget, the cheapest whose error
+ * is within 1.25 x the smallest estimated. */
 #include "blur_internal.h"
 #include "../psf/field_internal.h"
 
@@ -329,8 +329,9 @@ done:
  * every pixel whose weights are one-hot (its kernel is its label's), so the probes are spread
  * over the M "mixed" pixels (some weight in (0, 1)) only, in raster order, and
  * ε² = (M / N) mean_probes ‖k_s − Σ_k w_k(s) e_k‖² / (mean ‖k_p‖² over the usual probes).
- * A sharp map has M = 0: ε = 0. */
-static svp_status est_regions(const est_ctx *c, double *err)
+ * A sharp map has M = 0: ε = 0. keep (may be NULL): the terms made, handed over on success
+ * (the build uses them: the weight maps are smoothed once). */
+static svp_status est_regions(const est_ctx *c, svp_region_terms *keep, double *err)
 {
     svp_region_terms t;
     SVP_CHECK(svp_region_terms_make(c->field, &t));
@@ -374,7 +375,10 @@ static svp_status est_regions(const est_ctx *c, double *err)
         }
         if (st == SVP_OK) *err = sqrt((double)M / n * (e2 / P) / (c->norm2 / c->probes));
     }
-    svp_region_terms_free(&t);
+    if (keep && st == SVP_OK)
+        *keep = t;
+    else
+        svp_region_terms_free(&t);
     free(mixed);
     free(ek);
     free(px);
@@ -400,30 +404,134 @@ double svp_variant_memory_limit(const svp_variant_options *o)
     return pages > 0 && page > 0 ? (double)pages * page : INFINITY;
 }
 
-/* FFT-equivalents of a candidate: K terms, S samples (low rank; 0 for tent). */
-static double cost_of(int K, int S, double applications, double kernel_px, double frame_px)
+/* The geometry a candidate's cost depends on: the frame's and the kernel's pixels, the image's,
+ * the radii, and one FFT's cost in pixel work, f = 5 N log2 N (1 + N / (N + 2^19)) (cost_of). */
+typedef struct cost_geom {
+    double frame_px, kernel_px, image_px, fft;
+    int rx, ry;
+} cost_geom;
+
+static svp_status cost_geometry(const svp_psf_field *field, int width, int height,
+                                svp_boundary boundary, double support, cost_geom *g)
 {
-    const double fft = 5.0 * frame_px * log2(frame_px > 2 ? frame_px : 2);
-    double build = 2.0 * K;
-    /* measured at 512² whole-field (16 x 16 samples): a sample's two half renders cost about
-     * 1.5 FFTs of the frame, the Gram matrix's multiply-adds about 4 x an FFT's flops each */
-    if (S > 0) build = K + 1.5 * S * kernel_px / frame_px + 2.5 * (double)S * S * kernel_px / fft;
-    return applications * 2.0 * (K + 1) + build;
+    int nx, ny;
+    radii(field, width, height, support, &g->rx, &g->ry);
+    SVP_CHECK(svp_frame_size(width, height, g->rx, g->ry, boundary, &nx, &ny));
+    g->frame_px = (double)nx * ny;
+    g->kernel_px = (2.0 * g->rx + 1) * (2.0 * g->ry + 1);
+    g->image_px = (double)width * height;
+    g->fft = 5.0 * g->frame_px * log2(g->frame_px > 2 ? g->frame_px : 2) *
+             (1 + g->frame_px / (g->frame_px + 524288.0));
+    return SVP_OK;
+}
+
+/* The pixels of the fold the Gram build renders of sx x sy samples (variant.c, gram_layout):
+ * the lowest svp_psf_symmetry of the samples' PSFs (half: point symmetry only). */
+static double fold_pixels(const svp_psf_field *field, int width, int height, int sx, int sy,
+                          const cost_geom *g, int half)
+{
+    int sym = half ? 0 : 2;
+    for (int j = 0; j < sx * sy && sym > 0; j++) {
+        svp_psf p;
+        if (svp_psf_field_at(field, node_at(j % sx, sx, width), node_at(j / sx, sy, height), &p) !=
+            SVP_OK)
+            sym = 0;
+        else if (svp_psf_symmetry(&p) < sym)
+            sym = svp_psf_symmetry(&p);
+    }
+    if (sym == 2 && g->rx != g->ry) sym = 1;
+    const double hr = g->ry + 1.0, kw = 2.0 * g->rx + 1;
+    if (sym == 0) return hr * kw;
+    if (sym == 1) return hr * (g->rx + 1.0);
+    /* rows t = 0 .. ry of rx + 1 − t pixels */
+    return hr * (g->rx + 1.0) - 0.5 * g->ry * hr;
+}
+
+/* FFT-equivalents of a candidate (one real FFT of the frame = 1): *build once, *pair per
+ * H + Hᵀ pair. repr: tent (K nodes), low rank (K terms from S samples, `fold` pixels of each
+ * sample rendered by the Gram build) or regions (K kernels; blend: the weight maps' smoothing
+ * window, 0 for a sharp map). Calibrated on CPU time, 1 thread (tools/bench/bench_variant
+ * cost: whole-field Moffat maps, zero boundary, 128², 256², 512², low rank also at 1024²;
+ * docs/model.md §9 gives the figures). A pair measured 0.8–1.1 x 2 (K + 1) FFTs for tent, low
+ * rank and regions alike. A build's work is per pixel (renders, Gram products, placing on the
+ * frame), while the FFT's cost per pixel grows with log2 N and, measured, about twice as fast
+ * once the frame leaves the cache (1.8, 2.6, 5.3, 5.0 ns a pixel for frames of 256², 512²,
+ * 1024², 2048²): pixel work w costs w / f FFTs, f = 5 N log2 N (1 + N / (N + 2^19)), N the
+ * frame's pixels. Terms: C_F N / f fixed (frame, tables); per tent node or region kernel
+ * 1 + C_K m / f (its whole kernel of m pixels rendered, one FFT); per low-rank term
+ * 1 + C_U m / f (unfolded, placed, one FFT); per low-rank build (C_R S + C_G S²) n / f over the
+ * n fold pixels (two renders of each sample's fold, the Gram matrix's products); per blended
+ * region map C_S K P w / f (the separable smoothing of K weight maps of P pixels, window w).
+ * Fitted by least squares in the ratio: model / measured build 0.56–1.6 over 48 builds, fold
+ * and half (point symmetry only) alike; the octant fold's at 128² and 256² 0.61–0.76. The
+ * model before (1.5 FFTs a sample, the Gram's S² m at 2.5 / f over the whole kernel, 2 FFTs a
+ * node) overestimated the fold build 5–14 x and underestimated the tent's 2.5–4 x. */
+enum { C_F = 341, C_K = 609, C_U = 708, C_R = 227, C_S = 256 };
+static const double C_G = 2.27;
+
+static void cost_of(svp_variant_repr repr, int K, int S, double fold, double blend,
+                    const cost_geom *g, double *build, double *pair)
+{
+    *pair = 2.0 * (K + 1);
+    double b = C_F * g->frame_px;
+    if (repr == SVP_VARIANT_LOWRANK)
+        b += K * C_U * g->kernel_px + (C_R * S + C_G * (double)S * S) * fold;
+    else
+        b += K * C_K * g->kernel_px + C_S * K * g->image_px * blend;
+    *build = K + b / g->fft;
+}
+
+/* The smoothing window of a region map's weight maps (psf/field.c: σ = transition / 2.5631,
+ * radius ⌈4σ⌉); 0 for a sharp map. */
+static double blend_window(const svp_psf_field *field)
+{
+    if (svp_psf_field_get_kind(field) != SVP_FIELD_REGIONS || !(field->transition > 0)) return 0;
+    int r = (int)ceil(4.0 * field->transition / 2.5631);
+    if (r < 1) r = 1;
+    return 2.0 * r + 1;
+}
+
+svp_status svp_variant_cost(const svp_psf_field *field, int width, int height,
+                            svp_boundary boundary, const svp_variant_options *o, int half,
+                            double *build, double *pair)
+{
+    if (!field || !o || !build || !pair)
+        return svp_fail(SVP_ERR_INVALID, "svp_variant_cost: NULL argument");
+    cost_geom g;
+    SVP_CHECK(cost_geometry(field, width, height, boundary, o->support, &g));
+    if (o->representation == SVP_VARIANT_REGIONS) {
+        SVP_CHECK(svp_region_check(field));
+        cost_of(SVP_VARIANT_REGIONS, svp_region_count(field), 0, 0, blend_window(field), &g, build,
+                pair);
+    } else if (o->representation == SVP_VARIANT_TENT) {
+        const int gx = o->grid_x < width ? o->grid_x : width;
+        const int gy = o->grid_y < height ? o->grid_y : height;
+        cost_of(SVP_VARIANT_TENT, gx * gy, 0, 0, 0, &g, build, pair);
+    } else if (o->representation == SVP_VARIANT_LOWRANK) {
+        const int sx = o->samples_x < width ? o->samples_x : width;
+        const int sy = o->samples_y < height ? o->samples_y : height;
+        cost_of(SVP_VARIANT_LOWRANK, o->rank, sx * sy,
+                fold_pixels(field, width, height, sx, sy, &g, half), 0, &g, build, pair);
+    } else
+        return svp_fail(SVP_ERR_INVALID,
+                        "svp_variant_cost: the options must force tent, low rank or regions");
+    return SVP_OK;
 }
 
 svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
                               svp_boundary boundary, const svp_variant_options *o,
-                              svp_variant_options *chosen, svp_variant_info *info)
+                              svp_variant_options *chosen, svp_variant_info *info,
+                              svp_region_terms *terms)
 {
+    if (terms) memset(terms, 0, sizeof *terms);
     const double t0 = omp_get_wtime();
     *chosen = *o;
     memset(info, 0, sizeof *info);
     if (!(o->tolerance > 0) || !isfinite(o->tolerance))
         return svp_fail(SVP_ERR_INVALID, "operator tolerance must be > 0, got %g", o->tolerance);
-    int rx, ry, nx, ny;
-    radii(field, width, height, o->support, &rx, &ry);
-    SVP_CHECK(svp_frame_size(width, height, rx, ry, boundary, &nx, &ny));
-    const double frame_px = (double)nx * ny, kernel_px = (2.0 * rx + 1) * (2.0 * ry + 1);
+    cost_geom geo;
+    SVP_CHECK(cost_geometry(field, width, height, boundary, o->support, &geo));
+    const int rx = geo.rx, ry = geo.ry;
     const double limit = svp_variant_memory_limit(o);
     const double apps = o->applications > 0 ? o->applications : 50;
     est_ctx c;
@@ -450,7 +558,9 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
         st = est_tent(&c, gx, gy, &err);
         if (st != SVP_OK) break;
         n++;
-        const double cost = cost_of(gx * gy, 0, apps, kernel_px, frame_px);
+        double build, pair;
+        cost_of(SVP_VARIANT_TENT, gx * gy, 0, 0, 0, &geo, &build, &pair);
+        const double cost = build + apps * pair;
         svp_variant_options cand = *o;
         cand.representation = SVP_VARIANT_TENT;
         cand.grid_x = gx;
@@ -470,12 +580,15 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
         double err[RANK_MAX];
         st = est_lowrank(&c, sx, sy, nr, err);
         if (st != SVP_OK) break;
+        const double fold = fold_pixels(field, width, height, sx, sy, &geo, 0);
         for (int R = 1; R <= nr && R <= S; R++) {
             const double bytes =
                 (double)svp_variant_peak_bytes(width, height, boundary, 1, R, S, rx, ry);
             if (bytes > limit) break;
             n++;
-            const double cost = cost_of(R, S, apps, kernel_px, frame_px);
+            double build, pair;
+            cost_of(SVP_VARIANT_LOWRANK, R, S, fold, 0, &geo, &build, &pair);
+            const double cost = build + apps * pair;
             svp_variant_options cand = *o;
             cand.representation = SVP_VARIANT_LOWRANK;
             cand.samples_x = sx;
@@ -495,10 +608,12 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
         const int K = svp_region_count(field);
         const double bytes = (double)svp_region_peak_bytes(width, height, boundary, K, rx, ry);
         double err;
-        if (bytes <= limit) st = est_regions(&c, &err);
+        if (bytes <= limit) st = est_regions(&c, terms, &err);
         if (bytes <= limit && st == SVP_OK) {
             n++;
-            const double cost = cost_of(K, 0, apps, kernel_px, frame_px);
+            double build, pair;
+            cost_of(SVP_VARIANT_REGIONS, K, 0, 0, blend_window(field), &geo, &build, &pair);
+            const double cost = build + apps * pair;
             svp_variant_options cand = *o;
             cand.representation = SVP_VARIANT_REGIONS;
             if (err <= o->tolerance && cost < best_cost) {
@@ -511,13 +626,15 @@ svp_status svp_variant_choose(const svp_psf_field *field, int width, int height,
     }
     est_release(&c);
     if (st != SVP_OK) return st;
-    if (n == 0)
+    if (n == 0) {
+        if (terms) svp_region_terms_free(terms);
         return svp_fail(SVP_ERR_INVALID,
                         "space-variant operator for %d x %d: even a 1 x 1 tent needs about %.0f "
                         "MB, more than the memory limit of %.0f MB",
                         width, height,
                         svp_variant_peak_bytes(width, height, boundary, 0, 1, 0, rx, ry) / 1e6,
                         limit / 1e6);
+    }
     double emin = INFINITY, fcost = INFINITY;
     for (int i = 0; i < nc; i++) emin = fmin(emin, cerr[i]);
     for (int i = 0; i < nc; i++)
@@ -555,7 +672,7 @@ svp_status svp_variant_estimate(const svp_psf_field *field, int width, int heigh
     SVP_CHECK(est_init(&c, field, width, height, o.support));
     svp_status st;
     if (o.representation == SVP_VARIANT_REGIONS) {
-        st = est_regions(&c, error);
+        st = est_regions(&c, NULL, error);
     } else if (o.representation == SVP_VARIANT_TENT) {
         st = est_tent(&c, o.grid_x < width ? o.grid_x : width,
                       o.grid_y < height ? o.grid_y : height, error);

@@ -1525,13 +1525,15 @@ cleanup:
 /* Regions (regions.c): term k is used label k's normalised kernel with its weight map as the
  * coefficients at "samples" on every pixel (gx = width, gy = height: the bilinear weights
  * between samples are then 1 and 0, exact), so setup_fill makes the per-pixel tables. The
- * weights sum to 1 and every kernel to 1: unit flux per source, no renormalisation. */
+ * weights sum to 1 and every kernel to 1: unit flux per source, no renormalisation. given: the
+ * terms the automatic choice made (K = 0: none), taken over. */
 static svp_status build_regions(svp_blur *b, const svp_variant_options *o, double support,
-                                int rx, int ry)
+                                int rx, int ry, svp_region_terms *given)
 {
     svp_variant_data *v = b->variant;
-    svp_region_terms t;
-    SVP_CHECK(svp_region_terms_make(b->field, &t));
+    svp_region_terms t = *given; /* the chooser's (its weight maps smoothed once), or made here */
+    memset(given, 0, sizeof *given);
+    if (t.K == 0) SVP_CHECK(svp_region_terms_make(b->field, &t));
     svp_status st = SVP_OK;
     v->otf = calloc((size_t)t.K, sizeof *v->otf);
     if (!v->otf) st = svp_fail(SVP_ERR_NOMEM, "out of memory for %d region spectra", t.K);
@@ -2141,6 +2143,29 @@ static svp_status check_peak(const svp_psf_field *field, int width, int height,
                     what, width, height, 2 * krx + 1, 2 * kry + 1, need / 1e6, limit / 1e6);
 }
 
+/* The representation to build: the automatic choice when asked (*terms: the region terms its
+ * estimate made, kept only when it chooses regions; K = 0 otherwise), then the region check and
+ * the memory check; *terms freed on failure. */
+static svp_status settle_representation(const svp_psf_field *field, int width, int height,
+                                        svp_boundary boundary, svp_variant_options *o,
+                                        svp_variant_info *info, svp_region_terms *terms)
+{
+    memset(terms, 0, sizeof *terms);
+    if (o->representation == SVP_VARIANT_AUTO) {
+        svp_variant_options chosen;
+        SVP_CHECK(svp_variant_choose(field, width, height, boundary, o, &chosen, info, terms));
+        *o = chosen;
+    }
+    svp_status st = SVP_OK;
+    if (o->representation == SVP_VARIANT_REGIONS)
+        st = svp_region_check(field);
+    else
+        svp_region_terms_free(terms);
+    if (st == SVP_OK) st = check_peak(field, width, height, boundary, o, info);
+    if (st != SVP_OK) svp_region_terms_free(terms);
+    return st;
+}
+
 svp_status svp_blur_new_field(const svp_psf_field *field, int width, int height,
                               svp_boundary boundary, const svp_variant_options *options,
                               svp_blur **out)
@@ -2168,24 +2193,23 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     svp_variant_info info;
     memset(&info, 0, sizeof info);
     info.estimated_error = NAN;
-    if (o.representation == SVP_VARIANT_AUTO) {
-        svp_variant_options chosen;
-        SVP_CHECK(svp_variant_choose(field, width, height, boundary, &o, &chosen, &info));
-        o = chosen;
-    }
+    svp_region_terms terms; /* the automatic choice's region terms, for build_regions */
+    SVP_CHECK(settle_representation(field, width, height, boundary, &o, &info, &terms));
     const int lowrank = o.representation == SVP_VARIANT_LOWRANK;
     const int regions = o.representation == SVP_VARIANT_REGIONS;
-    if (regions) SVP_CHECK(svp_region_check(field));
-    SVP_CHECK(check_peak(field, width, height, boundary, &o, &info));
     const double t_build = omp_get_wtime();
     svp_blur *b = NULL;
     int rx, ry;
     double support;
-    SVP_CHECK(svp_variant_begin(field, width, height, boundary, o.support,
-                                lowrank || regions ? SVP_BLUR_LOWRANK : SVP_BLUR_TENT, &b, &rx,
-                                &ry, &support));
+    svp_status st = svp_variant_begin(field, width, height, boundary, o.support,
+                                      lowrank || regions ? SVP_BLUR_LOWRANK : SVP_BLUR_TENT, &b,
+                                      &rx, &ry, &support);
+    if (st != SVP_OK) {
+        svp_region_terms_free(&terms);
+        return st;
+    }
     if (regions) b->ops = &svp_regions_ops;
-    svp_status st = svp_frame_init(&b->frame, width, height, rx, ry, boundary);
+    st = svp_frame_init(&b->frame, width, height, rx, ry, boundary);
     svp_variant_data *v = NULL;
     if (st == SVP_OK) {
         v = b->variant = calloc(1, sizeof *v);
@@ -2215,10 +2239,11 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
             for (size_t i = 0; i < n; i++) v->scale[i] = 1.0 - v->alpha[i];
     }
     if (st == SVP_OK)
-        st = regions      ? build_regions(b, &o, support, rx, ry)
+        st = regions      ? build_regions(b, &o, support, rx, ry, &terms)
              : !lowrank   ? build_tent(b, &o, support, rx, ry)
              : build == 1 ? build_lowrank(b, &o, support, rx, ry)
                           : build_lowrank_gram(b, &o, support, rx, ry, build == 2);
+    svp_region_terms_free(&terms); /* unless build_regions took them over */
     if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
     if (st == SVP_OK && regions) {

@@ -31,6 +31,17 @@
  *       of X), and the time of one Richardson-Lucy iteration (best of R runs of 6 iterations
  *       minus best of R runs of 2, over 4; R = --rl-reps, default --reps, 0: not timed) beside
  *       its bound, 2 (K + 1) real FFTs of the frame.
+ *   bench_variant cost --size N [--reps R] [--what tent,lowrank,regions] [--samples 8,16]
+ *       The cost model's calibration (src/blur/choose.c, cost_of) in CPU time of this process
+ *       (CLOCK_PROCESS_CPUTIME_ID, 1 thread, FFTW plans made by an untimed first build): per
+ *       representation of a whole-field map at N² (zero boundary) the build and one H + Hᵀ
+ *       pair (best of R), each also in units of one real FFT of the operator's frame (the
+ *       best of R forward + inverse pairs on the same plan, / 2, timed between them), beside
+ *       the chooser's model of both (svp_variant_cost). Maps: the smooth circular Moffat map of
+ *       tools/bench/variant_data.py (FWHM 8 ± 2.5 px, β 1.6 ∓ 0.4: octant fold) for tent
+ *       1², 2², 4² and low rank 3 / 8 on 8² / 16² samples built with the octant fold and with
+ *       the point symmetry only (build 2); two-region maps (metal strip 10.5 px β 1.25, oxide
+ *       7 px β 1.9; sharp and blended over 10 px) for the region operator.
  *   bench_variant params --map MAP.yaml --out STEM
  *       The map's FWHM (px) and beta at every pixel: STEM.fwhm.npy, STEM.beta.npy.
  *   bench_variant plot OUT.png [=TITLE] @LABEL t e t e ... [@LABEL t e ...]
@@ -663,6 +674,171 @@ static int cmd_ops(int argc, char **argv)
     return 0;
 }
 
+/* CPU seconds of this process (all threads). */
+static double cpu_now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+/* The smooth map of tools/bench/variant_data.py in pixels (0.1 µm), whole field. */
+static svp_psf_field *smooth_map(int n)
+{
+    svp_psf base;
+    svp_psf_defaults(&base);
+    base.model = SVP_PSF_MOFFAT;
+    base.support = 0;
+    const int nt = svp_psf_field_poly_terms(2);
+    double c[SVP_FIELD_NPARAM * 6] = {0};
+    c[SVP_FIELD_FWHM * nt + 0] = 8.0;
+    c[SVP_FIELD_FWHM * nt + 1] = 2.0;
+    c[SVP_FIELD_FWHM * nt + 5] = 0.5;
+    c[SVP_FIELD_BETA * nt + 0] = 1.6;
+    c[SVP_FIELD_BETA * nt + 1] = -0.3;
+    c[SVP_FIELD_BETA * nt + 2] = -0.1;
+    svp_psf_field *f = NULL;
+    if (svp_psf_field_new_poly(&base, n, n, 2, c, &f) != SVP_OK) return NULL;
+    return f;
+}
+
+/* A metal strip (a tenth of the width, at the middle) in oxide, whole field. */
+static svp_psf_field *strip_map(int n, double blend)
+{
+    int *labels = malloc((size_t)n * n * sizeof(int));
+    if (!labels) return NULL;
+    for (int y = 0; y < n; y++)
+        for (int x = 0; x < n; x++)
+            labels[(size_t)y * n + x] = x >= n / 2 - n / 20 && x < n / 2 + n / 20;
+    svp_psf rp[2];
+    for (int k = 0; k < 2; k++) {
+        svp_psf_defaults(&rp[k]);
+        rp[k].model = SVP_PSF_MOFFAT;
+        rp[k].support = 0;
+    }
+    rp[0].fwhm = 7.0;
+    rp[0].beta = 1.9;
+    rp[1].fwhm = 10.5;
+    rp[1].beta = 1.25;
+    svp_psf_field *f = NULL;
+    svp_status st = svp_psf_field_new_regions(n, n, labels, 2, rp, blend, &f);
+    free(labels);
+    return st == SVP_OK ? f : NULL;
+}
+
+/* One calibration row of `cost`: the build (its second run: the first made the plans) and the
+ * best of `reps` H + Hᵀ pairs, in CPU seconds and in FFTs of the frame. */
+static int cost_row(const svp_psf_field *f, int n, const char *map, const svp_variant_options *o,
+                    int build, int reps, const svp_image *x, svp_image *y)
+{
+    svp_blur *b = NULL;
+    if (svp_blur_new_field_build(f, n, n, SVP_BOUNDARY_ZERO, o, build, &b) != SVP_OK)
+        return fail("cost: build");
+    svp_blur_free(b);
+    b = NULL;
+    double t0 = cpu_now();
+    if (svp_blur_new_field_build(f, n, n, SVP_BOUNDARY_ZERO, o, build, &b) != SVP_OK)
+        return fail("cost: build");
+    const double t_build = cpu_now() - t0;
+    const svp_frame *fr = &b->frame;
+    double *r = svp_alloc((size_t)fr->ny * fr->nx * sizeof(double));
+    fftw_complex *c = svp_alloc((size_t)fr->ny * fr->ncx * sizeof(fftw_complex));
+    if (!r || !c) return fail("cost: buffers");
+    double best_pair = INFINITY, best_fft = INFINITY;
+    for (int rep = -1; rep < reps; rep++) {
+        for (size_t i = 0; i < (size_t)fr->ny * fr->nx; i++) r[i] = (double)(i % 7);
+        t0 = cpu_now();
+        svp_fft_forward(fr->plan, r, c);
+        svp_fft_inverse_unscaled(fr->plan, c, r);
+        const double t1 = cpu_now();
+        if (svp_blur_apply(b, x, y) != SVP_OK || svp_blur_adjoint(b, x, y) != SVP_OK)
+            return fail("cost: apply");
+        const double t2 = cpu_now();
+        if (rep < 0) continue;
+        best_fft = fmin(best_fft, 0.5 * (t1 - t0));
+        best_pair = fmin(best_pair, t2 - t1);
+    }
+    svp_free(r);
+    svp_free(c);
+    svp_variant_info in;
+    if (svp_blur_variant_info(b, &in) != SVP_OK) return fail("cost: info");
+    const int regions = in.representation == SVP_VARIANT_REGIONS;
+    const int lowrank = in.representation == SVP_VARIANT_LOWRANK;
+    const int K = lowrank || regions ? in.rank : in.grid_x * in.grid_y;
+    const int S = lowrank ? in.grid_x * in.grid_y : 0;
+    double m_build = NAN, m_apply = NAN;
+    svp_variant_cost(f, n, n, SVP_BOUNDARY_ZERO, o, build == 2, &m_build, &m_apply);
+    printf("{\"kind\": \"cost\", \"map\": \"%s\", \"size\": %d, \"frame\": [%d, %d], "
+           "\"representation\": \"%s\", \"K\": %d, \"S\": %d, \"fold\": \"%s\", "
+           "\"fft_cpu_s\": %.6g, \"build_cpu_s\": %.6g, \"pair_cpu_s\": %.6g, "
+           "\"build_ffts\": %.4g, \"pair_ffts\": %.4g, \"model_build_ffts\": %s, "
+           "\"model_pair_ffts\": %s}\n",
+           map, n, fr->nx, fr->ny, regions ? "regions" : lowrank ? "lowrank" : "tent", K, S,
+           !lowrank ? "-" : build == 2 ? "half" : "fold", best_fft, t_build, best_pair,
+           t_build / best_fft, best_pair / best_fft, jnum(m_build), jnum(m_apply));
+    fflush(stdout);
+    svp_blur_free(b);
+    return 0;
+}
+
+/* bench_variant cost: the cost model's calibration, see the head of this file. */
+static int cmd_cost(int argc, char **argv)
+{
+    const int n = (int)arg_num(argc, argv, "--size", 256);
+    const int reps = (int)arg_num(argc, argv, "--reps", 3);
+    const char *what = arg_str(argc, argv, "--what", "tent,lowrank,regions");
+    const char *samples = arg_str(argc, argv, "--samples", "8,16");
+    svp_set_threads(1);
+    svp_image *x = random_image(n, 1), *y = NULL;
+    if (!x || svp_image_new(n, n, &y) != SVP_OK) return fail("images");
+    svp_psf_field *f = smooth_map(n);
+    if (!f) return fail("smooth map");
+    int rc = 0;
+    if (strstr(what, "tent")) {
+        const int grids[] = {1, 2, 4};
+        for (int i = 0; i < 3 && !rc; i++) {
+            svp_variant_options o;
+            svp_variant_defaults(&o);
+            o.representation = SVP_VARIANT_TENT;
+            o.grid_x = o.grid_y = grids[i];
+            rc = cost_row(f, n, "smooth", &o, 0, reps, x, y);
+        }
+    }
+    if (strstr(what, "lowrank")) {
+        const int ranks[] = {3, 8};
+        for (const char *p = samples; p && *p && !rc;
+             p = strchr(p, ',') ? strchr(p, ',') + 1 : NULL) {
+            const int s = atoi(p);
+            if (s < 1) continue;
+            for (int i = 0; i < 2 && !rc; i++)
+                for (int build = 0; build <= 2 && !rc; build += 2) {
+                    svp_variant_options o;
+                    svp_variant_defaults(&o);
+                    o.representation = SVP_VARIANT_LOWRANK;
+                    o.samples_x = o.samples_y = s;
+                    o.rank = ranks[i];
+                    o.lowrank_mean = 1;
+                    rc = cost_row(f, n, "smooth", &o, build, reps, x, y);
+                }
+        }
+    }
+    svp_psf_field_free(f);
+    if (strstr(what, "regions"))
+        for (int k = 0; k < 2 && !rc; k++) {
+            svp_psf_field *g = strip_map(n, k ? 10.0 : 0.0);
+            if (!g) return fail("region map");
+            svp_variant_options o;
+            svp_variant_defaults(&o);
+            o.representation = SVP_VARIANT_REGIONS;
+            rc = cost_row(g, n, k ? "regions, blended 10 px" : "regions, sharp", &o, 0, reps, x,
+                          y);
+            svp_psf_field_free(g);
+        }
+    svp_image_free(x);
+    svp_image_free(y);
+    return rc;
+}
+
 /* bench_variant params: the map's FWHM (px) and beta at every pixel, as two .npy images. */
 static int cmd_params(int argc, char **argv)
 {
@@ -738,7 +914,7 @@ static int cmd_plot(int argc, char **argv)
 int main(int argc, char **argv)
 {
     if (argc < 2) {
-        fprintf(stderr, "usage: bench_variant apply|inverse|ops|params|plot [options] (see the source)\n");
+        fprintf(stderr, "usage: bench_variant apply|inverse|ops|cost|params|plot [options] (see the source)\n");
         return 1;
     }
     svp_set_fft_effort(SVP_FFT_MEASURE);
@@ -749,6 +925,8 @@ int main(int argc, char **argv)
         rc = cmd_inverse(argc, argv);
     else if (!strcmp(argv[1], "ops"))
         rc = cmd_ops(argc, argv);
+    else if (!strcmp(argv[1], "cost"))
+        rc = cmd_cost(argc, argv);
     else if (!strcmp(argv[1], "params"))
         rc = cmd_params(argc, argv);
     else if (!strcmp(argv[1], "plot"))
