@@ -627,8 +627,8 @@ svp_status svp_blur_ready(svp_blur *b)
         b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
         b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
         if (!b->work_r || !b->work_c)
-            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the %d x %d blur buffers",
-                          b->frame.nx, b->frame.ny);
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the %d x %d blur buffers", b->frame.nx,
+                          b->frame.ny);
     }
     if (st == SVP_OK && b->single) st = svp_blur_set_single(b, 1);
     if (st != SVP_OK) drop_frame(b);
@@ -729,7 +729,8 @@ static size_t invariant_memory(const svp_blur *b)
     const size_t kernel = (size_t)b->kernel->width * b->kernel->height * sizeof(double);
     const svp_frame *f = &b->frame;
     if (!f->plan) return kernel; /* no frame made yet (svp_blur_ready) */
-    size_t single = 0; /* the float frame, spectrum and OTF, once used */
+    /* the float frame, spectrum and OTF, once used */
+    size_t single = 0;
     if (b->rows_f)
         single = (size_t)f->ny * f->nx * sizeof(float) +
                  2 * (size_t)f->ny * f->ncx * sizeof(fftwf_complex);
