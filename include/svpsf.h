@@ -278,7 +278,8 @@ SVP_API double svp_blur_halo(const svp_blur *blur);
  * work buffers: one svp_blur must not be applied from two threads at once. */
 SVP_API svp_status svp_blur_apply(svp_blur *blur, const svp_image *x, svp_image *y);
 SVP_API svp_status svp_blur_adjoint(svp_blur *blur, const svp_image *y, svp_image *x);
-/* Bytes held by the operator (OTFs and work buffers). */
+/* Bytes held by the operator (OTFs and work buffers; a space-invariant operator makes its frame
+ * on first use, and holds only its kernel until then). */
 SVP_API size_t svp_blur_memory(const svp_blur *blur);
 /* H and Hᵀ of this operator in single precision (single 1: float FFTs, fftw3f, on the same
  * frames; the float spectra are made on first use and kept, counted by svp_blur_memory) or

@@ -135,7 +135,12 @@ struct svp_blur {
     int kcx, kcy;         /* its centre */
     int has_model;
     svp_psf psf;          /* when built from a model */
+    /* Invariant operators make their frame (plans, OTF, work buffers) on first use
+     * (svp_blur_ready): the full grid's, or with view_margin > 0 the view's (svp_blur_set_view);
+     * frame.plan is NULL until then. frames_built counts the frames made (tests). */
     svp_frame frame;
+    int view_margin;
+    int frames_built;
     double *work_r;       /* ny * nx */
     fftw_complex *work_c; /* ny * ncx */
     /* Invariant zero-boundary operators whose frame has more rows than the image: transforms
@@ -159,11 +164,13 @@ struct svp_blur {
     float *work_rf;
     fftwf_complex *work_cf;
     fftwf_complex *otf_f;
-    /* svp_blur_set_view: while a view's frame is in `frame`, the full frame and its pruned
-     * plan wait here (full.plan NULL otherwise) */
-    svp_frame full;
-    const svp_fft_pruned *full_pruned;
 };
+
+/* Invariant operators: makes the frame in use (the full grid's, or the view's after
+ * svp_blur_set_view) with its OTF, plans, work buffers and, when single precision is on, the
+ * float state, if not made yet; other kinds are always ready. Every user of b->frame,
+ * b->work_r / work_c or svp_blur_spectrum_in / _out on an invariant operator calls it first. */
+svp_status svp_blur_ready(svp_blur *b);
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
  * (adjoint_side 0) or Cᵀ (1) — the same plain copy with zero padding in zero mode — with the
@@ -190,7 +197,9 @@ void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side
  * Hᵀ y exact on the whole grid for y zero outside the view: offsets that join no grid pixel to
  * the view are dropped and only the view is kept free of wrap-around, a frame of
  * good(2 (w − m) − 1) instead of good(2 w − 1) for a whole-grid kernel — and margin 0 returns
- * to the full frame (kept meanwhile). The single-precision state follows the frame. *applied:
+ * to the full frame. Only the frame in use is held: the one left is freed, and the one put in
+ * use is made on first use (svp_blur_ready), so an operator used only on a view never makes
+ * the full frame. The single-precision state follows the frame. *applied:
  * 1 when a view's frame is in use, 0 when none is (margin 0; other kinds or boundaries; a
  * view frame no smaller than the full one). Only H x on the view and Hᵀ of data on the view
  * may be used meanwhile (Richardson–Lucy with the margin missing). */

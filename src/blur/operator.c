@@ -316,6 +316,14 @@ void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int
 
 /* ---- the operator ------------------------------------------------------------------------ */
 
+/* The kernel's radii: the largest offset from its centre on each axis. */
+static void kernel_radii(const svp_blur *b, int *rx, int *ry)
+{
+    const svp_image *k = b->kernel;
+    *rx = k->width - 1 - b->kcx > b->kcx ? k->width - 1 - b->kcx : b->kcx;
+    *ry = k->height - 1 - b->kcy > b->kcy ? k->height - 1 - b->kcy : b->kcy;
+}
+
 /* The frame of an invariant operator (margin > 0: for data on the inner view), its OTF (real
  * when the kernel is point-symmetric) and, in zero mode with rows below the image, the pruned
  * plan (*pruned NULL otherwise). */
@@ -323,8 +331,8 @@ static svp_status invariant_frame(const svp_blur *b, int margin, svp_frame *f,
                                   const svp_fft_pruned **pruned)
 {
     const svp_image *k = b->kernel;
-    const int rx = k->width - 1 - b->kcx > b->kcx ? k->width - 1 - b->kcx : b->kcx;
-    const int ry = k->height - 1 - b->kcy > b->kcy ? k->height - 1 - b->kcy : b->kcy;
+    int rx, ry;
+    kernel_radii(b, &rx, &ry);
     *pruned = NULL;
     svp_status st = frame_init(f, b->width, b->height, rx, ry, b->boundary, margin);
     if (st == SVP_OK) st = svp_frame_set_kernel(f, k, b->kcx, b->kcy, b->boundary);
@@ -336,15 +344,25 @@ static svp_status invariant_frame(const svp_blur *b, int margin, svp_frame *f,
     return st;
 }
 
+/* The frame invariant_frame would make for `margin`, its size only (no plans, no OTF). */
+static svp_status frame_dims(const svp_blur *b, int margin, int *nx, int *ny)
+{
+    int rx, ry, off, *src = NULL;
+    kernel_radii(b, &rx, &ry);
+    svp_status st = axis_init(b->width, rx, b->boundary, margin, nx, &off, &src);
+    free(src);
+    src = NULL;
+    if (st == SVP_OK) st = axis_init(b->height, ry, b->boundary, margin, ny, &off, &src);
+    free(src);
+    return st;
+}
+
+/* The frame is made on first use (svp_blur_ready), when it is known whether the full grid's or
+ * a view's is wanted; its geometry is checked now. */
 static svp_status blur_finish(svp_blur *b, svp_blur **out)
 {
-    svp_status st = invariant_frame(b, 0, &b->frame, &b->pruned);
-    if (st == SVP_OK) {
-        b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
-        b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
-        if (!b->work_r || !b->work_c)
-            st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
-    }
+    int nx, ny;
+    svp_status st = frame_dims(b, 0, &nx, &ny);
     if (st != SVP_OK) {
         svp_blur_free(b);
         return st;
@@ -446,7 +464,6 @@ void svp_blur_free(svp_blur *b)
     if (b->ops) b->ops->release(b);
     if (b->restore.release) b->restore.release(b->restore.data);
     svp_frame_release(&b->frame);
-    svp_frame_release(&b->full);
     svp_image_free(b->kernel);
     svp_free(b->work_r);
     svp_free(b->work_c);
@@ -533,6 +550,12 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
         b->single = 0;
         return SVP_OK;
     }
+    if (!b->frame.plan) { /* the frame first, which then makes the float state for it */
+        b->single = 1;
+        const svp_status st = svp_blur_ready(b);
+        if (st != SVP_OK) b->single = 0;
+        return st;
+    }
     const svp_frame *f = &b->frame;
     if (!b->rows_f) {
         /* zero mode: only the image's rows are non-zero in, and kept out */
@@ -582,16 +605,34 @@ static void drop_single(svp_blur *b)
     b->rows_f = NULL;
 }
 
-/* Puts `f` (pruned plan p) in use, the single-precision state remade for it when on. The work
- * buffers serve: a view's frame is never larger than the full one. */
-static svp_status use_frame(svp_blur *b, const svp_frame *f, const svp_fft_pruned *p)
+/* An invariant operator's frame, work buffers and float state freed: the next use makes the
+ * frame for b->view_margin (svp_blur_ready). The plans stay in the cache. */
+static void drop_frame(svp_blur *b)
 {
-    const int single = b->single;
-    b->frame = *f;
-    b->pruned = p;
+    svp_frame_release(&b->frame);
+    b->pruned = NULL;
+    svp_free(b->work_r);
+    svp_free(b->work_c);
+    b->work_r = NULL;
+    b->work_c = NULL;
     drop_single(b);
-    b->single = 0;
-    return single ? svp_blur_set_single(b, 1) : SVP_OK;
+}
+
+svp_status svp_blur_ready(svp_blur *b)
+{
+    if (b->kind != SVP_BLUR_INVARIANT || b->frame.plan) return SVP_OK;
+    svp_status st = invariant_frame(b, b->view_margin, &b->frame, &b->pruned);
+    if (st == SVP_OK) {
+        b->frames_built++;
+        b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
+        b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
+        if (!b->work_r || !b->work_c)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the %d x %d blur buffers", b->frame.nx,
+                          b->frame.ny);
+    }
+    if (st == SVP_OK && b->single) st = svp_blur_set_single(b, 1);
+    if (st != SVP_OK) drop_frame(b);
+    return st;
 }
 
 svp_status svp_blur_set_view(svp_blur *b, int margin, int *applied)
@@ -600,31 +641,24 @@ svp_status svp_blur_set_view(svp_blur *b, int margin, int *applied)
     if (!b || margin < 0)
         return svp_fail(SVP_ERR_INVALID, "svp_blur_set_view: no operator, or margin %d < 0",
                         margin);
-    if (b->full.plan) { /* back to the full frame first */
-        svp_frame_release(&b->frame);
-        const svp_frame full = b->full;
-        memset(&b->full, 0, sizeof b->full);
-        SVP_CHECK(use_frame(b, &full, b->full_pruned));
-        b->full_pruned = NULL;
+    int view = 0; /* the margin whose frame is wanted, 0 for the full grid's */
+    if (margin > 0 && b->kind == SVP_BLUR_INVARIANT && b->boundary == SVP_BOUNDARY_ZERO) {
+        if (2 * margin >= b->width || 2 * margin >= b->height)
+            return svp_fail(SVP_ERR_INVALID,
+                            "svp_blur_set_view: a margin of %d pixels leaves no view of the %d "
+                            "x %d grid",
+                            margin, b->width, b->height);
+        int nx, ny, vx, vy;
+        SVP_CHECK(frame_dims(b, 0, &nx, &ny));
+        SVP_CHECK(frame_dims(b, margin, &vx, &vy));
+        if ((size_t)vx * vy < (size_t)nx * ny) view = margin; /* else nothing to gain */
     }
-    if (margin == 0 || b->kind != SVP_BLUR_INVARIANT || b->boundary != SVP_BOUNDARY_ZERO)
-        return SVP_OK;
-    if (2 * margin >= b->width || 2 * margin >= b->height)
-        return svp_fail(SVP_ERR_INVALID,
-                        "svp_blur_set_view: a margin of %d pixels leaves no view of the %d x %d "
-                        "grid",
-                        margin, b->width, b->height);
-    svp_frame view;
-    const svp_fft_pruned *p = NULL;
-    SVP_CHECK(invariant_frame(b, margin, &view, &p));
-    if ((size_t)view.nx * view.ny >= (size_t)b->frame.nx * b->frame.ny) {
-        svp_frame_release(&view); /* nothing to gain */
-        return SVP_OK;
+    if (view != b->view_margin) { /* the frame in use goes; the wanted one comes on first use */
+        drop_frame(b);
+        b->view_margin = view;
     }
-    b->full = b->frame;
-    b->full_pruned = b->pruned;
-    *applied = 1;
-    return use_frame(b, &view, p);
+    *applied = view > 0;
+    return SVP_OK;
 }
 
 svp_status svp_blur_set_precision(svp_blur *blur, int single)
@@ -660,6 +694,7 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
 
 static svp_status invariant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
+    SVP_CHECK(svp_blur_ready(b));
     if (b->single) {
         apply_single(b, x, y, 0);
         add_halo(b, x, y);
@@ -675,6 +710,7 @@ static svp_status invariant_apply(svp_blur *b, const double *restrict x, double 
 
 static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
+    SVP_CHECK(svp_blur_ready(b));
     if (b->single) {
         apply_single(b, y, x, 1);
         add_halo(b, y, x);
@@ -690,16 +726,16 @@ static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, doubl
 
 static size_t invariant_memory(const svp_blur *b)
 {
-    size_t single = 0; /* the float frame, spectrum and OTF, once used */
+    const size_t kernel = (size_t)b->kernel->width * b->kernel->height * sizeof(double);
+    const svp_frame *f = &b->frame;
+    if (!f->plan) return kernel; /* no frame made yet (svp_blur_ready) */
+    /* the float frame, spectrum and OTF, once used */
+    size_t single = 0;
     if (b->rows_f)
-        single = (size_t)b->frame.ny * b->frame.nx * sizeof(float) +
-                 2 * (size_t)b->frame.ny * b->frame.ncx * sizeof(fftwf_complex);
-    /* a view's frame in use (svp_blur_set_view): the full frame waits, the buffers are its */
-    const svp_frame *big = b->full.plan ? &b->full : &b->frame;
-    const size_t waiting = b->full.plan ? svp_frame_memory(&b->full) : 0;
-    return svp_frame_memory(&b->frame) + waiting + (size_t)big->ny * big->nx * sizeof(double) +
-           (size_t)big->ny * big->ncx * sizeof(fftw_complex) +
-           (size_t)b->kernel->width * b->kernel->height * sizeof(double) + single;
+        single = (size_t)f->ny * f->nx * sizeof(float) +
+                 2 * (size_t)f->ny * f->ncx * sizeof(fftwf_complex);
+    return svp_frame_memory(f) + (size_t)f->ny * f->nx * sizeof(double) +
+           (size_t)f->ny * f->ncx * sizeof(fftw_complex) + kernel + single;
 }
 
 static void invariant_release(svp_blur *b) { (void)b; }

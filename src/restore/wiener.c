@@ -267,6 +267,7 @@ static svp_status wiener_invariant(svp_blur *blur, const double *y_data, double 
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
+    SVP_CHECK(svp_blur_ready(blur)); /* the operator's frame and buffers are used below */
     svp_restore_cache *rc = svp_restore_cache_of(blur);
     if (!rc) return SVP_ERR_NOMEM;
     double *lap_x = NULL, *lap_y = NULL, *residual = NULL, *scratch = NULL;
@@ -499,6 +500,7 @@ static svp_status wiener_zero(svp_blur *blur, const double *y_data, size_t n_mis
 {
     const int w = blur->width, h = blur->height;
     const size_t n = (size_t)w * h;
+    SVP_CHECK(svp_blur_ready(blur)); /* the filter is on the operator's frame */
     svp_restore_cache *rc = svp_restore_cache_of(blur);
     if (!rc) return SVP_ERR_NOMEM;
     const double *filter = NULL;
