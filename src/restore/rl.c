@@ -21,16 +21,19 @@
 /* auto_stop: stalled when χ² fell by less than STALL_FALL of itself over STALL_SPAN iterations */
 #define STALL_SPAN 10
 #define STALL_FALL 0.001
-/* Biggs–Andrews: the extrapolation weight's cap (α → 1 can overshoot without bound) */
-#define ALPHA_MAX 0.95
-/* an extrapolated pixel keeps at least this fraction of its value */
-#define KEEP_FRACTION 0.5
+/* Biggs–Andrews: the extrapolation weight's cap. Repeated with weight α, a step moves the
+ * iterate 1 / (1 − α) RL steps' worth; on noisy data α climbs towards 1 as RL starts fitting the
+ * noise, and a cap of 0.95 (20 steps' worth) let the lit field's error of 100-photon foreign
+ * data stall above plain RL's at 75 iterations; 0.8 (5) keeps noiseless data's speed-up
+ * (docs/model.md §6). */
+#define ALPHA_MAX 0.8
 
-/* Biggs–Andrews: x ← z = x_k + α (x_k − x_{k−1}) in place, x_prev ← x_k; α = <g_{k−1}, g_{k−2}> /
- * <g_{k−2}, g_{k−2}> in [0, ALPHA_MAX] from the last two RL steps (0 for the first two), or
- * alpha_in[k] when given; alpha_out[k] records it. A pixel the extrapolation would push below
- * KEEP_FRACTION of its value keeps that fraction (RL cannot bring a zero back). scratch: n
- * values for the dot products. */
+/* Biggs–Andrews in the multiplicative (log) domain: x ← z = x_k (x_k / x_{k−1})^α in place,
+ * x_prev ← x_k; α = <g_{k−1}, g_{k−2}> / <g_{k−2}, g_{k−2}> in [0, ALPHA_MAX] from the last two
+ * RL steps (0 for the first two), or alpha_in[k] when given; alpha_out[k] records it. z > 0
+ * wherever x_k, x_{k−1} > 0 (a zero stays), and with one α for two images their ratio is
+ * extrapolated the same way, (x/y)_k ((x/y)_k / (x/y)_{k−1})^α: the numerator and the PL of T⁻¹
+ * (eq. 4) keep their ratio. scratch: n values for the dot products. */
 static void extrapolate(double *restrict x, double *restrict x_prev, const double *step_1,
                         const double *step_2, double *scratch, size_t n, int k,
                         const double *alpha_in, double *alpha_out)
@@ -47,9 +50,12 @@ static void extrapolate(double *restrict x, double *restrict x_prev, const doubl
     if (alpha_out) alpha_out[k] = alpha;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
     for (size_t i = 0; i < n; i++) {
-        const double xk = x[i], z = xk + alpha * (xk - x_prev[i]);
+        const double xk = x[i], xp = x_prev[i];
         x_prev[i] = xk;
-        x[i] = z > KEEP_FRACTION * xk ? z : KEEP_FRACTION * xk;
+        if (alpha > 0 && xk > 0 && xp > 0) {
+            const double z = xk * pow(xk / xp, alpha);
+            x[i] = z <= DBL_MAX ? z : xk;
+        }
     }
 }
 
@@ -387,7 +393,7 @@ static void rl_start(const rl_run *r, svp_image *x)
     for (size_t i = 0; i < n; i++) xd[i] = start;
 }
 
-/* Acceleration (Biggs–Andrews): the previous iterate and the last two RL steps. */
+/* Acceleration (Biggs–Andrews, extrapolate): the previous iterate and the last two RL steps. */
 static svp_status rl_alloc_acceleration(rl_run *r)
 {
     if (r->o->acceleration != SVP_RL_BIGGS_ANDREWS) return SVP_OK;
