@@ -328,8 +328,8 @@ typedef enum svp_rl_stop {
 typedef enum svp_rl_acceleration {
     SVP_RL_PLAIN = 0,        /* x ← RL(x) */
     SVP_RL_BIGGS_ANDREWS = 1 /* vector extrapolation (Biggs & Andrews, Appl. Opt. 36 (1997)
-                                1766): RL is applied to x_k + α (x_k − x_{k−1}), α from the
-                                correlation of the last two RL steps, in [0, 1) */
+                                1766) in the log domain: RL is applied to x_k (x_k / x_{k−1})^α,
+                                α from the correlation of the last two RL steps, in [0, 0.8] */
 } svp_rl_acceleration;
 
 typedef struct svp_deconv_options {

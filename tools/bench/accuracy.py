@@ -47,6 +47,8 @@ OPTION_SETS = [
     ("r, auto iterations", ["--method", "r", "--iterations", "300", "--iterations", "auto"]),
     ("r, 30 it, Biggs–Andrews", ["--method", "r", "--iterations", "30",
                                  "--acceleration", "biggs-andrews"]),
+    ("r, 40 it, Biggs–Andrews", ["--method", "r", "--iterations", "40",
+                                 "--acceleration", "biggs-andrews"]),
     ("rw, balance 1e-3", ["--method", "rw"]),
     ("rw, balance auto", ["--method", "rw", "--balance", "auto", "--field-sigma", "{sigma}"]),
     ("rw, balance auto, σ estimated", ["--method", "rw", "--balance", "auto"]),
