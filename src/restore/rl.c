@@ -27,6 +27,11 @@
  * data stall above plain RL's at 75 iterations; 0.8 (5) keeps noiseless data's speed-up
  * (docs/model.md §6). */
 #define ALPHA_MAX 0.8
+/* Biggs–Andrews: no extrapolation (α = 0) while the last RL step is below this fraction of the
+ * iterate (rms): such a step is converged or round-off (a uniform PL converges at once), its
+ * direction float's or double's noise, and an α drawn from it would make single and double
+ * precision extrapolate differently */
+#define STEP_FLOOR 1e-5
 
 /* x ← x (x / x_prev)^α where x, x_prev > 0 (else, or on overflow, x stays), x_prev ← x. With
  * glibc's vector math (libmvec) pow runs four (AVX2) or two at a time, every pixel through the
@@ -120,7 +125,9 @@ static void extrapolate(double *restrict x, double *restrict x_prev, const doubl
     } else if (k >= 2) {
         const double num = svp_dot(step_1, step_2, scratch, n);
         const double den = svp_dot(step_2, step_2, scratch, n);
-        alpha = den > 0 ? num / den : 0.0;
+        const double last = svp_dot(step_1, step_1, scratch, n);
+        const double size = svp_dot(x, x, scratch, n);
+        alpha = den > 0 && last > STEP_FLOOR * STEP_FLOOR * size ? num / den : 0.0;
         alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
     }
     if (alpha_out) alpha_out[k] = alpha;
