@@ -367,7 +367,9 @@ SVP_API void svp_deconv_defaults(svp_deconv_options *options);
  * size, mirror H in the 2 width x 2 height symmetric frame. Zero-boundary H (no frame makes it
  * diagonal): the same problem (Hᵀ M H + λ LᵀL) x = Hᵀ M y of the linear operator, L with
  * reflecting ends, by CG preconditioned with the Wiener filter on H's padded frame (missing
- * pixels masked by M, no fill). Space-variant H: calls svp_deconv_tikhonov_cg. Uses
+ * pixels masked by M, no fill). Space-variant H: calls svp_deconv_tikhonov_cg with
+ * options->cg_max_steps as its step cap (options->iterations is RL's) and fills the report's
+ * cg_steps, cg_residual and cg_capped. Uses
  * options->balance (>= 0); progress once, at the end. x must have y's size and not be y.
  * options NULL = defaults. */
 SVP_API svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
@@ -798,8 +800,9 @@ SVP_API svp_status svp_blur_psf_at(const svp_blur *blur, double x, double y, svp
  * (Hᵀ m H + λ LᵀL) x = Hᵀ m y, preconditioned by the Wiener filter of the PSF at the image
  * centre (periodic frame), started at 0; at most options->iterations steps (NULL options =
  * svp_deconv_defaults), stopping early when the relative residual ‖Hᵀm y − A x‖ / ‖Hᵀm y‖ falls
- * below 1e-10. For an invariant periodic H this is the Wiener–Hunt solution (X = conj(Ĥ) Y /
- * (|Ĥ|² + λ |L̂|²)), reached in one step. Progress per iteration. */
+ * below 1e-10 (options->report, when given, gets cg_steps, cg_residual and cg_capped). For an
+ * invariant periodic H this is the Wiener–Hunt solution (X = conj(Ĥ) Y / (|Ĥ|² + λ |L̂|²)),
+ * reached in one step. Progress per iteration. */
 SVP_API svp_status svp_deconv_tikhonov_cg(svp_blur *blur, const svp_image *y,
                                           const svp_deconv_options *options, svp_image *x);
 

@@ -1477,6 +1477,63 @@ static void test_round_trip_region_psfs(void **state)
     svp_image_free(val);
 }
 
+/* Wiener–Hunt (W) with a PSF map goes to conjugate gradients on the normal equations: its step
+ * cap is the Wiener's (cg_max_steps), not Richardson–Lucy's iteration count (which once capped
+ * it silently: 75 steps where this solve takes over 200), and a solve stopped at its cap is a
+ * result in doubt with its own message. */
+static void test_wiener_map_cg_cap(void **state)
+{
+    (void)state;
+    const int w = RT_W, h = RT_H;
+    svp_psf_field *f = stripe_field(moffat(2.5, 3.0, 0), moffat(4.0, 1.5, 0), 2.0);
+    svp_image *pl = test_image(w, h), *b = test_image(w, h), *pla = test_image(w, h);
+    svp_image *ba = test_image(w, h), *plr = test_image(w, h), *br[2] = {test_image(w, h),
+                                                                          test_image(w, h)};
+    svp_image *val = test_image(w, h);
+    stripe_scene(pl, b, 0.15);
+    svp_variant_options vo = tent_options(4);
+    svp_blur *op = NULL;
+    ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_ZERO, &vo, &op));
+    const svp_image *fin[1] = {b};
+    svp_image *fout[1] = {ba};
+    ASSERT_OK(svp_forward_transform(op, pl, fin, 1, pla, fout, NULL));
+    const svp_image *ain[1] = {ba};
+    svp_deconv_report reps[2];
+    for (int k = 0; k < 2; k++) {
+        svp_correct_options co;
+        svp_correct_defaults(&co);
+        co.method = SVP_METHOD_W;
+        co.deconv.iterations = k ? 500 : 1; /* RL's count: no say in W */
+        co.reports = reps;
+        svp_image *aout[1] = {br[k]};
+        ASSERT_OK(svp_inverse_transform(op, pla, ain, 1, &co, plr, aout, val, NULL));
+        print_message("W with a map, RL count %d: CG steps %d / %d, residual %.2g / %.2g\n",
+                      co.deconv.iterations, reps[0].cg_steps, reps[1].cg_steps,
+                      reps[0].cg_residual, reps[1].cg_residual);
+        assert_true(reps[0].cg_steps > 1 && !reps[0].cg_capped && !reps[1].cg_capped);
+        assert_true(reps[1].cg_residual < 1e-9);
+    }
+    assert_true(test_max_abs_diff(br[0], br[1]) == 0);
+    svp_correct_options co;
+    svp_correct_defaults(&co);
+    co.method = SVP_METHOD_W;
+    co.deconv.cg_max_steps = 3;
+    svp_image *aout[1] = {br[0]};
+    assert_int_equal(svp_inverse_transform(op, pla, ain, 1, &co, plr, aout, val, NULL),
+                     SVP_ERR_DOUBTFUL);
+    assert_non_null(strstr(svp_last_error(), "stopped at its step cap (3 conjugate-gradient"));
+    svp_blur_free(op);
+    svp_psf_field_free(f);
+    svp_image_free(pl);
+    svp_image_free(b);
+    svp_image_free(pla);
+    svp_image_free(ba);
+    svp_image_free(plr);
+    svp_image_free(br[0]);
+    svp_image_free(br[1]);
+    svp_image_free(val);
+}
+
 /* Hard cases stay finite: a region with zero emission (flagged invalid by T⁻¹), beta <= 1 in
  * one region (whole-field support) and Gaussian-like beta = 10 in the other, a region of one
  * pixel, node grids with nodes outside the image. */
@@ -1821,6 +1878,7 @@ int main(void)
         cmocka_unit_test(test_cg_variant_normal_equations),
         cmocka_unit_test(test_round_trip_region_psfs),
         cmocka_unit_test(test_hard_cases),
+        cmocka_unit_test(test_wiener_map_cg_cap),
         cmocka_unit_test(test_threads_deterministic),
         cmocka_unit_test(test_psf_map_files),
         cmocka_unit_test(test_bad_arguments),

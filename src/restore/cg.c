@@ -195,7 +195,9 @@ svp_status svp_deconv_tikhonov_cg(svp_blur *b, const svp_image *y,
     precondition(&c, r->data, z->data);
     memcpy(p->data, z->data, n * sizeof(double));
     double rz = dot(&c, r->data, z->data);
-    for (int it = 0; it < o.iterations; it++) {
+    int it = 0, converged = 0;
+    double res_norm = bnorm;
+    for (it = 0; it < o.iterations; it++) {
         if ((st = normal_apply(b, &c, p, ap)) != SVP_OK) goto cleanup;
         const double pap = dot(&c, p->data, ap->data);
         if (!(pap > 0) || !isfinite(pap)) {
@@ -204,6 +206,7 @@ svp_status svp_deconv_tikhonov_cg(svp_blur *b, const svp_image *y,
                               "%s: the normal equations went non-finite at "
                               "iteration %d",
                               what, it + 1);
+            converged = 1;
             break; /* pᵀAp = 0: converged exactly */
         }
         const double step = rz / pap;
@@ -217,7 +220,12 @@ svp_status svp_deconv_tikhonov_cg(svp_blur *b, const svp_image *y,
         if ((st = svp_report_progress(o.progress, o.progress_user, (it + 1.0) / o.iterations)) !=
             SVP_OK)
             goto cleanup;
-        if (sqrt(dot(&c, rd, rd)) < CG_TOL * bnorm) break;
+        res_norm = sqrt(dot(&c, rd, rd));
+        if (res_norm < CG_TOL * bnorm) {
+            it++;
+            converged = 1;
+            break;
+        }
         precondition(&c, rd, z->data);
         const double rz_new = dot(&c, rd, z->data);
         const double beta = rz_new / rz;
@@ -226,6 +234,11 @@ svp_status svp_deconv_tikhonov_cg(svp_blur *b, const svp_image *y,
         const double *restrict zd = z->data;
 #pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
         for (size_t i = 0; i < n; i++) pw[i] = zd[i] + beta * pw[i];
+    }
+    if (o.report) {
+        o.report->cg_steps = it;
+        o.report->cg_residual = isfinite(res_norm) ? res_norm / bnorm : INFINITY;
+        o.report->cg_capped = !converged;
     }
 cleanup:
     svp_frame_release(&c.pre);

@@ -607,7 +607,13 @@ svp_status svp_deconv_wiener(svp_blur *blur, const svp_image *y,
         report->wiener = 1;
         report->balance = options->balance;
     }
-    if (blur->kind != SVP_BLUR_INVARIANT) return svp_deconv_tikhonov_cg(blur, y, options, x);
+    if (blur->kind != SVP_BLUR_INVARIANT) {
+        /* its steps are the Wiener's CG cap, not RL's iteration count; it fills the report's
+         * cg_steps / cg_residual / cg_capped, so T⁻¹ can refuse an unconverged solve */
+        svp_deconv_options o = *options;
+        o.iterations = options->cg_max_steps;
+        return svp_deconv_tikhonov_cg(blur, y, &o, x);
+    }
 
     const size_t n = (size_t)y->width * y->height;
     const size_t n_missing = svp_image_count_nonfinite(y);
