@@ -565,9 +565,9 @@ for m in r:1e-3 rw:1e-4; do
     fb=${m#*:}
     m=${m%%:*}
     expect_ok map_corr_d_$m correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --rank 4 \
-        --boundary mirror --method $m --iterations 100 -o map_cd_$m --format txt $FAST
+        --boundary mirror --method $m --iterations 100 --acceleration none -o map_cd_$m --format txt $FAST
     expect_ok map_corr_s_$m correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --rank 4 \
-        --boundary mirror --method $m --iterations 100 --precision single -o map_cs_$m --format txt $FAST
+        --boundary mirror --method $m --iterations 100 --acceleration none --precision single -o map_cs_$m --format txt $FAST
     check_close "correct --method $m --precision single with a map (100 iterations): PL agrees with double" map_cd_$m/pl.txt map_cs_$m/pl.txt 5e-5
     check_close "correct --method $m --precision single with a map (100 iterations): field agrees with double" map_cd_$m/field.txt map_cs_$m/field.txt $fb
 done

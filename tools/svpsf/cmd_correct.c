@@ -217,6 +217,9 @@ static int correct_check(const cli_run *run, struct correct_args *a)
     cli_deconv_apply(d, &opt->deconv);
     opt->deconv.auto_stop = auto_stop; /* --iterations auto is the transform's own */
     opt->auto_iterations = d->iterations_auto;
+    /* W runs no Richardson–Lucy: the default acceleration does not apply (nor is recorded) */
+    if (opt->method == SVP_METHOD_W && !d->acceleration_given)
+        opt->deconv.acceleration = SVP_RL_PLAIN;
     opt->balance_auto = d->balance_auto;
     opt->noise_sigma = d->noise;
     opt->keep_doubtful = d->keep_doubtful;
@@ -231,7 +234,8 @@ static int correct_check(const cli_run *run, struct correct_args *a)
                               "(--method rw or w)");
     if (d->noise > 0 && !d->balance_auto)
         return cli_error(run, "--noise is only used with --balance auto");
-    if ((d->iterations_auto || d->acceleration) && opt->method == SVP_METHOD_W)
+    if ((d->iterations_auto || (d->acceleration_given && d->acceleration)) &&
+        opt->method == SVP_METHOD_W)
         return cli_error(run, "--iterations auto and --acceleration apply to Richardson-Lucy: "
                               "not with --method w");
     if (d->precision == 1 && opt->method == SVP_METHOD_W)
