@@ -696,6 +696,23 @@ if grep -q '"rl_stop": "\(discrepancy\|stalled\)"' corr_auto_it/summary.json &&
 else
     fail "--iterations auto" "$(cat err.corr_auto_it) $(grep rl_ corr_auto_it/summary.json)"
 fi
+# --iterations auto alone: plain RL (the rule's own), capped at 75; the defaults otherwise: 30
+# accelerated iterations; W records no acceleration
+expect_ok corr_auto_cap correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
+    --iterations auto --gain 1e-4 -o corr_auto_cap --format txt $FAST
+expect_ok corr_defaults correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o corr_defaults \
+    --format txt $FAST
+expect_ok corr_defaults_w correct --field Bz.txt --pl pl.txt --psf moffat.yaml --method w \
+    -o corr_defaults_w --format txt $FAST
+if grep -q '"acceleration": "none"' corr_auto_cap/summary.json &&
+    [ "$(jnum corr_auto_cap/summary.json iteration_cap)" = 75 ] &&
+    grep -q '"acceleration": "biggs-andrews"' corr_defaults/summary.json &&
+    [ "$(jnum corr_defaults/summary.json iterations)" = 30 ] &&
+    grep -q '"acceleration": "none"' corr_defaults_w/summary.json; then
+    pass "correct's defaults: 30 accelerated iterations; --iterations auto plain, cap 75; w none"
+else
+    fail "defaults / auto cap" "$(grep -h -e acceleration -e iteration corr_auto_cap/summary.json corr_defaults/summary.json corr_defaults_w/summary.json)"
+fi
 expect_bad corr_auto_it_w "--iterations auto|Richardson-Lucy|--method w" correct --field Bz.txt --pl pl.txt \
     --psf moffat.yaml --method w --iterations auto -o bad
 expect_bad corr_bad_gain "--gain|0|> 0" correct --field Bz.txt --pl pl.txt --psf moffat.yaml --gain 0 -o bad

@@ -1730,6 +1730,7 @@ int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, con
             args->iterations_auto = 1;
             return 0;
         }
+        args->iterations_given = 1;
         return cli_parse_int(run, "--iterations", arg, 1, 100000, &args->iterations);
     case CLI_OPT_BALANCE:
         args->balance_given = 1;
