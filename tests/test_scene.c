@@ -283,7 +283,6 @@ static void test_end_to_end_matches_transforms(void **state)
     svp_correct_defaults(&o);
     o.method = SVP_METHOD_RW;
     o.deconv.iterations = 10;
-    o.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
     o.deconv.balance = 0.01;
     svp_image *plc = test_image(w, h), *bzc = test_image(w, h), *val = test_image(w, h);
     const svp_image *fa2[1] = {map(r, "B_z_apparent")};
@@ -392,7 +391,6 @@ static void test_correct_margin(void **state)
         svp_correct_defaults(&o);
         o.method = SVP_METHOD_R;
         o.deconv.iterations = 20;
-        o.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
         o.deconv.balance = 1;
         o.deconv.single_precision = k == 1;
         o.margin = margins[k];

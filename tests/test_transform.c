@@ -130,13 +130,10 @@ static double poisson(uint64_t *s, double mean)
     return k;
 }
 
-/* The defaults with a method, an iteration count and a balance: plain Richardson–Lucy (the
- * counts below are plain RL's; the accelerated default has its own tests) */
 static svp_correct_options options_for(svp_method method, int iterations, double balance)
 {
     svp_correct_options o;
     svp_correct_defaults(&o);
-    o.deconv.acceleration = SVP_RL_PLAIN;
     o.method = method;
     o.deconv.iterations = iterations;
     o.deconv.balance = balance;
@@ -152,8 +149,7 @@ static void test_defaults(void **state)
     memset(&o, 0xff, sizeof o);
     svp_correct_defaults(&o);
     assert_int_equal(o.method, SVP_METHOD_R);
-    assert_int_equal(o.deconv.iterations, 30);
-    assert_int_equal(o.deconv.acceleration, SVP_RL_BIGGS_ANDREWS);
+    assert_int_equal(o.deconv.iterations, 75);
     ASSERT_CLOSE(o.pl_floor, 1e-3, 0);
     ASSERT_CLOSE(o.shift, 0, 0);
     assert_null(o.deconv.progress);

@@ -123,7 +123,6 @@ static void test_signed_rl_converges(void **state)
         svp_correct_defaults(&o);
         o.method = SVP_METHOD_R;
         o.deconv.iterations = counts[k];
-        o.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
         ASSERT_OK(correct(op, &m, &o));
         e_lit[k] = max_error(m.field_out, b, lit);
         e_dark[k] = max_error(m.field_out, b, dark);
@@ -179,7 +178,6 @@ static void test_signed_rl_strip(void **state)
         svp_correct_defaults(&o);
         o.method = SVP_METHOD_R;
         o.deconv.iterations = counts[k];
-        o.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
         ASSERT_OK(correct(op, &m, &o));
         e_auto[k] = rms_error(m.field_out, b, strip);
         o.shift = small;
@@ -478,7 +476,6 @@ static void test_accelerated_rl_noisy(void **state)
     svp_correct_defaults(&o);
     o.method = SVP_METHOD_R;
     o.deconv.iterations = 75;
-    o.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
     ASSERT_OK(correct(op, &m, &o));
     const double plain_strip = rms_error(m.field_out, b, strip);
     const double plain_lit = rms_error(m.field_out, b, lit);

@@ -1452,7 +1452,6 @@ static void test_round_trip_region_psfs(void **state)
     svp_correct_defaults(&co);
     co.method = SVP_METHOD_R;
     co.deconv.iterations = 300;
-    co.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
     const svp_image *ain[1] = {ba};
     svp_image *aout[1] = {br};
     ASSERT_OK(svp_inverse_transform(op, pla, ain, 1, &co, plr, aout, val, NULL));
@@ -1566,7 +1565,6 @@ static void test_hard_cases(void **state)
         for (int m = 0; m < 3; m++) {
             co.method = m == 0 ? SVP_METHOD_RW : m == 1 ? SVP_METHOD_R : SVP_METHOD_W;
             co.deconv.iterations = 30;
-            co.deconv.acceleration = SVP_RL_PLAIN; /* a plain RL count */
             ASSERT_OK(svp_inverse_transform(op, pla, ain, 1, &co, plr, aout, val, NULL));
             assert_true(test_all_finite(br) && test_all_finite(plr) && test_all_finite(val));
             /* RL recovers the dark stripe as dark and flags it (measured validity 2.5e-4);

@@ -215,7 +215,7 @@ if "spectrum-fit" in S and "spectrum-fit-contrast" in S:
               1e6 * peak, 1e6 * rms_diff(b, npy("spectrum-fit", "B_z_closed_form"))))
 
 print("\n## The default correction against none\n")
-print("`default` is `svpsf correct`'s defaults (R, 30 Biggs–Andrews-accelerated RL iterations, margin auto, single-precision "
+print("`default` is `svpsf correct`'s defaults (R, 75 RL iterations, margin auto, single-precision "
       "transforms). For every scene with corrections: the scene's headline quantity and mask, "
       "its median |relative error| apparent and after the default correction, and how many of "
       "the scene's (quantity, mask) pairs the default leaves worse than the apparent map.\n")

@@ -558,9 +558,6 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     opt.deconv.single_precision = int(precision == "single")
     if acceleration is not None:
         opt.deconv.acceleration = _ACCELERATIONS[acceleration]
-    elif iterations == "auto":  # as svpsf correct: the stopping rule is plain RL's, cap 75
-        opt.deconv.acceleration = _ACCELERATIONS["none"]
-        opt.deconv.iterations = 75
     if margin is not None:
         opt.margin = int(margin)
     opt.keep_doubtful = int(bool(keep_doubtful))

@@ -304,8 +304,7 @@ def main(argv=None):
                    "their own psf.yaml")
     p.add_argument("--method", choices=("r", "rw", "w", "rl-signed"),
                    help="as svpsf correct --method (default: the library's, r)")
-    p.add_argument("--iterations", help="Richardson-Lucy iterations or auto (default: "
-                   "svpsf correct's, 30 accelerated; auto: plain, capped at 75)")
+    p.add_argument("--iterations", help="Richardson-Lucy iterations or auto (default 75)")
     p.add_argument("--balance", help="Wiener-Hunt lambda or auto (default 0.001)")
     p.add_argument("--pl-floor", type=float)
     p.add_argument("--precision", choices=("double", "single"))

@@ -40,10 +40,7 @@ void svp_correct_defaults(svp_correct_options *options)
 {
     options->method = SVP_METHOD_R; /* the foreign-data benchmark's winner (docs/accuracy.md) */
     svp_deconv_defaults(&options->deconv);
-    /* 30 Biggs–Andrews iterations: at or below plain RL's 75-iteration errors on every foreign
-     * dataset in about 0.6 of its time, the benchmark's winner (docs/accuracy.md) */
-    options->deconv.iterations = 30;
-    options->deconv.acceleration = SVP_RL_BIGGS_ANDREWS;
+    options->deconv.iterations = 75; /* the reference study's RL count for measured data */
     options->pl_floor = 1e-3;
     options->shift = 0.0;
     options->balance_auto = 0;

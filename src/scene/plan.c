@@ -244,11 +244,10 @@ static svp_status plan_stages(struct svp_scene *s)
         if (c->method == SVP_METHOD_W)
             snprintf(params, sizeof params, "balance %g", c->balance);
         else if (c->method == SVP_METHOD_RW)
-            snprintf(params, sizeof params, "%d RL iterations%s, balance %g", c->iterations,
-                     c->accelerate ? " (accelerated)" : "", c->balance);
+            snprintf(params, sizeof params, "%d RL iterations, balance %g", c->iterations,
+                     c->balance);
         else
-            snprintf(params, sizeof params, "%d RL iterations%s", c->iterations,
-                     c->accelerate ? " (accelerated)" : "");
+            snprintf(params, sizeof params, "%d RL iterations", c->iterations);
         SVP_CHECK(add_stage(s, SCENE_STAGE_CORRECT, k, "'%s': T^-1 (eq. 4) by %s, %s%s%s", c->name,
                             method_name(c->method), params, c->has_psf ? ", assumed PSF " : "",
                             c->has_psf ? c->psf.describe : ""));

@@ -855,7 +855,6 @@ static svp_status stage_correct(run_ctx *c)
     o.pl_floor = cr->pl_floor;
     o.margin = m;
     o.deconv.single_precision = cr->single;
-    o.deconv.acceleration = cr->accelerate ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
     /* a study compares corrections, doubtful ones included: kept (validity 0 where in doubt)
      * and their doubts recorded */
     svp_correct_summary summary;
@@ -1105,7 +1104,6 @@ static svp_status write_summary(run_ctx *c, double total)
                             : cr->method == SVP_METHOD_W ? "w"
                                                          : "rl_signed");
         svp_json_key_int(j, "iterations", cr->iterations);
-        svp_json_key_string(j, "acceleration", cr->accelerate ? "biggs_andrews" : "none");
         svp_json_key_number(j, "balance", cr->balance);
         svp_json_key_number(j, "pl_floor", cr->pl_floor);
         if (cr->margin_px < 0)

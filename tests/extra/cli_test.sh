@@ -565,9 +565,9 @@ for m in r:1e-3 rw:1e-4; do
     fb=${m#*:}
     m=${m%%:*}
     expect_ok map_corr_d_$m correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --rank 4 \
-        --boundary mirror --method $m --iterations 100 --acceleration none -o map_cd_$m --format txt $FAST
+        --boundary mirror --method $m --iterations 100 -o map_cd_$m --format txt $FAST
     expect_ok map_corr_s_$m correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --rank 4 \
-        --boundary mirror --method $m --iterations 100 --acceleration none --precision single -o map_cs_$m --format txt $FAST
+        --boundary mirror --method $m --iterations 100 --precision single -o map_cs_$m --format txt $FAST
     check_close "correct --method $m --precision single with a map (100 iterations): PL agrees with double" map_cd_$m/pl.txt map_cs_$m/pl.txt 5e-5
     check_close "correct --method $m --precision single with a map (100 iterations): field agrees with double" map_cd_$m/field.txt map_cs_$m/field.txt $fb
 done
@@ -695,23 +695,6 @@ if grep -q '"rl_stop": "\(discrepancy\|stalled\)"' corr_auto_it/summary.json &&
     pass "correct --iterations auto: $(jnum corr_auto_it/summary.json rl_iterations) iterations, stopped by $(sed -n 's/.*"rl_stop": "\([a-z]*\)".*/\1/p' corr_auto_it/summary.json)"
 else
     fail "--iterations auto" "$(cat err.corr_auto_it) $(grep rl_ corr_auto_it/summary.json)"
-fi
-# --iterations auto alone: plain RL (the rule's own), capped at 75; the defaults otherwise: 30
-# accelerated iterations; W records no acceleration
-expect_ok corr_auto_cap correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \
-    --iterations auto --gain 1e-4 -o corr_auto_cap --format txt $FAST
-expect_ok corr_defaults correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o corr_defaults \
-    --format txt $FAST
-expect_ok corr_defaults_w correct --field Bz.txt --pl pl.txt --psf moffat.yaml --method w \
-    -o corr_defaults_w --format txt $FAST
-if grep -q '"acceleration": "none"' corr_auto_cap/summary.json &&
-    [ "$(jnum corr_auto_cap/summary.json iteration_cap)" = 75 ] &&
-    grep -q '"acceleration": "biggs-andrews"' corr_defaults/summary.json &&
-    [ "$(jnum corr_defaults/summary.json iterations)" = 30 ] &&
-    grep -q '"acceleration": "none"' corr_defaults_w/summary.json; then
-    pass "correct's defaults: 30 accelerated iterations; --iterations auto plain, cap 75; w none"
-else
-    fail "defaults / auto cap" "$(grep -h -e acceleration -e iteration corr_auto_cap/summary.json corr_defaults/summary.json corr_defaults_w/summary.json)"
 fi
 expect_bad corr_auto_it_w "--iterations auto|Richardson-Lucy|--method w" correct --field Bz.txt --pl pl.txt \
     --psf moffat.yaml --method w --iterations auto -o bad

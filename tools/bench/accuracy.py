@@ -274,6 +274,9 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
           f"dark ratio {best[1]:.2f}, worst lit ratio {best[2]:.2f}, median {best[3]:.2f} s. "
           + ("`svpsf correct`'s defaults are this option set (or give the same errors).\n"
              if is_default(best[0]) else
+             "`svpsf correct`'s defaults are among the tied option sets (both worst ratios "
+             f"within {TIE} of the best), slower than the winner.\n"
+             if any(is_default(c[0]) for c in near) else
              "`svpsf correct`'s defaults in the program measured are not.\n"))
     if sens:
         w("## Which PSF error matters: FWHM or β\n")

@@ -528,12 +528,11 @@ def correct_section(args, exe):
 
 
 def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
-    its = f"{iterations} RL iterations" if iterations else \
-        "its default 30 RL iterations with Biggs–Andrews acceleration"
+    its = iterations or 75
     out = ["## Space-variant correction: what accuracy costs in time\n"]
     out.append(
         "Method: `svpsf correct --method r` (the default method; "
-        f"{its}, {threads} threads, `--wisdom` of the same run: an untimed "
+        f"{its} RL iterations, {threads} threads, `--wisdom` of the same run: an untimed "
         "1-iteration run of each frame size first, as on a machine where svpsf has run at that "
         "size before) on foreign data, and `tools/bench/bench_variant ops` for the operators "
         "alone (same threads). Maps (0.1 µm pixels, whole-field support, zero boundary; "
@@ -543,7 +542,7 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
         "or *blended* over 1 µm. Truth: the wire scene of `tools/bench/foreign.py` (the strip "
         "quenches the PL to 5 % under a Gaussian spot; strip field plus a dipole); for the "
         "*smooth, oxide scene* rows its oxide scene (the same field, the PL falling to 5 % "
-        "along a 4 µm ramp instead of at the strip's sharp edges: where RL's iterations "
+        "along a 4 µm ramp instead of at the strip's sharp edges: where RL's 75 iterations "
         "leave less of the sharp edges unconverged, the PSF model's share of the error shows). "
         "Data: PL and "
         "field × PL blurred by a numpy model of the exact per-source operator, never by the "
@@ -627,7 +626,7 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
             tgt.append((n, mname, runs, base, ops))
     out.append("### Targets (space-variant correction)\n")
     if quick:
-        out.append(f"_Quick run ({', '.join(f'{n}²' for n in sizes)}, {its}): the "
+        out.append(f"_Quick run ({', '.join(f'{n}²' for n in sizes)}, {its} iterations): the "
                    "targets name 512², 1024² and 2048²; judged here on the sizes run._\n")
     for n, mname, runs, base, ops in tgt:
         if not mname.startswith("smooth") or not base:

@@ -1730,7 +1730,6 @@ int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, con
             args->iterations_auto = 1;
             return 0;
         }
-        args->iterations_given = 1;
         return cli_parse_int(run, "--iterations", arg, 1, 100000, &args->iterations);
     case CLI_OPT_BALANCE:
         args->balance_given = 1;
@@ -1743,7 +1742,6 @@ int cli_deconv_option(const cli_run *run, cli_deconv_args *args, int option, con
         args->precision_given = 1;
         return cli_parse_choice(run, "--precision", arg, cli_precision_names, &args->precision);
     case CLI_OPT_ACCELERATION:
-        args->acceleration_given = 1;
         return cli_parse_choice(run, "--acceleration", arg, cli_acceleration_names,
                                 &args->acceleration);
     case CLI_OPT_KEEP_DOUBTFUL: args->keep_doubtful = 1; return 0;

@@ -462,8 +462,6 @@ typedef struct cli_deconv_args {
     int precision;       /* --precision: index in cli_precision_names */
     int precision_given; /* --precision given at all */
     int acceleration;    /* --acceleration: index in cli_acceleration_names */
-    int acceleration_given; /* --acceleration was on the command line */
-    int iterations_given;   /* --iterations N was on the command line */
     int keep_doubtful;   /* --keep-doubtful */
 } cli_deconv_args;
 enum {

@@ -43,9 +43,6 @@ static int auto_margin(const cli_psf *psf, int w, int h)
 #define SINGLE_FROM_PIXELS ((size_t)1024 * 1024)
 
 static const char *const method_names[] = {"rw", "r", "w", "rl-signed", NULL};
-/* --iterations auto without N: plain RL capped here (the count the rule was measured with) */
-#define AUTO_CAP 75
-
 static const svp_method method_values[] = {SVP_METHOD_RW, SVP_METHOD_R, SVP_METHOD_W,
                                            SVP_METHOD_RL_SIGNED};
 
@@ -220,15 +217,6 @@ static int correct_check(const cli_run *run, struct correct_args *a)
     cli_deconv_apply(d, &opt->deconv);
     opt->deconv.auto_stop = auto_stop; /* --iterations auto is the transform's own */
     opt->auto_iterations = d->iterations_auto;
-    /* --iterations auto: the stopping rule is plain RL's (docs/model.md §6), so without
-     * --acceleration it runs plain, capped at AUTO_CAP unless N is given */
-    if (d->iterations_auto && !d->acceleration_given) {
-        opt->deconv.acceleration = SVP_RL_PLAIN;
-        if (!d->iterations_given) opt->deconv.iterations = AUTO_CAP;
-    }
-    /* W runs no Richardson–Lucy: the default acceleration does not apply (nor is recorded) */
-    if (opt->method == SVP_METHOD_W && !d->acceleration_given)
-        opt->deconv.acceleration = SVP_RL_PLAIN;
     opt->balance_auto = d->balance_auto;
     opt->noise_sigma = d->noise;
     opt->keep_doubtful = d->keep_doubtful;
@@ -243,8 +231,7 @@ static int correct_check(const cli_run *run, struct correct_args *a)
                               "(--method rw or w)");
     if (d->noise > 0 && !d->balance_auto)
         return cli_error(run, "--noise is only used with --balance auto");
-    if ((d->iterations_auto || (d->acceleration_given && d->acceleration)) &&
-        opt->method == SVP_METHOD_W)
+    if ((d->iterations_auto || d->acceleration) && opt->method == SVP_METHOD_W)
         return cli_error(run, "--iterations auto and --acceleration apply to Richardson-Lucy: "
                               "not with --method w");
     if (d->precision == 1 && opt->method == SVP_METHOD_W)
@@ -359,7 +346,7 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     if (opt->auto_iterations) cli_setting_str(run, "iterations", "auto");
     cli_setting_int(run, opt->auto_iterations ? "iteration_cap" : "iterations",
                     opt->deconv.iterations);
-    cli_setting_str(run, "acceleration", cli_acceleration_names[opt->deconv.acceleration]);
+    cli_setting_str(run, "acceleration", cli_acceleration_names[a->deconv.acceleration]);
     cli_setting_int(run, "margin", opt->margin);
     if (opt->pl_gain > 0) cli_setting_num(run, "gain", opt->pl_gain);
     cli_setting_num(run, "offset", opt->pl_offset);

@@ -31,13 +31,12 @@ static void print_help(const cli_run *run, FILE *out)
             "    %g um squares with levels 0.1, 0.8 and 1.0;\n"
             "  - a Lorentzian PSF of %g um FWHM reaching over the whole field of view.\n"
             "It runs T (the apparent maps a microscope would record), then T^-1 with R&W\n"
-            "(%d %sRichardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL),\n"
+            "(%d Richardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL),\n"
             "and prints the errors in the lit regions (true PL above %g %% of its maximum).\n"
             "\n"
             "  -o, --output DIR      output folder (default ./svpsf-demo)\n",
             DEMO_SIZE, DEMO_SIZE, DEMO_PIXEL_UM, DEMO_SPOT_FWHM_PX * DEMO_PIXEL_UM,
-            DEMO_SQUARE_PX * DEMO_PIXEL_UM, DEMO_FWHM_UM, d.deconv.iterations,
-            d.deconv.acceleration == SVP_RL_BIGGS_ANDREWS ? "accelerated " : "", d.deconv.balance,
+            DEMO_SQUARE_PX * DEMO_PIXEL_UM, DEMO_FWHM_UM, d.deconv.iterations, d.deconv.balance,
             100 * DEMO_LIT);
     cli_print_common_help(run, out);
     fputs("\n"
@@ -196,8 +195,6 @@ static int demo_compute(cli_run *run, struct demo_job *job)
     cli_setting_str(run, "boundary", "zero");
     cli_setting_str(run, "method", "rw");
     cli_setting_int(run, "iterations", opt->deconv.iterations);
-    cli_setting_str(run, "acceleration",
-                    opt->deconv.acceleration == SVP_RL_BIGGS_ANDREWS ? "biggs-andrews" : "none");
     cli_setting_num(run, "balance", opt->deconv.balance);
     cli_setting_num(run, "pl_floor", opt->pl_floor);
     cli_setting_num(run, "lit_threshold", DEMO_LIT);
@@ -315,13 +312,12 @@ static int run_demo(cli_run *run, const struct demo_args *a)
         printf(
             "svpsf demo: a %d x %d field map (peak %.3g uT) under a chequered, spot-lit PL map,\n"
             "blurred by a Lorentzian PSF of %g um FWHM (%g um pixels), then corrected with R&W\n"
-            "(%d %sRichardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL).\n"
+            "(%d Richardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL).\n"
             "Errors in the lit regions (true PL > %g %% of max):\n"
             "  apparent  (T):     max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
             "  corrected (T^-1):  max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
             "Time %.2f s. Outputs (maps, psf.yaml, figures *.png, summary.json) are in %s/\n",
             DEMO_SIZE, DEMO_SIZE, peak, DEMO_FWHM_UM, DEMO_PIXEL_UM, job.opt.deconv.iterations,
-            job.opt.deconv.acceleration == SVP_RL_BIGGS_ANDREWS ? "accelerated " : "",
             job.opt.deconv.balance, 100 * DEMO_LIT, ea.max, 100 * ea.max / peak, ea.mean,
             100 * ea.mean / peak, ec.max, 100 * ec.max / peak, ec.mean, 100 * ec.mean / peak,
             cli_now() - run->t_start, a->output);
