@@ -151,6 +151,7 @@ typedef struct timing {
 static int time_interleaved(svp_blur *b, int K, const svp_image *in, svp_image *out,
                             svp_image *back, int reps, timing *tm)
 {
+    if (svp_blur_ready(b) != SVP_OK) return 0; /* an invariant frame is made on first use */
     const svp_frame *f = &b->frame;
     const size_t nr = (size_t)f->ny * f->nx, nc = (size_t)f->ny * f->ncx;
     double *r = svp_alloc(nr * sizeof(double));
@@ -495,6 +496,7 @@ static double probe_error(svp_blur *b, const svp_psf_field *f, int n, double sup
 static double rl_iteration(svp_blur *b, int K, const svp_image *y, svp_image *x, int reps,
                            double *bound)
 {
+    if (svp_blur_ready(b) != SVP_OK) return NAN; /* an invariant frame is made on first use */
     const svp_frame *f = &b->frame;
     double *r = svp_alloc((size_t)f->ny * f->nx * sizeof(double));
     fftw_complex *c = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
@@ -740,6 +742,7 @@ static int cost_row(const svp_psf_field *f, int n, const char *map, const svp_va
     if (svp_blur_new_field_build(f, n, n, SVP_BOUNDARY_ZERO, o, build, &b) != SVP_OK)
         return fail("cost: build");
     const double t_build = cpu_now() - t0;
+    if (svp_blur_ready(b) != SVP_OK) return fail("cost: frame");
     const svp_frame *fr = &b->frame;
     double *r = svp_alloc((size_t)fr->ny * fr->nx * sizeof(double));
     fftw_complex *c = svp_alloc((size_t)fr->ny * fr->ncx * sizeof(fftw_complex));
