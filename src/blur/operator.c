@@ -90,16 +90,23 @@ svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
     return frame_init(f, width, height, rx, ry, boundary, 0);
 }
 
+/* The frame frame_init would make, its size only (no plans, no OTF). */
+static svp_status frame_size(int width, int height, int rx, int ry, svp_boundary boundary,
+                             int margin, int *nx, int *ny)
+{
+    int off, *src = NULL;
+    svp_status st = axis_init(width, rx, boundary, margin, nx, &off, &src);
+    free(src);
+    src = NULL;
+    if (st == SVP_OK) st = axis_init(height, ry, boundary, margin, ny, &off, &src);
+    free(src);
+    return st;
+}
+
 svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
                           int *ny)
 {
-    int off, *src = NULL;
-    svp_status st = axis_init(width, rx, boundary, 0, nx, &off, &src);
-    free(src);
-    src = NULL;
-    if (st == SVP_OK) st = axis_init(height, ry, boundary, 0, ny, &off, &src);
-    free(src);
-    return st;
+    return frame_size(width, height, rx, ry, boundary, 0, nx, ny);
 }
 
 void svp_frame_release(svp_frame *f)
@@ -347,14 +354,9 @@ static svp_status invariant_frame(const svp_blur *b, int margin, svp_frame *f,
 /* The frame invariant_frame would make for `margin`, its size only (no plans, no OTF). */
 static svp_status frame_dims(const svp_blur *b, int margin, int *nx, int *ny)
 {
-    int rx, ry, off, *src = NULL;
+    int rx, ry;
     kernel_radii(b, &rx, &ry);
-    svp_status st = axis_init(b->width, rx, b->boundary, margin, nx, &off, &src);
-    free(src);
-    src = NULL;
-    if (st == SVP_OK) st = axis_init(b->height, ry, b->boundary, margin, ny, &off, &src);
-    free(src);
-    return st;
+    return frame_size(b->width, b->height, rx, ry, b->boundary, margin, nx, ny);
 }
 
 /* The frame is made on first use (svp_blur_ready), when it is known whether the full grid's or
