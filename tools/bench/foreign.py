@@ -1,7 +1,7 @@
 #!/usr/bin/python3
 """Foreign data for svpsf: measured-like field and PL maps made by an independent forward model.
 
-usage: foreign.py make -o DIR [--scene wire|chessboard|oxide] [--size N] [--counts C]
+usage: foreign.py make -o DIR [--scene wire|chessboard|oxide|array] [--size N] [--counts C]
                        [--pixel-um P] [--fwhm-um F] [--beta B] [--fwhm-err E] [--beta-err E]
                        [--margin-um M] [--quench Q] [--gain G] [--offset O] [--read-noise R]
                        [--nan-fraction F] [--field-noise-ut S] [--seed S]
@@ -29,6 +29,11 @@ Scenes (0.1 µm pixels by default):
   oxide       the same field under the spot with an oxide ramp: the PL falls linearly from 1 to
               --quench across a 4 µm wide band left of the view's centre line (lit to its left,
               dark to its right).
+  array       a field spread over the whole view: 3 x 3 dipoles of alternating sign 1.5 µm deep
+              (flakes seen from a distance) at 0, ±0.66 of the half-width from the centre, under
+              a broad spot (σ 0.9 of the half-width) whose PL an oxide's interference modulates:
+              fringes of 8 µm period (tilted), from 1 down to --quench. Where the field is, the
+              PSF of a space-variant map differs from its centre's (tools/bench/variant_data.py).
 
 The folder gets field.npy (µT, measured), pl.npy (photons), field_sigma.npy (µT), psf.yaml (as
 the user believes it), truth_field.npy, truth_pl.npy (the view's true maps), masks.npz
@@ -101,8 +106,19 @@ def scene_maps(kind, n_canvas, pixel_um, rng, quench=0.05):
     elif kind == "oxide":
         t = np.clip((x_um + 0.3 * half) / 4.0 + 0.5, 0.0, 1.0)  # 0 left of the ramp, 1 right
         pl = spot * (1.0 - (1.0 - quench) * t)
+    elif kind == "array":
+        bz = np.zeros_like(x_um)
+        sign = 1.0
+        for v in (-0.66, 0.0, 0.66):
+            for u in (-0.66, 0.0, 0.66):
+                bz += sign * dipole_bz(x_um, y_um, u * half, v * half, 1.5)
+                sign = -sign
+        bz *= 40 / np.abs(bz).max()
+        broad = np.exp(-0.5 * (x_um ** 2 + y_um ** 2) / (0.9 * half) ** 2)
+        t = 0.5 + 0.5 * np.sin(2 * np.pi * (x_um + 0.37 * y_um) / 8.0)
+        pl = broad * (1.0 - (1.0 - quench) * t)
     else:
-        raise SystemExit(f"foreign.py: unknown scene '{kind}' (wire, chessboard, oxide)")
+        raise SystemExit(f"foreign.py: unknown scene '{kind}' (wire, chessboard, oxide, array)")
     return pl, bz
 
 

@@ -300,23 +300,28 @@ TENT1_ROW = "tent 1x1 (--nodes 1x1)"
 def corr_plan(n, quick):
     """(map, rows) pairs run at size n (what 15 minutes allow): at 512² every row but the
     region-map ones on the smooth map, the centre PSF, the default and 1e-3 on the smooth map
-    over the oxide scene, and those plus tent 1 x 1 and `--regions` on the region maps; at 1024²
-    neither tent 8 x 8 (64 whole-field spectra, 2.2 GB, minutes an application) nor 1e-4, the
-    sharp region map with the centre PSF, the default, tent 1 x 1 and `--regions`; at 2048² the
-    smooth map's centre PSF and default."""
+    over the oxide scene, the centre PSF and the default over the array scene, and those plus
+    tent 1 x 1 and `--regions` on the region maps; at 1024² neither tent 8 x 8 (64 whole-field
+    spectra, 2.2 GB, minutes an application) nor 1e-4, the sharp region map with the centre
+    PSF, the default, tent 1 x 1 and `--regions`; at 2048² the smooth map's centre PSF and
+    default."""
     labels = [r[0] for r in CORR_ROWS if r[0] not in (REGIONS_ROW, TENT1_ROW)]
     oxide = ("smooth, oxide scene", labels[:2])
+    array = ("smooth, array scene", labels[:2])
     region_rows = [labels[0], labels[1], TENT1_ROW, REGIONS_ROW]
     if n >= 2048:
         return [("smooth", labels[:2])]
     if n >= 1024 and not quick:
-        return [("smooth", labels[:3] + labels[5:]), oxide, ("regions, sharp", region_rows)]
+        return [("smooth", labels[:3] + labels[5:]), oxide, array,
+                ("regions, sharp", region_rows)]
     few = labels[:3]
     if quick:
-        return [("smooth", labels[:3] + labels[5:]), oxide, ("regions, sharp", region_rows)]
+        return [("smooth", labels[:3] + labels[5:]), oxide, array,
+                ("regions, sharp", region_rows)]
     smooth = labels if n <= 512 else [l for l in labels if not l.startswith("tent")]
     few_regions = few + [TENT1_ROW, REGIONS_ROW]
-    plan = [("smooth", smooth), ("smooth, oxide scene", few), ("regions, sharp", few_regions)]
+    plan = [("smooth", smooth), ("smooth, oxide scene", few), array,
+            ("regions, sharp", few_regions)]
     if n <= 512:
         plan.append(("regions, blended", few_regions))
     return plan
@@ -354,10 +359,11 @@ def run_rss(cmd, env=None):
 def corr_data(exe, n, work, maps):
     """Writes the maps, the truth and the foreign data of size n into work/<map>/; returns the
     the truth, the masks and what the numpy models cost and measure, per map (a map named
-    "smooth, oxide scene" is the smooth map over the oxide scene; every other over the wire)."""
+    "smooth, oxide scene" / "smooth, array scene" is the smooth map over foreign.py's oxide /
+    array scene; every other over the wire)."""
     import numpy as np
     import variant_data as vd
-    scenes = {k: vd.scene(n, k) for k in ("wire", "oxide")}
+    scenes = {k: vd.scene(n, k) for k in ("wire", "oxide", "array")}
     labels = scenes["wire"][2]
     # white noise for the operators' whole-frame error against the same numpy model
     noise = np.random.default_rng(3).standard_normal((n, n))
@@ -367,7 +373,7 @@ def corr_data(exe, n, work, maps):
         d = os.path.join(work, map_dir(name))
         os.makedirs(d, exist_ok=True)
         t0 = time.monotonic()
-        pl, bz, _ = scenes["oxide" if name.endswith("oxide scene") else "wire"]
+        pl, bz, _ = scenes[name.split(", ")[1].split()[0] if name.endswith(" scene") else "wire"]
         if name.startswith("smooth"):
             vd.write_smooth_map(os.path.join(d, "map.yaml"), n)
             plb, numb, ref = vd.blur_smooth([pl, bz * pl, noise], n, g)
@@ -502,9 +508,10 @@ def correct_section(args, exe):
             # the operators alone (none at 2048², where one build is minutes: the table keeps
             # the program's estimate); the tent 8 x 8 (64 terms) with fewer probes and no RL
             # timing, so the full run stays within 15 minutes
-            # (the oxide scene has the smooth map's operators: measured once, on the wire)
+            # (the oxide and array scenes have the smooth map's operators: measured once, on
+            # the wire)
             reprs = [CORR_OPS[l] for l in rows if l in CORR_OPS] \
-                if n < 2048 and not mname.endswith("oxide scene") else []
+                if n < 2048 and not mname.endswith(" scene") else []
             probes = "8" if n >= 1024 else "12"
             reps = "2" if n >= 1024 else "3"
             ops = []
@@ -543,7 +550,11 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
         "quenches the PL to 5 % under a Gaussian spot; strip field plus a dipole); for the "
         "*smooth, oxide scene* rows its oxide scene (the same field, the PL falling to 5 % "
         "along a 4 µm ramp instead of at the strip's sharp edges: where RL's 75 iterations "
-        "leave less of the sharp edges unconverged, the PSF model's share of the error shows). "
+        "leave less of the sharp edges unconverged, the PSF model's share of the error shows); "
+        "for the *smooth, array scene* rows its array scene (3 × 3 dipoles 1.5 µm deep spread "
+        "over the view, under a broad spot whose PL oxide fringes of 8 µm period modulate down "
+        "to 5 %: the field lies where the map's PSF differs from its centre's — in the wire "
+        "and oxide scenes it lies near the centre, where the centre PSF is nearly right). "
         "Data: PL and "
         "field × PL blurred by a numpy model of the exact per-source operator, never by the "
         "operator under test (smooth: each source's kernel interpolated between 10 × 10 nodes "

@@ -215,8 +215,8 @@ def blur_regions(images, fwhm_px, beta, bins=12):
 def scene(n, kind="wire"):
     """True PL (peak 1), true field (µT) and the metal labels (the strip) of the n x n view:
     foreign.py's scene `kind` (wire: the strip quenched to 5 %; oxide: a PL ramp over 4 µm
-    instead, the same field)."""
-    import foreign  # tools/bench/foreign.py: the wire and oxide scenes
+    instead, the same field; array: 3 x 3 dipoles over the view under oxide fringes)."""
+    import foreign  # tools/bench/foreign.py: the wire, oxide and array scenes
 
     rng = np.random.default_rng(1)
     pl, bz = foreign.scene_maps(kind, n, PIXEL_UM, rng)
