@@ -48,6 +48,20 @@ static svp_psf_field *three_regions(int w, int h, double transition, int halo, d
     return f;
 }
 
+/* The six images of an H / Hᵀ comparison: im[0] = x and im[1] = y random (seeds seed, seed + 1),
+ * im[2], im[3] the two H x, im[4], im[5] the two Hᵀ y. */
+static void images_new(int w, int h, uint64_t seed, svp_image **im)
+{
+    im[0] = test_random_image(w, h, seed);
+    im[1] = test_random_image(w, h, seed + 1);
+    for (int i = 2; i < 6; i++) im[i] = test_image(w, h);
+}
+
+static void images_free(svp_image **im)
+{
+    for (int i = 0; i < 6; i++) svp_image_free(im[i]);
+}
+
 static svp_variant_options regions_options(void)
 {
     svp_variant_options o;
@@ -66,9 +80,9 @@ static void test_sharp_exact(void **state)
     double worst = 0;
     for (int halo = 0; halo < 2; halo++) {
         svp_psf_field *f = three_regions(w, h, 0, halo, 10, 1);
-        svp_image *x = test_random_image(w, h, 11), *yv = test_random_image(w, h, 12);
-        svp_image *hr = test_image(w, h), *he = test_image(w, h);
-        svp_image *tr = test_image(w, h), *te = test_image(w, h);
+        svp_image *im[6];
+        images_new(w, h, 11, im);
+        svp_image *x = im[0], *yv = im[1], *hr = im[2], *he = im[3], *tr = im[4], *te = im[5];
         for (int m = 0; m < 3; m++) {
             svp_variant_options o = regions_options();
             svp_blur *b = NULL, *ex = NULL;
@@ -96,12 +110,7 @@ static void test_sharp_exact(void **state)
             svp_blur_free(ex);
             svp_blur_free(b);
         }
-        svp_image_free(x);
-        svp_image_free(yv);
-        svp_image_free(hr);
-        svp_image_free(he);
-        svp_image_free(tr);
-        svp_image_free(te);
+        images_free(im);
         svp_psf_field_free(f);
     }
     print_message("regions vs exact, sharp 3-label map 96 x 88: at most %.2g of the peak\n", worst);
@@ -171,9 +180,9 @@ static void test_explicit_sum(void **state)
         const int w = sizes[c >> 1][0], h = sizes[c >> 1][1];
         const double transition = c & 1 ? 5.0 : 0.0, support = c >> 1 ? 0.0 : 9.0;
         svp_psf_field *f = three_regions(w, h, transition, 1, support, 1);
-        svp_image *x = test_random_image(w, h, 41), *yv = test_random_image(w, h, 42);
-        svp_image *hr = test_image(w, h), *he = test_image(w, h);
-        svp_image *tr = test_image(w, h), *te = test_image(w, h);
+        svp_image *im[6];
+        images_new(w, h, 41, im);
+        svp_image *x = im[0], *yv = im[1], *hr = im[2], *he = im[3], *tr = im[4], *te = im[5];
         for (int m = 0; m < 3; m++) {
             explicit_sum(f, w, h, modes[m], x, yv, he, te);
             svp_variant_options o = regions_options();
@@ -196,12 +205,7 @@ static void test_explicit_sum(void **state)
             }
             svp_blur_free(b);
         }
-        svp_image_free(x);
-        svp_image_free(yv);
-        svp_image_free(hr);
-        svp_image_free(he);
-        svp_image_free(tr);
-        svp_image_free(te);
+        images_free(im);
         svp_psf_field_free(f);
     }
     print_message("regions vs explicit per-label sum: at most %.2g (double), %.2g (single) of the "
