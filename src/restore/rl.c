@@ -234,7 +234,8 @@ typedef struct rl_run {
     double var_const;      /* one σ² (and the floor under the map) */
     /* single precision only (rl_level_setup; else NULL): H x = λ₁ H1 + λ₂ Hs + H(x − λ₁ − λ₂ s)
      * and Hᵀq = μ₁ Hᵀm + μ₂ Hᵀs + Hᵀ(q − μ₁ m − μ₂ s), q the ratio, s = m y / H1 the data's
-     * shape, the four transforms of the levels once in double */
+     * shape, the four transforms of the levels once (in float for an operator built in single
+     * precision, and then possibly another run's: borrowed) */
     double *shape, *h_one, *h_s, *ht_mask, *ht_s;
     int float_levels; /* the levels transformed in float (an operator built in single) */
     int borrowed;     /* the levels are another run's (svp_deconv_rl_path's `levels`) */
