@@ -197,7 +197,27 @@ static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp
 svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_options *options,
                          svp_image *x)
 {
-    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL);
+    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL, NULL);
+}
+
+/* Single precision with an operator built in single precision: the levels of (11b), made by
+ * one run and used by others (svp_deconv_rl_path's `levels`). */
+struct svp_rl_levels {
+    int w, h;
+    double *shape, *h_one, *h_s, *ht_mask, *ht_s; /* n values each */
+    int fit_step;
+    double fit_n, fit_n_finite, fit_s, fit_ss;
+};
+
+void svp_rl_levels_free(svp_rl_levels *l)
+{
+    if (!l) return;
+    svp_free(l->shape);
+    svp_free(l->h_one);
+    svp_free(l->h_s);
+    svp_free(l->ht_mask);
+    svp_free(l->ht_s);
+    free(l);
 }
 
 /* One Richardson–Lucy run (svp_deconv_rl_path): its data, buffers and constants. */
@@ -214,8 +234,11 @@ typedef struct rl_run {
     double var_const;      /* one σ² (and the floor under the map) */
     /* single precision only (rl_level_setup; else NULL): H x = λ₁ H1 + λ₂ Hs + H(x − λ₁ − λ₂ s)
      * and Hᵀq = μ₁ Hᵀm + μ₂ Hᵀs + Hᵀ(q − μ₁ m − μ₂ s), q the ratio, s = m y / H1 the data's
-     * shape, the four transforms of the levels once in double */
+     * shape, the four transforms of the levels once (in float for an operator built in single
+     * precision, and then possibly another run's: borrowed) */
     double *shape, *h_one, *h_s, *ht_mask, *ht_s;
+    int float_levels; /* the levels transformed in float (an operator built in single) */
+    int borrowed;     /* the levels are another run's (svp_deconv_rl_path's `levels`) */
     /* the fits run on every fit_step-th row: there Σ 1, Σ m, Σ s, Σ s² */
     int fit_step;
     double fit_n, fit_n_finite, fit_s, fit_ss;
@@ -270,13 +293,30 @@ static svp_status rl_scan(rl_run *r)
  * the PL's deconvolution scaled by c) and the ratio m y / Hx mostly m (s / a at the start).
  * So H and Hᵀ transform only the deviation from the least-squares fit of their input by
  * λ₁ (1 or m) + λ₂ s (rl_fit_levels; s = m y / H1, the data's shape, flat edges where light
- * leaves a zero-boundary field), and the fit's transforms, made here once in double, are added
- * back. Nothing in double, nor for an operator built in single precision (no double spectra:
- * the levels' own transforms would carry the float round-off this avoids). */
-static svp_status rl_level_setup(rl_run *r)
+ * leaves a zero-boundary field), and the fit's transforms, made here once, are added back: in
+ * double, or, for an operator built in single precision (no double spectra), in float. Float
+ * levels carry round-off of the levels' size, but once: the same error every iteration (a
+ * fixed error scaled by the fit, not one drawn afresh from the whole iterate each time, which
+ * accelerated RL's extrapolation amplifies); and from `levels` (T⁻¹'s numerators take the
+ * PL's) it is the same bits in both halves of (4), so it cancels there. Nothing in double. */
+static svp_status rl_level_setup(rl_run *r, svp_rl_levels **levels)
 {
     svp_blur *blur = r->blur;
-    if (!blur->single || !svp_blur_has_double(blur)) return SVP_OK;
+    if (!blur->single) return SVP_OK;
+    const int dbl = svp_blur_has_double(blur);
+    r->float_levels = !dbl;
+    if (!dbl && levels && *levels) {
+        const svp_rl_levels *l = *levels;
+        if (l->w != r->w || l->h != r->h)
+            return svp_fail(SVP_ERR_SIZE, "Richardson–Lucy: levels of %d x %d for %d x %d data",
+                            l->w, l->h, r->w, r->h);
+        r->shape = l->shape, r->h_one = l->h_one, r->h_s = l->h_s;
+        r->ht_mask = l->ht_mask, r->ht_s = l->ht_s;
+        r->fit_step = l->fit_step, r->fit_n = l->fit_n, r->fit_n_finite = l->fit_n_finite;
+        r->fit_s = l->fit_s, r->fit_ss = l->fit_ss;
+        r->borrowed = 1;
+        return SVP_OK;
+    }
     const size_t n = r->n;
     double **bufs[5] = {&r->shape, &r->h_one, &r->h_s, &r->ht_mask, &r->ht_s};
     for (int k = 0; k < 5; k++)
@@ -285,7 +325,7 @@ static svp_status rl_level_setup(rl_run *r)
                             r->w, r->h);
     const double *yd = r->yd, *y_masked = r->y_masked;
     double *buf = r->blurred, *shape = r->shape, *h_one = r->h_one;
-    SVP_CHECK(svp_blur_set_single(blur, 0));
+    if (dbl) SVP_CHECK(svp_blur_set_single(blur, 0));
     svp_image img_buf = {r->w, r->h, buf}, img_s = {r->w, r->h, shape};
     svp_image out[4] = {{r->w, r->h, h_one}, {r->w, r->h, r->h_s}, {r->w, r->h, r->ht_mask},
                         {r->w, r->h, r->ht_s}};
@@ -308,8 +348,23 @@ static svp_status rl_level_setup(rl_run *r)
             r->fit_s += shape[i];
             r->fit_ss += shape[i] * shape[i];
         }
-    const svp_status back = svp_blur_set_single(blur, 1);
+    const svp_status back = dbl ? svp_blur_set_single(blur, 1) : SVP_OK;
     return st != SVP_OK ? st : back;
+}
+
+/* The run's float levels to *levels (svp_deconv_rl_path), when asked for and not borrowed. */
+static svp_status rl_level_export(rl_run *r, svp_rl_levels **levels)
+{
+    if (!levels || *levels || !r->float_levels || r->borrowed || !r->shape) return SVP_OK;
+    svp_rl_levels *l = calloc(1, sizeof *l);
+    if (!l) return svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for the levels");
+    *l = (svp_rl_levels){.w = r->w, .h = r->h, .shape = r->shape, .h_one = r->h_one,
+                         .h_s = r->h_s, .ht_mask = r->ht_mask, .ht_s = r->ht_s,
+                         .fit_step = r->fit_step, .fit_n = r->fit_n,
+                         .fit_n_finite = r->fit_n_finite, .fit_s = r->fit_s, .fit_ss = r->fit_ss};
+    r->shape = r->h_one = r->h_s = r->ht_mask = r->ht_s = NULL;
+    *levels = l;
+    return SVP_OK;
 }
 
 /* The least-squares fit v ≈ l[0] e + l[1] s on every fit_step-th row (any fit keeps (11b)
@@ -549,7 +604,8 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
 
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
-                              const double *alpha_in, double *alpha_out)
+                              const double *alpha_in, double *alpha_out,
+                              svp_rl_levels **levels)
 {
     svp_deconv_options defaults;
     if (!options) {
@@ -585,23 +641,26 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                                      (double)k / options->iterations);
         goto cleanup;
     }
-    if ((st = rl_level_setup(&r)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
+    if ((st = rl_level_setup(&r, levels)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
         goto cleanup;
     rl_start(&r, x);
     if ((st = rl_variance(&r, y)) != SVP_OK || (st = rl_alloc_acceleration(&r)) != SVP_OK)
         goto cleanup;
     st = rl_iterate(&r, x, alpha_in, alpha_out);
+    if (st == SVP_OK) st = rl_level_export(&r, levels);
 cleanup:
     if (options->single_precision && !was_single) svp_blur_set_single(blur, 0);
     svp_free(r.y_masked);
     svp_free(r.blurred);
     svp_free(r.correction);
     svp_free(r.inv_norm);
-    svp_free(r.shape);
-    svp_free(r.h_one);
-    svp_free(r.h_s);
-    svp_free(r.ht_mask);
-    svp_free(r.ht_s);
+    if (!r.borrowed) {
+        svp_free(r.shape);
+        svp_free(r.h_one);
+        svp_free(r.h_s);
+        svp_free(r.ht_mask);
+        svp_free(r.ht_s);
+    }
     svp_free(r.x_prev);
     svp_free(r.step_1); /* rl_iterate swaps the two steps: both are freed either way */
     svp_free(r.step_2);

@@ -268,7 +268,7 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                              const svp_deconv_options *base, int balance_auto, double noise_sigma,
                              const svp_image *variance, svp_progress_share *share,
                              svp_deconv_report *report, svp_image *x, const double *alpha_in,
-                             double *alpha_out)
+                             double *alpha_out, svp_rl_levels **levels)
 {
     svp_deconv_options o = *base;
     o.report = report;
@@ -288,7 +288,7 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                                                      &sigma_used, &at_bound, &lcurve));
     }
     if (!share) o.progress = NULL;
-    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out)
+    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out, levels)
                            : svp_deconv_wiener(blur, y, &o, x);
     if (report && !use_rl) {
         report->noise_sigma = sigma_used;
@@ -436,6 +436,8 @@ typedef struct inverse_run {
     svp_image *work, *pl_var, *num_var;
     svp_progress_share *shares;
     double *alphas; /* the PL's extrapolation path (accelerated RL) */
+    svp_rl_levels *levels; /* the PL's RL levels (operator built in single precision), which
+                              the numerators' RL use too: their float round-off cancels in (4) */
     int *counts;    /* RL iterations of every numerator */
 } inverse_run;
 
@@ -522,7 +524,7 @@ static svp_status deconvolve_pl(inverse_run *r)
     load_pl(r);
     svp_status st = deconvolve(r->blur, r->work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
                                r->pl_var, &r->shares[0], &r->reports[0], r->pl_true, NULL,
-                               r->alphas);
+                               r->alphas, &r->levels);
     if (st != SVP_OK) return svp_fail_context(st, "deconvolving pl_apparent");
     return SVP_OK;
 }
@@ -557,7 +559,7 @@ static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int fir
     svp_status st = deconvolve(r->blur, r->work, r->rl_field, &d, o->balance_auto,
                                o->noise_sigma, var_c, first_pass ? &r->shares[c + 1] : NULL,
                                &r->reports[c + 1], r->field_true[c],
-                               r->accel ? r->alphas : NULL, NULL);
+                               r->accel ? r->alphas : NULL, NULL, &r->levels);
     if (st != SVP_OK) {
         char buf[32];
         return svp_fail_context(st, "deconvolving %s x pl_apparent",
@@ -600,7 +602,7 @@ static svp_status deconvolve_numerators(inverse_run *r)
     const double chi2 = r->reports[0].chi2;
     load_pl(r);
     SVP_CHECK(deconvolve(r->blur, r->work, 1, &d, 0, 0, NULL, NULL, &r->reports[0], r->pl_true,
-                         r->accel ? r->alphas : NULL, NULL));
+                         r->accel ? r->alphas : NULL, NULL, &r->levels));
     /* the count was the numerators' noise's choice, not the cap */
     r->reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
     r->reports[0].chi2 = chi2;
@@ -740,6 +742,7 @@ cleanup:
     svp_image_free(r.pl_var);
     svp_image_free(r.num_var);
     free(r.alphas);
+    svp_rl_levels_free(r.levels);
     free(r.counts);
     return st;
 }
