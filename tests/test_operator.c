@@ -251,7 +251,9 @@ static size_t frame_bytes(const svp_blur *op)
     const svp_frame *f = &op->frame;
     const size_t cells = (size_t)f->ny * f->nx, spectrum = (size_t)f->ny * f->ncx;
     size_t bytes = svp_frame_memory(f) + cells * sizeof(double) + spectrum * sizeof(fftw_complex);
-    if (op->rows_f) bytes += cells * sizeof(float) + 2 * spectrum * sizeof(fftwf_complex);
+    if (op->rows_f)
+        bytes += cells * sizeof(float) + spectrum * sizeof(fftwf_complex) +
+                 spectrum * sizeof(float) * (op->otf_f_real ? 1 : 2);
     return bytes + (size_t)op->kernel->width * op->kernel->height * sizeof(double);
 }
 

@@ -55,6 +55,7 @@ int svp_spectrum_is_real(const fftw_complex *z, size_t n);
 double *svp_spectrum_real_part(const fftw_complex *z, size_t n);
 /* s *= scale · o on n interleaved complex values, o real, in place. */
 void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, double scale);
+void svp_spectrum_scale_f(const float *restrict o, float *restrict s, size_t n);
 void svp_frame_release(svp_frame *f);
 size_t svp_frame_memory(const svp_frame *f);
 
@@ -158,12 +159,15 @@ struct svp_blur {
     svp_blur_cache restore;
     /* Single precision (svp_blur_set_single; tent and low rank: svp_variant_set_single): H and Hᵀ transform
      * in float on the same frame (row-pruned like `pruned` in zero mode); the buffers and the
-     * OTF / (nx ny) in float are made on first use and kept. */
+     * OTF / (nx ny) in float are made on first use and kept: otf_f holds ny x ncx complex
+     * values interleaved, or when otf_f_real (the frame's OTF is real, otf_re) their real parts
+     * only, which halves what the spectral product reads. */
     int single;
     const svp_fftf_rows *rows_f;
     float *work_rf;
     fftwf_complex *work_cf;
-    fftwf_complex *otf_f;
+    float *otf_f;
+    int otf_f_real;
 };
 
 /* Invariant operators: makes the frame in use (the full grid's, or the view's after

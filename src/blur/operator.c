@@ -166,6 +166,15 @@ void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, 
     }
 }
 
+void svp_spectrum_scale_f(const float *restrict o, float *restrict s, size_t n)
+{
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
+    for (size_t i = 0; i < n; i++) {
+        s[2 * i] *= o[i];
+        s[2 * i + 1] *= o[i];
+    }
+}
+
 static int wrap(int d, int n)
 {
     d %= n;
@@ -563,9 +572,10 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
         /* zero mode: only the image's rows are non-zero in, and kept out */
         const int rows = b->boundary == SVP_BOUNDARY_ZERO ? f->height : f->ny;
         const size_t nc = (size_t)f->ny * f->ncx;
+        const int real = f->otf_re != NULL; /* a real OTF: its real parts only */
         float *r = svp_alloc((size_t)f->ny * f->nx * sizeof(float));
         fftwf_complex *c = svp_alloc(nc * sizeof(fftwf_complex));
-        fftwf_complex *o = svp_alloc(nc * sizeof(fftwf_complex));
+        float *o = svp_alloc(nc * (real ? 1 : 2) * sizeof(float));
         const svp_fftf_rows *plan = NULL;
         svp_status st = (!r || !c || !o) ? svp_fail(SVP_ERR_NOMEM,
                                                     "out of memory for the %d x "
@@ -579,8 +589,12 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
             return st;
         }
         const double scale = 1.0 / ((double)f->nx * f->ny);
-        float *restrict of = (float *)o;
+        float *restrict of = o;
         for (size_t i = 0; i < nc; i++) {
+            if (real) {
+                of[i] = (float)(scale * f->otf_re[i]);
+                continue;
+            }
             const double complex z = svp_frame_otf(f, i);
             of[2 * i] = (float)(scale * creal(z));
             of[2 * i + 1] = (float)(scale * cimag(z));
@@ -589,6 +603,7 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
         b->work_rf = r;
         b->work_cf = c;
         b->otf_f = o;
+        b->otf_f_real = real;
     }
     b->single = 1;
     return SVP_OK;
@@ -604,6 +619,7 @@ static void drop_single(svp_blur *b)
     b->work_rf = NULL;
     b->work_cf = NULL;
     b->otf_f = NULL;
+    b->otf_f_real = 0;
     b->rows_f = NULL;
 }
 
@@ -683,8 +699,11 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
     else
         svp_frame_extend_f(f, in, fr);
     svp_fftf_forward_rows(p, fr, b->work_cf);
-    svp_spectrum_product_f((const float *)b->otf_f, (float *)b->work_cf, (size_t)f->ny * f->ncx,
-                           adjoint, 1.0f);
+    if (b->otf_f_real) /* the conjugate of a real OTF is itself */
+        svp_spectrum_scale_f(b->otf_f, (float *)b->work_cf, (size_t)f->ny * f->ncx);
+    else
+        svp_spectrum_product_f(b->otf_f, (float *)b->work_cf, (size_t)f->ny * f->ncx, adjoint,
+                               1.0f);
     svp_fftf_inverse_rows_unscaled(p, b->work_cf, fr);
     if (adjoint && b->boundary != SVP_BOUNDARY_ZERO)
         svp_frame_fold_f(f, fr, out);
@@ -735,7 +754,8 @@ static size_t invariant_memory(const svp_blur *b)
     size_t single = 0;
     if (b->rows_f)
         single = (size_t)f->ny * f->nx * sizeof(float) +
-                 2 * (size_t)f->ny * f->ncx * sizeof(fftwf_complex);
+                 (size_t)f->ny * f->ncx * (sizeof(fftwf_complex) + sizeof(float) *
+                                                                 (b->otf_f_real ? 1 : 2));
     return svp_frame_memory(f) + (size_t)f->ny * f->nx * sizeof(double) +
            (size_t)f->ny * f->ncx * sizeof(fftw_complex) + kernel + single;
 }
