@@ -122,23 +122,33 @@ static void log_extrapolate(double *restrict x, double *restrict x_prev, size_t 
 #endif
 }
 
+/* <g_{k−1}, g_{k−1}> of iteration k's extrapolation, which is <g_{k−2}, g_{k−2}> of the next */
+typedef struct step_dot {
+    int k; /* the iteration that computed it, −1 none */
+    double value;
+} step_dot;
+
 /* Biggs–Andrews in the multiplicative (log) domain: x ← z = x_k (x_k / x_{k−1})^α in place,
  * x_prev ← x_k; α = <g_{k−1}, g_{k−2}> / <g_{k−2}, g_{k−2}> in [0, ALPHA_MAX] from the last two
  * RL steps (0 for the first two), or alpha_in[k] when given; alpha_out[k] records it. z > 0
  * wherever x_k, x_{k−1} > 0 (a zero stays), and with one α for two images their ratio is
  * extrapolated the same way, (x/y)_k ((x/y)_k / (x/y)_{k−1})^α: the numerator and the PL of T⁻¹
- * (eq. 4) keep their ratio. scratch: n values for the dot products. */
+ * (eq. 4) keep their ratio. scratch: n values for the dot products; *last carries
+ * <g_{k−1}, g_{k−1}> to the next iteration, whose <g_{k−2}, g_{k−2}> it is (the same sum). */
 static void extrapolate(double *restrict x, double *restrict x_prev, const double *step_1,
                         const double *step_2, double *scratch, size_t n, int k,
-                        const double *alpha_in, double *alpha_out)
+                        const double *alpha_in, double *alpha_out, step_dot *last_dot)
 {
     double alpha = 0;
     if (alpha_in) {
         alpha = alpha_in[k];
     } else if (k >= 2) {
         const double num = svp_dot(step_1, step_2, scratch, n);
-        const double den = svp_dot(step_2, step_2, scratch, n);
+        const double den =
+            last_dot->k == k - 1 ? last_dot->value : svp_dot(step_2, step_2, scratch, n);
         const double last = svp_dot(step_1, step_1, scratch, n);
+        last_dot->k = k;
+        last_dot->value = last;
         const double size = svp_dot(x, x, scratch, n);
         alpha = den > 0 && last > STEP_FLOOR * STEP_FLOOR * size ? num / den : 0.0;
         alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
@@ -511,10 +521,11 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
     double chi2_history[STALL_SPAN + 1] = {0};
     int done = 0, stop = auto_stop ? SVP_RL_STOP_CAP : SVP_RL_STOP_COUNT;
     double chi2 = 0;
+    step_dot last_dot = {-1, 0.0};
     for (int k = 0; k < o->iterations; k++) {
         if (accel)
             extrapolate(xd, r->x_prev, r->step_1, r->step_2, r->correction, n, k, alpha_in,
-                        alpha_out);
+                        alpha_out, &last_dot);
         SVP_CHECK(rl_forward(r, xd, auto_stop)); /* the stopping rule needs Hx whole */
         if (auto_stop) {
             chi2 = residual_chi2(r->yd, r->blurred, r->var_map, r->var_const, r->correction, n) /
