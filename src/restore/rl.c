@@ -231,7 +231,15 @@ typedef struct rl_run {
     double fit_n, fit_n_finite, fit_s, fit_ss;
     double lambda[2]; /* the iterate's fit: its part λ₁ H1 + λ₂ Hs not yet in `blurred`, */
     int lambda_pending; /* when this is 1 (rl_forward) */
-    double mu[2];       /* the ratio's fit, whose part rl_step adds */
+    double mu[2];       /* the ratio's fit, whose part rl_row_step adds */
+    /* the row stages (rl_row_*): the iterate, the step's output (NULL: none), the floor, and
+     * where the ratio's Hx is: in `blurred` (else in the row itself, chained) */
+    double *x, *g;
+    double floor_abs;
+    int hx_whole, ratio_from_blurred;
+    /* the operator takes its input and gives its output a row at a time (svp_blur_rows), and
+     * while frame_holds_hx its frame still holds the last H's output (the ratio's input) */
+    int rows, frame_holds_hx;
 } rl_run;
 
 /* One pass: the finite mask folded into y (missing → 0), the range and the count; the data
@@ -401,88 +409,161 @@ static svp_status rl_variance(rl_run *r, const svp_image *y)
     return SVP_OK;
 }
 
-/* Hx into `blurred`; in single precision by the levels' fit (rl_level_setup), whose part
- * λ₁ H1 + λ₂ Hs is added here when `whole`, else left pending for rl_ratio_adjoint. */
-static svp_status rl_forward(rl_run *r, double *restrict xd, int whole)
+/* ---- one iteration's pointwise stages, a row at a time (svp_blur_rows, or loops over rows) ---- */
+
+/* H's input, row y: the iterate, or in single precision its deviation from the levels' fit */
+static void rl_row_input(void *user, int y, double *restrict row)
 {
-    const size_t n = r->n;
-    svp_image img_x = {r->w, r->h, xd}, img_blurred = {r->w, r->h, r->blurred};
-    if (!r->h_one) return svp_blur_apply(r->blur, &img_x, &img_blurred);
-    double *restrict dev = r->correction, *restrict blurred = r->blurred;
-    const double *restrict h_one = r->h_one, *restrict h_s = r->h_s, *restrict sv = r->shape;
-    r->lambda_pending = 0;
-    double *l = r->lambda;
-    rl_fit_levels(r, xd, 0, 0.0, l);
-    svp_image img_dev = {r->w, r->h, dev};
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) dev[i] = xd[i] - l[0] - l[1] * sv[i];
-    SVP_CHECK(svp_blur_apply(r->blur, &img_dev, &img_blurred));
-    r->lambda_pending = !whole;
-    if (whole) {
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) blurred[i] += l[0] * h_one[i] + l[1] * h_s[i];
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    const double *restrict x = r->x + i0;
+    if (!r->h_one) {
+        memcpy(row, x, (size_t)r->w * sizeof(double));
+        return;
     }
-    return SVP_OK;
+    const double *restrict sv = r->shape + i0;
+    const double l0 = r->lambda[0], l1 = r->lambda[1];
+    for (int i = 0; i < r->w; i++) row[i] = x[i] - l0 - l1 * sv[i];
 }
 
-/* Hᵀ(m y / max(Hx, floor)) into `correction`, with Hx in `blurred` (overwritten); in single
- * precision the deviation from the levels' fit r->mu (rl_level_setup), whose part rl_step
- * adds. */
-static svp_status rl_ratio_adjoint(rl_run *r, double floor_abs)
+/* H's output, row y, into `blurred`: with hx_whole plus the levels' part λ₁ H1 + λ₂ Hs (row may
+ * be `blurred`'s own row) */
+static void rl_row_hx(void *user, int y, double *row)
 {
-    const size_t n = r->n;
-    double *restrict blurred = r->blurred, *restrict correction = r->correction;
-    const double *restrict y_masked = r->y_masked, *restrict yd = r->yd;
-    svp_image img_blurred = {r->w, r->h, blurred}, img_correction = {r->w, r->h, correction};
-    if (!r->ht_mask) {
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) {
-            double hx = blurred[i];
-            blurred[i] = y_masked[i] / (hx > floor_abs ? hx : floor_abs);
-        }
-        return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    double *out = r->blurred + i0;
+    if (!r->hx_whole || !r->h_one) {
+        if (out != row) memcpy(out, row, (size_t)r->w * sizeof(double));
+        return;
     }
-    rl_fit_levels(r, NULL, 1, floor_abs, r->mu);
-    const double mu0 = r->mu[0], mu1 = r->mu[1], *restrict sv = r->shape;
+    const double *restrict h1 = r->h_one + i0, *restrict hs = r->h_s + i0;
+    const double l0 = r->lambda[0], l1 = r->lambda[1];
+    for (int i = 0; i < r->w; i++) {
+        double v = row[i];
+        v += l0 * h1[i] + l1 * hs[i];
+        out[i] = v;
+    }
+}
+
+/* Hᵀ's input, row y: the ratio m y / max(Hx, floor), Hx from `blurred` (ratio_from_blurred)
+ * or the row itself; in single precision with the pending levels' part of Hx added and the
+ * ratio's deviation from its fit r->mu taken */
+static void rl_row_ratio(void *user, int y, double *row)
+{
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    const double *hx_in = r->ratio_from_blurred ? r->blurred + i0 : row;
+    const double *restrict ym = r->y_masked + i0;
+    const double floor_abs = r->floor_abs;
+    if (!r->ht_mask) {
+        for (int i = 0; i < r->w; i++) {
+            const double hx = hx_in[i];
+            row[i] = ym[i] / (hx > floor_abs ? hx : floor_abs);
+        }
+        return;
+    }
+    const double mu0 = r->mu[0], mu1 = r->mu[1];
     const double l0 = r->lambda_pending ? r->lambda[0] : 0.0;
     const double l1 = r->lambda_pending ? r->lambda[1] : 0.0;
-    const double *restrict h1 = r->h_one, *restrict hs = r->h_s;
-    const int all_finite = r->n_finite == n;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) {
-        const double hx = blurred[i] + l0 * h1[i] + l1 * hs[i];
-        blurred[i] = all_finite || isfinite(yd[i])
-                         ? y_masked[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i]
-                         : 0.0;
+    const double *restrict h1 = r->h_one + i0, *restrict hs = r->h_s + i0;
+    const double *restrict sv = r->shape + i0, *restrict yd = r->yd + i0;
+    const int all_finite = r->n_finite == r->n;
+    for (int i = 0; i < r->w; i++) {
+        const double hx = hx_in[i] + l0 * h1[i] + l1 * hs[i];
+        row[i] = all_finite || isfinite(yd[i])
+                     ? ym[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i]
+                     : 0.0;
     }
-    r->lambda_pending = 0;
-    return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
 }
 
-/* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx in `blurred`;
- * g (or NULL) receives the step x_new − x. */
-static svp_status rl_step(rl_run *r, double *restrict xd, double *restrict g, double floor_abs)
+/* Hᵀ's output, row y (`row`: Hᵀ(...), in single precision less the levels' part): the
+ * multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm; r->g (or NULL) receives x_new − x */
+static void rl_row_step(void *user, int y, double *restrict row)
 {
-    const size_t n = r->n;
-    const double *inv_norm = r->inv_norm, *correction = r->correction;
-    const double *ht_mask = r->ht_mask, *ht_s = r->ht_s;
-    SVP_CHECK(rl_ratio_adjoint(r, floor_abs));
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    double *restrict xd = r->x + i0, *restrict g = r->g ? r->g + i0 : NULL;
+    const double *restrict inv_norm = r->inv_norm + i0;
+    const double *restrict ht_mask = r->ht_mask ? r->ht_mask + i0 : NULL;
+    const double *restrict ht_s = r->ht_s ? r->ht_s + i0 : NULL;
     const double mu0 = r->mu[0], mu1 = r->mu[1];
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) {
+    for (int i = 0; i < r->w; i++) {
         if (inv_norm[i] == 0) {
             if (g) g[i] = 0.0;
             continue;
         }
         const double old = xd[i];
-        /* single precision: the levels' part of Hᵀ(...) (rl_ratio_adjoint) */
-        const double c = ht_mask ? correction[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : correction[i];
+        /* single precision: the levels' part of Hᵀ(...) (rl_row_ratio) */
+        const double c = ht_mask ? row[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : row[i];
         double v = old * c * inv_norm[i];
         /* round-off can make Hᵀ(...) slightly negative; NaN/Inf never leave */
         v = (v > 0 && v <= DBL_MAX) ? v : 0.0;
         xd[i] = v;
         if (g) g[i] = v - old;
     }
+}
+
+/* stage(r, y, image + y w) for every row y */
+static void rl_rows(rl_run *r, svp_blur_row_fn stage, double *image)
+{
+#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
+    for (int y = 0; y < r->h; y++) stage(r, y, image + (size_t)y * r->w);
+}
+
+/* Hx into `blurred`; in single precision by the levels' fit (rl_level_setup), whose part
+ * λ₁ H1 + λ₂ Hs is added here when `whole`, else left pending for rl_adjoint_step. With row-wise
+ * transforms (r->rows) and not `whole`, only the levels' fit rows of `blurred` are filled (all
+ * rl_fit_levels reads) and the frame keeps Hx for the ratio. */
+static svp_status rl_forward(rl_run *r, double *restrict xd, int whole)
+{
+    svp_image img_x = {r->w, r->h, xd}, img_blurred = {r->w, r->h, r->blurred};
+    r->x = xd;
+    r->hx_whole = whole;
+    r->frame_holds_hx = 0;
+    r->lambda_pending = 0;
+    if (r->h_one) rl_fit_levels(r, xd, 0, 0.0, r->lambda);
+    if (r->rows) {
+        const int store = whole || r->h_one;
+        SVP_CHECK(svp_blur_rows(r->blur, 0, 0, rl_row_input, store ? rl_row_hx : NULL,
+                                whole || !r->h_one ? 1 : r->fit_step, r));
+        r->frame_holds_hx = !whole;
+    } else if (!r->h_one) {
+        return svp_blur_apply(r->blur, &img_x, &img_blurred);
+    } else {
+        svp_image img_dev = {r->w, r->h, r->correction};
+        rl_rows(r, rl_row_input, r->correction);
+        SVP_CHECK(svp_blur_apply(r->blur, &img_dev, &img_blurred));
+        if (whole) rl_rows(r, rl_row_hx, r->blurred);
+    }
+    r->lambda_pending = r->h_one && !whole;
+    return SVP_OK;
+}
+
+/* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx from rl_forward
+ * (in `blurred`, or in the operator's frame); g (or NULL) receives the step x_new − x. In
+ * single precision Hᵀ transforms the ratio's deviation from its levels' fit r->mu
+ * (rl_level_setup), whose part the step adds. */
+static svp_status rl_adjoint_step(rl_run *r, double *restrict xd, double *restrict g,
+                                  double floor_abs)
+{
+    r->x = xd;
+    r->g = g;
+    r->floor_abs = floor_abs;
+    if (r->ht_mask) rl_fit_levels(r, NULL, 1, floor_abs, r->mu);
+    if (r->rows) {
+        r->ratio_from_blurred = !r->frame_holds_hx;
+        SVP_CHECK(svp_blur_rows(r->blur, 1, r->frame_holds_hx, rl_row_ratio, rl_row_step, 1, r));
+    } else {
+        svp_image img_blurred = {r->w, r->h, r->blurred};
+        svp_image img_correction = {r->w, r->h, r->correction};
+        r->ratio_from_blurred = 1;
+        rl_rows(r, rl_row_ratio, r->blurred);
+        SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_correction));
+        rl_rows(r, rl_row_step, r->correction);
+    }
+    r->lambda_pending = 0;
+    r->frame_holds_hx = 0;
     return SVP_OK;
 }
 
@@ -538,7 +619,7 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
             }
         }
         double *g = r->step_2; /* becomes the newest step */
-        SVP_CHECK(rl_step(r, xd, g, floor_abs));
+        SVP_CHECK(rl_adjoint_step(r, xd, g, floor_abs));
         if (accel) {
             r->step_2 = r->step_1;
             r->step_1 = g;
@@ -573,7 +654,7 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
     if (options->single_precision) SVP_CHECK(svp_blur_set_single(blur, 1));
     const size_t n = (size_t)y->width * y->height;
     rl_run r = {.blur = blur, .o = options, .w = y->width, .h = y->height, .n = n,
-                .yd = y->data};
+                .yd = y->data, .rows = svp_blur_rows_ok(blur)};
     svp_status st = SVP_OK;
     if (options->report) memset(options->report, 0, sizeof *options->report);
 
