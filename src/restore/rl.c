@@ -469,11 +469,32 @@ static void rl_row_ratio(void *user, int y, double *row)
     const double *restrict h1 = r->h_one + i0, *restrict hs = r->h_s + i0;
     const double *restrict sv = r->shape + i0, *restrict yd = r->yd + i0;
     const int all_finite = r->n_finite == r->n;
+    /* branch-free, so that it vectorises: the quotient is taken everywhere, then kept or not */
     for (int i = 0; i < r->w; i++) {
         const double hx = hx_in[i] + l0 * h1[i] + l1 * hs[i];
-        row[i] = all_finite || isfinite(yd[i])
-                     ? ym[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i]
-                     : 0.0;
+        const double q = ym[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i];
+        row[i] = all_finite || isfinite(yd[i]) ? q : 0.0;
+    }
+}
+
+/* The multiplicative step of n pixels (rl_row_step), written branch-free so that it vectorises;
+ * levels and g constant where it is inlined. */
+static inline void rl_step_pixels(double *restrict xd, double *restrict g, const double *row,
+                                  const double *restrict inv_norm, const double *restrict ht_mask,
+                                  const double *restrict ht_s, double mu0, double mu1, int n,
+                                  int levels, int with_g)
+{
+    for (int i = 0; i < n; i++) {
+        const double old = xd[i];
+        /* single precision: the levels' part of Hᵀ(...) (rl_row_ratio) */
+        const double c = levels ? row[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : row[i];
+        double v = old * c * inv_norm[i];
+        /* round-off can make Hᵀ(...) slightly negative; NaN/Inf never leave */
+        v = (v > 0 && v <= DBL_MAX) ? v : 0.0;
+        /* pixels no finite datum sees (1 / Hᵀm = 0) keep their value */
+        const int keep = inv_norm[i] == 0;
+        xd[i] = keep ? old : v;
+        if (with_g) g[i] = keep ? 0.0 : v - old;
     }
 }
 
@@ -483,24 +504,19 @@ static void rl_row_step(void *user, int y, double *restrict row)
 {
     const rl_run *r = user;
     const size_t i0 = (size_t)y * r->w;
-    double *restrict xd = r->x + i0, *restrict g = r->g ? r->g + i0 : NULL;
-    const double *restrict inv_norm = r->inv_norm + i0;
-    const double *restrict ht_mask = r->ht_mask ? r->ht_mask + i0 : NULL;
-    const double *restrict ht_s = r->ht_s ? r->ht_s + i0 : NULL;
+    double *xd = r->x + i0, *g = r->g ? r->g + i0 : NULL;
+    const double *inv_norm = r->inv_norm + i0;
     const double mu0 = r->mu[0], mu1 = r->mu[1];
-    for (int i = 0; i < r->w; i++) {
-        if (inv_norm[i] == 0) {
-            if (g) g[i] = 0.0;
-            continue;
-        }
-        const double old = xd[i];
-        /* single precision: the levels' part of Hᵀ(...) (rl_row_ratio) */
-        const double c = ht_mask ? row[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : row[i];
-        double v = old * c * inv_norm[i];
-        /* round-off can make Hᵀ(...) slightly negative; NaN/Inf never leave */
-        v = (v > 0 && v <= DBL_MAX) ? v : 0.0;
-        xd[i] = v;
-        if (g) g[i] = v - old;
+    if (r->ht_mask) {
+        const double *htm = r->ht_mask + i0, *hts = r->ht_s + i0;
+        if (g)
+            rl_step_pixels(xd, g, row, inv_norm, htm, hts, mu0, mu1, r->w, 1, 1);
+        else
+            rl_step_pixels(xd, NULL, row, inv_norm, htm, hts, mu0, mu1, r->w, 1, 0);
+    } else if (g) {
+        rl_step_pixels(xd, g, row, inv_norm, NULL, NULL, 0.0, 0.0, r->w, 0, 1);
+    } else {
+        rl_step_pixels(xd, NULL, row, inv_norm, NULL, NULL, 0.0, 0.0, r->w, 0, 0);
     }
 }
 
