@@ -217,6 +217,7 @@ typedef struct rl_run {
     int w, h;
     size_t n, n_finite;
     const double *yd;                                    /* the data y */
+    unsigned char *finite; /* 1 where y is finite, 0 where missing (n values) */
     double *y_masked, *blurred, *correction, *inv_norm; /* n values each */
     double *x_prev, *step_1, *step_2;                    /* Biggs–Andrews, else NULL */
     double y_max;
@@ -255,6 +256,7 @@ static svp_status rl_scan(rl_run *r)
     reduction(max : y_max) reduction(+ : n_finite)
     for (size_t i = 0; i < n; i++) {
         double v = yd[i];
+        r->finite[i] = isfinite(v) != 0;
         if (isfinite(v)) {
             y_masked[i] = v;
             y_min = v < y_min ? v : y_min;
@@ -467,14 +469,15 @@ static void rl_row_ratio(void *user, int y, double *row)
     const double l0 = r->lambda_pending ? r->lambda[0] : 0.0;
     const double l1 = r->lambda_pending ? r->lambda[1] : 0.0;
     const double *restrict h1 = r->h_one + i0, *restrict hs = r->h_s + i0;
-    const double *restrict sv = r->shape + i0, *restrict yd = r->yd + i0;
-    const int all_finite = r->n_finite == r->n;
-    /* branch-free, so that it vectorises: the quotient is taken everywhere, then kept or not */
+    const double *restrict sv = r->shape + i0;
+    const unsigned char *restrict fin = r->finite + i0;
+    /* the quotient everywhere, then missing pixels zeroed (two loops, so that both vectorise) */
     for (int i = 0; i < r->w; i++) {
         const double hx = hx_in[i] + l0 * h1[i] + l1 * hs[i];
-        const double q = ym[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i];
-        row[i] = all_finite || isfinite(yd[i]) ? q : 0.0;
+        row[i] = ym[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i];
     }
+    if (r->n_finite < r->n)
+        for (int i = 0; i < r->w; i++) row[i] = fin[i] ? row[i] : 0.0;
 }
 
 /* The multiplicative step of n pixels (rl_row_step), written branch-free so that it vectorises;
@@ -677,9 +680,14 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
     /* y with its missing pixels at 0, Hx (and the ratio y / Hx), Hᵀ(...), 1 / Hᵀm */
     r.y_masked = svp_alloc(n * sizeof(double));
     r.blurred = svp_alloc(n * sizeof(double));
-    r.correction = svp_alloc(n * sizeof(double));
     r.inv_norm = svp_alloc(n * sizeof(double));
-    if (!r.y_masked || !r.blurred || !r.correction || !r.inv_norm) {
+    r.finite = svp_alloc(n);
+    /* Hᵀ's output, H's input in single precision, and the acceleration's and the stopping
+     * rule's scratch: not needed when H and Hᵀ go a row at a time without either */
+    const int accel = options->acceleration == SVP_RL_BIGGS_ANDREWS;
+    r.correction = !r.rows || accel || options->auto_stop ? svp_alloc(n * sizeof(double)) : NULL;
+    if (!r.y_masked || !r.blurred || !r.inv_norm || !r.finite ||
+        (!r.correction && (!r.rows || accel || options->auto_stop))) {
         st = svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for %d x %d buffers", r.w,
                       r.h);
         goto cleanup;
@@ -704,6 +712,7 @@ cleanup:
     svp_free(r.y_masked);
     svp_free(r.blurred);
     svp_free(r.correction);
+    svp_free(r.finite);
     svp_free(r.inv_norm);
     svp_free(r.shape);
     svp_free(r.h_one);
