@@ -35,10 +35,12 @@ void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double 
 /* svp_deconv_rl that follows a given extrapolation path: with acceleration, alpha_in (may be
  * NULL: computed) gives the weight α of every iteration and alpha_out (may be NULL) receives the
  * ones used (options->iterations entries each). T⁻¹ runs its numerators on the PL's path, so
- * the two halves of (4) extrapolate alike and their errors cancel as without acceleration. */
+ * the two halves of (4) extrapolate alike and their errors cancel as without acceleration.
+ * start (may be NULL: flat at the mean of the finite data) is the first iterate, one value a
+ * pixel; where it is not positive and finite the flat value is used. */
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
-                              const double *alpha_in, double *alpha_out);
+                              const double *alpha_in, double *alpha_out, const double *start);
 /* k² of the field noise model σ_B² = k² / Ĩ (noise.c); 0 when nothing is usable. */
 svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
 /* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0
