@@ -251,7 +251,9 @@ static size_t frame_bytes(const svp_blur *op)
     const svp_frame *f = &op->frame;
     const size_t cells = (size_t)f->ny * f->nx, spectrum = (size_t)f->ny * f->ncx;
     size_t bytes = svp_frame_memory(f) + cells * sizeof(double) + spectrum * sizeof(fftw_complex);
-    if (op->rows_f) bytes += cells * sizeof(float) + 2 * spectrum * sizeof(fftwf_complex);
+    if (op->rows_f)
+        bytes += cells * sizeof(float) + spectrum * sizeof(fftwf_complex) +
+                 spectrum * sizeof(float) * (op->otf_f_real ? 1 : 2);
     return bytes + (size_t)op->kernel->width * op->kernel->height * sizeof(double);
 }
 
@@ -304,6 +306,119 @@ static void test_view_only_frame(void **state)
     svp_image_free(y);
     svp_image_free(xt);
     svp_image_free(ref);
+}
+
+/* svp_blur_rows' callbacks for the tests: load copies the rows of `in` (chained: keeps the row
+ * it is given, and records that it arrived holding `expect`'s row), store copies into `out` and
+ * counts the rows it saw */
+typedef struct rows_ctx {
+    const svp_image *in, *expect;
+    svp_image *out;
+    int stored, chained_ok;
+} rows_ctx;
+
+static void rows_load(void *user, int y, double *restrict row)
+{
+    rows_ctx *c = user;
+    const int w = c->out->width;
+    if (c->expect) {
+        if (memcmp(row, c->expect->data + (size_t)y * w, (size_t)w * sizeof(double)))
+#pragma omp atomic write
+            c->chained_ok = 0;
+        return;
+    }
+    memcpy(row, c->in->data + (size_t)y * w, (size_t)w * sizeof(double));
+}
+
+static void rows_store(void *user, int y, double *restrict row)
+{
+    rows_ctx *c = user;
+    const int w = c->out->width;
+    memcpy(c->out->data + (size_t)y * w, row, (size_t)w * sizeof(double));
+#pragma omp atomic
+    c->stored++;
+}
+
+/* svp_blur_rows is bit-identical to svp_blur_apply / _adjoint (zero boundary, with the view's
+ * pruned frame and without, symmetric and asymmetric kernels, double and single precision, on
+ * 1 and 2 threads); chained, Hᵀ receives H's output rows from the frame and Hᵀ H x is
+ * bit-identical to the two calls; store_every stores only those rows; chained after another
+ * use of the frame is SVP_ERR_INTERNAL; mirror and halo operators are refused. */
+static void test_blur_rows(void **state)
+{
+    (void)state;
+    const int w = 23, h = 17, kw = 2 * w - 1, kh = 2 * h - 1;
+    const size_t bytes = (size_t)w * h * sizeof(double);
+    svp_image *x = test_random_image(w, h, 51), *ref = test_image(w, h), *ref2 = test_image(w, h);
+    svp_image *out = test_image(w, h), *out2 = test_image(w, h);
+    const int threads = svp_get_threads();
+    for (int sym = 0; sym < 2; sym++) {
+        svp_image *k = test_random_image(kw, kh, 52);
+        const size_t m = (size_t)kw * kh;
+        if (sym)
+            for (size_t i = 0; i < m / 2; i++) k->data[m - 1 - i] = k->data[i];
+        for (int variant = 0; variant < 4; variant++) {
+            const int single = variant & 1, view = variant >> 1;
+            svp_set_threads(1 + (variant + sym) % 2);
+            svp_blur *op = NULL;
+            ASSERT_OK(svp_blur_new_kernel(k, kw / 2, kh / 2, 1, w, h, SVP_BOUNDARY_ZERO, &op));
+            assert_true(svp_blur_rows_ok(op));
+            int applied = 0;
+            if (view) ASSERT_OK(svp_blur_set_view(op, 3, &applied));
+            ASSERT_OK(svp_blur_set_single(op, single));
+            for (int adjoint = 0; adjoint < 2; adjoint++) {
+                rows_ctx c = {x, NULL, out, 0, 1};
+                ASSERT_OK(adjoint ? svp_blur_adjoint(op, x, ref) : svp_blur_apply(op, x, ref));
+                ASSERT_OK(svp_blur_rows(op, adjoint, 0, rows_load, rows_store, 1, &c));
+                assert_int_equal(c.stored, h);
+                if (memcmp(out->data, ref->data, bytes))
+                    fail_msg("rows differ from %s: symmetric %d, single %d, view %d",
+                             adjoint ? "adjoint" : "apply", sym, single, view);
+            }
+            /* chained: Hᵀ H x, H's output stored every 4th row only */
+            ASSERT_OK(svp_blur_apply(op, x, ref));
+            ASSERT_OK(svp_blur_adjoint(op, ref, ref2));
+            rows_ctx c = {x, NULL, out, 0, 1};
+            memset(out->data, 0, bytes);
+            ASSERT_OK(svp_blur_rows(op, 0, 0, rows_load, rows_store, 4, &c));
+            assert_int_equal(c.stored, (h + 3) / 4);
+            for (int y = 0; y < h; y++)
+                for (int i = 0; i < w; i++) {
+                    const size_t at = (size_t)y * w + i;
+                    assert_true(y % 4 ? out->data[at] == 0 : out->data[at] == ref->data[at]);
+                }
+            rows_ctx c2 = {NULL, ref, out2, 0, 1};
+            ASSERT_OK(svp_blur_rows(op, 1, 1, rows_load, rows_store, 1, &c2));
+            assert_true(c2.chained_ok && c2.stored == h);
+            assert_true(memcmp(out2->data, ref2->data, bytes) == 0);
+            /* the frame used since: no chaining */
+            ASSERT_OK(svp_blur_apply(op, x, ref));
+            assert_int_equal(svp_blur_rows(op, 1, 1, rows_load, rows_store, 1, &c2),
+                             SVP_ERR_INTERNAL);
+            svp_blur_free(op);
+        }
+        svp_image_free(k);
+    }
+    svp_set_threads(threads);
+    svp_blur *op = NULL;
+    svp_image *k = test_random_image(5, 5, 53);
+    ASSERT_OK(svp_blur_new_kernel(k, 2, 2, 1, w, h, SVP_BOUNDARY_MIRROR, &op));
+    rows_ctx c = {x, NULL, out, 0, 1};
+    assert_false(svp_blur_rows_ok(op));
+    assert_int_equal(svp_blur_rows(op, 0, 0, rows_load, rows_store, 1, &c), SVP_ERR_INVALID);
+    svp_blur_free(op);
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.halo = 0.1;
+    ASSERT_OK(svp_blur_new(&psf, w, h, SVP_BOUNDARY_ZERO, &op));
+    assert_false(svp_blur_rows_ok(op));
+    svp_blur_free(op);
+    svp_image_free(k);
+    svp_image_free(x);
+    svp_image_free(ref);
+    svp_image_free(ref2);
+    svp_image_free(out);
+    svp_image_free(out2);
 }
 
 /* svp_blur_set_view (zero boundary): on the frame for the view `m` pixels in from every side,
@@ -540,6 +655,7 @@ int main(void)
         cmocka_unit_test(test_bad_arguments),      cmocka_unit_test(test_plan_callback_and_wisdom),
         cmocka_unit_test(test_view_frame),
         cmocka_unit_test(test_view_only_frame),
+        cmocka_unit_test(test_blur_rows),
     };
     int rc = cmocka_run_group_tests_name("operator", tests, NULL, NULL);
     svp_fft_cleanup();

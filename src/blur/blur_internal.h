@@ -55,6 +55,7 @@ int svp_spectrum_is_real(const fftw_complex *z, size_t n);
 double *svp_spectrum_real_part(const fftw_complex *z, size_t n);
 /* s *= scale · o on n interleaved complex values, o real, in place. */
 void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, double scale);
+void svp_spectrum_scale_f(const float *restrict o, float *restrict s, size_t n);
 void svp_frame_release(svp_frame *f);
 size_t svp_frame_memory(const svp_frame *f);
 
@@ -158,12 +159,18 @@ struct svp_blur {
     svp_blur_cache restore;
     /* Single precision (svp_blur_set_single; tent and low rank: svp_variant_set_single): H and Hᵀ transform
      * in float on the same frame (row-pruned like `pruned` in zero mode); the buffers and the
-     * OTF / (nx ny) in float are made on first use and kept. */
+     * OTF / (nx ny) in float are made on first use and kept: otf_f holds ny x ncx complex
+     * values interleaved, or when otf_f_real (the frame's OTF is real, otf_re) their real parts
+     * only, which halves what the spectral product reads. */
     int single;
     const svp_fftf_rows *rows_f;
     float *work_rf;
     fftwf_complex *work_cf;
-    fftwf_complex *otf_f;
+    float *otf_f;
+    int otf_f_real;
+    /* 1 while the work frame holds the output of the last svp_blur_rows (rows 0 .. height − 1,
+     * in the precision then in use); any other use of the frame clears it */
+    int rows_held;
 };
 
 /* Invariant operators: makes the frame in use (the full grid's, or the view's after
@@ -191,6 +198,21 @@ svp_status svp_variant_set_single(svp_blur *b, int on);
  * with svp_variant_options.single_precision, which keeps only float spectra). */
 int svp_blur_has_double(const svp_blur *b);
 void svp_blur_spectrum_out(svp_blur *b, double *restrict image, int adjoint_side);
+/* A row stage of svp_blur_rows: row y (0 .. height − 1) of an image, `width` values. Called
+ * in parallel over rows, each row once by one thread; it must not start OpenMP regions. */
+typedef void (*svp_blur_row_fn)(void *user, int y, double *restrict row);
+/* 1 when svp_blur_rows serves b: an invariant zero-boundary operator without halo. */
+int svp_blur_rows_ok(const svp_blur *b);
+/* H (adjoint 0) or Hᵀ (1) of an operator svp_blur_rows_ok accepts with its input and output
+ * passed a row at a time, so a solver's pointwise work before and after runs in the same pass
+ * over the frame as its copy in and out, with no image-sized intermediate: load(user, y, row)
+ * writes row y of the input into `row` (with `chained` it arrives holding row y of the last
+ * svp_blur_rows' output, which the frame still holds, and is rewritten in place; the frame must
+ * not have been used since: SVP_ERR_INTERNAL); store (NULL: none) receives row y of the output
+ * for every y with y % store_every == 0. Bit-identical to svp_blur_apply / _adjoint of the
+ * images load writes and store takes, in either precision. */
+svp_status svp_blur_rows(svp_blur *b, int adjoint, int chained, svp_blur_row_fn load,
+                         svp_blur_row_fn store, int store_every, void *user);
 /* Invariant zero-boundary operators, for solvers whose data lie on the view `margin` pixels in
  * from every side of the operator's grid (T⁻¹ with a margin, docs/model.md §3): margin > 0 puts
  * the smallest frame that is exact for such data in use — H x exact on the view (not beyond),

@@ -2,6 +2,7 @@
 #include "blur_internal.h"
 
 #include <math.h>
+#include <omp.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -163,6 +164,15 @@ void svp_spectrum_scale(const double *restrict o, double *restrict s, size_t n, 
         const double g = scale * o[i];
         s[2 * i] *= g;
         s[2 * i + 1] *= g;
+    }
+}
+
+void svp_spectrum_scale_f(const float *restrict o, float *restrict s, size_t n)
+{
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN / 2)
+    for (size_t i = 0; i < n; i++) {
+        s[2 * i] *= o[i];
+        s[2 * i + 1] *= o[i];
     }
 }
 
@@ -548,6 +558,7 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
 {
     if (!b) return svp_fail(SVP_ERR_INVALID, "svp_blur_set_single: the operator is NULL");
     if (b->kind != SVP_BLUR_INVARIANT) return svp_variant_set_single(b, on);
+    if (on != b->single) b->rows_held = 0;
     if (!on) {
         b->single = 0;
         return SVP_OK;
@@ -563,9 +574,10 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
         /* zero mode: only the image's rows are non-zero in, and kept out */
         const int rows = b->boundary == SVP_BOUNDARY_ZERO ? f->height : f->ny;
         const size_t nc = (size_t)f->ny * f->ncx;
+        const int real = f->otf_re != NULL; /* a real OTF: its real parts only */
         float *r = svp_alloc((size_t)f->ny * f->nx * sizeof(float));
         fftwf_complex *c = svp_alloc(nc * sizeof(fftwf_complex));
-        fftwf_complex *o = svp_alloc(nc * sizeof(fftwf_complex));
+        float *o = svp_alloc(nc * (real ? 1 : 2) * sizeof(float));
         const svp_fftf_rows *plan = NULL;
         svp_status st = (!r || !c || !o) ? svp_fail(SVP_ERR_NOMEM,
                                                     "out of memory for the %d x "
@@ -579,8 +591,12 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
             return st;
         }
         const double scale = 1.0 / ((double)f->nx * f->ny);
-        float *restrict of = (float *)o;
+        float *restrict of = o;
         for (size_t i = 0; i < nc; i++) {
+            if (real) {
+                of[i] = (float)(scale * f->otf_re[i]);
+                continue;
+            }
             const double complex z = svp_frame_otf(f, i);
             of[2 * i] = (float)(scale * creal(z));
             of[2 * i + 1] = (float)(scale * cimag(z));
@@ -589,6 +605,7 @@ svp_status svp_blur_set_single(svp_blur *b, int on)
         b->work_rf = r;
         b->work_cf = c;
         b->otf_f = o;
+        b->otf_f_real = real;
     }
     b->single = 1;
     return SVP_OK;
@@ -604,6 +621,7 @@ static void drop_single(svp_blur *b)
     b->work_rf = NULL;
     b->work_cf = NULL;
     b->otf_f = NULL;
+    b->otf_f_real = 0;
     b->rows_f = NULL;
 }
 
@@ -617,6 +635,7 @@ static void drop_frame(svp_blur *b)
     svp_free(b->work_c);
     b->work_r = NULL;
     b->work_c = NULL;
+    b->rows_held = 0;
     drop_single(b);
 }
 
@@ -668,6 +687,16 @@ svp_status svp_blur_set_precision(svp_blur *blur, int single)
     return svp_blur_set_single(blur, single != 0);
 }
 
+/* The float spectrum times the float OTF (adjoint: its conjugate). */
+static void single_product(svp_blur *b, int adjoint)
+{
+    const size_t n = (size_t)b->frame.ny * b->frame.ncx;
+    if (b->otf_f_real) /* the conjugate of a real OTF is itself */
+        svp_spectrum_scale_f(b->otf_f, (float *)b->work_cf, n);
+    else
+        svp_spectrum_product_f(b->otf_f, (float *)b->work_cf, n, adjoint, 1.0f);
+}
+
 /* H (adjoint 0) or Hᵀ (1) of an invariant operator with float transforms: the image goes into
  * the float frame as svp_blur_spectrum_in places it (zero padding, E or Cᵀ), and comes back
  * as svp_blur_spectrum_out takes it (C or Eᵀ), converted on the way. */
@@ -683,8 +712,7 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
     else
         svp_frame_extend_f(f, in, fr);
     svp_fftf_forward_rows(p, fr, b->work_cf);
-    svp_spectrum_product_f((const float *)b->otf_f, (float *)b->work_cf, (size_t)f->ny * f->ncx,
-                           adjoint, 1.0f);
+    single_product(b, adjoint);
     svp_fftf_inverse_rows_unscaled(p, b->work_cf, fr);
     if (adjoint && b->boundary != SVP_BOUNDARY_ZERO)
         svp_frame_fold_f(f, fr, out);
@@ -692,11 +720,117 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
         svp_frame_crop_f(f, fr, out);
 }
 
+/* ---- row-wise H and Hᵀ (svp_blur_rows) ------------------------------------------------------ */
+
+/* _Pragma inside a macro is beyond clang-format: this block is laid out by hand */
+/* clang-format off */
+/* svp_blur_rows' two passes over a frame of element type FT in zero mode, each thread with its
+ * own row of `stride` doubles in tmp: LOAD fills rows 0 .. height − 1 as svp_frame_zero_load
+ * does from the rows `load` writes (chained: from the frame's own rows, converted as
+ * svp_frame_crop does); STORE hands `store` the rows svp_frame_crop would give. */
+#define SVP_ROWS_PASSES(LOAD, STORE, FT)                                                           \
+    static void LOAD(const svp_frame *f, FT *restrict frame, int chained, svp_blur_row_fn load,    \
+                     void *user, double *tmp, size_t stride)                                       \
+    {                                                                                              \
+        const int w = f->width, nx = f->nx;                                                        \
+        _Pragma("omp parallel if (SVP_FRAME_BIG(f))")                                              \
+        {                                                                                          \
+            double *restrict row = tmp + stride * (size_t)omp_get_thread_num();                    \
+            _Pragma("omp for schedule(static)")                                                    \
+            for (int y = 0; y < f->height; y++) {                                                  \
+                FT *out = frame + (size_t)y * nx;                                                  \
+                if (chained)                                                                       \
+                    for (int i = 0; i < w; i++) row[i] = (double)out[i];                           \
+                load(user, y, row);                                                                \
+                for (int i = 0; i < w; i++) out[i] = (FT)row[i];                                   \
+                memset(out + w, 0, (size_t)(nx - w) * sizeof(FT));                                 \
+            }                                                                                      \
+        }                                                                                          \
+    }                                                                                              \
+    static void STORE(const svp_frame *f, const FT *restrict frame, svp_blur_row_fn store,         \
+                      int every, void *user, double *tmp, size_t stride)                           \
+    {                                                                                              \
+        const int w = f->width, nx = f->nx;                                                        \
+        _Pragma("omp parallel if (SVP_FRAME_BIG(f))")                                              \
+        {                                                                                          \
+            double *restrict row = tmp + stride * (size_t)omp_get_thread_num();                    \
+            _Pragma("omp for schedule(static)")                                                    \
+            for (int y = 0; y < f->height; y++) {                                                  \
+                if (y % every) continue;                                                           \
+                const FT *in = frame + (size_t)y * nx;                                             \
+                for (int i = 0; i < w; i++) row[i] = (double)in[i];                                \
+                store(user, y, row);                                                               \
+            }                                                                                      \
+        }                                                                                          \
+    }
+
+SVP_ROWS_PASSES(rows_load, rows_store, double)
+SVP_ROWS_PASSES(rows_load_f, rows_store_f, float)
+/* clang-format on */
+
+int svp_blur_rows_ok(const svp_blur *b)
+{
+    return b && b->kind == SVP_BLUR_INVARIANT && b->boundary == SVP_BOUNDARY_ZERO && b->halo == 0;
+}
+
+/* The frame's transforms between svp_blur_rows' passes, as invariant_apply / _adjoint do them
+ * in zero mode (rows height .. of the frame: none, or pruned). */
+static void rows_transform(svp_blur *b, int adjoint)
+{
+    const svp_frame *f = &b->frame;
+    if (b->single) {
+        svp_fftf_forward_rows(b->rows_f, b->work_rf, b->work_cf);
+        single_product(b, adjoint);
+        svp_fftf_inverse_rows_unscaled(b->rows_f, b->work_cf, b->work_rf);
+        return;
+    }
+    if (b->pruned)
+        svp_fft_forward_pruned(b->pruned, b->work_r, b->work_c);
+    else
+        svp_fft_forward(f->plan, b->work_r, b->work_c);
+    svp_frame_multiply(f, b->work_c, adjoint, 1.0 / ((double)f->nx * f->ny));
+    if (b->pruned)
+        svp_fft_inverse_pruned_unscaled(b->pruned, b->work_c, b->work_r);
+    else
+        svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
+}
+
+svp_status svp_blur_rows(svp_blur *b, int adjoint, int chained, svp_blur_row_fn load,
+                         svp_blur_row_fn store, int store_every, void *user)
+{
+    if (!svp_blur_rows_ok(b) || !load || store_every < 1)
+        return svp_fail(SVP_ERR_INVALID, "svp_blur_rows: not an invariant zero-boundary operator "
+                                         "without halo, or no load, or store_every < 1");
+    SVP_CHECK(svp_blur_ready(b));
+    if (chained && !b->rows_held)
+        return svp_fail(SVP_ERR_INTERNAL, "svp_blur_rows: chained, but the frame does not hold "
+                                          "the last output");
+    const svp_frame *f = &b->frame;
+    /* a 64-byte multiple per thread: the threads' rows share no cache line */
+    const size_t stride = ((size_t)f->width + 7) & ~(size_t)7;
+    double *tmp = svp_alloc(stride * (size_t)omp_get_max_threads() * sizeof(double));
+    if (!tmp) return svp_fail(SVP_ERR_NOMEM, "svp_blur_rows: out of memory for row buffers");
+    b->rows_held = 0;
+    if (b->single)
+        rows_load_f(f, b->work_rf, chained, load, user, tmp, stride);
+    else
+        rows_load(f, b->work_r, chained, load, user, tmp, stride);
+    rows_transform(b, adjoint);
+    if (store && b->single)
+        rows_store_f(f, b->work_rf, store, store_every, user, tmp, stride);
+    else if (store)
+        rows_store(f, b->work_r, store, store_every, user, tmp, stride);
+    svp_free(tmp);
+    b->rows_held = 1;
+    return SVP_OK;
+}
+
 /* ---- the invariant representation ----------------------------------------------------- */
 
 static svp_status invariant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
     SVP_CHECK(svp_blur_ready(b));
+    b->rows_held = 0;
     if (b->single) {
         apply_single(b, x, y, 0);
         add_halo(b, x, y);
@@ -713,6 +847,7 @@ static svp_status invariant_apply(svp_blur *b, const double *restrict x, double 
 static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
     SVP_CHECK(svp_blur_ready(b));
+    b->rows_held = 0;
     if (b->single) {
         apply_single(b, y, x, 1);
         add_halo(b, y, x);
@@ -735,7 +870,8 @@ static size_t invariant_memory(const svp_blur *b)
     size_t single = 0;
     if (b->rows_f)
         single = (size_t)f->ny * f->nx * sizeof(float) +
-                 2 * (size_t)f->ny * f->ncx * sizeof(fftwf_complex);
+                 (size_t)f->ny * f->ncx * (sizeof(fftwf_complex) + sizeof(float) *
+                                                                 (b->otf_f_real ? 1 : 2));
     return svp_frame_memory(f) + (size_t)f->ny * f->nx * sizeof(double) +
            (size_t)f->ny * f->ncx * sizeof(fftw_complex) + kernel + single;
 }

@@ -32,6 +32,7 @@ void svp_restore_wiener_counts(const svp_blur *blur, int *steps, int *pairs);
 void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double balance);
 /* The arguments every deconvolution shares (wiener.c): operator, data y and output x present,
  * both of the operator's size, x not y; `what` names the method in the message. */
+typedef struct svp_rl_levels svp_rl_levels;
 /* svp_deconv_rl that follows a given extrapolation path: with acceleration, alpha_in (may be
  * NULL: computed) gives the weight α of every iteration and alpha_out (may be NULL) receives the
  * ones used (options->iterations entries each). T⁻¹ runs its numerators on the PL's path, so
@@ -40,7 +41,16 @@ void svp_tikhonov_invert(double *restrict filt, int nx, int ny, int ncx, double 
  * pixel; where it is not positive and finite the flat value is used. */
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
-                              const double *alpha_in, double *alpha_out, const double *start);
+                              const double *alpha_in, double *alpha_out,
+                              svp_rl_levels **levels, const double *start);
+/* The levels of single-precision RL with an operator built in single precision (rl.c,
+ * docs/model.md §6 (11b)): the data's shape s and H1, Hs, Hᵀm, Hᵀs, transformed once in float.
+ * levels (may be NULL: the run makes its own) passed to svp_deconv_rl_path with *levels NULL
+ * receives the run's, and with *levels set the run uses those instead of its own: T⁻¹ gives
+ * its numerators the PL's, so the levels' float round-off is the same bits in both halves of
+ * (4), scales with their fits and cancels. Same size and missing pixels required. Nothing is
+ * made or used for other operators. */
+void svp_rl_levels_free(svp_rl_levels *levels);
 /* k² of the field noise model σ_B² = k² / Ĩ (noise.c); 0 when nothing is usable. */
 svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
 /* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0

@@ -122,23 +122,33 @@ static void log_extrapolate(double *restrict x, double *restrict x_prev, size_t 
 #endif
 }
 
+/* <g_{k−1}, g_{k−1}> of iteration k's extrapolation, which is <g_{k−2}, g_{k−2}> of the next */
+typedef struct step_dot {
+    int k; /* the iteration that computed it, −1 none */
+    double value;
+} step_dot;
+
 /* Biggs–Andrews in the multiplicative (log) domain: x ← z = x_k (x_k / x_{k−1})^α in place,
  * x_prev ← x_k; α = <g_{k−1}, g_{k−2}> / <g_{k−2}, g_{k−2}> in [0, ALPHA_MAX] from the last two
  * RL steps (0 for the first two), or alpha_in[k] when given; alpha_out[k] records it. z > 0
  * wherever x_k, x_{k−1} > 0 (a zero stays), and with one α for two images their ratio is
  * extrapolated the same way, (x/y)_k ((x/y)_k / (x/y)_{k−1})^α: the numerator and the PL of T⁻¹
- * (eq. 4) keep their ratio. scratch: n values for the dot products. */
+ * (eq. 4) keep their ratio. scratch: n values for the dot products; *last carries
+ * <g_{k−1}, g_{k−1}> to the next iteration, whose <g_{k−2}, g_{k−2}> it is (the same sum). */
 static void extrapolate(double *restrict x, double *restrict x_prev, const double *step_1,
                         const double *step_2, double *scratch, size_t n, int k,
-                        const double *alpha_in, double *alpha_out)
+                        const double *alpha_in, double *alpha_out, step_dot *last_dot)
 {
     double alpha = 0;
     if (alpha_in) {
         alpha = alpha_in[k];
     } else if (k >= 2) {
         const double num = svp_dot(step_1, step_2, scratch, n);
-        const double den = svp_dot(step_2, step_2, scratch, n);
+        const double den =
+            last_dot->k == k - 1 ? last_dot->value : svp_dot(step_2, step_2, scratch, n);
         const double last = svp_dot(step_1, step_1, scratch, n);
+        last_dot->k = k;
+        last_dot->value = last;
         const double size = svp_dot(x, x, scratch, n);
         alpha = den > 0 && last > STEP_FLOOR * STEP_FLOOR * size ? num / den : 0.0;
         alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
@@ -197,7 +207,27 @@ static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp
 svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_options *options,
                          svp_image *x)
 {
-    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL, NULL);
+    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL, NULL, NULL);
+}
+
+/* Single precision with an operator built in single precision: the levels of (11b), made by
+ * one run and used by others (svp_deconv_rl_path's `levels`). */
+struct svp_rl_levels {
+    int w, h;
+    double *shape, *h_one, *h_s, *ht_mask, *ht_s; /* n values each */
+    int fit_step;
+    double fit_n, fit_n_finite, fit_s, fit_ss;
+};
+
+void svp_rl_levels_free(svp_rl_levels *l)
+{
+    if (!l) return;
+    svp_free(l->shape);
+    svp_free(l->h_one);
+    svp_free(l->h_s);
+    svp_free(l->ht_mask);
+    svp_free(l->ht_s);
+    free(l);
 }
 
 /* One Richardson–Lucy run (svp_deconv_rl_path): its data, buffers and constants. */
@@ -207,6 +237,7 @@ typedef struct rl_run {
     int w, h;
     size_t n, n_finite;
     const double *yd;                                    /* the data y */
+    unsigned char *finite; /* 1 where y is finite, 0 where missing (n values) */
     double *y_masked, *blurred, *correction, *inv_norm; /* n values each */
     double *x_prev, *step_1, *step_2;                    /* Biggs–Andrews, else NULL */
     double y_max;
@@ -214,14 +245,25 @@ typedef struct rl_run {
     double var_const;      /* one σ² (and the floor under the map) */
     /* single precision only (rl_level_setup; else NULL): H x = λ₁ H1 + λ₂ Hs + H(x − λ₁ − λ₂ s)
      * and Hᵀq = μ₁ Hᵀm + μ₂ Hᵀs + Hᵀ(q − μ₁ m − μ₂ s), q the ratio, s = m y / H1 the data's
-     * shape, the four transforms of the levels once in double */
+     * shape, the four transforms of the levels once (in float for an operator built in single
+     * precision, and then possibly another run's: borrowed) */
     double *shape, *h_one, *h_s, *ht_mask, *ht_s;
+    int float_levels; /* the levels transformed in float (an operator built in single) */
+    int borrowed;     /* the levels are another run's (svp_deconv_rl_path's `levels`) */
     /* the fits run on every fit_step-th row: there Σ 1, Σ m, Σ s, Σ s² */
     int fit_step;
     double fit_n, fit_n_finite, fit_s, fit_ss;
     double lambda[2]; /* the iterate's fit: its part λ₁ H1 + λ₂ Hs not yet in `blurred`, */
     int lambda_pending; /* when this is 1 (rl_forward) */
-    double mu[2];       /* the ratio's fit, whose part rl_step adds */
+    double mu[2];       /* the ratio's fit, whose part rl_row_step adds */
+    /* the row stages (rl_row_*): the iterate, the step's output (NULL: none), the floor, and
+     * where the ratio's Hx is: in `blurred` (else in the row itself, chained) */
+    double *x, *g;
+    double floor_abs;
+    int hx_whole, ratio_from_blurred;
+    /* the operator takes its input and gives its output a row at a time (svp_blur_rows), and
+     * while frame_holds_hx its frame still holds the last H's output (the ratio's input) */
+    int rows, frame_holds_hx;
 } rl_run;
 
 /* One pass: the finite mask folded into y (missing → 0), the range and the count; the data
@@ -237,6 +279,7 @@ static svp_status rl_scan(rl_run *r)
     reduction(max : y_max) reduction(+ : n_finite)
     for (size_t i = 0; i < n; i++) {
         double v = yd[i];
+        r->finite[i] = isfinite(v) != 0;
         if (isfinite(v)) {
             y_masked[i] = v;
             y_min = v < y_min ? v : y_min;
@@ -270,13 +313,30 @@ static svp_status rl_scan(rl_run *r)
  * the PL's deconvolution scaled by c) and the ratio m y / Hx mostly m (s / a at the start).
  * So H and Hᵀ transform only the deviation from the least-squares fit of their input by
  * λ₁ (1 or m) + λ₂ s (rl_fit_levels; s = m y / H1, the data's shape, flat edges where light
- * leaves a zero-boundary field), and the fit's transforms, made here once in double, are added
- * back. Nothing in double, nor for an operator built in single precision (no double spectra:
- * the levels' own transforms would carry the float round-off this avoids). */
-static svp_status rl_level_setup(rl_run *r)
+ * leaves a zero-boundary field), and the fit's transforms, made here once, are added back: in
+ * double, or, for an operator built in single precision (no double spectra), in float. Float
+ * levels carry round-off of the levels' size, but once: the same error every iteration (a
+ * fixed error scaled by the fit, not one drawn afresh from the whole iterate each time, which
+ * accelerated RL's extrapolation amplifies); and from `levels` (T⁻¹'s numerators take the
+ * PL's) it is the same bits in both halves of (4), so it cancels there. Nothing in double. */
+static svp_status rl_level_setup(rl_run *r, svp_rl_levels **levels)
 {
     svp_blur *blur = r->blur;
-    if (!blur->single || !svp_blur_has_double(blur)) return SVP_OK;
+    if (!blur->single) return SVP_OK;
+    const int dbl = svp_blur_has_double(blur);
+    r->float_levels = !dbl;
+    if (!dbl && levels && *levels) {
+        const svp_rl_levels *l = *levels;
+        if (l->w != r->w || l->h != r->h)
+            return svp_fail(SVP_ERR_SIZE, "Richardson–Lucy: levels of %d x %d for %d x %d data",
+                            l->w, l->h, r->w, r->h);
+        r->shape = l->shape, r->h_one = l->h_one, r->h_s = l->h_s;
+        r->ht_mask = l->ht_mask, r->ht_s = l->ht_s;
+        r->fit_step = l->fit_step, r->fit_n = l->fit_n, r->fit_n_finite = l->fit_n_finite;
+        r->fit_s = l->fit_s, r->fit_ss = l->fit_ss;
+        r->borrowed = 1;
+        return SVP_OK;
+    }
     const size_t n = r->n;
     double **bufs[5] = {&r->shape, &r->h_one, &r->h_s, &r->ht_mask, &r->ht_s};
     for (int k = 0; k < 5; k++)
@@ -285,7 +345,7 @@ static svp_status rl_level_setup(rl_run *r)
                             r->w, r->h);
     const double *yd = r->yd, *y_masked = r->y_masked;
     double *buf = r->blurred, *shape = r->shape, *h_one = r->h_one;
-    SVP_CHECK(svp_blur_set_single(blur, 0));
+    if (dbl) SVP_CHECK(svp_blur_set_single(blur, 0));
     svp_image img_buf = {r->w, r->h, buf}, img_s = {r->w, r->h, shape};
     svp_image out[4] = {{r->w, r->h, h_one}, {r->w, r->h, r->h_s}, {r->w, r->h, r->ht_mask},
                         {r->w, r->h, r->ht_s}};
@@ -308,8 +368,23 @@ static svp_status rl_level_setup(rl_run *r)
             r->fit_s += shape[i];
             r->fit_ss += shape[i] * shape[i];
         }
-    const svp_status back = svp_blur_set_single(blur, 1);
+    const svp_status back = dbl ? svp_blur_set_single(blur, 1) : SVP_OK;
     return st != SVP_OK ? st : back;
+}
+
+/* The run's float levels to *levels (svp_deconv_rl_path), when asked for and not borrowed. */
+static svp_status rl_level_export(rl_run *r, svp_rl_levels **levels)
+{
+    if (!levels || *levels || !r->float_levels || r->borrowed || !r->shape) return SVP_OK;
+    svp_rl_levels *l = calloc(1, sizeof *l);
+    if (!l) return svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for the levels");
+    *l = (svp_rl_levels){.w = r->w, .h = r->h, .shape = r->shape, .h_one = r->h_one,
+                         .h_s = r->h_s, .ht_mask = r->ht_mask, .ht_s = r->ht_s,
+                         .fit_step = r->fit_step, .fit_n = r->fit_n,
+                         .fit_n_finite = r->fit_n_finite, .fit_s = r->fit_s, .fit_ss = r->fit_ss};
+    r->shape = r->h_one = r->h_s = r->ht_mask = r->ht_s = NULL;
+    *levels = l;
+    return SVP_OK;
 }
 
 /* The least-squares fit v ≈ l[0] e + l[1] s on every fit_step-th row (any fit keeps (11b)
@@ -391,88 +466,178 @@ static svp_status rl_variance(rl_run *r, const svp_image *y)
     return SVP_OK;
 }
 
-/* Hx into `blurred`; in single precision by the levels' fit (rl_level_setup), whose part
- * λ₁ H1 + λ₂ Hs is added here when `whole`, else left pending for rl_ratio_adjoint. */
-static svp_status rl_forward(rl_run *r, double *restrict xd, int whole)
+/* ---- one iteration's pointwise stages, a row at a time (svp_blur_rows, or loops over rows) ---- */
+
+/* H's input, row y: the iterate, or in single precision its deviation from the levels' fit */
+static void rl_row_input(void *user, int y, double *restrict row)
 {
-    const size_t n = r->n;
-    svp_image img_x = {r->w, r->h, xd}, img_blurred = {r->w, r->h, r->blurred};
-    if (!r->h_one) return svp_blur_apply(r->blur, &img_x, &img_blurred);
-    double *restrict dev = r->correction, *restrict blurred = r->blurred;
-    const double *restrict h_one = r->h_one, *restrict h_s = r->h_s, *restrict sv = r->shape;
-    r->lambda_pending = 0;
-    double *l = r->lambda;
-    rl_fit_levels(r, xd, 0, 0.0, l);
-    svp_image img_dev = {r->w, r->h, dev};
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) dev[i] = xd[i] - l[0] - l[1] * sv[i];
-    SVP_CHECK(svp_blur_apply(r->blur, &img_dev, &img_blurred));
-    r->lambda_pending = !whole;
-    if (whole) {
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) blurred[i] += l[0] * h_one[i] + l[1] * h_s[i];
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    const double *restrict x = r->x + i0;
+    if (!r->h_one) {
+        memcpy(row, x, (size_t)r->w * sizeof(double));
+        return;
     }
-    return SVP_OK;
+    const double *restrict sv = r->shape + i0;
+    const double l0 = r->lambda[0], l1 = r->lambda[1];
+    for (int i = 0; i < r->w; i++) row[i] = x[i] - l0 - l1 * sv[i];
 }
 
-/* Hᵀ(m y / max(Hx, floor)) into `correction`, with Hx in `blurred` (overwritten); in single
- * precision the deviation from the levels' fit r->mu (rl_level_setup), whose part rl_step
- * adds. */
-static svp_status rl_ratio_adjoint(rl_run *r, double floor_abs)
+/* H's output, row y, into `blurred`: with hx_whole plus the levels' part λ₁ H1 + λ₂ Hs (row may
+ * be `blurred`'s own row) */
+static void rl_row_hx(void *user, int y, double *row)
 {
-    const size_t n = r->n;
-    double *restrict blurred = r->blurred, *restrict correction = r->correction;
-    const double *restrict y_masked = r->y_masked, *restrict yd = r->yd;
-    svp_image img_blurred = {r->w, r->h, blurred}, img_correction = {r->w, r->h, correction};
-    if (!r->ht_mask) {
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) {
-            double hx = blurred[i];
-            blurred[i] = y_masked[i] / (hx > floor_abs ? hx : floor_abs);
-        }
-        return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    double *out = r->blurred + i0;
+    if (!r->hx_whole || !r->h_one) {
+        if (out != row) memcpy(out, row, (size_t)r->w * sizeof(double));
+        return;
     }
-    rl_fit_levels(r, NULL, 1, floor_abs, r->mu);
-    const double mu0 = r->mu[0], mu1 = r->mu[1], *restrict sv = r->shape;
+    const double *restrict h1 = r->h_one + i0, *restrict hs = r->h_s + i0;
+    const double l0 = r->lambda[0], l1 = r->lambda[1];
+    for (int i = 0; i < r->w; i++) {
+        double v = row[i];
+        v += l0 * h1[i] + l1 * hs[i];
+        out[i] = v;
+    }
+}
+
+/* Hᵀ's input, row y: the ratio m y / max(Hx, floor), Hx from `blurred` (ratio_from_blurred)
+ * or the row itself; in single precision with the pending levels' part of Hx added and the
+ * ratio's deviation from its fit r->mu taken */
+static void rl_row_ratio(void *user, int y, double *row)
+{
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    const double *hx_in = r->ratio_from_blurred ? r->blurred + i0 : row;
+    const double *restrict ym = r->y_masked + i0;
+    const double floor_abs = r->floor_abs;
+    if (!r->ht_mask) {
+        for (int i = 0; i < r->w; i++) {
+            const double hx = hx_in[i];
+            row[i] = ym[i] / (hx > floor_abs ? hx : floor_abs);
+        }
+        return;
+    }
+    const double mu0 = r->mu[0], mu1 = r->mu[1];
     const double l0 = r->lambda_pending ? r->lambda[0] : 0.0;
     const double l1 = r->lambda_pending ? r->lambda[1] : 0.0;
-    const double *restrict h1 = r->h_one, *restrict hs = r->h_s;
-    const int all_finite = r->n_finite == n;
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) {
-        const double hx = blurred[i] + l0 * h1[i] + l1 * hs[i];
-        blurred[i] = all_finite || isfinite(yd[i])
-                         ? y_masked[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i]
-                         : 0.0;
+    const double *restrict h1 = r->h_one + i0, *restrict hs = r->h_s + i0;
+    const double *restrict sv = r->shape + i0;
+    const unsigned char *restrict fin = r->finite + i0;
+    /* the quotient everywhere, then missing pixels zeroed (two loops, so that both vectorise) */
+    for (int i = 0; i < r->w; i++) {
+        const double hx = hx_in[i] + l0 * h1[i] + l1 * hs[i];
+        row[i] = ym[i] / (hx > floor_abs ? hx : floor_abs) - mu0 - mu1 * sv[i];
     }
-    r->lambda_pending = 0;
-    return svp_blur_adjoint(r->blur, &img_blurred, &img_correction);
+    if (r->n_finite < r->n)
+        for (int i = 0; i < r->w; i++) row[i] = fin[i] ? row[i] : 0.0;
 }
 
-/* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx in `blurred`;
- * g (or NULL) receives the step x_new − x. */
-static svp_status rl_step(rl_run *r, double *restrict xd, double *restrict g, double floor_abs)
+/* The multiplicative step of n pixels (rl_row_step), written branch-free so that it vectorises;
+ * levels and g constant where it is inlined. */
+static inline void rl_step_pixels(double *restrict xd, double *restrict g, const double *row,
+                                  const double *restrict inv_norm, const double *restrict ht_mask,
+                                  const double *restrict ht_s, double mu0, double mu1, int n,
+                                  int levels, int with_g)
 {
-    const size_t n = r->n;
-    const double *inv_norm = r->inv_norm, *correction = r->correction;
-    const double *ht_mask = r->ht_mask, *ht_s = r->ht_s;
-    SVP_CHECK(rl_ratio_adjoint(r, floor_abs));
-    const double mu0 = r->mu[0], mu1 = r->mu[1];
-#pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++) {
-        if (inv_norm[i] == 0) {
-            if (g) g[i] = 0.0;
-            continue;
-        }
+    for (int i = 0; i < n; i++) {
         const double old = xd[i];
-        /* single precision: the levels' part of Hᵀ(...) (rl_ratio_adjoint) */
-        const double c = ht_mask ? correction[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : correction[i];
+        /* single precision: the levels' part of Hᵀ(...) (rl_row_ratio) */
+        const double c = levels ? row[i] + mu0 * ht_mask[i] + mu1 * ht_s[i] : row[i];
         double v = old * c * inv_norm[i];
         /* round-off can make Hᵀ(...) slightly negative; NaN/Inf never leave */
         v = (v > 0 && v <= DBL_MAX) ? v : 0.0;
-        xd[i] = v;
-        if (g) g[i] = v - old;
+        /* pixels no finite datum sees (1 / Hᵀm = 0) keep their value */
+        const int keep = inv_norm[i] == 0;
+        xd[i] = keep ? old : v;
+        if (with_g) g[i] = keep ? 0.0 : v - old;
     }
+}
+
+/* Hᵀ's output, row y (`row`: Hᵀ(...), in single precision less the levels' part): the
+ * multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm; r->g (or NULL) receives x_new − x */
+static void rl_row_step(void *user, int y, double *restrict row)
+{
+    const rl_run *r = user;
+    const size_t i0 = (size_t)y * r->w;
+    double *xd = r->x + i0, *g = r->g ? r->g + i0 : NULL;
+    const double *inv_norm = r->inv_norm + i0;
+    const double mu0 = r->mu[0], mu1 = r->mu[1];
+    if (r->ht_mask) {
+        const double *htm = r->ht_mask + i0, *hts = r->ht_s + i0;
+        if (g)
+            rl_step_pixels(xd, g, row, inv_norm, htm, hts, mu0, mu1, r->w, 1, 1);
+        else
+            rl_step_pixels(xd, NULL, row, inv_norm, htm, hts, mu0, mu1, r->w, 1, 0);
+    } else if (g) {
+        rl_step_pixels(xd, g, row, inv_norm, NULL, NULL, 0.0, 0.0, r->w, 0, 1);
+    } else {
+        rl_step_pixels(xd, NULL, row, inv_norm, NULL, NULL, 0.0, 0.0, r->w, 0, 0);
+    }
+}
+
+/* stage(r, y, image + y w) for every row y */
+static void rl_rows(rl_run *r, svp_blur_row_fn stage, double *image)
+{
+#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
+    for (int y = 0; y < r->h; y++) stage(r, y, image + (size_t)y * r->w);
+}
+
+/* Hx into `blurred`; in single precision by the levels' fit (rl_level_setup), whose part
+ * λ₁ H1 + λ₂ Hs is added here when `whole`, else left pending for rl_adjoint_step. With row-wise
+ * transforms (r->rows) and not `whole`, only the levels' fit rows of `blurred` are filled (all
+ * rl_fit_levels reads) and the frame keeps Hx for the ratio. */
+static svp_status rl_forward(rl_run *r, double *restrict xd, int whole)
+{
+    svp_image img_x = {r->w, r->h, xd}, img_blurred = {r->w, r->h, r->blurred};
+    r->x = xd;
+    r->hx_whole = whole;
+    r->frame_holds_hx = 0;
+    r->lambda_pending = 0;
+    if (r->h_one) rl_fit_levels(r, xd, 0, 0.0, r->lambda);
+    if (r->rows) {
+        const int store = whole || r->h_one;
+        SVP_CHECK(svp_blur_rows(r->blur, 0, 0, rl_row_input, store ? rl_row_hx : NULL,
+                                whole || !r->h_one ? 1 : r->fit_step, r));
+        r->frame_holds_hx = !whole;
+    } else if (!r->h_one) {
+        return svp_blur_apply(r->blur, &img_x, &img_blurred);
+    } else {
+        svp_image img_dev = {r->w, r->h, r->correction};
+        rl_rows(r, rl_row_input, r->correction);
+        SVP_CHECK(svp_blur_apply(r->blur, &img_dev, &img_blurred));
+        if (whole) rl_rows(r, rl_row_hx, r->blurred);
+    }
+    r->lambda_pending = r->h_one && !whole;
+    return SVP_OK;
+}
+
+/* One multiplicative step x ← x · Hᵀ(m y / max(Hx, floor)) / Hᵀm, with Hx from rl_forward
+ * (in `blurred`, or in the operator's frame); g (or NULL) receives the step x_new − x. In
+ * single precision Hᵀ transforms the ratio's deviation from its levels' fit r->mu
+ * (rl_level_setup), whose part the step adds. */
+static svp_status rl_adjoint_step(rl_run *r, double *restrict xd, double *restrict g,
+                                  double floor_abs)
+{
+    r->x = xd;
+    r->g = g;
+    r->floor_abs = floor_abs;
+    if (r->ht_mask) rl_fit_levels(r, NULL, 1, floor_abs, r->mu);
+    if (r->rows) {
+        r->ratio_from_blurred = !r->frame_holds_hx;
+        SVP_CHECK(svp_blur_rows(r->blur, 1, r->frame_holds_hx, rl_row_ratio, rl_row_step, 1, r));
+    } else {
+        svp_image img_blurred = {r->w, r->h, r->blurred};
+        svp_image img_correction = {r->w, r->h, r->correction};
+        r->ratio_from_blurred = 1;
+        rl_rows(r, rl_row_ratio, r->blurred);
+        SVP_CHECK(svp_blur_adjoint(r->blur, &img_blurred, &img_correction));
+        rl_rows(r, rl_row_step, r->correction);
+    }
+    r->lambda_pending = 0;
+    r->frame_holds_hx = 0;
     return SVP_OK;
 }
 
@@ -513,10 +678,11 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
     double chi2_history[STALL_SPAN + 1] = {0};
     int done = 0, stop = auto_stop ? SVP_RL_STOP_CAP : SVP_RL_STOP_COUNT;
     double chi2 = 0;
+    step_dot last_dot = {-1, 0.0};
     for (int k = 0; k < o->iterations; k++) {
         if (accel)
             extrapolate(xd, r->x_prev, r->step_1, r->step_2, r->correction, n, k, alpha_in,
-                        alpha_out);
+                        alpha_out, &last_dot);
         SVP_CHECK(rl_forward(r, xd, auto_stop)); /* the stopping rule needs Hx whole */
         if (auto_stop) {
             chi2 = residual_chi2(r->yd, r->blurred, r->var_map, r->var_const, r->correction, n) /
@@ -529,7 +695,7 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
             }
         }
         double *g = r->step_2; /* becomes the newest step */
-        SVP_CHECK(rl_step(r, xd, g, floor_abs));
+        SVP_CHECK(rl_adjoint_step(r, xd, g, floor_abs));
         if (accel) {
             r->step_2 = r->step_1;
             r->step_1 = g;
@@ -551,7 +717,8 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
 
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
-                              const double *alpha_in, double *alpha_out, const double *start)
+                              const double *alpha_in, double *alpha_out,
+                              svp_rl_levels **levels, const double *start)
 {
     svp_deconv_options defaults;
     if (!options) {
@@ -564,16 +731,21 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
     if (options->single_precision) SVP_CHECK(svp_blur_set_single(blur, 1));
     const size_t n = (size_t)y->width * y->height;
     rl_run r = {.blur = blur, .o = options, .w = y->width, .h = y->height, .n = n,
-                .yd = y->data};
+                .yd = y->data, .rows = svp_blur_rows_ok(blur)};
     svp_status st = SVP_OK;
     if (options->report) memset(options->report, 0, sizeof *options->report);
 
     /* y with its missing pixels at 0, Hx (and the ratio y / Hx), Hᵀ(...), 1 / Hᵀm */
     r.y_masked = svp_alloc(n * sizeof(double));
     r.blurred = svp_alloc(n * sizeof(double));
-    r.correction = svp_alloc(n * sizeof(double));
     r.inv_norm = svp_alloc(n * sizeof(double));
-    if (!r.y_masked || !r.blurred || !r.correction || !r.inv_norm) {
+    r.finite = svp_alloc(n);
+    /* Hᵀ's output, H's input in single precision, and the acceleration's and the stopping
+     * rule's scratch: not needed when H and Hᵀ go a row at a time without either */
+    const int accel = options->acceleration == SVP_RL_BIGGS_ANDREWS;
+    r.correction = !r.rows || accel || options->auto_stop ? svp_alloc(n * sizeof(double)) : NULL;
+    if (!r.y_masked || !r.blurred || !r.inv_norm || !r.finite ||
+        (!r.correction && (!r.rows || accel || options->auto_stop))) {
         st = svp_fail(SVP_ERR_NOMEM, "Richardson–Lucy: out of memory for %d x %d buffers", r.w,
                       r.h);
         goto cleanup;
@@ -587,23 +759,27 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                                      (double)k / options->iterations);
         goto cleanup;
     }
-    if ((st = rl_level_setup(&r)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
+    if ((st = rl_level_setup(&r, levels)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
         goto cleanup;
     rl_start(&r, start, x);
     if ((st = rl_variance(&r, y)) != SVP_OK || (st = rl_alloc_acceleration(&r)) != SVP_OK)
         goto cleanup;
     st = rl_iterate(&r, x, alpha_in, alpha_out);
+    if (st == SVP_OK) st = rl_level_export(&r, levels);
 cleanup:
     if (options->single_precision && !was_single) svp_blur_set_single(blur, 0);
     svp_free(r.y_masked);
     svp_free(r.blurred);
     svp_free(r.correction);
+    svp_free(r.finite);
     svp_free(r.inv_norm);
-    svp_free(r.shape);
-    svp_free(r.h_one);
-    svp_free(r.h_s);
-    svp_free(r.ht_mask);
-    svp_free(r.ht_s);
+    if (!r.borrowed) {
+        svp_free(r.shape);
+        svp_free(r.h_one);
+        svp_free(r.h_s);
+        svp_free(r.ht_mask);
+        svp_free(r.ht_s);
+    }
     svp_free(r.x_prev);
     svp_free(r.step_1); /* rl_iterate swaps the two steps: both are freed either way */
     svp_free(r.step_2);

@@ -273,7 +273,8 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                              const svp_deconv_options *base, int balance_auto, double noise_sigma,
                              const svp_image *variance, svp_progress_share *share,
                              svp_deconv_report *report, svp_image *x, const double *alpha_in,
-                             double *alpha_out, const double *start)
+                             double *alpha_out, svp_rl_levels **levels,
+                             const double *start)
 {
     svp_deconv_options o = *base;
     o.report = report;
@@ -293,7 +294,8 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                                                      &sigma_used, &at_bound, &lcurve));
     }
     if (!share) o.progress = NULL;
-    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out, start)
+    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out, levels,
+                                                    start)
                            : svp_deconv_wiener(blur, y, &o, x);
     if (report && !use_rl) {
         report->noise_sigma = sigma_used;
@@ -441,6 +443,8 @@ typedef struct inverse_run {
     svp_image *work, *pl_var, *num_var;
     svp_progress_share *shares;
     double *alphas; /* the PL's extrapolation path (accelerated RL) */
+    svp_rl_levels *levels; /* the PL's RL levels (operator built in single precision), which
+                              the numerators' RL use too: their float round-off cancels in (4) */
     int *counts;    /* RL iterations of every numerator */
     double *start;    /* RL's starts with a margin (pl_start, numerator_start), else NULL: */
     double *start_pl; /* the PL's (its second half), */
@@ -647,7 +651,7 @@ static svp_status deconvolve_pl(inverse_run *r)
     load_pl(r);
     svp_status st = deconvolve(r->blur, r->work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
                                r->pl_var, &r->shares[0], &r->reports[0], r->pl_true, NULL,
-                               r->alphas, r->rl_pl ? pl_start(r) : NULL);
+                               r->alphas, &r->levels, r->rl_pl ? pl_start(r) : NULL);
     if (st != SVP_OK) return svp_fail_context(st, "deconvolving pl_apparent");
     return SVP_OK;
 }
@@ -682,7 +686,7 @@ static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int fir
     svp_status st = deconvolve(r->blur, r->work, r->rl_field, &d, o->balance_auto,
                                o->noise_sigma, var_c, first_pass ? &r->shares[c + 1] : NULL,
                                &r->reports[c + 1], r->field_true[c],
-                               r->accel ? r->alphas : NULL, NULL,
+                               r->accel ? r->alphas : NULL, NULL, &r->levels,
                                r->rl_field ? numerator_start(r, c) : NULL);
     if (st != SVP_OK) {
         char buf[32];
@@ -726,7 +730,7 @@ static svp_status deconvolve_numerators(inverse_run *r)
     const double chi2 = r->reports[0].chi2;
     load_pl(r);
     SVP_CHECK(deconvolve(r->blur, r->work, 1, &d, 0, 0, NULL, NULL, &r->reports[0], r->pl_true,
-                         r->accel ? r->alphas : NULL, NULL, pl_start(r)));
+                         r->accel ? r->alphas : NULL, NULL, &r->levels, pl_start(r)));
     /* the count was the numerators' noise's choice, not the cap */
     r->reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
     r->reports[0].chi2 = chi2;
@@ -873,6 +877,7 @@ cleanup:
     svp_image_free(r.pl_var);
     svp_image_free(r.num_var);
     free(r.alphas);
+    svp_rl_levels_free(r.levels);
     free(r.counts);
     free(r.start);
     return st;
