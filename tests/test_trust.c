@@ -502,79 +502,12 @@ static void test_accelerated_rl_noisy(void **state)
     svp_blur_free(op);
 }
 
-/* The margin's start (docs/model.md §3, "Light from outside the view"): a field linear across
- * the view's edges (gradient 0.5 a pixel along x, 0.2 along y) under uniform PL, a Gaussian PSF
- * of 5 px FWHM, the scene 30 px beyond the view, T⁻¹ (R, 75 iterations) with the margin `auto`
- * takes (7 px). The data barely see that margin and RL keeps much of its start there, so the
- * view's outermost pixels make up for it: started flat, the left and right columns were off by
- * up to 0.20 × the gradient (0.032 × 10 px and more inside); started from the data continued
- * into the margin (odd reflection, exact for a linear field) 9.7·10⁻⁴ (2.2·10⁻⁴ inside),
- * asserted 0.01 both. */
-static void test_margin_start(void **state)
-{
-    (void)state;
-    const int w = 96, h = 80, E = 30, W = w + 2 * E, H = h + 2 * E;
-    const double gx = 0.5, gy = 0.2;
-    svp_psf psf;
-    svp_psf_defaults(&psf);
-    psf.model = SVP_PSF_GAUSSIAN;
-    psf.fwhm = 5.0;
-    const int M = svp_psf_auto_margin(&psf, w, h);
-    assert_int_equal(M, 7);
-    svp_blur *big = NULL, *op = NULL;
-    ASSERT_OK(svp_blur_new(&psf, W, H, SVP_BOUNDARY_ZERO, &big));
-    ASSERT_OK(svp_blur_new(&psf, w + 2 * M, h + 2 * M, SVP_BOUNDARY_ZERO, &op));
-    svp_image *pl = test_image(W, H), *b = test_image(W, H);
-    svp_image *pl_a = test_image(W, H), *b_a = test_image(W, H);
-    for (int y = 0; y < H; y++)
-        for (int x = 0; x < W; x++) {
-            pl->data[(size_t)y * W + x] = 1.0;
-            b->data[(size_t)y * W + x] = 3.0 + gx * (x - 0.5 * W) + gy * (y - 0.5 * H);
-        }
-    const svp_image *bt[1] = {b};
-    svp_image *ba[1] = {b_a};
-    ASSERT_OK(svp_forward_transform(big, pl, bt, 1, pl_a, ba, NULL));
-    maps m = maps_new(w, h);
-    for (int y = 0; y < h; y++)
-        for (int x = 0; x < w; x++) {
-            const size_t i = (size_t)y * w + x, j = (size_t)(y + E) * W + (x + E);
-            m.pl->data[i] = pl_a->data[j];
-            m.field->data[i] = b_a->data[j];
-        }
-    svp_correct_options o;
-    svp_correct_defaults(&o);
-    o.margin = M;
-    ASSERT_OK(correct(op, &m, &o));
-    /* the error on the left and right columns in units of gx, inside (10 px in) likewise */
-    double edge = 0, inside = 0;
-    for (int y = 0; y < h; y++)
-        for (int x = 0; x < w; x++) {
-            const double truth = b->data[(size_t)(y + E) * W + (x + E)];
-            const double e = fabs(m.field_out->data[(size_t)y * w + x] - truth) / gx;
-            if (x == 0 || x == w - 1) edge = fmax(edge, e);
-            if (x >= 10 && x < w - 10 && y >= 10 && y < h - 10) inside = fmax(inside, e);
-        }
-    print_message("linear field, Gaussian 5 px, margin %d: outermost columns %.3g, inside %.3g "
-                  "(x the gradient)\n",
-                  M, edge, inside);
-    assert_true(edge < 0.01);
-    assert_true(inside < 0.01);
-    maps_free(&m);
-    svp_image_free(pl);
-    svp_image_free(b);
-    svp_image_free(pl_a);
-    svp_image_free(b_a);
-    svp_blur_free(big);
-    svp_blur_free(op);
-}
-
 /* The scene extends M pixels beyond the view on every side (a bright spot there too), and the
  * data are the view's crop of its blur. Corrected on the view alone, the 2 µm band at the edge
  * (20 px of 0.1 µm) is off because light from outside is read as the view's own (W: 1.9x the
  * field's peak); with the margin domain the band's error falls, to 2.0x the interior's for W
- * (λ 1e-4) and 1.09x for R (accelerated, 300 iterations; 3.4x when RL started flat in the
- * barely observed margin, whose start its outermost 3 pixel rows made up for: docs/model.md §3,
- * "The margin's start") — asserted 2.5x and 1.5x. */
+ * (λ 1e-4) and 3.4x for R (accelerated, 300 iterations: RL's outermost 3 pixel rows converge
+ * slowly against the barely observed margin) — asserted 2.5x and 5x. */
 static void test_margin_domain(void **state)
 {
     (void)state;
@@ -607,7 +540,7 @@ static void test_margin_domain(void **state)
         }
     svp_blur *view = moffat_op(5.0, 1.5, w, h, SVP_BOUNDARY_ZERO);
     const svp_method methods[2] = {SVP_METHOD_R, SVP_METHOD_W};
-    const double bound[2] = {1.5, 2.5};
+    const double bound[2] = {5.0, 2.5};
     for (int k = 0; k < 2; k++) {
         svp_correct_options o;
         svp_correct_defaults(&o);
@@ -757,7 +690,6 @@ int main(void)
         cmocka_unit_test(test_auto_choices_near_optimal),
         cmocka_unit_test(test_lcurve_fallback),
         cmocka_unit_test(test_margin_domain),
-        cmocka_unit_test(test_margin_start),
         cmocka_unit_test(test_doubt_checks),
         cmocka_unit_test(test_pl_noise_estimate),
     };

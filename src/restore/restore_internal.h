@@ -36,13 +36,11 @@ typedef struct svp_rl_levels svp_rl_levels;
 /* svp_deconv_rl that follows a given extrapolation path: with acceleration, alpha_in (may be
  * NULL: computed) gives the weight α of every iteration and alpha_out (may be NULL) receives the
  * ones used (options->iterations entries each). T⁻¹ runs its numerators on the PL's path, so
- * the two halves of (4) extrapolate alike and their errors cancel as without acceleration.
- * start (may be NULL: flat at the mean of the finite data) is the first iterate, one value a
- * pixel; where it is not positive and finite the flat value is used. */
+ * the two halves of (4) extrapolate alike and their errors cancel as without acceleration. */
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
                               const double *alpha_in, double *alpha_out,
-                              svp_rl_levels **levels, const double *start);
+                              svp_rl_levels **levels);
 /* The levels of single-precision RL with an operator built in single precision (rl.c,
  * docs/model.md §6 (11b)): the data's shape s and H1, Hs, Hᵀm, Hᵀs, transformed once in float.
  * levels (may be NULL: the run makes its own) passed to svp_deconv_rl_path with *levels NULL

@@ -5,7 +5,7 @@
  * boundary weights (with options->boundary_weights = 0 the scalar mean of Hᵀm instead: plain
  * RL, exact for a periodic unit-flux operator without missing data), floor = options->floor ·
  * max(y). Started flat at the mean of the finite data (RL forgets the start's scale after one
- * iteration), or at a start the caller gives (T⁻¹ with a margin, transform.c). In single precision H and Hᵀ transform only deviations from known levels (see
+ * iteration). In single precision H and Hᵀ transform only deviations from known levels (see
  * rl_level_setup), so their float round-off scales with the deviations. */
 #include "restore_internal.h"
 
@@ -207,7 +207,7 @@ static svp_status check_args(const svp_blur *blur, const svp_image *y, const svp
 svp_status svp_deconv_rl(svp_blur *blur, const svp_image *y, const svp_deconv_options *options,
                          svp_image *x)
 {
-    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL, NULL, NULL);
+    return svp_deconv_rl_path(blur, y, options, x, NULL, NULL, NULL);
 }
 
 /* Single precision with an operator built in single precision: the levels of (11b), made by
@@ -641,16 +641,14 @@ static svp_status rl_adjoint_step(rl_run *r, double *restrict xd, double *restri
     return SVP_OK;
 }
 
-/* The start: the caller's image where it is positive and finite, else (and without one) flat at
- * the mean of the finite data. */
-static void rl_start(const rl_run *r, const double *given, svp_image *x)
+/* The flat start: x = the mean of the finite data. */
+static void rl_start(const rl_run *r, svp_image *x)
 {
     const size_t n = r->n;
     const double start = svp_sum(r->y_masked, n) / (double)r->n_finite;
     double *restrict xd = x->data;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
-    for (size_t i = 0; i < n; i++)
-        xd[i] = given && given[i] > 0 && given[i] <= DBL_MAX ? given[i] : start;
+    for (size_t i = 0; i < n; i++) xd[i] = start;
 }
 
 /* Acceleration (Biggs–Andrews, extrapolate): the previous iterate and the last two RL steps. */
@@ -718,7 +716,7 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
                               const double *alpha_in, double *alpha_out,
-                              svp_rl_levels **levels, const double *start)
+                              svp_rl_levels **levels)
 {
     svp_deconv_options defaults;
     if (!options) {
@@ -761,7 +759,7 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
     }
     if ((st = rl_level_setup(&r, levels)) != SVP_OK || (st = rl_normalisation(&r)) != SVP_OK)
         goto cleanup;
-    rl_start(&r, start, x);
+    rl_start(&r, x);
     if ((st = rl_variance(&r, y)) != SVP_OK || (st = rl_alloc_acceleration(&r)) != SVP_OK)
         goto cleanup;
     st = rl_iterate(&r, x, alpha_in, alpha_out);

@@ -23,11 +23,6 @@
 #define PAR_MIN 32768
 /* Coverage of a missing pixel by measured ones below this is FFT round-off: nothing covers it. */
 #define COVERAGE_TINY 1e-9
-/* T⁻¹ with a margin: RL starts from the data continued into the margin (pl_start) when the
- * coverage Hᵀm of the margin's outermost ring is below this share of the largest — the view's
- * data barely see the margin, so RL keeps its start there. With the margin at the PSF's 1 %
- * reach (`margin auto`) Gaussians give 0.1–0.9 %, Lorentzians 23–28 % (docs/model.md §3). */
-#define MARGIN_SEEN 0.05
 /* The automatic signed shift c = SHIFT_FACTOR · max|B̃| (eq. 5; docs/model.md §3) */
 #define SHIFT_FACTOR 100.0
 /* A CG solve stopped at its cap is in doubt when its relative residual is still above this
@@ -273,8 +268,7 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                              const svp_deconv_options *base, int balance_auto, double noise_sigma,
                              const svp_image *variance, svp_progress_share *share,
                              svp_deconv_report *report, svp_image *x, const double *alpha_in,
-                             double *alpha_out, svp_rl_levels **levels,
-                             const double *start)
+                             double *alpha_out, svp_rl_levels **levels)
 {
     svp_deconv_options o = *base;
     o.report = report;
@@ -294,8 +288,7 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                                                      &sigma_used, &at_bound, &lcurve));
     }
     if (!share) o.progress = NULL;
-    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out, levels,
-                                                    start)
+    svp_status st = use_rl ? svp_deconv_rl_path(blur, y, &o, x, alpha_in, alpha_out, levels)
                            : svp_deconv_wiener(blur, y, &o, x);
     if (report && !use_rl) {
         report->noise_sigma = sigma_used;
@@ -446,9 +439,6 @@ typedef struct inverse_run {
     svp_rl_levels *levels; /* the PL's RL levels (operator built in single precision), which
                               the numerators' RL use too: their float round-off cancels in (4) */
     int *counts;    /* RL iterations of every numerator */
-    double *start;    /* RL's starts with a margin (pl_start, numerator_start), else NULL: */
-    double *start_pl; /* the PL's (its second half), */
-    int pl_start_ready; /* once made */
 } inverse_run;
 
 /* Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution, so
@@ -505,123 +495,6 @@ static void plan_progress(inverse_run *r)
     }
 }
 
-/* A map on a grid with a margin m continued into the margin (docs/model.md §3, "Light from
- * outside the view"): the finite values of f in the view (a missing pixel at their mean), and in
- * the margin their odd reflection about the view's edge pixel, g(e − d) = 2 f(e) − f(e + d)
- * (rows first, then columns, so a corner takes both): exact for a map linear across the edge.
- * Returns 0 without a finite value in the view (g then unset). */
-static int reflect_into_margin(const double *f, int w, int h, int m, double *g)
-{
-    double sum = 0;
-    size_t count = 0;
-    for (int j = m; j < h - m; j++)
-        for (int i = m; i < w - m; i++)
-            if (isfinite(f[(size_t)j * w + i])) {
-                sum += f[(size_t)j * w + i];
-                count++;
-            }
-    if (count == 0) return 0;
-    const double mean = sum / (double)count;
-    const int first_x = m, last_x = w - m - 1, first_y = m, last_y = h - m - 1;
-    for (int j = first_y; j <= last_y; j++) {
-        double *row = g + (size_t)j * w;
-        const double *fr = f + (size_t)j * w;
-        for (int i = first_x; i <= last_x; i++) row[i] = isfinite(fr[i]) ? fr[i] : mean;
-        for (int d = 1; d <= m; d++) {
-            const int in_l = first_x + d <= last_x ? first_x + d : last_x;
-            const int in_r = last_x - d >= first_x ? last_x - d : first_x;
-            row[first_x - d] = 2 * row[first_x] - row[in_l];
-            row[last_x + d] = 2 * row[last_x] - row[in_r];
-        }
-    }
-    for (int d = 1; d <= m; d++) {
-        const int in_t = first_y + d <= last_y ? first_y + d : last_y;
-        const int in_b = last_y - d >= first_y ? last_y - d : first_y;
-        const double *top = g + (size_t)first_y * w, *top_in = g + (size_t)in_t * w;
-        const double *bot = g + (size_t)last_y * w, *bot_in = g + (size_t)in_b * w;
-        double *out_t = g + (size_t)(first_y - d) * w, *out_b = g + (size_t)(last_y + d) * w;
-        for (int i = 0; i < w; i++) {
-            out_t[i] = 2 * top[i] - top_in[i];
-            out_b[i] = 2 * bot[i] - bot_in[i];
-        }
-    }
-    return 1;
-}
-
-/* RL's starts with a margin (docs/model.md §3, "Light from outside the view"; NULL without
- * one, or when the margin is seen by the data: flat). The PL's, r->start_pl: Ĩ continued into
- * the margin by reflect_into_margin, at least 10⁻³ of its mean. Numerator c's: that PL start
- * times (B̃_c + c_c) with B̃_c continued alike, so its field, start / PL start − c_c, is the
- * measured field continued (|·| ≤ 3 max|B̃_c|, so positive with the automatic c_c; a pixel
- * where it is not starts flat, rl.c); in the view both are the data.
- * RL keeps much of its start in the margin, the part the view's data determine least, and the
- * view's outermost pixels make up for it: a flat start there (the mean) left them an error of
- * about −0.15 × the field's gradient per pixel across the edge, whatever the iterations (the
- * edge value repeated: −0.25 to −0.57 ×); the reflection carries the gradient on. */
-static const double *pl_start(inverse_run *r)
-{
-    if (!r->start) return NULL;
-    if (r->pl_start_ready) return r->start_pl;
-    if (!reflect_into_margin(r->work->data, r->w, r->h, r->opt.margin, r->start_pl)) {
-        free(r->start);
-        r->start = NULL;
-        return NULL;
-    }
-    const double *restrict y = r->work->data;
-    double sum = 0;
-    size_t count = 0;
-    for (size_t i = 0; i < r->n; i++)
-        if (isfinite(y[i])) {
-            sum += y[i];
-            count++;
-        }
-    const double lo = 1e-3 * sum / (double)count;
-    double *restrict p = r->start_pl;
-#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
-    for (size_t i = 0; i < r->n; i++) p[i] = p[i] > lo ? p[i] : lo;
-    r->pl_start_ready = 1;
-    return p;
-}
-
-static const double *numerator_start(inverse_run *r, int c)
-{
-    if (!r->start || !r->pl_start_ready) return NULL;
-    if (!reflect_into_margin(r->field_apparent[c]->data, r->w, r->h, r->opt.margin, r->start))
-        return NULL;
-    const double shift = r->shifts[c], *restrict p = r->start_pl;
-    double *restrict start = r->start;
-#pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
-    for (size_t i = 0; i < r->n; i++) start[i] = p[i] * (start[i] + shift);
-    return start;
-}
-
-/* Whether RL starts from the data continued into the margin (pl_start): only where the view's
- * data barely see the margin, the coverage Hᵀm of its outermost ring (largest over the ring)
- * below MARGIN_SEEN of the largest; else r->start is dropped (flat starts). */
-static svp_status margin_coverage(inverse_run *r)
-{
-    const size_t n = r->n;
-    const int w = r->w, h = r->h;
-    double *restrict mask = r->work->data;
-    for (size_t i = 0; i < n; i++) mask[i] = r->missing[i] ? 0.0 : 1.0;
-    svp_image *cov = NULL;
-    SVP_CHECK(svp_image_new(w, h, &cov));
-    svp_status st = svp_blur_adjoint(r->blur, r->work, cov);
-    if (st == SVP_OK) {
-        const double *c = cov->data;
-        double ring = 0;
-        for (int i = 0; i < w; i++) ring = fmax(ring, fmax(c[i], c[(size_t)(h - 1) * w + i]));
-        for (int j = 0; j < h; j++)
-            ring = fmax(ring, fmax(c[(size_t)j * w], c[(size_t)j * w + w - 1]));
-        if (!(ring < MARGIN_SEEN * svp_max(c, n))) {
-            free(r->start);
-            r->start = NULL;
-        }
-    }
-    svp_image_free(cov);
-    return st;
-}
-
 /* work = Ĩ with the missing pixels NaN. */
 static void load_pl(inverse_run *r)
 {
@@ -651,7 +524,7 @@ static svp_status deconvolve_pl(inverse_run *r)
     load_pl(r);
     svp_status st = deconvolve(r->blur, r->work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
                                r->pl_var, &r->shares[0], &r->reports[0], r->pl_true, NULL,
-                               r->alphas, &r->levels, r->rl_pl ? pl_start(r) : NULL);
+                               r->alphas, &r->levels);
     if (st != SVP_OK) return svp_fail_context(st, "deconvolving pl_apparent");
     return SVP_OK;
 }
@@ -686,8 +559,7 @@ static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int fir
     svp_status st = deconvolve(r->blur, r->work, r->rl_field, &d, o->balance_auto,
                                o->noise_sigma, var_c, first_pass ? &r->shares[c + 1] : NULL,
                                &r->reports[c + 1], r->field_true[c],
-                               r->accel ? r->alphas : NULL, NULL, &r->levels,
-                               r->rl_field ? numerator_start(r, c) : NULL);
+                               r->accel ? r->alphas : NULL, NULL, &r->levels);
     if (st != SVP_OK) {
         char buf[32];
         return svp_fail_context(st, "deconvolving %s x pl_apparent",
@@ -730,7 +602,7 @@ static svp_status deconvolve_numerators(inverse_run *r)
     const double chi2 = r->reports[0].chi2;
     load_pl(r);
     SVP_CHECK(deconvolve(r->blur, r->work, 1, &d, 0, 0, NULL, NULL, &r->reports[0], r->pl_true,
-                         r->accel ? r->alphas : NULL, NULL, &r->levels, pl_start(r)));
+                         r->accel ? r->alphas : NULL, NULL, &r->levels));
     /* the count was the numerators' noise's choice, not the cap */
     r->reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
     r->reports[0].chi2 = chi2;
@@ -840,15 +712,8 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
         goto cleanup;
     }
     if ((st = svp_image_new(r.w, r.h, &r.work)) != SVP_OK) goto cleanup;
-    if (r.opt.margin > 0 && (r.rl_pl || r.rl_field) &&
-        !(r.start = malloc(2 * r.n * sizeof *r.start))) {
-        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r.w, r.h);
-        goto cleanup;
-    }
     double pl_max = 0;
     if ((st = mark_missing(&r, &pl_max)) != SVP_OK) goto cleanup;
-    if (r.start) r.start_pl = r.start + r.n;
-    if (r.start && (st = margin_coverage(&r)) != SVP_OK) goto cleanup;
     if (n_missing) *n_missing = r.n_miss;
     if (!(pl_max > 0)) {
         /* No light anywhere: nothing to deconvolve, nothing known about the field. */
@@ -879,7 +744,6 @@ cleanup:
     free(r.alphas);
     svp_rl_levels_free(r.levels);
     free(r.counts);
-    free(r.start);
     return st;
 }
 
