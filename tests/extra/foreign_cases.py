@@ -41,6 +41,12 @@ usage: foreign_cases.py SVPSF
    map's centre PSF alone, in dark and in lit regions (issue 17's target, docs/performance.md;
    measured 0.031 / 0.067 against 0.132 / 0.603); then with the map's FWHMs 5 % too wide and
    Poisson PL of 10⁴ photons at the peak it still beats the centre PSF.
+7. A Gaussian-like PSF (Moffat β 20, whose margin the view's data barely see) on the 256² wire,
+   light from a 6 µm margin, the PSF file 5 % too wide, 10⁴ photons, fit noise, NaN pixels: the
+   default correction's dark / lit errors ≤ 0.80 / 0.65 × uncorrected and its 2 µm edge band
+   within 1.2 × the interior's (measured 0.77 / 0.61, edge 1.04 ×). A start continued from the
+   measured maps (tried for the reference study's Gaussian scenes, docs/model.md §3) gave 0.88 /
+   0.72 here, worse at 10³ and 10⁶ photons alike, and was not kept.
 
 "Sound": exit 0 with a field whose lit-region error is below the uncorrected map's, within
 10 × the measured range, and not shrunk below a tenth of the measured spread. Exits 77 (skip)
@@ -159,6 +165,21 @@ def main():
                                           (d5, "256², 100 photons, PSF off"))):
             accelerated_case(svpsf, data, os.path.join(tmp, f"out5{i}"), name)
         smooth_map_case(svpsf, os.path.join(tmp, "case6"))
+        d7 = os.path.join(tmp, "case7")
+        foreign.main(["make", "-o", d7, "--scene", "wire", "--size", "256", "--counts", "10000",
+                      "--beta", "20", "--fwhm-err", "0.05", "--seed", "7"])
+        rc, msg = correct(svpsf, d7, os.path.join(tmp, "out7"), [])
+        check(rc == 0, f"case 7: the default correction exits 0 ({msg[:160]})")
+        if rc == 0:
+            e = errors(d7, np.load(os.path.join(tmp, "out7", "field.npy")))
+            u = errors(d7, np.load(os.path.join(d7, "field.npy")))
+            print(f"case 7: dark {e['dark']:.3f} / lit {e['lit']:.3f} (uncorrected "
+                  f"{u['dark']:.3f} / {u['lit']:.3f}), edge {e['edge']:.3f}, interior "
+                  f"{e['interior']:.3f}")
+            check(e["dark"] <= 0.80 * u["dark"] and e["lit"] <= 0.65 * u["lit"],
+                  "case 7 (Gaussian-like PSF): dark / lit errors within 0.80 / 0.65 x uncorrected")
+            check(e["edge"] <= 1.2 * e["interior"],
+                  "case 7 (Gaussian-like PSF): 2 µm edge band within 1.2 x the interior")
     print(f"{len(failures)} failed")
     return 1 if failures else 0
 
