@@ -211,6 +211,9 @@ static void test_bad_scenes(void **state)
         {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
                           "correct: {method: r, precision: half}\n",
          SVP_ERR_INVALID, "bad.yaml:6:33:", "must be one of double, single"},
+        {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                          "correct: {method: r, acceleration: nesterov}\n",
+         SVP_ERR_INVALID, "bad.yaml:6:36:", "must be one of none, biggs-andrews"},
         /* malformed YAML */
         {"grid: {pixel_um: 0.1, size_um: [6.4, 6.4]\n", SVP_ERR_FORMAT, "bad.yaml:", ""},
     };
@@ -345,7 +348,7 @@ static void test_end_to_end_matches_transforms(void **state)
 
 /* Corrections with a margin: `auto` is the PSF's reach at 1 % of its peak (at most a quarter of
  * the view), a number is µm; each equals svp_inverse_transform run directly on an operator of the
- * view plus that margin. */
+ * view plus that margin (the third with Biggs–Andrews acceleration, as `acceleration:` asks). */
 static void test_correct_margin(void **state)
 {
     (void)state;
@@ -360,7 +363,9 @@ static void test_correct_margin(void **state)
                         "correct:\n"
                         "  - {method: r, iterations: 20, margin: auto, name: auto}\n"
                         "  - {method: r, iterations: 20, margin: 0.5, name: half_um,"
-                        " precision: single}\n");
+                        " precision: single}\n"
+                        "  - {method: r, iterations: 20, margin: auto, name: accelerated,"
+                        " acceleration: biggs-andrews}\n");
     svp_scene_result *r = run_nowrite(s);
     svp_psf psf;
     svp_psf_defaults(&psf);
@@ -381,9 +386,14 @@ static void test_correct_margin(void **state)
     svp_psf haloed = psf;
     haloed.halo = 0.2;
     assert_int_equal(svp_psf_auto_margin(&haloed, w, h), 0);
-    const int margins[2] = {m_auto, 5};
-    const char *names[2] = {"B_z_corrected_auto", "B_z_corrected_half_um"};
-    for (int k = 0; k < 2; k++) {
+    const int margins[3] = {m_auto, 5, m_auto};
+    const char *names[3] = {"B_z_corrected_auto", "B_z_corrected_half_um",
+                            "B_z_corrected_accelerated"};
+    /* the accelerated correction is not the plain one: the key reached the solver */
+    const double plain_peak = test_max_abs(map(r, names[0]));
+    if (test_max_abs_diff(map(r, names[0]), map(r, names[2])) < 1e-6 * plain_peak)
+        fail_msg("acceleration: biggs-andrews gave the plain correction");
+    for (int k = 0; k < 3; k++) {
         svp_blur *blur = NULL;
         ASSERT_OK(svp_blur_new(&psf, w + 2 * margins[k], h + 2 * margins[k], SVP_BOUNDARY_ZERO,
                                &blur));
@@ -393,6 +403,7 @@ static void test_correct_margin(void **state)
         o.deconv.iterations = 20;
         o.deconv.balance = 1;
         o.deconv.single_precision = k == 1;
+        o.deconv.acceleration = k == 2 ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
         o.margin = margins[k];
         o.keep_doubtful = 1;
         svp_image *plc = test_image(w, h), *bzc = test_image(w, h), *val = test_image(w, h);

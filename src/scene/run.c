@@ -837,6 +837,7 @@ static svp_status stage_correct(run_ctx *c)
     const scene_psf *psf = cr->has_psf ? &cr->psf : &s->psf;
     int m = 0;
     SVP_CHECK(correct_margin(cr, psf, w, h, &m));
+    const double t0 = now_s(); /* the correction's time, its operator's build included */
     svp_blur *own = NULL, *blur = NULL;
     if (cr->has_psf || m > 0) {
         SVP_CHECK(make_blur(c, psf, w + 2 * m, h + 2 * m, &own));
@@ -855,6 +856,7 @@ static svp_status stage_correct(run_ctx *c)
     o.pl_floor = cr->pl_floor;
     o.margin = m;
     o.deconv.single_precision = cr->single;
+    o.deconv.acceleration = cr->accelerated ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
     /* a study compares corrections, doubtful ones included: kept (validity 0 where in doubt)
      * and their doubts recorded */
     svp_correct_summary summary;
@@ -880,6 +882,7 @@ static svp_status stage_correct(run_ctx *c)
     if (st == SVP_OK)
         st = svp_inverse_transform(blur, get(c, "pl_apparent"), fa, s->n_fields, &o, pl_c, fc,
                                    valid, &n_missing);
+    const double seconds = now_s() - t0;
     if (st != SVP_OK) st = svp_fail_context(st, "correction '%s' (%s)", cr->name, cr->where);
     svp_blur_free(own);
     if (st != SVP_OK) return st;
@@ -888,6 +891,7 @@ static svp_status stage_correct(run_ctx *c)
     SVP_CHECK(value(c, (double)m, "correct/%s/margin_px", cr->name));
     SVP_CHECK(value(c, (double)summary.doubts, "correct/%s/doubts", cr->name));
     SVP_CHECK(value(c, (double)summary.n_implausible, "correct/%s/n_implausible", cr->name));
+    SVP_CHECK(value(c, seconds, "correct/%s/seconds", cr->name));
     return value(c, low / ((double)w * h), "correct/%s/low_validity_fraction", cr->name);
 }
 
@@ -1111,6 +1115,7 @@ static svp_status write_summary(run_ctx *c, double total)
         else
             svp_json_key_int(j, "margin_px", cr->margin_px);
         svp_json_key_string(j, "precision", cr->single ? "single" : "double");
+        svp_json_key_string(j, "acceleration", cr->accelerated ? "biggs-andrews" : "none");
         if (cr->has_psf) svp_json_key_string(j, "psf", cr->psf.describe);
         svp_json_end_object(j);
     }

@@ -989,9 +989,10 @@ static svp_status parse_effects(struct svp_scene *s, const svp_yaml_node *root)
 static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c, const char *what,
                                     scene_correct *out)
 {
-    static const char *const keys[] = {"method", "iterations", "balance",   "pl_floor",
-                                       "psf",    "name",       "margin", "precision", NULL};
+    static const char *const keys[] = {"method", "iterations", "balance",   "pl_floor",     "psf",
+                                       "name",   "margin",     "precision", "acceleration", NULL};
     static const char *const precisions[] = {"double", "single", NULL};
+    static const char *const accelerations[] = {"none", "biggs-andrews", NULL};
     static const char *const methods[] = {"rw", "r", "w", "rl_signed", NULL};
     SVP_CHECK(check_keys(c, what, keys));
     where_of(c, out->where);
@@ -1019,6 +1020,9 @@ static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c,
     int prec = 0;
     SVP_CHECK(get_choice(c, what, "precision", precisions, &prec, 0));
     out->single = prec == 1;
+    int acc = 0;
+    SVP_CHECK(get_choice(c, what, "acceleration", accelerations, &acc, 0));
+    out->accelerated = acc == 1;
     const svp_yaml_node *mg = svp_yaml_get(c, "margin");
     const char *mtext = NULL;
     if (mg && svp_yaml_type_of(mg) == SVP_YAML_SCALAR &&

@@ -112,6 +112,7 @@ typedef struct scene_correct {
     int margin_px; /* object estimated on the view plus this margin; -1 = auto (the PSF's reach,
                       as `svpsf correct --margin auto`); 0 (default) = the view only */
     int single;    /* 1: single-precision transforms for RL (as `--precision single`) */
+    int accelerated; /* 1: Biggs–Andrews extrapolation for RL (as `--acceleration biggs-andrews`) */
     int has_psf; /* an assumed PSF different from the scene's */
     scene_psf psf;
     char where[SCENE_WHERE];

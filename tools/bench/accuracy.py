@@ -46,6 +46,13 @@ OPTION_SETS = [
                                        "none", "--margin", "auto", "--precision", "double"]),
     ("r, 150 it, margin auto, single", ["--method", "r", "--iterations", "150", "--acceleration",
                                         "none", "--margin", "auto", "--precision", "single"]),
+    # fewer iterations: what the reference study's noisy scenes prefer (reference-study.md §2)
+    ("r, 30 it", ["--method", "r", "--iterations", "30", "--acceleration", "none"]),
+    ("r, 50 it", ["--method", "r", "--iterations", "50", "--acceleration", "none"]),
+    ("r, 15 it, Biggs–Andrews", ["--method", "r", "--iterations", "15",
+                                 "--acceleration", "biggs-andrews"]),
+    ("r, 25 it, Biggs–Andrews", ["--method", "r", "--iterations", "25",
+                                 "--acceleration", "biggs-andrews"]),
     ("r, auto iterations", ["--method", "r", "--iterations", "300", "--iterations", "auto",
                             "--acceleration", "none"]),
     ("r, 30 it, Biggs–Andrews, margin 0", ["--method", "r", "--iterations", "30",
