@@ -486,6 +486,11 @@ typedef struct svp_correct_options {
     struct svp_correct_summary *summary; /* optional out; default NULL */
 } svp_correct_options;
 
+/* A Wiener (CG) solve that stops at its step cap counts as not converged, a result in doubt,
+ * when its relative residual (svp_deconv_report.cg_residual) is above this; between the CG's own
+ * tolerance 1e-8 and this it is converged to well below plotting accuracy and kept. */
+#define SVP_CG_DOUBT_RESIDUAL 1e-4
+
 /* Why T⁻¹'s result is in doubt (bits of svp_correct_summary.doubts). */
 enum {
     SVP_DOUBT_CG_CAPPED = 1,     /* a Wiener (CG) solve stopped at its step cap, not converged */

@@ -25,9 +25,6 @@
 #define COVERAGE_TINY 1e-9
 /* The automatic signed shift c = SHIFT_FACTOR · max|B̃| (eq. 5; docs/model.md §3) */
 #define SHIFT_FACTOR 100.0
-/* A CG solve stopped at its cap is in doubt when its relative residual is still above this
- * (its own tolerance is 1e-8; between the two the solution is converged to plotting accuracy) */
-#define CG_DOUBT_RESIDUAL 1e-4
 
 /* Used by the tests to assert that the last-resort NaN/Inf repair of T⁻¹ never fires. */
 svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_apparent,
@@ -808,7 +805,7 @@ static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl
     for (int k = 0; k <= n_fields; k++) {
         const svp_deconv_report *r = &reports[k];
         const char *what = k == 0 ? "pl_apparent" : field_name(o, k - 1, name, sizeof name);
-        if (r->wiener && r->cg_capped && r->cg_residual > CG_DOUBT_RESIDUAL &&
+        if (r->wiener && r->cg_capped && r->cg_residual > SVP_CG_DOUBT_RESIDUAL &&
             !(doubts & SVP_DOUBT_CG_CAPPED)) {
             doubts |= SVP_DOUBT_CG_CAPPED;
             if (!msg[0])

@@ -743,6 +743,22 @@ if grep -q '"n_cg_capped": 0' corr_nocap/summary.json && ! grep -q warning err.c
 else
     fail "CG default cap" "$(cat err.corr_nocap) $(grep cg corr_nocap/summary.json)"
 fi
+# capped two steps before it converges: the residual is above the CG's 1e-8 but below 1e-4
+# (SVP_CG_DOUBT_RESIDUAL), so the result is kept (exit 0, no doubt, validity not zeroed) and the
+# warning says so instead of blaming --keep-doubtful
+near=$(( $(jnum corr_nocap/summary.json cg_steps_pl) - 2 ))
+expect_ok corr_near correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat.yaml --method w \
+    --cg-max-steps "$near" -o corr_near --format txt $FAST
+res=$(jnum corr_near/summary.json cg_residual_pl)
+if grep -q '"cg_capped_pl": 1' corr_near/summary.json && grep -q '"doubts": ""' corr_near/summary.json &&
+    /usr/bin/awk -v r="$res" 'BEGIN {exit !(r > 1e-8 && r < 1e-4)}' &&
+    grep -q 'warning: the Wiener deconvolution of the PL stopped at the step cap.*converged well enough to keep' err.corr_near &&
+    ! grep -q 'kept by --keep-doubtful' err.corr_near &&
+    /usr/bin/awk '{for (i = 1; i <= NF; i++) if ($i + 0 > 0) ok = 1} END {exit !ok}' corr_near/validity.txt; then
+    pass "correct --cg-max-steps $near (2 short of convergence): residual $res kept, exit 0, no doubt, warned as converged enough"
+else
+    fail "CG capped near convergence" "$(cat err.corr_near) $(grep -E 'cg|doubts' corr_near/summary.json)"
+fi
 run dec_cap deconvolve pl_noisy.txt --psf moffat.yaml -o dec_cap.txt --method wiener --cg-max-steps 2 $FAST
 expect_ok dec_cap_keep deconvolve pl_noisy.txt --psf moffat.yaml -o dec_cap_keep.txt --method wiener \
     --cg-max-steps 2 --keep-doubtful $FAST

@@ -473,11 +473,16 @@ static void correct_report_wiener(cli_run *run, const struct correct_args *a,
             cli_result_int(run, key, 1);
             snprintf(key, sizeof key, "cg_residual_%s", name);
             cli_result_num(run, key, r->cg_residual);
+            /* above SVP_CG_DOUBT_RESIDUAL the solve is in doubt: exit 3 unless --keep-doubtful
+             * (the run only gets here with it); below, close enough to converged to keep */
+            const int doubt = r->cg_residual > SVP_CG_DOUBT_RESIDUAL;
             cli_warn(run,
                      "the Wiener deconvolution of %s%s stopped at the step cap (%d conjugate-"
-                     "gradient steps) with relative residual %.3g above the tolerance 1e-8: "
-                     "not converged (kept by --keep-doubtful; its validity is 0)",
-                     k == 0 ? "the PL" : name, k == 0 ? "" : " x PL", r->cg_steps, r->cg_residual);
+                     "gradient steps) with relative residual %.3g above the tolerance 1e-8: %s",
+                     k == 0 ? "the PL" : name, k == 0 ? "" : " x PL", r->cg_steps, r->cg_residual,
+                     doubt ? "not converged (kept by --keep-doubtful; its validity is 0)"
+                           : "below 1e-4, converged well enough to keep (raise --cg-max-steps "
+                             "to reach 1e-8)");
         }
     }
     if (a->opt.balance_auto)

@@ -312,7 +312,7 @@ static void deconvolve_report(cli_run *run, const struct deconvolve_args *a,
              "the Wiener deconvolution of %s stopped at the step cap (%d conjugate-"
              "gradient steps) with relative residual %.3g above the tolerance 1e-8",
              a->in_path, report->cg_steps, report->cg_residual);
-    if (report->cg_residual > 1e-4 && !job->doubt[0])
+    if (report->cg_residual > SVP_CG_DOUBT_RESIDUAL && !job->doubt[0])
         snprintf(job->doubt, sizeof job->doubt,
                  "the Wiener solve did not converge (relative residual %.3g after %d "
                  "steps); raise --cg-max-steps or --balance",
