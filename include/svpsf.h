@@ -455,6 +455,8 @@ typedef struct svp_correct_options {
     const char *const *field_names; /* optional, n_fields entries: what the error messages call
                                        the field maps (their files, say); default NULL =
                                        "field_apparent[c]" */
+    const char *pl_name;         /* optional: what the error messages call the PL map (its file,
+                                    say); default NULL = "pl_apparent" */
     int margin;                  /* pixels per side of the estimated object beyond the view
                                     (light from outside the view, docs/model.md §3): 0
                                     (default) = the view only; > 0 needs a zero-boundary operator

@@ -44,6 +44,7 @@ void svp_correct_defaults(svp_correct_options *options)
     options->noise_sigma = 0.0;
     options->reports = NULL;
     options->field_names = NULL;
+    options->pl_name = NULL;
     options->margin = 0;
     options->auto_iterations = 0;
     options->pl_gain = 0.0;
@@ -336,6 +337,12 @@ static svp_status check_correct_options(const svp_correct_options *o)
     return SVP_OK;
 }
 
+/* What messages call the PL map. */
+static const char *pl_name(const svp_correct_options *o)
+{
+    return o->pl_name ? o->pl_name : "pl_apparent";
+}
+
 /* What messages call field map c. */
 static const char *field_name(const svp_correct_options *o, int c, char *buf, size_t size)
 {
@@ -453,18 +460,34 @@ static svp_status mark_missing(inverse_run *r, double *pl_max)
         n_miss += (size_t)m;
     }
     r->n_miss = n_miss;
-    if (n_miss == n)
-        return svp_fail(SVP_ERR_INVALID, "every pixel of pl_apparent / field_apparent is NaN or "
-                                         "Inf: nothing to restore");
+    if (n_miss == n) {
+        /* name the input that has no measured pixel, else say that no pixel has them all */
+        char buf[64];
+        size_t k = 0;
+        while (k < n && !isfinite(pl[k])) k++;
+        if (k == n)
+            return svp_fail(SVP_ERR_INVALID, "every pixel of %s is NaN or Inf: nothing to restore",
+                            pl_name(&r->opt));
+        for (int c = 0; c < r->n_fields; c++) {
+            const double *f = r->field_apparent[c]->data;
+            for (k = 0; k < n && !isfinite(f[k]); k++) continue;
+            if (k == n)
+                return svp_fail(SVP_ERR_INVALID, "every pixel of %s is NaN or Inf: nothing to "
+                                "restore", field_name(&r->opt, c, buf, sizeof buf));
+        }
+        return svp_fail(SVP_ERR_INVALID, "no pixel is measured in %s and every field map at "
+                        "once (each has NaN or Inf in one of them): nothing to restore",
+                        pl_name(&r->opt));
+    }
     double top = -INFINITY;
     for (size_t i = 0; i < n; i++) {
         if (r->missing[i]) continue;
         if (pl[i] > top) top = pl[i];
         if (r->rl_pl && pl[i] < 0)
             return svp_fail(SVP_ERR_INVALID,
-                            "pl_apparent is negative (%g) at pixel (%zu, %zu): Richardson-Lucy "
+                            "%s is negative (%g) at pixel (%zu, %zu): Richardson-Lucy "
                             "needs non-negative PL (clip the background or use method W)",
-                            pl[i], i % (size_t)r->w, i / (size_t)r->w);
+                            pl_name(&r->opt), pl[i], i % (size_t)r->w, i / (size_t)r->w);
     }
     *pl_max = top;
     return SVP_OK;
@@ -522,7 +545,7 @@ static svp_status deconvolve_pl(inverse_run *r)
     svp_status st = deconvolve(r->blur, r->work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
                                r->pl_var, &r->shares[0], &r->reports[0], r->pl_true, NULL,
                                r->alphas, &r->levels);
-    if (st != SVP_OK) return svp_fail_context(st, "deconvolving pl_apparent");
+    if (st != SVP_OK) return svp_fail_context(st, "deconvolving %s", pl_name(o));
     return SVP_OK;
 }
 
@@ -559,8 +582,8 @@ static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int fir
                                r->accel ? r->alphas : NULL, NULL, &r->levels);
     if (st != SVP_OK) {
         char buf[32];
-        return svp_fail_context(st, "deconvolving %s x pl_apparent",
-                                field_name(o, c, buf, sizeof buf));
+        return svp_fail_context(st, "deconvolving %s x %s", field_name(o, c, buf, sizeof buf),
+                                pl_name(o));
     }
     r->counts[c] = r->rl_field ? r->reports[c + 1].iterations : count;
     return SVP_OK;
@@ -804,7 +827,7 @@ static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl
     /* the solvers */
     for (int k = 0; k <= n_fields; k++) {
         const svp_deconv_report *r = &reports[k];
-        const char *what = k == 0 ? "pl_apparent" : field_name(o, k - 1, name, sizeof name);
+        const char *what = k == 0 ? pl_name(o) : field_name(o, k - 1, name, sizeof name);
         if (r->wiener && r->cg_capped && r->cg_residual > SVP_CG_DOUBT_RESIDUAL &&
             !(doubts & SVP_DOUBT_CG_CAPPED)) {
             doubts |= SVP_DOUBT_CG_CAPPED;

@@ -293,6 +293,19 @@ if grep -q '"n_missing": 2' corr_nan/summary.json && ! grep -qiE 'nan|inf' corr_
 else
     fail "missing data" "$(grep n_missing corr_nan/summary.json) $(grep -ciE 'nan|inf' corr_nan/field.txt)"
 fi
+# nothing measured: the input without a finite pixel is named by its file; two maps missing
+# complementary rows have no pixel in common
+awk '{ for (i = 1; i <= NF; i++) $i = "nan"; print }' fwd_zp/pl.txt >pl_allnan.txt
+awk '{ for (i = 1; i <= NF; i++) $i = "inf"; print }' fwd_zp/field.txt >field_allinf.txt
+awk 'NR % 2 { for (i = 1; i <= NF; i++) $i = "nan" } { print }' fwd_zp/pl.txt >pl_odd_nan.txt
+awk 'NR % 2 == 0 { for (i = 1; i <= NF; i++) $i = "nan" } { print }' fwd_zp/field.txt >field_even_nan.txt
+expect_bad corr_pl_allnan "pl_allnan.txt|every pixel is NaN or Inf" correct --field fwd_zp/field.txt \
+    --pl pl_allnan.txt --psf moffat_periodic.yaml -o corr_allnan --format txt $FAST
+expect_bad corr_field_allinf "field_allinf.txt is NaN or Inf" correct --field field_allinf.txt \
+    --pl fwd_zp/pl.txt --psf moffat_periodic.yaml -o corr_allnan --format txt $FAST
+expect_bad corr_disjoint "no pixel is measured in pl_odd_nan.txt and every field map" correct \
+    --field field_even_nan.txt --pl pl_odd_nan.txt --psf moffat_periodic.yaml -o corr_allnan \
+    --format txt $FAST
 
 # ---- summary.json -----------------------------------------------------------------------------
 s=corr_w/summary.json
@@ -626,7 +639,7 @@ expect_ok corr_auto_keep correct --field field_noisy.txt --pl pl_noisy.txt --psf
     --method w --balance auto --noise 10 -o corr_auto_keep --format txt --keep-doubtful $FAST
 if [ "$(cat rc.dec_auto_lo)" = 3 ] && grep -q 'pl_noisy.txt: result in doubt: --balance auto ended on the lower end' err.dec_auto_lo &&
     [ ! -e dec_auto_lo.txt ] && [ "$(cat rc.corr_auto_hi)" = 3 ] && [ ! -e corr_auto_hi ] &&
-    grep -q 'result in doubt: the automatic balance of pl_apparent ended on the upper end' err.corr_auto_hi &&
+    grep -q 'result in doubt: the automatic balance of pl_noisy.txt ended on the upper end' err.corr_auto_hi &&
     grep -q '"balance_at_bound_pl": "upper"' corr_auto_keep/summary.json &&
     grep -q '"doubts": "balance_at_bound' corr_auto_keep/summary.json &&
     grep -q 'kept by --keep-doubtful' err.corr_auto_keep &&

@@ -329,6 +329,16 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
         job->psf.variant.single_precision = opt->method != SVP_METHOD_RW;
     if ((code = correct_read_sigma(run, a, job))) return code;
     const int w = maps->pl->width, h = maps->pl->height;
+    {
+        /* a PL without one measured pixel: named here (the library calls it pl_apparent; it
+         * names the field maps by their files itself) */
+        size_t k = 0;
+        const size_t n = (size_t)w * h;
+        while (k < n && !isfinite(maps->pl->data[k])) k++;
+        if (k == n)
+            return cli_error(run, "%s: every pixel is NaN or Inf: nothing to correct",
+                             maps->pl_path);
+    }
     /* default: auto for the RL methods (measured: docs/accuracy.md), 0 for the Wiener ones */
     int margin_auto = a->margin_auto;
     if (margin_auto < 0)
@@ -345,6 +355,7 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     opt->summary = &job->summary;
     /* the library's messages name the field maps by their files */
     opt->field_names = maps->field_paths;
+    opt->pl_name = maps->pl_path;
     cli_setting_str(run, "method", method_names[a->method]);
     if (opt->auto_iterations) cli_setting_str(run, "iterations", "auto");
     cli_setting_int(run, opt->auto_iterations ? "iteration_cap" : "iterations",
