@@ -1146,7 +1146,46 @@ static void test_bad_input(void **state)
     svp_image *all_nan = test_image(w, h);
     for (size_t i = 0; i < (size_t)w * h; i++) all_nan->data[i] = NAN;
     expect_error(svp_inverse_transform(op, all_nan, bc, NF, &o, pl_out, out, valid, NULL),
-                 SVP_ERR_INVALID, "NaN");
+                 SVP_ERR_INVALID, "every pixel of pl_apparent is NaN");
+    o.pl_name = "pl.tif"; /* the caller's name for the PL, as field_names for the fields */
+    expect_error(svp_inverse_transform(op, all_nan, bc, NF, &o, pl_out, out, valid, NULL),
+                 SVP_ERR_INVALID, "every pixel of pl.tif is NaN");
+    o.pl_name = NULL;
+    const svp_image *one_nan[NF] = {b[0], all_nan};
+    expect_error(svp_inverse_transform(op, pl, one_nan, NF, &o, pl_out, out, valid, NULL),
+                 SVP_ERR_INVALID, "every pixel of field_apparent[1] is NaN");
+    {
+        /* PL and field measured on disjoint halves: no pixel has both */
+        svp_image *half_pl = test_image(w, h), *half_b = test_image(w, h);
+        for (size_t i = 0; i < (size_t)w * h; i++) {
+            half_pl->data[i] = i % 2 ? NAN : 0.5;
+            half_b->data[i] = i % 2 ? 0.1 : NAN;
+        }
+        const svp_image *hb[NF] = {half_b, b[1]};
+        expect_error(svp_inverse_transform(op, half_pl, hb, NF, &o, pl_out, out, valid, NULL),
+                     SVP_ERR_INVALID, "no pixel is measured in pl_apparent and every field map");
+        svp_image_free(half_pl);
+        svp_image_free(half_b);
+    }
+    {
+        /* a margin wider than the view's larger side (16): refused, however the operator fits */
+        const int m = 17;
+        svp_blur *big = blur_model(SVP_PSF_GAUSSIAN, 2.0, 0, 0.0, w + 2 * m, h + 2 * m,
+                                   SVP_BOUNDARY_ZERO);
+        svp_correct_options om;
+        svp_correct_defaults(&om);
+        om.method = SVP_METHOD_R;
+        om.margin = m;
+        expect_error(svp_inverse_transform(big, pl, bc, NF, &om, pl_out, out, valid, NULL),
+                     SVP_ERR_INVALID, "a margin of 17 pixels is wider than the view's larger side");
+        om.margin = 16; /* the largest allowed: runs */
+        svp_blur *edge = blur_model(SVP_PSF_GAUSSIAN, 2.0, 0, 0.0, w + 32, h + 32,
+                                    SVP_BOUNDARY_ZERO);
+        om.deconv.iterations = 5;
+        ASSERT_OK(svp_inverse_transform(edge, pl, bc, NF, &om, pl_out, out, valid, NULL));
+        svp_blur_free(big);
+        svp_blur_free(edge);
+    }
     /* outputs that alias inputs */
     svp_image *out_alias[NF] = {out[0], b[1]};
     expect_error(svp_inverse_transform(op, pl, bc, NF, &o, pl_out, out_alias, valid, NULL),

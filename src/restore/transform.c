@@ -965,6 +965,18 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
         return svp_fail(SVP_ERR_INVALID,
                         "a margin beyond the view needs the zero boundary (the mirror and periodic "
                         "boundaries already say what lies outside)");
+    {
+        /* the data see a margin pixel only through the PSF's light that reaches the view; beyond
+         * the view's own size that is the far tail, while the work grows as (w + 2m)(h + 2m) */
+        const int side = pl_apparent->width > pl_apparent->height ? pl_apparent->width
+                                                                   : pl_apparent->height;
+        if (m > side)
+            return svp_fail(SVP_ERR_INVALID,
+                            "a margin of %d pixels is wider than the view's larger side (%d "
+                            "pixels): the data barely see pixels that far, and the work grows "
+                            "with the square of the grid; use at most %d (auto: the PSF's reach)",
+                            m, side, side);
+    }
     if (opt.field_sigma)
         for (int c = 0; c < n_fields; c++)
             if (opt.field_sigma[c])

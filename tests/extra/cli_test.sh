@@ -293,6 +293,10 @@ if grep -q '"n_missing": 2' corr_nan/summary.json && ! grep -qiE 'nan|inf' corr_
 else
     fail "missing data" "$(grep n_missing corr_nan/summary.json) $(grep -ciE 'nan|inf' corr_nan/field.txt)"
 fi
+# a margin wider than the view is refused before its operator is built (it would take hours)
+expect_bad corr_margin_wide "--margin 5000|wider than the view's larger side|pl.txt" correct \
+    --field fwd_zp/field.txt --pl fwd_zp/pl.txt --psf moffat.yaml --margin 5000 -o corr_wide \
+    --format txt $FAST
 # nothing measured: the input without a finite pixel is named by its file; two maps missing
 # complementary rows have no pixel in common
 awk '{ for (i = 1; i <= NF; i++) $i = "nan"; print }' fwd_zp/pl.txt >pl_allnan.txt

@@ -352,6 +352,12 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     } else if (margin_auto) {
         opt->margin = auto_margin(&job->psf, w, h);
     }
+    if (opt->margin > (w > h ? w : h)) /* before the operator for that grid is built */
+        return cli_error(run,
+                         "--margin %d: wider than the view's larger side (%d pixels, %s): the "
+                         "data barely see pixels that far, and the work grows with the square of "
+                         "the grid; use at most %d (auto: the PSF's reach)",
+                         opt->margin, w > h ? w : h, maps->pl_path, w > h ? w : h);
     opt->summary = &job->summary;
     /* the library's messages name the field maps by their files */
     opt->field_names = maps->field_paths;
