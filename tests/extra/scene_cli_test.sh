@@ -104,6 +104,17 @@ done
 out=$("$SVPSF" reconstruct --quantity current_from_bxy --bz "$T/run/maps/B_z_true.tif" \
     --pixel-um 0.1 --standoff-nm 100 -o "$T/rec2" 2>&1)
 [ $? -eq 1 ] || fail "reconstruct with the wrong map: exit 1 expected ($out)"
+# a map with a missing pixel (a failed fit): exit 1, the file, the count and the first pixel named
+awk 'BEGIN { for (y = 0; y < 6; y++) { l = ""; for (x = 0; x < 8; x++)
+    l = l (x ? " " : "") (x == 5 && y == 2 ? "nan" : "1e-6"); print l } }' >"$T/nan.txt"
+out=$("$SVPSF" reconstruct --quantity magnetisation --bz "$T/nan.txt" --pixel-um 0.1 \
+    --standoff-nm 100 -o "$T/rec3" 2>&1)
+rc=$?
+case "$rc:$out" in
+1:*"nan.txt: 1 NaN or Inf pixel (the first at x 5, y 2)"*) ;;
+*) fail "reconstruct of a map with a NaN pixel: exit $rc ($out)" ;;
+esac
+[ ! -e "$T/rec3" ] || fail "reconstruct of a map with a NaN pixel wrote $T/rec3"
 
 # every shipped scene of docs/scenes/ loads (keys, units, files) and compiles to its plan;
 # run-study.sh runs them in full
