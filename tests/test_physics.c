@@ -888,6 +888,43 @@ static int ref_odmr_model(void *user, const double *th, int n_params, int n_poin
 /* Noisy spectra: the fit must not fall into wrong minima (a centroid start did, for ~2 % of
  * the pixels, ~1 mT off). Uniform noise of ±1 count on a 1000-count PL with 2 % contrast,
  * Γ = 4 MHz, 100 frames: the statistical error is a few µT at 3 mT. */
+/* Spectra of noise alone (no dip): a fit may converge to a "line" far outside the sweep (B of
+ * 10⁹ T was seen); such a fit is counted as failed, so the failed count covers every pixel
+ * whose fitted line (the field map keeps the last parameters) lies outside the swept range. */
+static void test_fit_noise_only(void **state)
+{
+    (void)state;
+    const int w = 16, h = 16, nf = 20;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    double freq[20];
+    for (int f = 0; f < nf; f++) freq[f] = 2.80e9 + 0.14e9 * f / (nf - 1);
+    svp_cube *cube = NULL;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &cube));
+    uint64_t seed = 7;
+    for (int f = 0; f < nf; f++)
+        for (size_t p = 0; p < (size_t)w * h; p++)
+            cube->frame[f]->data[p] = 1000 + 60 * (test_rand(&seed) - 0.5);
+    svp_image *fit = test_image(w, h);
+    size_t failed = 0;
+    ASSERT_OK(svp_odmr_fit(&od, cube, NULL, fit, NULL, NULL, NULL, &failed));
+    size_t outside = 0;
+    for (size_t p = 0; p < (size_t)w * h; p++) {
+        const double s = od.gamma_hz_per_t * fabs(fit->data[p]);
+        const double lo = od.zero_field_hz - s, hi = od.zero_field_hz + s;
+        const int in = (lo >= freq[0] && lo <= freq[nf - 1]) ||
+                       (hi >= freq[0] && hi <= freq[nf - 1]);
+        outside += !in;
+    }
+    print_message("noise only: %zu of %d fits failed, %zu with no line in the sweep\n", failed,
+                  w * h, outside);
+    /* every pixel whose line is outside the sweep is among the failed ones */
+    assert_true(failed >= outside);
+    assert_true(outside > 0); /* the case arises: without the rule these were "converged" */
+    svp_image_free(fit);
+    svp_cube_free(cube);
+}
+
 static void test_fit_noisy(void **state)
 {
     (void)state;
@@ -1346,6 +1383,7 @@ int main(void)
         cmocka_unit_test(test_centroid_exact_symmetric),
         cmocka_unit_test(test_fit_vs_centroid),
         cmocka_unit_test(test_fit_noisy),
+        cmocka_unit_test(test_fit_noise_only),
         cmocka_unit_test(test_fit_maps_lines),
         cmocka_unit_test(test_fit_maps_bound),
         cmocka_unit_test(test_projection),

@@ -913,8 +913,31 @@ static void fit_put_missing(const svp_odmr_maps *maps, size_t p)
     put(maps->converged, p, 0.0);
 }
 
+/* Whether fit θ describes a dip the sweep has seen: its line inside the swept range (PAIR: one
+ * of D ± γB at least; ONE: f₀; TWO: f₋ and f₊) and its width at most the range. A fit to a
+ * spectrum without a dip (noise alone) can converge to a line far outside, B of 10⁹ T. */
+static int fit_in_sweep(const fit_shared *c, const double th[GEN_MAX])
+{
+    const double *fr = c->cube->freq;
+    const double a = fr[0], b = fr[c->nf - 1];
+    const double lo = a < b ? a : b, hi = a < b ? b : a;
+#define IN_SWEEP(f) ((f) >= lo && (f) <= hi)
+    int ok;
+    if (c->lines == SVP_ODMR_LINES_PAIR) {
+        const double s = c->gamma * fabs(th[2]);
+        ok = IN_SWEEP(c->D - s) || IN_SWEEP(c->D + s);
+    } else if (c->lines == SVP_ODMR_LINES_ONE) {
+        ok = IN_SWEEP(th[2]);
+    } else {
+        ok = IN_SWEEP(th[2]) && IN_SWEEP(th[3]);
+    }
+#undef IN_SWEEP
+    return ok && th[c->np - 1] <= hi - lo;
+}
+
 /* Pixel p of spectrum y: its start, fit and maps. Returns 0 when it converged, 1 when its fit
- * failed (*st the status) and 2 for a missing pixel. */
+ * failed (*st the status; SVP_ERR_NUMERIC for a fit that converged outside the sweep, which is
+ * counted like one that did not converge) and 2 for a missing pixel. */
 static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
 {
     const int nf = c->nf, nb = c->nb;
@@ -936,8 +959,12 @@ static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, sv
     s.best = deepest(y, nf, c->half_box, -1, 0, &s.v_best);
     /* θ in physical units: PAIR (b, C, B, Γ); ONE (b, C, f₀, Γ); TWO (b, C, f₋, f₊, Γ) */
     double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], chi2 = NAN;
-    const int fail = c->lines == SVP_ODMR_LINES_PAIR ? fit_pair(c, t, y, &s, th, cov, &chi2, st)
-                                                     : fit_lines(c, t, y, &s, th, cov, &chi2, st);
+    int fail = c->lines == SVP_ODMR_LINES_PAIR ? fit_pair(c, t, y, &s, th, cov, &chi2, st)
+                                               : fit_lines(c, t, y, &s, th, cov, &chi2, st);
+    if (!fail && !fit_in_sweep(c, th)) {
+        fail = 1;
+        *st = SVP_ERR_NUMERIC;
+    }
     fit_put(c, p, y, s.mean, th, cov, chi2, fail);
     return fail;
 }
