@@ -526,6 +526,12 @@ SVP_API svp_status svp_pl_noise_estimate(const svp_image *pl, double *gain, doub
 
 SVP_API void svp_correct_defaults(svp_correct_options *options);
 
+/* The margin rule of svp_inverse_transform for a width x height view: a margin wider than the
+ * view's larger side is SVP_ERR_INVALID (the data barely see pixels that far, and the work grows
+ * with the square of the grid). A caller checks it before building the (w + 2m) x (h + 2m)
+ * operator. */
+SVP_API svp_status svp_correct_check_margin(int margin, int width, int height);
+
 /* Inverse transform T⁻¹ (eq. 4): pl_true = Ĩ ⊘ p; field_true[c] = ((B̃_c Ĩ) ⊘ p) / max(pl_true,
  * floor), floor = pl_floor · max(pl_true); for R / RL_SIGNED the numerator is
  * ((B̃_c + c) Ĩ) ⊘ p − c · pl_true (eq. 5). All components share the one deconvolution of Ĩ.

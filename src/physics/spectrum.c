@@ -714,6 +714,7 @@ typedef struct fit_shared {
     svp_odmr_lines lines;
     int nf, np, nb;        /* frequencies, parameters, baseline frames at each end */
     double D, gamma, G0;   /* zero-field splitting, gyromagnetic ratio, nominal linewidth */
+    double sweep_lo, sweep_hi; /* the swept range (fit_in_sweep) */
     const double *q, *xs;  /* trapezoid weights; frequencies (ω − D) / Γ0 */
     int half_box, exclude; /* the starting point's smoothing and second-dip exclusion */
 } fit_shared;
@@ -918,9 +919,7 @@ static void fit_put_missing(const svp_odmr_maps *maps, size_t p)
  * spectrum without a dip (noise alone) can converge to a line far outside, B of 10⁹ T. */
 static int fit_in_sweep(const fit_shared *c, const double th[GEN_MAX])
 {
-    const double *fr = c->cube->freq;
-    const double a = fr[0], b = fr[c->nf - 1];
-    const double lo = a < b ? a : b, hi = a < b ? b : a;
+    const double lo = c->sweep_lo, hi = c->sweep_hi;
 #define IN_SWEEP(f) ((f) >= lo && (f) <= hi)
     int ok;
     if (c->lines == SVP_ODMR_LINES_PAIR) {
@@ -1017,12 +1016,14 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     }
     /* smoothing half-width for the starting point: about half a linewidth of frames */
     const double spacing = (cube->freq[nf - 1] - cube->freq[0]) / (nf - 1);
+    const double f_first = cube->freq[0], f_last = cube->freq[nf - 1];
     const fit_shared c = {.cube = cube, .options = options, .maps = maps,
                           .lines = options->lines, .nf = nf, .np = np,
                           .nb = options->baseline_frames, .D = D,
                           .gamma = odmr->gamma_hz_per_t, .G0 = G0, .q = q, .xs = xs,
                           .half_box = (int)fmin(nf / 4, floor(0.5 * G0 / spacing)),
-                          .exclude = (int)ceil(1.5 * G0 / spacing)};
+                          .exclude = (int)ceil(1.5 * G0 / spacing),
+                          .sweep_lo = fmin(f_first, f_last), .sweep_hi = fmax(f_first, f_last)};
     size_t failed = 0;
     int alloc_failed = 0, cancelled = 0;
     svp_status first_error = SVP_OK;

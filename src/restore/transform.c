@@ -337,6 +337,18 @@ static svp_status check_correct_options(const svp_correct_options *o)
     return SVP_OK;
 }
 
+svp_status svp_correct_check_margin(int margin, int width, int height)
+{
+    const int side = width > height ? width : height;
+    if (margin > side)
+        return svp_fail(SVP_ERR_INVALID,
+                        "a margin of %d pixels is wider than the view's larger side (%d pixels): "
+                        "the data barely see pixels that far, and the work grows with the square "
+                        "of the grid; use at most %d (auto: the PSF's reach)",
+                        margin, side, side);
+    return SVP_OK;
+}
+
 /* What messages call the PL map. */
 static const char *pl_name(const svp_correct_options *o)
 {
@@ -463,18 +475,13 @@ static svp_status mark_missing(inverse_run *r, double *pl_max)
     if (n_miss == n) {
         /* name the input that has no measured pixel, else say that no pixel has them all */
         char buf[64];
-        size_t k = 0;
-        while (k < n && !isfinite(pl[k])) k++;
-        if (k == n)
+        if (svp_image_count_nonfinite(r->pl_apparent) == n)
             return svp_fail(SVP_ERR_INVALID, "every pixel of %s is NaN or Inf: nothing to restore",
                             pl_name(&r->opt));
-        for (int c = 0; c < r->n_fields; c++) {
-            const double *f = r->field_apparent[c]->data;
-            for (k = 0; k < n && !isfinite(f[k]); k++) continue;
-            if (k == n)
+        for (int c = 0; c < r->n_fields; c++)
+            if (svp_image_count_nonfinite(r->field_apparent[c]) == n)
                 return svp_fail(SVP_ERR_INVALID, "every pixel of %s is NaN or Inf: nothing to "
                                 "restore", field_name(&r->opt, c, buf, sizeof buf));
-        }
         return svp_fail(SVP_ERR_INVALID, "no pixel is measured in %s and every field map at "
                         "once (each has NaN or Inf in one of them): nothing to restore",
                         pl_name(&r->opt));
@@ -965,18 +972,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
         return svp_fail(SVP_ERR_INVALID,
                         "a margin beyond the view needs the zero boundary (the mirror and periodic "
                         "boundaries already say what lies outside)");
-    {
-        /* the data see a margin pixel only through the PSF's light that reaches the view; beyond
-         * the view's own size that is the far tail, while the work grows as (w + 2m)(h + 2m) */
-        const int side = pl_apparent->width > pl_apparent->height ? pl_apparent->width
-                                                                   : pl_apparent->height;
-        if (m > side)
-            return svp_fail(SVP_ERR_INVALID,
-                            "a margin of %d pixels is wider than the view's larger side (%d "
-                            "pixels): the data barely see pixels that far, and the work grows "
-                            "with the square of the grid; use at most %d (auto: the PSF's reach)",
-                            m, side, side);
-    }
+    SVP_CHECK(svp_correct_check_margin(m, pl_apparent->width, pl_apparent->height));
     if (opt.field_sigma)
         for (int c = 0; c < n_fields; c++)
             if (opt.field_sigma[c])

@@ -294,7 +294,7 @@ else
     fail "missing data" "$(grep n_missing corr_nan/summary.json) $(grep -ciE 'nan|inf' corr_nan/field.txt)"
 fi
 # a margin wider than the view is refused before its operator is built (it would take hours)
-expect_bad corr_margin_wide "--margin 5000|wider than the view's larger side|pl.txt" correct \
+expect_bad corr_margin_wide "margin of 5000 pixels|wider than the view's larger side (32 pixels)|pl.txt" correct \
     --field fwd_zp/field.txt --pl fwd_zp/pl.txt --psf moffat.yaml --margin 5000 -o corr_wide \
     --format txt $FAST
 # nothing measured: the input without a finite pixel is named by its file; two maps missing
@@ -303,7 +303,7 @@ awk '{ for (i = 1; i <= NF; i++) $i = "nan"; print }' fwd_zp/pl.txt >pl_allnan.t
 awk '{ for (i = 1; i <= NF; i++) $i = "inf"; print }' fwd_zp/field.txt >field_allinf.txt
 awk 'NR % 2 { for (i = 1; i <= NF; i++) $i = "nan" } { print }' fwd_zp/pl.txt >pl_odd_nan.txt
 awk 'NR % 2 == 0 { for (i = 1; i <= NF; i++) $i = "nan" } { print }' fwd_zp/field.txt >field_even_nan.txt
-expect_bad corr_pl_allnan "pl_allnan.txt|every pixel is NaN or Inf" correct --field fwd_zp/field.txt \
+expect_bad corr_pl_allnan "every pixel of pl_allnan.txt is NaN or Inf" correct --field fwd_zp/field.txt \
     --pl pl_allnan.txt --psf moffat_periodic.yaml -o corr_allnan --format txt $FAST
 expect_bad corr_field_allinf "field_allinf.txt is NaN or Inf" correct --field field_allinf.txt \
     --pl fwd_zp/pl.txt --psf moffat_periodic.yaml -o corr_allnan --format txt $FAST

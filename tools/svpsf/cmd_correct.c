@@ -329,16 +329,6 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
         job->psf.variant.single_precision = opt->method != SVP_METHOD_RW;
     if ((code = correct_read_sigma(run, a, job))) return code;
     const int w = maps->pl->width, h = maps->pl->height;
-    {
-        /* a PL without one measured pixel: named here (the library calls it pl_apparent; it
-         * names the field maps by their files itself) */
-        size_t k = 0;
-        const size_t n = (size_t)w * h;
-        while (k < n && !isfinite(maps->pl->data[k])) k++;
-        if (k == n)
-            return cli_error(run, "%s: every pixel is NaN or Inf: nothing to correct",
-                             maps->pl_path);
-    }
     /* default: auto for the RL methods (measured: docs/accuracy.md), 0 for the Wiener ones */
     int margin_auto = a->margin_auto;
     if (margin_auto < 0)
@@ -352,12 +342,9 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     } else if (margin_auto) {
         opt->margin = auto_margin(&job->psf, w, h);
     }
-    if (opt->margin > (w > h ? w : h)) /* before the operator for that grid is built */
-        return cli_error(run,
-                         "--margin %d: wider than the view's larger side (%d pixels, %s): the "
-                         "data barely see pixels that far, and the work grows with the square of "
-                         "the grid; use at most %d (auto: the PSF's reach)",
-                         opt->margin, w > h ? w : h, maps->pl_path, w > h ? w : h);
+    /* the library's margin rule, before the operator for that grid is built */
+    svp_status st = svp_correct_check_margin(opt->margin, w, h);
+    if (st != SVP_OK) return cli_fail(run, st, maps->pl_path);
     opt->summary = &job->summary;
     /* the library's messages name the field maps by their files */
     opt->field_names = maps->field_paths;

@@ -243,20 +243,20 @@ static int reconstruct_read(cli_run *run, const struct reconstruct_args *a,
         svp_image **b = &job->b[k];
         if (!a->paths[k]) continue;
         if ((code = cli_read_image(run, roles[k], a->paths[k], b))) return code;
-        const size_t n = (size_t)(*b)->width * (*b)->height;
-        size_t n_bad = 0, first_bad = 0;
-        for (size_t i = 0; i < n; i++) {
-            if (!isfinite((*b)->data[i]) && n_bad++ == 0) first_bad = i;
-            (*b)->data[i] *= unit_scale[a->unit];
-        }
         /* the Fourier method needs every pixel: named here, with what to do */
-        if (n_bad)
+        const size_t n_bad = svp_image_count_nonfinite(*b);
+        if (n_bad) {
+            size_t first_bad = 0;
+            while (isfinite((*b)->data[first_bad])) first_bad++;
             return cli_error(run,
                              "%s: %zu NaN or Inf pixel%s (the first at x %zu, y %zu): the Fourier "
                              "reconstruction needs a complete map; svpsf correct treats them as "
                              "missing data and writes none, or fill them first",
                              a->paths[k], n_bad, n_bad == 1 ? "" : "s",
                              first_bad % (size_t)(*b)->width, first_bad / (size_t)(*b)->width);
+        }
+        for (size_t i = 0; i < (size_t)(*b)->width * (*b)->height; i++)
+            (*b)->data[i] *= unit_scale[a->unit];
         if (first && (code = cli_check_same_size(run, first, first_role, first_path, *b, roles[k],
                                                  a->paths[k])))
             return code;
