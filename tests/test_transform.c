@@ -6,6 +6,7 @@
 
 #include "core/internal.h"
 
+#include <omp.h>
 #include <stdio.h>
 
 /* internal (restore/transform.c): T⁻¹ that also counts its last-resort NaN/Inf repairs */
@@ -1349,11 +1350,20 @@ typedef struct progress_log {
     double last;
     int calls, monotone, in_range;
     double cancel_at;
+    int thread_max; /* the largest OpenMP thread number that called */
+    int inside, overlap; /* calls under way; 1 once two were at the same time */
 } progress_log;
 
 static int log_progress(void *user, double fraction)
 {
     progress_log *p = user;
+    int inside;
+#pragma omp atomic capture
+    inside = ++p->inside;
+    if (inside > 1) p->overlap = 1;
+    if (omp_get_thread_num() > p->thread_max) p->thread_max = omp_get_thread_num();
+#pragma omp atomic
+    p->inside--;
     if (fraction < p->last) p->monotone = 0;
     if (!(fraction >= 0 && fraction <= 1)) p->in_range = 0;
     p->last = fraction;
@@ -1370,7 +1380,7 @@ static void test_progress(void **state)
     svp_image *b[NF] = {field_smooth(w, h, 0), field_smooth(w, h, 1)};
     apparent a = forward_run(op, pl, b, NF);
     for (int method = 0; method < 4; method++) {
-        progress_log log = {0, 0, 1, 1, 2.0};
+        progress_log log = {0, 0, 1, 1, 2.0, 0, 0, 0};
         svp_correct_options o = options_for((svp_method)method, 20, 1e-3);
         o.deconv.progress = log_progress;
         o.deconv.progress_user = &log;
@@ -1379,7 +1389,7 @@ static void test_progress(void **state)
         ASSERT_CLOSE(log.last, 1.0, 1e-12);
         restored_free(&r, NF);
         /* cancel half way */
-        progress_log cancel = {0, 0, 1, 1, 0.5};
+        progress_log cancel = {0, 0, 1, 1, 0.5, 0, 0, 0};
         o.deconv.progress_user = &cancel;
         svp_image *pl_out = test_image(w, h), *out[NF] = {test_image(w, h), test_image(w, h)};
         expect_error(svp_inverse_transform(op, a.pl, (const svp_image *const *)a.field, NF, &o,
@@ -1389,6 +1399,61 @@ static void test_progress(void **state)
         svp_image_free(pl_out);
         free_images(out, NF);
     }
+    apparent_free(&a, NF);
+    svp_blur_free(op);
+    svp_image_free(pl);
+    free_images(b, NF);
+}
+
+/* Side by side (transform.c, deconvolve_side_by_side): with two threads, R's PL and its two
+ * numerators (three plain RL runs, 160 x 144 > the 128² threshold) run on two copies of the
+ * operator at once. The caller still sees one progress, monotone from 0 to 1, one call at a
+ * time; a cancel half way stops every run with SVP_ERR_CANCELLED and its message, and reports
+ * no fraction after it. The result equals the one-thread (sequential) run's: measured
+ * bit-identical (both transform with one-thread plans), asserted <= 1e-12. */
+static void test_side_by_side(void **state)
+{
+    (void)state;
+    const int w = 160, h = 144;
+    const int saved = svp_get_threads();
+    svp_blur *op = blur_model(SVP_PSF_MOFFAT, 3.0, 1.5, 0.0, w, h, SVP_BOUNDARY_ZERO);
+    svp_image *pl = pl_spot_chessboard(w, h, 16, 5);
+    svp_image *b[NF] = {field_smooth(w, h, 0), field_smooth(w, h, 1)};
+    apparent a = forward_run(op, pl, b, NF);
+    svp_correct_options o = options_for(SVP_METHOD_R, 25, 1e-3);
+    restored seq = inverse_run(op, a.pl, a.field, NF, &o);
+    svp_set_threads(2);
+    progress_log log = {0, 0, 1, 1, 2.0, 0, 0, 0};
+    o.deconv.progress = log_progress;
+    o.deconv.progress_user = &log;
+    restored par = inverse_run(op, a.pl, a.field, NF, &o);
+    assert_true(log.monotone && log.in_range && log.calls >= 3);
+    ASSERT_CLOSE(log.last, 1.0, 1e-12);
+    /* the runs did go side by side: the second worker reported too, never at the same time */
+    assert_true(log.thread_max == 1 && !log.overlap);
+    double diff = 0, scale = 0;
+    for (int c = 0; c < NF; c++) {
+        diff = fmax(diff, test_max_abs_diff(seq.field[c], par.field[c]));
+        scale = fmax(scale, test_max_abs(seq.field[c]));
+    }
+    diff = fmax(diff / scale, test_max_abs_diff(seq.pl, par.pl) / test_max_abs(seq.pl));
+    diff = fmax(diff, test_max_abs_diff(seq.valid, par.valid));
+    print_message("side by side (2 threads) vs sequential (1): max difference %.3g, %d progress "
+                  "calls\n",
+                  diff, log.calls);
+    CHECK_BOUND(diff <= 1e-12, "side by side differs from sequential by %.3g", diff);
+    progress_log cancel = {0, 0, 1, 1, 0.5, 0, 0, 0};
+    o.deconv.progress_user = &cancel;
+    svp_image *pl_out = test_image(w, h), *out[NF] = {test_image(w, h), test_image(w, h)};
+    expect_error(svp_inverse_transform(op, a.pl, (const svp_image *const *)a.field, NF, &o,
+                                       pl_out, out, NULL, NULL),
+                 SVP_ERR_CANCELLED, "cancelled");
+    assert_true(cancel.monotone && cancel.last >= 0.5 && cancel.last < 1.0);
+    svp_set_threads(saved);
+    svp_image_free(pl_out);
+    free_images(out, NF);
+    restored_free(&seq, NF);
+    restored_free(&par, NF);
     apparent_free(&a, NF);
     svp_blur_free(op);
     svp_image_free(pl);
@@ -1421,6 +1486,7 @@ int main(void)
         cmocka_unit_test(test_threads),
         cmocka_unit_test(test_margin_view_frame),
         cmocka_unit_test(test_progress),
+        cmocka_unit_test(test_side_by_side),
     };
     if (getenv("SVP_TEST_FILTER")) cmocka_set_test_filter(getenv("SVP_TEST_FILTER"));
     int rc = cmocka_run_group_tests_name("transform", tests, NULL, NULL);

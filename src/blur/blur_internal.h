@@ -134,6 +134,7 @@ struct svp_blur {
     svp_image *kernel;    /* the normalised core kernel (kept for solvers that need another
                              frame, e.g. Wiener in a mirror frame) */
     int kcx, kcy;         /* its centre */
+    int kernel_borrowed;  /* kernel is another operator's (svp_blur_clone_invariant) */
     int has_model;
     svp_psf psf;          /* when built from a model */
     /* Invariant operators make their frame (plans, OTF, work buffers) on first use
@@ -178,6 +179,11 @@ struct svp_blur {
  * float state, if not made yet; other kinds are always ready. Every user of b->frame,
  * b->work_r / work_c or svp_blur_spectrum_in / _out on an invariant operator calls it first. */
 svp_status svp_blur_ready(svp_blur *b);
+
+/* A new invariant operator equal to b (its view, precision and halo; b's kernel, read only, so b
+ * must outlive it), with its own frame and buffers, made on first use: b and the copy can be
+ * applied at the same time from two threads. SVP_ERR_UNSUPPORTED for the other kinds. */
+svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out);
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
  * (adjoint_side 0) or Cᵀ (1) — the same plain copy with zero padding in zero mode — with the

@@ -470,13 +470,38 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
     return blur_finish(b, out);
 }
 
+svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out)
+{
+    *out = NULL;
+    if (!b || b->kind != SVP_BLUR_INVARIANT)
+        return svp_fail(SVP_ERR_UNSUPPORTED, "only an invariant operator can be cloned");
+    svp_blur *c = calloc(1, sizeof *c);
+    if (!c) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
+    c->kind = SVP_BLUR_INVARIANT;
+    c->ops = &svp_invariant_ops;
+    c->width = b->width;
+    c->height = b->height;
+    c->boundary = b->boundary;
+    c->halo = b->halo;
+    c->has_model = b->has_model;
+    c->psf = b->psf;
+    c->kcx = b->kcx;
+    c->kcy = b->kcy;
+    c->view_margin = b->view_margin;
+    c->single = b->single;
+    c->kernel = b->kernel; /* b's, read only: b must outlive the copy */
+    c->kernel_borrowed = 1;
+    *out = c;
+    return SVP_OK;
+}
+
 void svp_blur_free(svp_blur *b)
 {
     if (!b) return;
     if (b->ops) b->ops->release(b);
     if (b->restore.release) b->restore.release(b->restore.data);
     svp_frame_release(&b->frame);
-    svp_image_free(b->kernel);
+    if (!b->kernel_borrowed) svp_image_free(b->kernel);
     svp_free(b->work_r);
     svp_free(b->work_c);
     svp_free(b->work_rf);
@@ -863,7 +888,8 @@ static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, doubl
 
 static size_t invariant_memory(const svp_blur *b)
 {
-    const size_t kernel = (size_t)b->kernel->width * b->kernel->height * sizeof(double);
+    const size_t kernel =
+        b->kernel_borrowed ? 0 : (size_t)b->kernel->width * b->kernel->height * sizeof(double);
     const svp_frame *f = &b->frame;
     if (!f->plan) return kernel; /* no frame made yet (svp_blur_ready) */
     /* the float frame, spectrum and OTF, once used */

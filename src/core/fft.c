@@ -18,6 +18,8 @@ static pthread_mutex_t fft_lock = PTHREAD_MUTEX_INITIALIZER;
 static pthread_once_t fft_once = PTHREAD_ONCE_INIT;
 static int fft_threads_ok;
 static int n_threads; /* 0 = not set yet: all cores */
+/* svp_fft_local_threads: the calling thread's plan threads (0: svp_get_threads()) */
+static _Thread_local int local_threads;
 static svp_fft_effort fft_effort = SVP_FFT_MEASURE;
 
 typedef struct plan_entry {
@@ -299,12 +301,21 @@ int svp_fft_good_size(int n)
     }
 }
 
+void svp_fft_local_threads(int n) { local_threads = n > 0 ? n : 0; }
+
+/* The threads of a plan for ny x nx points made by the calling thread. Threads cost more than
+ * they save on small transforms (and oversubscribe badly). */
+static int plan_threads(int ny, int nx)
+{
+    if ((size_t)ny * nx < SVP_PARALLEL_MIN) return 1;
+    return local_threads > 0 ? local_threads : svp_get_threads();
+}
+
 svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out)
 {
     if (ny < 1 || nx < 1) return svp_fail(SVP_ERR_INVALID, "FFT size %d x %d", ny, nx);
     pthread_once(&fft_once, fft_init);
-    /* Threads cost more than they save on small transforms (and oversubscribe badly). */
-    int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();
+    const int threads = plan_threads(ny, nx);
     pthread_mutex_lock(&fft_lock);
     for (plan_entry *e = plan_cache; e; e = e->next) {
         if (e->plan.ny == ny && e->plan.nx == nx && e->threads == threads) {
@@ -402,7 +413,7 @@ void svp_fft_inverse_unscaled(const svp_fft_plan *plan, fftw_complex *in, double
         if (ny < 1 || nx < 1 || rows < 0 || rows > ny)                                             \
             return svp_fail(SVP_ERR_INVALID, WHAT " FFT size %d x %d with %d rows", ny, nx, rows); \
         pthread_once(&fft_once, fft_init);                                                         \
-        int threads = (size_t)ny * nx < SVP_PARALLEL_MIN ? 1 : svp_get_threads();                  \
+        const int threads = plan_threads(ny, nx);                                                  \
         pthread_mutex_lock(&fft_lock);                                                             \
         for (ENTRY *e = CACHE; e; e = e->next) {                                                   \
             if (e->plan.ny == ny && e->plan.nx == nx && e->plan.rows == rows &&                    \

@@ -64,6 +64,10 @@ typedef struct svp_fft_plan {
 } svp_fft_plan;
 
 svp_status svp_fft_plan_get(int ny, int nx, const svp_fft_plan **out);
+/* Plans the calling thread gets from now on (svp_fft_plan_get, svp_fft_pruned_get,
+ * svp_fftf_rows_get) use n threads instead of svp_get_threads() (n < 1: back to it). For work
+ * split between concurrent threads, each transforming with fewer FFTW threads. */
+void svp_fft_local_threads(int n);
 /* The planning effort last set by svp_set_fft_effort (for summaries). */
 svp_fft_effort svp_get_fft_effort(void);
 void svp_fft_forward(const svp_fft_plan *plan, double *in, fftw_complex *out);

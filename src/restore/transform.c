@@ -4,6 +4,8 @@
  * space-invariant and space-variant operators. */
 #include "restore_internal.h"
 
+#include <omp.h>
+
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -455,6 +457,10 @@ typedef struct inverse_run {
     svp_rl_levels *levels; /* the PL's RL levels (operator built in single precision), which
                               the numerators' RL use too: their float round-off cancels in (4) */
     int *counts;    /* RL iterations of every numerator */
+    /* side by side (deconvolve_side_by_side): one copy of the operator per worker, the first
+     * kept for the validity map */
+    svp_blur **copies;
+    int n_copies;
 } inverse_run;
 
 /* Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution, so
@@ -523,17 +529,17 @@ static void plan_progress(inverse_run *r)
 }
 
 /* work = Ĩ with the missing pixels NaN. */
-static void load_pl(inverse_run *r)
+static void load_pl(inverse_run *r, svp_image *work)
 {
     const double *restrict pl = r->pl_apparent->data;
-    double *restrict y = r->work->data;
+    double *restrict y = work->data;
 #pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
     for (size_t i = 0; i < r->n; i++) y[i] = r->missing[i] ? NAN : pl[i];
 }
 
 /* Ĩ ⊘ p (eq. 4, denominator), once for all components; the PL's noise variance
  * var Ĩ = g · max(Ĩ, g) (at least one photon's) for RL's stopping rule and W's discrepancy. */
-static svp_status deconvolve_pl(inverse_run *r)
+static svp_status deconvolve_pl(inverse_run *r, svp_blur *blur, svp_image *work)
 {
     const svp_correct_options *o = &r->opt;
     if ((o->auto_iterations || o->balance_auto) && o->pl_gain > 0) {
@@ -548,8 +554,8 @@ static svp_status deconvolve_pl(inverse_run *r)
         return svp_fail(SVP_ERR_NOMEM, "out of memory for the extrapolation path");
     svp_deconv_options d = o->deconv;
     d.auto_stop = o->auto_iterations;
-    load_pl(r);
-    svp_status st = deconvolve(r->blur, r->work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
+    load_pl(r, work);
+    svp_status st = deconvolve(blur, work, r->rl_pl, &d, o->balance_auto, o->noise_sigma,
                                r->pl_var, &r->shares[0], &r->reports[0], r->pl_true, NULL,
                                r->alphas, &r->levels);
     if (st != SVP_OK) return svp_fail_context(st, "deconvolving %s", pl_name(o));
@@ -559,15 +565,15 @@ static svp_status deconvolve_pl(inverse_run *r)
 /* Numerator c: (B̃_c Ĩ) ⊘ p, or ((B̃_c + c) Ĩ) ⊘ p for the RL methods (the shift is removed in
  * divide_fields), into field_true[c]; RL runs at most `count` iterations on the PL's path and,
  * with automatic iterations on the first pass, stops by its own noise. */
-static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int first_pass,
-                                       double pl_var_const)
+static svp_status deconvolve_numerator(inverse_run *r, svp_blur *blur, svp_image *work, int c,
+                                       int count, int first_pass, double pl_var_const)
 {
     const svp_correct_options *o = &r->opt;
     const double shift = r->shifts[c]; /* 0 unless rl_field */
     {
         const double *restrict pl = r->pl_apparent->data;
         const double *restrict b_app = r->field_apparent[c]->data;
-        double *restrict y = r->work->data;
+        double *restrict y = work->data;
 #pragma omp parallel for schedule(static) if (r->n > PAR_MIN)
         for (size_t i = 0; i < r->n; i++) y[i] = r->missing[i] ? NAN : (b_app[i] + shift) * pl[i];
     }
@@ -583,7 +589,7 @@ static svp_status deconvolve_numerator(inverse_run *r, int c, int count, int fir
     svp_deconv_options d = o->deconv;
     d.auto_stop = auto_num;
     if (r->rl_field) d.iterations = count;
-    svp_status st = deconvolve(r->blur, r->work, r->rl_field, &d, o->balance_auto,
+    svp_status st = deconvolve(blur, work, r->rl_field, &d, o->balance_auto,
                                o->noise_sigma, var_c, first_pass ? &r->shares[c + 1] : NULL,
                                &r->reports[c + 1], r->field_true[c],
                                r->accel ? r->alphas : NULL, NULL, &r->levels);
@@ -616,24 +622,150 @@ static svp_status deconvolve_numerators(inverse_run *r)
                         r->h);
     const int k_pl = count;
     for (int c = 0; c < r->n_fields; c++) {
-        SVP_CHECK(deconvolve_numerator(r, c, count, 1, pl_var_const));
+        SVP_CHECK(deconvolve_numerator(r, r->blur, r->work, c, count, 1, pl_var_const));
         if (r->counts[c] < count) count = r->counts[c];
     }
     if (count == k_pl) return SVP_OK;
     for (int c = 0; c < r->n_fields; c++)
-        if (r->counts[c] != count) SVP_CHECK(deconvolve_numerator(r, c, count, 0, pl_var_const));
+        if (r->counts[c] != count)
+            SVP_CHECK(deconvolve_numerator(r, r->blur, r->work, c, count, 0, pl_var_const));
     svp_deconv_options d = o->deconv;
     d.auto_stop = 0;
     d.iterations = count;
     const int stop = r->reports[0].stop;
     const double chi2 = r->reports[0].chi2;
-    load_pl(r);
+    load_pl(r, r->work);
     SVP_CHECK(deconvolve(r->blur, r->work, 1, &d, 0, 0, NULL, NULL, &r->reports[0], r->pl_true,
                          r->accel ? r->alphas : NULL, NULL, &r->levels));
     /* the count was the numerators' noise's choice, not the cap */
     r->reports[0].stop = stop == SVP_RL_STOP_CAP ? SVP_RL_STOP_DISCREPANCY : stop;
     r->reports[0].chi2 = chi2;
     return SVP_OK;
+}
+
+/* Side by side: plain Richardson–Lucy with a fixed count on both halves of (4) (method R
+ * without acceleration or automatic choices) needs no result of one deconvolution in another,
+ * so with two or more threads and an invariant operator the PL's and each numerator's run at
+ * the same time, each worker on its own copy of the operator (a second frame and its buffers)
+ * with threads / workers FFT threads. FFTW's own threads gain 1.0–1.55× on two cores at these
+ * sizes, two one-thread transforms at once nearly 2× (docs/performance.md). The arithmetic of
+ * each run is unchanged; only its FFT plans (thread count) differ, so results agree with the
+ * sequential order to the transforms' round-off. */
+#define SIDE_BY_SIDE_MIN (128 * 128)
+
+static int side_by_side_workers(const inverse_run *r)
+{
+    const svp_correct_options *o = &r->opt;
+    if (!r->rl_pl || !r->rl_field || r->accel || o->auto_iterations || o->balance_auto) return 1;
+    if (r->blur->kind != SVP_BLUR_INVARIANT || r->n < SIDE_BY_SIDE_MIN) return 1;
+    const int threads = svp_get_threads(), tasks = 1 + r->n_fields;
+    return threads < tasks ? threads : tasks;
+}
+
+/* The progress of runs side by side: each run reports its own fraction, the caller gets their
+ * sum weighted by the runs' shares, one call at a time; a cancel stops every run. */
+typedef struct progress_sum {
+    svp_progress_fn fn;
+    void *user;
+    const svp_progress_share *shares; /* each run's share of the whole (plan_progress) */
+    double *done;                     /* each run's fraction */
+    int n, stop;
+} progress_sum;
+
+typedef struct progress_part {
+    progress_sum *sum;
+    int k;
+} progress_part;
+
+static int progress_part_fn(void *user, double fraction)
+{
+    progress_part *p = user;
+    progress_sum *s = p->sum;
+    int stop;
+#pragma omp critical(svp_inverse_progress)
+    {
+        s->done[p->k] = fraction;
+        double at = 0;
+        for (int k = 0; k < s->n; k++) at += s->shares[k].span * s->done[k];
+        if (!s->stop && s->fn(s->user, at)) s->stop = 1;
+        stop = s->stop;
+    }
+    return stop;
+}
+
+#define SIDE_BY_SIDE_MSG 512
+
+static void drop_copies(inverse_run *r)
+{
+    if (r->copies)
+        for (int t = 0; t < r->n_copies; t++) svp_blur_free(r->copies[t]);
+    free(r->copies);
+    r->copies = NULL;
+    r->n_copies = 0;
+}
+
+static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
+{
+    const int tasks = 1 + r->n_fields;
+    svp_status st = SVP_OK;
+    svp_image **works = calloc((size_t)workers, sizeof *works);
+    svp_status *status = calloc((size_t)tasks, sizeof *status);
+    char(*msg)[SIDE_BY_SIDE_MSG] = calloc((size_t)tasks, sizeof *msg);
+    svp_progress_share *all = calloc((size_t)tasks, sizeof *all);
+    double *done = calloc((size_t)tasks, sizeof *done);
+    progress_part *parts = calloc((size_t)tasks, sizeof *parts);
+    r->copies = calloc((size_t)workers, sizeof *r->copies);
+    r->counts = calloc((size_t)r->n_fields, sizeof *r->counts);
+    if (!works || !status || !msg || !all || !done || !parts || !r->copies || !r->counts) {
+        st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r->w, r->h);
+        goto cleanup;
+    }
+    r->n_copies = workers;
+    for (int t = 0; t < workers && st == SVP_OK; t++) {
+        st = svp_blur_clone_invariant(r->blur, &r->copies[t]);
+        if (st == SVP_OK) st = svp_image_new(r->w, r->h, &works[t]);
+    }
+    if (st != SVP_OK) goto cleanup;
+    /* progress: each run's own fraction, summed for the caller */
+    memcpy(all, r->shares, (size_t)tasks * sizeof *all);
+    progress_sum sum = {.fn = r->opt.deconv.progress, .user = r->opt.deconv.progress_user,
+                        .shares = all, .done = done, .n = tasks};
+    for (int k = 0; k < tasks; k++) {
+        parts[k] = (progress_part){.sum = &sum, .k = k};
+        r->shares[k] = (svp_progress_share){.fn = progress_part_fn, .user = &parts[k], .base = 0,
+                                            .span = 1};
+    }
+    const int fft_threads = svp_get_threads() / workers;
+#pragma omp parallel num_threads(workers)
+    {
+        const int t = omp_get_thread_num();
+        svp_fft_local_threads(fft_threads > 0 ? fft_threads : 1);
+#pragma omp for schedule(dynamic, 1)
+        for (int k = 0; k < tasks; k++) {
+            svp_clear_error();
+            status[k] = k == 0 ? deconvolve_pl(r, r->copies[t], works[t])
+                               : deconvolve_numerator(r, r->copies[t], works[t], k - 1,
+                                                      r->opt.deconv.iterations, 1, 0);
+            if (status[k] != SVP_OK) snprintf(msg[k], SIDE_BY_SIDE_MSG, "%s", svp_last_error());
+        }
+        svp_fft_local_threads(0);
+    }
+    memcpy(r->shares, all, (size_t)tasks * sizeof *all);
+    for (int k = 0; k < tasks; k++)
+        if (status[k] != SVP_OK) {
+            st = svp_fail(status[k], "%s", msg[k]);
+            break;
+        }
+cleanup:
+    if (works)
+        for (int t = 0; t < workers; t++) svp_image_free(works[t]);
+    free(works);
+    free(status);
+    free(msg);
+    free(all);
+    free(done);
+    free(parts);
+    return st;
 }
 
 /* Validity (eq. 6): the recovered PL against the floor, times, at missing pixels, the share of
@@ -654,9 +786,10 @@ static svp_status validity_map(inverse_run *r, double floor_pl, int no_light)
     double *restrict m = r->work->data;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
     for (size_t i = 0; i < n; i++) m[i] = r->missing[i] ? 0.0 : 1.0;
-    svp_status st = svp_blur_adjoint(r->blur, r->work, coverage);
+    svp_blur *blur = r->n_copies ? r->copies[0] : r->blur;
+    svp_status st = svp_blur_adjoint(blur, r->work, coverage);
     if (st == SVP_OK) {
-        const double alpha = svp_blur_halo(r->blur);
+        const double alpha = svp_blur_halo(blur);
         const double halo_part = alpha * (double)(n - r->n_miss) / (double)n;
         const double *restrict cov = coverage->data;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
@@ -752,8 +885,23 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
         /* the signed shifts (eq. 5), all checked before any deconvolution */
         for (int c = 0; r.rl_field && c < n_fields && st == SVP_OK; c++)
             st = signed_shift(field_apparent[c], r.missing, r.n, &r.opt, c, &shifts[c]);
-        if (st == SVP_OK) st = deconvolve_pl(&r);
-        if (st == SVP_OK) st = deconvolve_numerators(&r);
+        int in_order = 1;
+        const int workers = side_by_side_workers(&r);
+        if (st == SVP_OK && workers > 1) {
+            st = deconvolve_side_by_side(&r, workers);
+            in_order = st == SVP_ERR_NOMEM; /* no room for the copies: in order, one frame */
+            if (in_order) {
+                drop_copies(&r);
+                free(r.counts);
+                r.counts = NULL;
+                svp_clear_error();
+                st = SVP_OK;
+            }
+        }
+        if (in_order) {
+            if (st == SVP_OK) st = deconvolve_pl(&r, r.blur, r.work);
+            if (st == SVP_OK) st = deconvolve_numerators(&r);
+        }
         if (st != SVP_OK) goto cleanup;
         const double floor_pl = r.opt.pl_floor * svp_max(pl_true->data, r.n);
         const int no_light = !(floor_pl > 0) || !isfinite(floor_pl);
@@ -771,6 +919,7 @@ cleanup:
     free(r.alphas);
     svp_rl_levels_free(r.levels);
     free(r.counts);
+    drop_copies(&r);
     return st;
 }
 
