@@ -222,6 +222,18 @@ grep -q '"precision": "single"' corr_1024r/summary.json &&
     grep -q '"precision": "double"' corr_1024rw/summary.json &&
     pass "correct at 1024²: r defaults to single precision, rw to double" ||
     fail "default precision at 1024²" "$(grep -h precision corr_1024r*/summary.json)"
+# the deconvolutions side by side (docs/model.md §3, one worker per thread, one FFT thread each):
+# 1 and 2 threads give the same maps bit for bit, with two field maps (three runs, two workers)
+for t in 1 2; do
+    expect_ok corr_side$t correct --field b1024.txt --field pl1024.txt --pl pl1024.txt \
+        --psf moffat_s.yaml --iterations 2 --margin 0 -o corr_side$t --format npy --threads $t $FAST
+done
+if cmp -s corr_side1/pl.npy corr_side2/pl.npy && cmp -s corr_side1/field_b1024.npy corr_side2/field_b1024.npy &&
+    cmp -s corr_side1/field_pl1024.npy corr_side2/field_pl1024.npy; then
+    pass "correct at 1024² with two fields: 2 threads (side by side) = 1 thread, bit for bit"
+else
+    fail "side by side" "$(ls corr_side1 corr_side2 | tr '\n' ' ')"
+fi
 expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
     --psf moffat_periodic.yaml --method w --precision single -o corr_w32
 if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then
