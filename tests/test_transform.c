@@ -1407,7 +1407,7 @@ static void test_progress(void **state)
 
 /* Side by side (transform.c, deconvolve_side_by_side): with two threads, R's PL and its two
  * numerators (three plain RL runs, 160 x 144 > the 128² threshold) run on two copies of the
- * operator at once. The caller still sees one progress, monotone from 0 to 1, one call at a
+ * operator at once; with four (more threads than runs) only where OpenMP allows nesting. The caller still sees one progress, monotone from 0 to 1, one call at a
  * time; a cancel half way stops every run with SVP_ERR_CANCELLED and its message, and reports
  * no fraction after it. The result equals the one-thread (sequential) run's: measured
  * bit-identical (both transform with one-thread plans), asserted <= 1e-12. */
@@ -1449,6 +1449,31 @@ static void test_side_by_side(void **state)
                                        pl_out, out, NULL, NULL),
                  SVP_ERR_CANCELLED, "cancelled");
     assert_true(cancel.monotone && cancel.last >= 0.5 && cancel.last < 1.0);
+    /* the caller's OpenMP thread count is its own again */
+    assert_int_equal(omp_get_max_threads(), 2);
+    /* More threads (4) than runs (3): a worker's FFTs and loops would be nested regions, which
+     * OpenMP runs on one thread by default (max active levels 1), so the runs stay in order,
+     * every transform on all four threads; with nesting allowed they go side by side, a
+     * worker per run (4 / 3 threads: one-thread plans each; asserted <= 1e-10 of the one-thread
+     * run, as plans of another thread count would be). */
+    const int levels = omp_get_max_active_levels();
+    for (int nest = 0; nest < 2; nest++) {
+        omp_set_max_active_levels(nest ? 2 : 1);
+        svp_set_threads(4);
+        progress_log four = {0, 0, 1, 1, 2.0, 0, 0, 0};
+        o.deconv.progress_user = &four;
+        restored r4 = inverse_run(op, a.pl, a.field, NF, &o);
+        double d4 = 0;
+        for (int c = 0; c < NF; c++) d4 = fmax(d4, test_max_abs_diff(seq.field[c], r4.field[c]));
+        d4 /= scale;
+        print_message("4 threads, nesting %s: %s, max difference %.3g\n", nest ? "allowed" : "off",
+                      four.thread_max ? "side by side" : "in order", d4);
+        assert_true(nest ? four.thread_max >= 1 : four.thread_max == 0);
+        assert_true(!four.overlap && four.monotone);
+        CHECK_BOUND(d4 <= 1e-10, "4 threads differ from 1 by %.3g", d4);
+        restored_free(&r4, NF);
+    }
+    omp_set_max_active_levels(levels);
     svp_set_threads(saved);
     svp_image_free(pl_out);
     free_images(out, NF);

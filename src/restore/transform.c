@@ -646,11 +646,18 @@ static svp_status deconvolve_numerators(inverse_run *r)
 /* Side by side: plain Richardson–Lucy with a fixed count on both halves of (4) (method R
  * without acceleration or automatic choices) needs no result of one deconvolution in another,
  * so with two or more threads and an invariant operator the PL's and each numerator's run at
- * the same time, each worker on its own copy of the operator (a second frame and its buffers)
- * with threads / workers FFT threads. FFTW's own threads gain 1.0–1.55× on two cores at these
- * sizes, two one-thread transforms at once nearly 2× (docs/performance.md). The arithmetic of
- * each run is unchanged; only its FFT plans (thread count) differ, so results agree with the
- * sequential order to the transforms' round-off. */
+ * the same time, each worker on its own copy of the operator (a second frame and its buffers).
+ * FFTW's own threads gain 1.0–1.55× on two cores at these sizes, two one-thread transforms at
+ * once nearly 2× (docs/performance.md). The arithmetic of each run is unchanged; only its FFT
+ * plans (thread count) differ, so results agree with the sequential order to the transforms'
+ * round-off.
+ *
+ * A worker's FFTs (fftw3_omp) and loops are OpenMP regions nested in the workers' region, which
+ * OpenMP runs on one thread unless nesting is allowed (OMP_MAX_ACTIVE_LEVELS ≥ 2; the default
+ * is 1). So the runs go side by side when there are no more threads than runs (a worker per
+ * thread, one thread each), or with more threads when nesting is allowed (threads / workers
+ * each); otherwise in order, every FFT on all threads, which on a machine with more cores than
+ * runs is faster than leaving cores idle. */
 #define SIDE_BY_SIDE_MIN (128 * 128)
 
 static int side_by_side_workers(const inverse_run *r)
@@ -659,7 +666,11 @@ static int side_by_side_workers(const inverse_run *r)
     if (!r->rl_pl || !r->rl_field || r->accel || o->auto_iterations || o->balance_auto) return 1;
     if (r->blur->kind != SVP_BLUR_INVARIANT || r->n < SIDE_BY_SIDE_MIN) return 1;
     const int threads = svp_get_threads(), tasks = 1 + r->n_fields;
-    return threads < tasks ? threads : tasks;
+    /* the levels still free: the workers' region needs one, their threads another */
+    const int free_levels = omp_get_max_active_levels() - omp_get_active_level();
+    if (threads < 2 || free_levels < 1) return 1;
+    if (threads <= tasks) return threads;
+    return free_levels >= 2 ? tasks : 1;
 }
 
 /* The progress of runs side by side: each run reports its own fraction, the caller gets their
@@ -735,11 +746,14 @@ static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
         r->shares[k] = (svp_progress_share){.fn = progress_part_fn, .user = &parts[k], .base = 0,
                                             .span = 1};
     }
-    const int fft_threads = svp_get_threads() / workers;
+    /* each worker's share of the threads, for its FFT plans and its own loops (which only get
+     * them where nesting is allowed: side_by_side_workers) */
+    const int per_worker = svp_get_threads() / workers > 1 ? svp_get_threads() / workers : 1;
 #pragma omp parallel num_threads(workers)
     {
         const int t = omp_get_thread_num();
-        svp_fft_local_threads(fft_threads > 0 ? fft_threads : 1);
+        svp_fft_local_threads(per_worker);
+        omp_set_num_threads(per_worker);
 #pragma omp for schedule(dynamic, 1)
         for (int k = 0; k < tasks; k++) {
             svp_clear_error();
