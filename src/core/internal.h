@@ -40,6 +40,9 @@ void svp_free(void *p);
         if (svp_check_status_ != SVP_OK) return svp_check_status_;                             \
     } while (0)
 
+/* The longest error message kept (svp_last_error), terminator included. */
+#define SVP_ERROR_LEN 1024
+
 /* Deterministic sum (the same for every thread count): fixed blocks summed in parallel, the
  * block sums added in order. */
 double svp_sum(const double *restrict x, size_t n);

@@ -5,8 +5,6 @@
 #include <stdio.h>
 #include <string.h>
 
-#define SVP_ERROR_LEN 1024
-
 static _Thread_local char last_error[SVP_ERROR_LEN];
 
 const char *svp_status_string(svp_status status)

@@ -617,9 +617,6 @@ static svp_status deconvolve_numerators(inverse_run *r)
         double sigma = 0;
         if (svp_noise_sigma_estimate(r->pl_apparent, &sigma) == SVP_OK) pl_var_const = sigma * sigma;
     }
-    if (!(r->counts = calloc((size_t)r->n_fields, sizeof *r->counts)))
-        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r->w,
-                        r->h);
     const int k_pl = count;
     for (int c = 0; c < r->n_fields; c++) {
         SVP_CHECK(deconvolve_numerator(r, r->blur, r->work, c, count, 1, pl_var_const));
@@ -704,8 +701,6 @@ static int progress_part_fn(void *user, double fraction)
     return stop;
 }
 
-#define SIDE_BY_SIDE_MSG 512
-
 static void drop_copies(inverse_run *r)
 {
     if (r->copies)
@@ -721,13 +716,12 @@ static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
     svp_status st = SVP_OK;
     svp_image **works = calloc((size_t)workers, sizeof *works);
     svp_status *status = calloc((size_t)tasks, sizeof *status);
-    char(*msg)[SIDE_BY_SIDE_MSG] = calloc((size_t)tasks, sizeof *msg);
+    char(*msg)[SVP_ERROR_LEN] = calloc((size_t)tasks, sizeof *msg);
     svp_progress_share *all = calloc((size_t)tasks, sizeof *all);
     double *done = calloc((size_t)tasks, sizeof *done);
     progress_part *parts = calloc((size_t)tasks, sizeof *parts);
     r->copies = calloc((size_t)workers, sizeof *r->copies);
-    r->counts = calloc((size_t)r->n_fields, sizeof *r->counts);
-    if (!works || !status || !msg || !all || !done || !parts || !r->copies || !r->counts) {
+    if (!works || !status || !msg || !all || !done || !parts || !r->copies) {
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r->w, r->h);
         goto cleanup;
     }
@@ -760,7 +754,7 @@ static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
             status[k] = k == 0 ? deconvolve_pl(r, r->copies[t], works[t])
                                : deconvolve_numerator(r, r->copies[t], works[t], k - 1,
                                                       r->opt.deconv.iterations, 1, 0);
-            if (status[k] != SVP_OK) snprintf(msg[k], SIDE_BY_SIDE_MSG, "%s", svp_last_error());
+            if (status[k] != SVP_OK) snprintf(msg[k], SVP_ERROR_LEN, "%s", svp_last_error());
         }
         svp_fft_local_threads(0);
     }
@@ -881,7 +875,8 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
     svp_status st = SVP_OK;
     r.missing = malloc(r.n);
     r.shares = calloc((size_t)n_fields + 1, sizeof *r.shares);
-    if (!r.missing || !r.shares) {
+    r.counts = calloc((size_t)n_fields, sizeof *r.counts);
+    if (!r.missing || !r.shares || !r.counts) {
         st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d inverse transform", r.w, r.h);
         goto cleanup;
     }
@@ -906,8 +901,6 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
             in_order = st == SVP_ERR_NOMEM; /* no room for the copies: in order, one frame */
             if (in_order) {
                 drop_copies(&r);
-                free(r.counts);
-                r.counts = NULL;
                 svp_clear_error();
                 st = SVP_OK;
             }
