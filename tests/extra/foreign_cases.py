@@ -215,11 +215,9 @@ def current_case(svpsf, d, n=256):
                   "--seed", "8"])
     with open(os.path.join(d, "meta.json")) as f:
         meta = json.load(f)
-    # the strip's pixels, as foreign.py places it (x = -0.15 of the canvas half-width, 1 µm)
-    c = 0.5 * (meta["canvas"] - 1)
-    x_um = (np.arange(n) + meta["margin_px"] - c) * meta["pixel_um"]
-    wire = np.abs(x_um + 0.15 * c * meta["pixel_um"]) < 0.5
-    rows = slice(n // 4, 3 * n // 4)
+    # the strip's pixels (foreign.py's mask), in the middle half of the rows
+    on_wire = np.load(os.path.join(d, "masks.npz"))["wire"]
+    on_wire[:n // 4] = on_wire[3 * n // 4:] = False
 
     def current(field, tag):
         path = os.path.join(d, f"bz_{tag}.npy")
@@ -232,7 +230,7 @@ def current_case(svpsf, d, n=256):
         check(p.returncode == 0, f"case 8: reconstruct ({tag}) exits 0 ({p.stderr.strip()[:160]})")
         if p.returncode != 0:
             return None
-        return np.load(os.path.join(out, "J_norm.npy"))[rows][:, wire]
+        return np.load(os.path.join(out, "J_norm.npy"))[on_wire]
 
     ref = current(np.load(os.path.join(d, "truth_field.npy")), "truth")
     res = {"uncorrected": current(np.load(os.path.join(d, "field.npy")), "uncorrected")}

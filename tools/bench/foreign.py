@@ -38,7 +38,8 @@ Scenes (0.1 µm pixels by default):
 The folder gets field.npy (µT, measured), pl.npy (photons), field_sigma.npy (µT), psf.yaml (as
 the user believes it), truth_field.npy, truth_pl.npy (the view's true maps), masks.npz
 (significant: |B| > 10 % of its max; lit / dark: true PL above / below 30 % of its max, within
-significant; edge: within 2 µm of the view's border) and meta.json.
+significant; edge: within 2 µm of the view's border; wire: the current strip's pixels, none in
+the array scene) and meta.json.
 """
 import argparse
 import json
@@ -83,15 +84,25 @@ def dipole_bz(x_um, y_um, x0, y0, depth_um):
     return (2 * depth_um ** 2 - rho2) / (rho2 + depth_um ** 2) ** 2.5
 
 
-def scene_maps(kind, n_canvas, pixel_um, rng, quench=0.05):
-    """True PL I and field B (µT) on the canvas (view in the middle)."""
+def canvas_um(n_canvas, pixel_um):
+    """x and y (µm) of the canvas pixels from its centre, and its half-width."""
     c = 0.5 * (n_canvas - 1)
     yy, xx = np.mgrid[0:n_canvas, 0:n_canvas].astype(float)
-    x_um, y_um = (xx - c) * pixel_um, (yy - c) * pixel_um
-    half = c * pixel_um
-    spot = np.exp(-0.5 * (x_um ** 2 + y_um ** 2) / (0.6 * half) ** 2)
+    return (xx - c) * pixel_um, (yy - c) * pixel_um, c * pixel_um
+
+
+def strip(n_canvas, pixel_um):
+    """The current strip's centre x and width (µm), and its pixels on the canvas."""
+    x_um, _, half = canvas_um(n_canvas, pixel_um)
     wire_x, wire_w = -0.15 * half, 1.0
-    on_wire = np.abs(x_um - wire_x) < wire_w / 2
+    return wire_x, wire_w, np.abs(x_um - wire_x) < wire_w / 2
+
+
+def scene_maps(kind, n_canvas, pixel_um, rng, quench=0.05):
+    """True PL I and field B (µT) on the canvas (view in the middle)."""
+    x_um, y_um, half = canvas_um(n_canvas, pixel_um)
+    spot = np.exp(-0.5 * (x_um ** 2 + y_um ** 2) / (0.6 * half) ** 2)
+    wire_x, wire_w, on_wire = strip(n_canvas, pixel_um)
     bz = strip_bz(x_um - wire_x, wire_w, 0.05, 1e-3) * 1e6  # µT
     dip = dipole_bz(x_um, y_um, 0.35 * half, 0.2 * half, 0.6)
     bz = 30 * bz / np.abs(bz).max() + 25 * dip / np.abs(dip).max()
@@ -102,7 +113,8 @@ def scene_maps(kind, n_canvas, pixel_um, rng, quench=0.05):
         side = max(1, int(round(1.0 / pixel_um)))
         ns = n_canvas // side + 1
         levels = rng.choice([0.1, 0.8, 1.0], size=(ns, ns))
-        pl = spot * levels[(yy // side).astype(int), (xx // side).astype(int)]
+        yy, xx = np.mgrid[0:n_canvas, 0:n_canvas]
+        pl = spot * levels[yy // side, xx // side]
     elif kind == "oxide":
         t = np.clip((x_um + 0.3 * half) / 4.0 + 0.5, 0.0, 1.0)  # 0 left of the ramp, 1 right
         pl = spot * (1.0 - (1.0 - quench) * t)
@@ -164,9 +176,11 @@ def make(args):
     band = int(round(2.0 / args.pixel_um))
     edge = np.zeros((n, n), bool)
     edge[:band, :] = edge[-band:, :] = edge[:, :band] = edge[:, -band:] = True
+    # the current strip's pixels (scenes with the strip's field: all but array)
+    wire = strip(nc, args.pixel_um)[2][m:m + n, m:m + n] & (args.scene != "array")
     np.savez(os.path.join(args.output, "masks.npz"), significant=significant,
              lit=lit & significant, dark=~lit & significant, edge=edge & significant,
-             interior=~edge & significant, measured=~nan)
+             interior=~edge & significant, measured=~nan, wire=wire)
     meta = dict(vars(args), margin_px=m, canvas=nc, fwhm_file_um=fwhm_file, beta_file=beta_file,
                 nan_pixels=int(nan.sum()), peak_field_ut=float(np.abs(b_true).max()))
     meta.pop("func", None)
