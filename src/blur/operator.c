@@ -20,7 +20,9 @@ static int reflect(int t, int size)
 /* margin (zero mode only): the data lie on the inner view, `margin` pixels in from each end;
  * offsets that join no grid pixel to the view (beyond size − margin − 1) are dropped, and the
  * frame only has to keep the view free of wrap-around: size − margin + r values suffice
- * (at least size, to hold the grid). margin 0: the plain linear convolution, size + r. */
+ * (at least size, to hold the grid). margin 0: the plain linear convolution, size + r.
+ * *src receives the map from frame position to source pixel; src NULL: the size only, nothing
+ * allocated (svp_frame_size, whose callers' memory estimates must not fail for lack of it). */
 static svp_status axis_init(int size, int r, svp_boundary b, int margin, int *n, int *off,
                             int **src)
 {
@@ -49,6 +51,7 @@ static svp_status axis_init(int size, int r, svp_boundary b, int margin, int *n,
         break;
     default: return svp_fail(SVP_ERR_INVALID, "unknown boundary mode %d", (int)b);
     }
+    if (!src) return SVP_OK; /* the size only */
     int *s = malloc((size_t)*n * sizeof *s);
     if (!s) return svp_fail(SVP_ERR_NOMEM, "out of memory for a frame map");
     for (int j = 0; j < *n; j++) {
@@ -95,13 +98,9 @@ svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
 static svp_status frame_size(int width, int height, int rx, int ry, svp_boundary boundary,
                              int margin, int *nx, int *ny)
 {
-    int off, *src = NULL;
-    svp_status st = axis_init(width, rx, boundary, margin, nx, &off, &src);
-    free(src);
-    src = NULL;
-    if (st == SVP_OK) st = axis_init(height, ry, boundary, margin, ny, &off, &src);
-    free(src);
-    return st;
+    int off;
+    SVP_CHECK(axis_init(width, rx, boundary, margin, nx, &off, NULL));
+    return axis_init(height, ry, boundary, margin, ny, &off, NULL);
 }
 
 svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
@@ -694,7 +693,7 @@ svp_status svp_blur_set_view(svp_blur *b, int margin, int *applied)
                             "svp_blur_set_view: a margin of %d pixels leaves no view of the %d "
                             "x %d grid",
                             margin, b->width, b->height);
-        int nx, ny, vx, vy;
+        int nx = 0, ny = 0, vx = 0, vy = 0;
         SVP_CHECK(frame_dims(b, 0, &nx, &ny));
         SVP_CHECK(frame_dims(b, margin, &vx, &vy));
         if ((size_t)vx * vy < (size_t)nx * ny) view = margin; /* else nothing to gain */

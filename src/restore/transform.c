@@ -1228,10 +1228,10 @@ cleanup:
     svp_image_free(pl_in);
     svp_image_free(pl_out);
     svp_image_free(valid);
-    for (int c = 0; fields_in && c < n_fields; c++) {
-        svp_image_free(fields_in[c]);
-        svp_image_free(fields_out[c]);
-        svp_image_free(sigma_in[c]);
+    for (int c = 0; c < n_fields; c++) { /* any of the three lists may be missing (NOMEM) */
+        if (fields_in) svp_image_free(fields_in[c]);
+        if (fields_out) svp_image_free(fields_out[c]);
+        if (sigma_in) svp_image_free(sigma_in[c]);
     }
     free(fields_in);
     free(fields_out);

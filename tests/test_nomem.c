@@ -1,0 +1,583 @@
+/* Allocation failures: the library's answer to running out of memory is a status, never a crash,
+ * a leak or a wrong result.
+ *
+ * This suite is linked with -Wl,--wrap for malloc, calloc, realloc, posix_memalign and
+ * aligned_alloc (tests/meson.build), so every allocation the library's own objects make (they are
+ * linked in statically from libsvpsf_internal) goes through the wrappers below; FFTW's, OpenMP's
+ * and libc's internal ones do not. A sweep arms the wrappers to fail the k-th allocation of one
+ * call, for k = 0, 1, 2, ... until a call makes fewer than k + 1 allocations, and asserts for
+ * every k: the call returns SVP_OK or SVP_ERR_NOMEM with a message (no other status: a NOMEM
+ * turned into INVALID or INTERNAL would mislead the user), and an SVP_OK result equals the one
+ * computed without a failure. The ASan build of this suite adds: no crash, no use of freed or
+ * uninitialised memory and no leak on any of these paths.
+ *
+ * T⁻¹ side by side (src/restore/transform.c) falls back to the runs in order, on the one frame,
+ * when a worker's copy of the operator cannot be allocated; test_inverse_side_by_side asserts
+ * that this fallback ran (an allocation failed and the call still returned SVP_OK) and gave the
+ * same result. */
+#include <stdatomic.h>
+#include <stdio.h>
+#include <unistd.h>
+
+#include "test_helpers.h"
+
+#include "core/internal.h"
+
+/* ---- the wrappers ---------------------------------------------------------------------------- */
+
+void *__real_malloc(size_t size);
+void *__real_calloc(size_t count, size_t size);
+void *__real_realloc(void *p, size_t size);
+int __real_posix_memalign(void **p, size_t align, size_t size);
+void *__real_aligned_alloc(size_t align, size_t size);
+void *__wrap_malloc(size_t size);
+void *__wrap_calloc(size_t count, size_t size);
+void *__wrap_realloc(void *p, size_t size);
+int __wrap_posix_memalign(void **p, size_t align, size_t size);
+void *__wrap_aligned_alloc(size_t align, size_t size);
+
+static atomic_int armed; /* 1: count allocations, fail the one at index `fail_at` */
+static atomic_long seen; /* allocations since arming */
+static atomic_long fail_at;
+static atomic_int failed; /* 1: the armed failure happened */
+
+static int fail_now(void)
+{
+    if (!atomic_load(&armed)) return 0;
+    if (atomic_fetch_add(&seen, 1) != atomic_load(&fail_at)) return 0;
+    atomic_store(&failed, 1);
+    return 1;
+}
+
+void *__wrap_malloc(size_t size) { return fail_now() ? NULL : __real_malloc(size); }
+
+void *__wrap_calloc(size_t count, size_t size)
+{
+    return fail_now() ? NULL : __real_calloc(count, size);
+}
+
+void *__wrap_realloc(void *p, size_t size) { return fail_now() ? NULL : __real_realloc(p, size); }
+
+int __wrap_posix_memalign(void **p, size_t align, size_t size)
+{
+    return fail_now() ? 12 /* ENOMEM */ : __real_posix_memalign(p, align, size);
+}
+
+void *__wrap_aligned_alloc(size_t align, size_t size)
+{
+    return fail_now() ? NULL : __real_aligned_alloc(align, size);
+}
+
+static void arm(long k)
+{
+    atomic_store(&seen, 0);
+    atomic_store(&fail_at, k);
+    atomic_store(&failed, 0);
+    atomic_store(&armed, 1);
+}
+
+/* Disarms; returns the allocations the call made. */
+static long disarm(void)
+{
+    atomic_store(&armed, 0);
+    return atomic_load(&seen);
+}
+
+/* ---- the sweep ------------------------------------------------------------------------------- */
+
+/* One call under test: runs with whatever the wrappers do, returns its status; `check` compares
+ * an SVP_OK result with the reference (made by the same call unarmed) and returns its largest
+ * difference. */
+typedef struct sweep_case {
+    const char *name;
+    svp_status (*run)(void *ctx);
+    double (*check)(void *ctx);
+    void *ctx;
+    double bound; /* largest difference accepted for an SVP_OK result */
+} sweep_case;
+
+typedef struct sweep_result {
+    long allocations; /* in the unarmed call */
+    int ok_after_failure, nomem;
+} sweep_result;
+
+static sweep_result sweep(const sweep_case *c)
+{
+    sweep_result res = {0};
+    for (long k = 0;; k++) {
+        svp_clear_error();
+        arm(k);
+        const svp_status st = c->run(c->ctx);
+        const long made = disarm();
+        if (!atomic_load(&failed)) {
+            /* fewer than k + 1 allocations: this was an unharmed call, the last of the sweep */
+            if (st != SVP_OK) fail_msg("%s: unarmed call failed: %s", c->name, svp_last_error());
+            res.allocations = made;
+            break;
+        }
+        if (st == SVP_ERR_NOMEM) {
+            if (!svp_last_error()[0])
+                fail_msg("%s: allocation %ld: NOMEM without a message", c->name, k);
+            res.nomem++;
+            continue;
+        }
+        if (st != SVP_OK)
+            fail_msg("%s: allocation %ld failed and the call returned status %d (%s), not "
+                     "SVP_ERR_NOMEM",
+                     c->name, k, (int)st, svp_last_error());
+        const double d = c->check(c->ctx);
+        if (!(d <= c->bound))
+            fail_msg("%s: allocation %ld failed, the call returned SVP_OK with a result %.3g from "
+                     "the reference (bound %.3g)",
+                     c->name, k, d, c->bound);
+        res.ok_after_failure++;
+    }
+    print_message("%s: %ld allocations; a failure at each gave NOMEM %d times, a correct result "
+                  "%d times\n",
+                  c->name, res.allocations, res.nomem, res.ok_after_failure);
+    return res;
+}
+
+/* ---- scenes ---------------------------------------------------------------------------------- */
+
+/* A Gaussian spot times a chessboard of levels 0.1 / 1 (square px), and two smooth fields. */
+static svp_image *pl_scene(int w, int h, int square)
+{
+    svp_image *pl = test_image(w, h);
+    const double cx = 0.5 * (w - 1), cy = 0.5 * (h - 1), s = 0.45 * (w > h ? w : h);
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            const double r2 = (x - cx) * (x - cx) + (y - cy) * (y - cy);
+            const int dark = ((x / square) + (y / square)) % 2;
+            pl->data[(size_t)y * w + x] = exp(-0.5 * r2 / (s * s)) * (dark ? 0.1 : 1.0);
+        }
+    return pl;
+}
+
+static svp_image *field_scene(int w, int h, int component)
+{
+    svp_image *b = test_image(w, h);
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            const double u = (x + 0.5) / w, v = (y + 0.5) / h;
+            b->data[(size_t)y * w + x] =
+                component == 0 ? cos(M_PI * u) * (1 + 0.5 * v) - 0.2 : 0.7 * cos(2 * M_PI * v) * u;
+        }
+    return b;
+}
+
+/* Every operator of the suite: Moffat, FWHM 3 px, β 1.5 (in deconv_sweep also the PSF map's
+ * node at the centre). */
+static svp_psf moffat_psf(void)
+{
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.model = SVP_PSF_MOFFAT;
+    psf.fwhm = 3.0;
+    psf.beta = 1.5;
+    return psf;
+}
+
+static svp_blur *moffat_blur(int w, int h)
+{
+    const svp_psf psf = moffat_psf();
+    svp_blur *op = NULL;
+    ASSERT_OK(svp_blur_new(&psf, w, h, SVP_BOUNDARY_ZERO, &op));
+    return op;
+}
+
+/* ---- T⁻¹ ------------------------------------------------------------------------------------- */
+
+#define NF 2
+
+typedef struct inverse_ctx {
+    svp_blur *blur;
+    const svp_image *pl_app;
+    const svp_image *field_app[NF];
+    svp_correct_options opt;
+    svp_image *pl, *field[NF], *valid;             /* the call's outputs */
+    svp_image *ref_pl, *ref_field[NF], *ref_valid; /* the unharmed call's */
+} inverse_ctx;
+
+static svp_status inverse_call(void *user)
+{
+    inverse_ctx *c = user;
+    return svp_inverse_transform(c->blur, c->pl_app, c->field_app, NF, &c->opt, c->pl, c->field,
+                                 c->valid, NULL);
+}
+
+static double inverse_diff(void *user)
+{
+    inverse_ctx *c = user;
+    double d = test_max_abs_diff(c->pl, c->ref_pl) / test_max_abs(c->ref_pl);
+    for (int k = 0; k < NF; k++)
+        d = fmax(d,
+                 test_max_abs_diff(c->field[k], c->ref_field[k]) / test_max_abs(c->ref_field[k]));
+    return fmax(d, test_max_abs_diff(c->valid, c->ref_valid));
+}
+
+/* The view's apparent maps from a (w + 2m)² scene blurred on its own grid, cropped to the view. */
+static void auto_balance(svp_correct_options *o)
+{
+    o->balance_auto = 1;
+    o->pl_gain = 1e-3;
+    o->keep_doubtful = 1;
+}
+
+static void auto_iterations(svp_correct_options *o)
+{
+    o->auto_iterations = 1;
+    o->pl_gain = 1e-3;
+    o->keep_doubtful = 1;
+}
+
+static void inverse_setup(inverse_ctx *c, int w, int h, int margin, svp_method method,
+                          int iterations, void (*more)(svp_correct_options *o))
+{
+    const int gw = w + 2 * margin, gh = h + 2 * margin;
+    svp_blur *grid = moffat_blur(gw, gh);
+    svp_image *pl = pl_scene(gw, gh, 8), *b[NF] = {field_scene(gw, gh, 0), field_scene(gw, gh, 1)};
+    svp_image *pl_app = test_image(gw, gh), *valid = test_image(gw, gh);
+    svp_image *b_app[NF] = {test_image(gw, gh), test_image(gw, gh)};
+    ASSERT_OK(
+        svp_forward_transform(grid, pl, (const svp_image *const *)b, NF, pl_app, b_app, valid));
+    svp_image *view_pl = test_image(w, h), *view_b[NF] = {test_image(w, h), test_image(w, h)};
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            const size_t i = (size_t)y * w + x, g = (size_t)(y + margin) * gw + x + margin;
+            view_pl->data[i] = pl_app->data[g];
+            for (int k = 0; k < NF; k++) view_b[k]->data[i] = b_app[k]->data[g];
+        }
+    view_b[0]->data[5 * w + 7] = NAN; /* a missing pixel: the validity map's coverage path */
+    c->blur = margin ? grid : moffat_blur(w, h);
+    if (margin == 0) svp_blur_free(grid);
+    c->pl_app = view_pl;
+    for (int k = 0; k < NF; k++) c->field_app[k] = view_b[k];
+    svp_correct_defaults(&c->opt);
+    c->opt.method = method;
+    c->opt.deconv.iterations = iterations;
+    c->opt.margin = margin;
+    if (more) more(&c->opt); /* options beyond these */
+    c->pl = test_image(w, h);
+    c->valid = test_image(w, h);
+    c->ref_pl = test_image(w, h);
+    c->ref_valid = test_image(w, h);
+    for (int k = 0; k < NF; k++) {
+        c->field[k] = test_image(w, h);
+        c->ref_field[k] = test_image(w, h);
+    }
+    ASSERT_OK(svp_inverse_transform(c->blur, c->pl_app, c->field_app, NF, &c->opt, c->ref_pl,
+                                    c->ref_field, c->ref_valid, NULL));
+    svp_image_free(pl);
+    svp_image_free(pl_app);
+    svp_image_free(valid);
+    for (int k = 0; k < NF; k++) {
+        svp_image_free(b[k]);
+        svp_image_free(b_app[k]);
+    }
+}
+
+static void inverse_free(inverse_ctx *c)
+{
+    svp_blur_free(c->blur);
+    svp_image_free((svp_image *)c->pl_app);
+    svp_image_free(c->pl);
+    svp_image_free(c->valid);
+    svp_image_free(c->ref_pl);
+    svp_image_free(c->ref_valid);
+    for (int k = 0; k < NF; k++) {
+        svp_image_free((svp_image *)c->field_app[k]);
+        svp_image_free(c->field[k]);
+        svp_image_free(c->ref_field[k]);
+    }
+}
+
+/* One T⁻¹ swept: name, the view, margin, method, iterations and any further options. */
+static sweep_result sweep_inverse(const char *name, int w, int h, int margin, svp_method method,
+                                  int iterations, void (*more)(svp_correct_options *o))
+{
+    inverse_ctx c = {0};
+    inverse_setup(&c, w, h, margin, method, iterations, more);
+    const sweep_case sc = {name, inverse_call, inverse_diff, &c, 1e-10};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 10 && r.nomem > 0);
+    inverse_free(&c);
+    return r;
+}
+
+/* Method R with 2 threads on a 128² view: the PL's and the two numerators' RL side by side, each
+ * worker on its own copy of the operator. A failure among the copies' or the workers'
+ * allocations must fall back to the runs in order (two-thread plans: the same result to
+ * round-off, bound 1e-10), so at least one armed call returns SVP_OK. */
+static void test_inverse_side_by_side(void **state)
+{
+    (void)state;
+    svp_set_threads(2);
+    const sweep_result r =
+        sweep_inverse("T⁻¹ R, 2 threads, side by side", 128, 128, 0, SVP_METHOD_R, 4, NULL);
+    assert_true(r.ok_after_failure > 0); /* the fallback to the runs in order */
+    svp_set_threads(1);
+}
+
+/* The same in order (1 thread), with a margin (the view's frame) and method RW (RL on the PL,
+ * the zero-boundary Wiener's CG on the numerators). */
+static void test_inverse_in_order(void **state)
+{
+    (void)state;
+    sweep_inverse("T⁻¹ R, 1 thread, margin 6", 48, 40, 6, SVP_METHOD_R, 4, NULL);
+    sweep_inverse("T⁻¹ RW, 1 thread", 48, 40, 0, SVP_METHOD_RW, 4, NULL);
+}
+
+/* The automatic choices, whose searches allocate on their own: method W with the discrepancy
+ * balance, and R with automatic iterations, both with a PL gain (a result they doubt is kept,
+ * validity 0, so that the unharmed call returns SVP_OK). */
+static void test_inverse_automatic(void **state)
+{
+    (void)state;
+    sweep_inverse("T⁻¹ W, balance auto", 48, 40, 0, SVP_METHOD_W, 4, auto_balance);
+    sweep_inverse("T⁻¹ R, iterations auto", 48, 40, 0, SVP_METHOD_R, 40, auto_iterations);
+}
+
+/* ---- operators and deconvolutions -------------------------------------------------------------- */
+
+typedef struct deconv_ctx {
+    const svp_image *y;
+    svp_deconv_options opt;
+    int single, variant;
+    svp_psf_field *field;
+    svp_image *x, *ref;
+} deconv_ctx;
+
+/* Builds the operator inside the call, and the FFT plans anew (the cache emptied; no operator
+ * outside the call holds one), so their allocations are swept too. */
+static svp_status deconv_call(void *user)
+{
+    deconv_ctx *c = user;
+    svp_fft_cleanup();
+    const int w = c->y->width, h = c->y->height;
+    svp_blur *op = NULL;
+    svp_status st;
+    if (c->variant) {
+        svp_variant_options vo;
+        svp_variant_defaults(&vo);
+        vo.representation = SVP_VARIANT_LOWRANK;
+        vo.rank = 2;
+        vo.samples_x = vo.samples_y = 3;
+        st = svp_blur_new_field(c->field, w, h, SVP_BOUNDARY_ZERO, &vo, &op);
+    } else {
+        const svp_psf psf = moffat_psf();
+        st = svp_blur_new(&psf, w, h, SVP_BOUNDARY_ZERO, &op);
+    }
+    if (st == SVP_OK && c->single) st = svp_blur_set_precision(op, 1);
+    if (st == SVP_OK) st = svp_deconv_rl(op, c->y, &c->opt, c->x);
+    svp_blur_free(op);
+    return st;
+}
+
+static double deconv_diff(void *user)
+{
+    deconv_ctx *c = user;
+    return test_max_abs_diff(c->x, c->ref) / test_max_abs(c->ref);
+}
+
+static void deconv_sweep(const char *name, int single, int variant, svp_rl_acceleration accel)
+{
+    const int w = 40, h = 36;
+    deconv_ctx c = {0};
+    svp_image *y = pl_scene(w, h, 6);
+    c.y = y;
+    svp_deconv_defaults(&c.opt);
+    c.opt.iterations = 6;
+    c.opt.acceleration = accel;
+    c.single = single;
+    c.variant = variant;
+    if (variant) {
+        const svp_psf base = moffat_psf();
+        svp_psf corner = base;
+        corner.fwhm = 4.0;
+        const svp_psf nodes[4] = {base, corner, corner, base};
+        const double nx[2] = {0, w - 1}, ny[2] = {0, h - 1};
+        ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 2, nx, ny, nodes, &c.field));
+    }
+    c.x = test_image(w, h);
+    c.ref = test_image(w, h);
+    svp_image *keep = c.x;
+    c.x = c.ref;
+    ASSERT_OK(deconv_call(&c));
+    c.x = keep;
+    sweep_case sc = {name, deconv_call, deconv_diff, &c, 1e-12};
+    sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 5 && r.nomem > 0);
+    svp_psf_field_free(c.field);
+    svp_image_free(c.x);
+    svp_image_free(c.ref);
+    svp_image_free(y);
+}
+
+static void test_deconv_rl(void **state)
+{
+    (void)state;
+    deconv_sweep("RL, double, plain", 0, 0, SVP_RL_PLAIN);
+    deconv_sweep("RL, single, Biggs-Andrews", 1, 0, SVP_RL_BIGGS_ANDREWS);
+    deconv_sweep("RL, PSF map (low rank 2), single", 1, 1, SVP_RL_PLAIN);
+}
+
+/* ---- readers and the PSF fit ------------------------------------------------------------------ */
+
+typedef struct read_ctx {
+    char path[64], yaml[64];
+    const svp_image *ref;
+    svp_image *got;
+    svp_psf psf;
+} read_ctx;
+
+static svp_status read_call(void *user)
+{
+    read_ctx *c = user;
+    svp_image_free(c->got);
+    c->got = NULL;
+    SVP_CHECK(svp_image_read(c->path, &c->got));
+    double pixel_um = 0;
+    svp_boundary b;
+    return svp_psf_file_read(c->yaml, &c->psf, &pixel_um, &b);
+}
+
+static double read_diff(void *user)
+{
+    read_ctx *c = user;
+    const double psf_err = fabs(c->psf.fwhm - 6.1) + fabs(c->psf.beta - 1.1);
+    return fmax(test_max_abs_diff(c->got, c->ref), psf_err);
+}
+
+/* An .npy image and a PSF file (YAML) read back: the library's own parsing and buffers. */
+static void test_readers(void **state)
+{
+    (void)state;
+    read_ctx c = {0};
+    snprintf(c.path, sizeof c.path, "nomem_%ld.npy", (long)getpid());
+    snprintf(c.yaml, sizeof c.yaml, "nomem_%ld.yaml", (long)getpid());
+    svp_image *img = test_random_image(33, 17, 4);
+    ASSERT_OK(svp_image_write(c.path, img, SVP_FORMAT_NPY, 1));
+    FILE *f = fopen(c.yaml, "w");
+    assert_non_null(f);
+    fputs("pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.61, beta: 1.1}\n", f);
+    fclose(f);
+    c.ref = img;
+    sweep_case sc = {"read .npy and a PSF file", read_call, read_diff, &c, 1e-12};
+    sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    assert_true(read_diff(&c) <= 1e-12);
+    remove(c.path);
+    remove(c.yaml);
+    svp_image_free(c.got);
+    svp_image_free(img);
+}
+
+/* A scene file (the reference study's uniform micromagnet, docs/scenes/) parsed and checked. */
+static const char scene_text[] =
+    "name: nomem\n"
+    "grid: {pixel_um: 0.2, size_um: [12, 12], margin_um: 1}\n"
+    "sources:\n"
+    "  - flake: {shape: rectangle, size_um: [8, 8], centre_um: [0, 0],\n"
+    "            magnetisation_A_per_m: 1.0e6, thickness_nm: 1, standoff_nm: 100}\n"
+    "field: {components: [z]}\n"
+    "emission:\n"
+    "  - uniform: {level: 1}\n"
+    "psf: {model: gaussian, fwhm_um: 1.0}\n"
+    "correct:\n"
+    "  - {method: r, iterations: 15}\n"
+    "  - {method: r, iterations: 75, margin: auto, precision: single, name: default}\n"
+    "reconstruct: magnetisation\n"
+    "metrics:\n"
+    "  masks:\n"
+    "    - {name: view}\n"
+    "    - {name: flake, inside: flakes, erode_um: 2}\n"
+    "  line_cuts:\n"
+    "    - {name: across, from_um: [-5.9, 0.1], to_um: [5.9, 0.1]}\n";
+
+static svp_status scene_call(void *user)
+{
+    int *stages = user;
+    svp_scene *scene = NULL;
+    svp_status st = svp_scene_load_string("nomem.yaml", scene_text, strlen(scene_text), &scene);
+    if (st == SVP_OK) *stages = svp_scene_plan(scene, NULL);
+    svp_scene_free(scene);
+    return st;
+}
+
+static double scene_diff(void *user)
+{
+    int *stages = user;
+    return fabs((double)*stages - (double)stages[1]);
+}
+
+static void test_scene_load(void **state)
+{
+    (void)state;
+    int stages[2] = {0, 0};
+    ASSERT_OK(scene_call(stages));
+    stages[1] = stages[0];
+    assert_true(stages[1] > 3);
+    sweep_case sc = {"scene file", scene_call, scene_diff, stages, 0.0};
+    sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 10 && r.nomem > 0);
+}
+
+typedef struct fit_ctx {
+    const svp_image *spot;
+    svp_spot_options opt;
+    svp_spot_result res, ref;
+} fit_ctx;
+
+static svp_status fit_call(void *user)
+{
+    fit_ctx *c = user;
+    return svp_spot_fit(c->spot, &c->opt, &c->res, NULL, NULL);
+}
+
+static double fit_diff(void *user)
+{
+    fit_ctx *c = user;
+    return fmax(fabs(c->res.fwhm - c->ref.fwhm) / c->ref.fwhm,
+                fabs(c->res.beta - c->ref.beta) / c->ref.beta);
+}
+
+/* A Moffat spot fitted (Levenberg–Marquardt, LAPACKE): workspace, clipping, covariance. */
+static void test_spot_fit(void **state)
+{
+    (void)state;
+    const int n = 31;
+    svp_image *spot = test_image(n, n);
+    uint64_t s = 11;
+    for (int y = 0; y < n; y++)
+        for (int x = 0; x < n; x++) {
+            const double r2 = (x - 15.3) * (x - 15.3) + (y - 14.8) * (y - 14.8);
+            spot->data[(size_t)y * n + x] = 5 + 900 * pow(1 + r2 / 9.0, -1.8) + test_rand(&s);
+        }
+    fit_ctx c = {.spot = spot};
+    svp_spot_defaults(&c.opt);
+    ASSERT_OK(svp_spot_fit(spot, &c.opt, &c.ref, NULL, NULL));
+    sweep_case sc = {"spot fit (Moffat, elliptical)", fit_call, fit_diff, &c, 1e-12};
+    sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    svp_image_free(spot);
+}
+
+int main(void)
+{
+    svp_set_fft_effort(SVP_FFT_ESTIMATE);
+    svp_set_threads(1);
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_inverse_side_by_side),
+        cmocka_unit_test(test_inverse_in_order),
+        cmocka_unit_test(test_inverse_automatic),
+        cmocka_unit_test(test_deconv_rl),
+        cmocka_unit_test(test_readers),
+        cmocka_unit_test(test_spot_fit),
+        cmocka_unit_test(test_scene_load),
+    };
+    if (getenv("SVP_TEST_FILTER")) cmocka_set_test_filter(getenv("SVP_TEST_FILTER"));
+    int rc = cmocka_run_group_tests_name("nomem", tests, NULL, NULL);
+    svp_fft_cleanup();
+    return rc;
+}
