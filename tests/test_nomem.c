@@ -473,6 +473,186 @@ static void test_readers(void **state)
     svp_image_free(img);
 }
 
+/* A MATLAB file (libmatio underneath: its own allocations are not swept, svpsf's checks of the
+ * file are) and a 3-D .npy stack. */
+typedef struct mat_ctx {
+    char mat[64], npy[64];
+    const svp_image *ref;
+    svp_image *got;
+    svp_stack *stack;
+} mat_ctx;
+
+static svp_status mat_call(void *user)
+{
+    mat_ctx *c = user;
+    svp_image_free(c->got);
+    svp_stack_free(c->stack);
+    c->got = NULL;
+    c->stack = NULL;
+    SVP_CHECK(svp_mat_read(c->mat, "Bz", &c->got, NULL));
+    return svp_stack_read(c->npy, &c->stack);
+}
+
+static double mat_diff(void *user)
+{
+    mat_ctx *c = user;
+    if (c->stack->n_frames != 3) return INFINITY;
+    return fmax(test_max_abs_diff(c->got, c->ref), test_max_abs_diff(c->stack->frame[2], c->ref));
+}
+
+static void test_mat_and_stack(void **state)
+{
+    (void)state;
+    mat_ctx c = {0};
+    snprintf(c.mat, sizeof c.mat, "nomem_%ld.mat", (long)getpid());
+    snprintf(c.npy, sizeof c.npy, "nomem_%ld_stack.npy", (long)getpid());
+    const int w = 21, h = 13, n = 3;
+    svp_image *img = test_random_image(w, h, 8);
+    const char *names[1] = {"Bz"};
+    ASSERT_OK(svp_mat_write(c.mat, 1, names, (const svp_image *const *)&img, 0.1, 1));
+    /* a 3-D float64 .npy (n, h, w), every frame the image */
+    FILE *f = fopen(c.npy, "wb");
+    assert_non_null(f);
+    char header[128];
+    int len =
+        snprintf(header, sizeof header,
+                 "{'descr': '<f8', 'fortran_order': False, 'shape': (%d, %d, %d), }", n, h, w);
+    while ((10 + len + 1) % 64) header[len++] = ' ';
+    header[len++] = '\n';
+    const unsigned char magic[10] = {
+        0x93, 'N', 'U', 'M', 'P', 'Y', 1, 0, (unsigned char)(len & 255), (unsigned char)(len >> 8)};
+    fwrite(magic, 1, sizeof magic, f);
+    fwrite(header, 1, (size_t)len, f);
+    for (int k = 0; k < n; k++) fwrite(img->data, sizeof(double), (size_t)w * h, f);
+    fclose(f);
+    c.ref = img;
+    const sweep_case sc = {".mat map and a 3-D .npy stack read", mat_call, mat_diff, &c, 0.0};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    assert_true(mat_diff(&c) == 0.0);
+    remove(c.mat);
+    remove(c.npy);
+    svp_image_free(c.got);
+    svp_stack_free(c.stack);
+    svp_image_free(img);
+}
+
+/* Per-pixel ODMR fits of a small simulated cube (one LM workspace per thread). */
+typedef struct odmr_ctx {
+    svp_odmr odmr;
+    svp_cube *cube;
+    svp_image *field, *ref;
+} odmr_ctx;
+
+static svp_status odmr_call(void *user)
+{
+    odmr_ctx *c = user;
+    svp_odmr_fit_options o;
+    svp_odmr_fit_defaults(&o);
+    size_t failed = 0;
+    return svp_odmr_fit(&c->odmr, c->cube, &o, c->field, NULL, NULL, NULL, &failed);
+}
+
+static double odmr_diff(void *user)
+{
+    odmr_ctx *c = user;
+    return test_max_abs_diff(c->field, c->ref) / test_max_abs(c->ref);
+}
+
+static void test_odmr_fit(void **state)
+{
+    (void)state;
+    const int w = 6, h = 5, nf = 41;
+    odmr_ctx c = {0};
+    svp_odmr_defaults(&c.odmr);
+    double freq[41];
+    ASSERT_OK(svp_odmr_sweep(&c.odmr, 100e-6, 4, nf, freq));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.cube));
+    svp_image *pl = pl_scene(w, h, 2), *b = field_scene(w, h, 0);
+    for (size_t i = 0; i < (size_t)w * h; i++) b->data[i] *= 50e-6;
+    ASSERT_OK(svp_odmr_simulate(&c.odmr, pl, b, NULL, NULL, c.cube));
+    c.ref = c.field = test_image(w, h);
+    ASSERT_OK(odmr_call(&c));
+    c.field = test_image(w, h);
+    const sweep_case sc = {"ODMR fits, 6 x 5 pixels", odmr_call, odmr_diff, &c, 1e-12};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    svp_image_free(c.field);
+    svp_image_free(c.ref);
+    svp_image_free(pl);
+    svp_image_free(b);
+    svp_cube_free(c.cube);
+}
+
+/* The magnetisation reconstructed from B_z (padded FFTs) and T with a tent PSF map built in the
+ * call. */
+typedef struct physics_ctx {
+    svp_image *bz, *pl, *mz, *ref_mz;
+    svp_psf_field *map;
+    svp_image *pl_app, *b_app, *ref_pl, *ref_b;
+} physics_ctx;
+
+static svp_status physics_call(void *user)
+{
+    physics_ctx *c = user;
+    svp_fft_cleanup();
+    svp_recon_options ro;
+    svp_recon_defaults(&ro);
+    ro.sensor.pixel_m = 1e-7;
+    ro.sensor.standoff_m = 1e-7;
+    SVP_CHECK(svp_reconstruct_magnetisation(c->bz, &ro, c->mz));
+    svp_variant_options vo;
+    svp_variant_defaults(&vo);
+    vo.representation = SVP_VARIANT_TENT;
+    vo.grid_x = vo.grid_y = 2;
+    svp_blur *op = NULL;
+    const int w = c->bz->width, h = c->bz->height;
+    svp_status st = svp_blur_new_field(c->map, w, h, SVP_BOUNDARY_ZERO, &vo, &op);
+    if (st == SVP_OK)
+        st = svp_forward_transform(op, c->pl, (const svp_image *const *)&c->bz, 1, c->pl_app,
+                                   &c->b_app, NULL);
+    svp_blur_free(op);
+    return st;
+}
+
+static double physics_diff(void *user)
+{
+    physics_ctx *c = user;
+    double d = test_max_abs_diff(c->mz, c->ref_mz) / test_max_abs(c->ref_mz);
+    d = fmax(d, test_max_abs_diff(c->pl_app, c->ref_pl) / test_max_abs(c->ref_pl));
+    return fmax(d, test_max_abs_diff(c->b_app, c->ref_b) / test_max_abs(c->ref_b));
+}
+
+static void test_physics(void **state)
+{
+    (void)state;
+    const int w = 40, h = 36;
+    physics_ctx c = {0};
+    c.bz = field_scene(w, h, 0);
+    for (size_t i = 0; i < (size_t)w * h; i++) c.bz->data[i] *= 1e-5;
+    c.pl = pl_scene(w, h, 4);
+    const svp_psf base = moffat_psf();
+    svp_psf corner = base;
+    corner.fwhm = 4.0;
+    const svp_psf nodes[4] = {base, corner, corner, base};
+    const double nx[2] = {0, w - 1}, ny[2] = {0, h - 1};
+    ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 2, nx, ny, nodes, &c.map));
+    c.mz = c.ref_mz = test_image(w, h);
+    c.pl_app = c.ref_pl = test_image(w, h);
+    c.b_app = c.ref_b = test_image(w, h);
+    ASSERT_OK(physics_call(&c));
+    c.mz = test_image(w, h);
+    c.pl_app = test_image(w, h);
+    c.b_app = test_image(w, h);
+    const sweep_case sc = {"magnetisation from B_z; T with a tent PSF map", physics_call,
+                           physics_diff, &c, 1e-12};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    svp_image *all[8] = {c.bz, c.pl, c.mz, c.ref_mz, c.pl_app, c.b_app, c.ref_pl, c.ref_b};
+    for (int k = 0; k < 8; k++) svp_image_free(all[k]);
+    svp_psf_field_free(c.map);
+}
+
 /* A scene file (the reference study's uniform micromagnet, docs/scenes/) parsed and checked. */
 static const char scene_text[] =
     "name: nomem\n"
@@ -575,6 +755,9 @@ int main(void)
         cmocka_unit_test(test_readers),
         cmocka_unit_test(test_spot_fit),
         cmocka_unit_test(test_scene_load),
+        cmocka_unit_test(test_mat_and_stack),
+        cmocka_unit_test(test_odmr_fit),
+        cmocka_unit_test(test_physics),
     };
     if (getenv("SVP_TEST_FILTER")) cmocka_set_test_filter(getenv("SVP_TEST_FILTER"));
     int rc = cmocka_run_group_tests_name("nomem", tests, NULL, NULL);
