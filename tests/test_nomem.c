@@ -319,6 +319,40 @@ static void test_inverse_side_by_side(void **state)
     svp_set_threads(1);
 }
 
+/* The same with a low-rank PSF map: the workers' copies share its term spectra
+ * (svp_blur_clone), their own accumulators and frames fail as the invariant copies do. */
+static void test_inverse_map_side_by_side(void **state)
+{
+    (void)state;
+    svp_set_threads(2);
+    const int n = 128;
+    inverse_ctx c = {0};
+    inverse_setup(&c, n, n, 0, SVP_METHOD_R, 4, NULL);
+    svp_blur_free(c.blur);
+    const svp_psf base = moffat_psf();
+    svp_psf corner = base;
+    corner.fwhm = 4.5;
+    const svp_psf nodes[4] = {base, corner, corner, base};
+    const double nx[2] = {0, n - 1}, ny[2] = {0, n - 1};
+    svp_psf_field *map = NULL;
+    ASSERT_OK(svp_psf_field_new_grid(n, n, 2, 2, nx, ny, nodes, &map));
+    svp_variant_options vo;
+    svp_variant_defaults(&vo);
+    vo.representation = SVP_VARIANT_LOWRANK;
+    vo.rank = 2;
+    vo.samples_x = vo.samples_y = 3;
+    ASSERT_OK(svp_blur_new_field(map, n, n, SVP_BOUNDARY_ZERO, &vo, &c.blur));
+    ASSERT_OK(svp_inverse_transform(c.blur, c.pl_app, c.field_app, NF, &c.opt, c.ref_pl,
+                                    c.ref_field, c.ref_valid, NULL));
+    const sweep_case sc = {"T⁻¹ R, 2 threads, low-rank map side by side", inverse_call,
+                           inverse_diff, &c, 1e-10};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 10 && r.nomem > 0 && r.ok_after_failure > 0);
+    inverse_free(&c);
+    svp_psf_field_free(map);
+    svp_set_threads(1);
+}
+
 /* The same in order (1 thread), with a margin (the view's frame) and method RW (RL on the PL,
  * the zero-boundary Wiener's CG on the numerators). */
 static void test_inverse_in_order(void **state)
@@ -749,6 +783,7 @@ int main(void)
     svp_set_threads(1);
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_inverse_side_by_side),
+        cmocka_unit_test(test_inverse_map_side_by_side),
         cmocka_unit_test(test_inverse_in_order),
         cmocka_unit_test(test_inverse_automatic),
         cmocka_unit_test(test_deconv_rl),

@@ -4,6 +4,7 @@
  * build; SVP_TEST_FILTER=test_name runs one test). */
 #include "test_helpers.h"
 
+#include "blur/blur_internal.h"
 #include "core/internal.h"
 
 #include <omp.h>
@@ -1485,6 +1486,89 @@ static void test_side_by_side(void **state)
     free_images(b, NF);
 }
 
+/* The same with PSF maps in double precision (low rank, tent): each worker on a copy of the
+ * operator that shares its term spectra and weight tables (svp_blur_clone). Asserted: the copy
+ * applies exactly the original's H and Hᵀ; 2 threads (side by side: the second worker reports)
+ * give the 1-thread result bit for bit (one-thread plans both ways; bound 1e-12); an operator
+ * switched to single precision is not copied, and its runs stay in order. */
+static void test_side_by_side_map(void **state)
+{
+    (void)state;
+    const int w = 128, h = 128;
+    const int saved = svp_get_threads();
+    svp_psf base;
+    svp_psf_defaults(&base);
+    base.model = SVP_PSF_MOFFAT;
+    base.fwhm = 3.0;
+    base.beta = 1.5;
+    svp_psf corner = base;
+    corner.fwhm = 4.5;
+    corner.beta = 2.5;
+    const svp_psf nodes[4] = {base, corner, corner, base};
+    const double nx[2] = {0, w - 1}, ny[2] = {0, h - 1};
+    svp_psf_field *field = NULL;
+    ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 2, nx, ny, nodes, &field));
+    svp_image *pl = pl_spot_chessboard(w, h, 16, 9);
+    svp_image *b[NF] = {field_smooth(w, h, 0), field_smooth(w, h, 1)};
+    svp_image *x = test_random_image(w, h, 21), *y0 = test_image(w, h), *y1 = test_image(w, h);
+    for (int rep = 0; rep < 2; rep++) {
+        svp_variant_options vo;
+        svp_variant_defaults(&vo);
+        vo.representation = rep ? SVP_VARIANT_TENT : SVP_VARIANT_LOWRANK;
+        vo.rank = 3;
+        vo.samples_x = vo.samples_y = 4;
+        vo.grid_x = vo.grid_y = 3;
+        svp_blur *op = NULL, *copy = NULL;
+        ASSERT_OK(svp_blur_new_field(field, w, h, SVP_BOUNDARY_ZERO, &vo, &op));
+        assert_true(svp_blur_clonable(op));
+        ASSERT_OK(svp_blur_clone(op, &copy));
+        ASSERT_OK(svp_blur_apply(op, x, y0));
+        ASSERT_OK(svp_blur_apply(copy, x, y1));
+        assert_true(test_max_abs_diff(y0, y1) == 0.0);
+        ASSERT_OK(svp_blur_adjoint(op, x, y0));
+        ASSERT_OK(svp_blur_adjoint(copy, x, y1));
+        assert_true(test_max_abs_diff(y0, y1) == 0.0);
+        svp_blur_free(copy);
+        apparent a = forward_run(op, pl, b, NF);
+        svp_correct_options o = options_for(SVP_METHOD_R, 12, 1e-3);
+        svp_set_threads(1);
+        restored seq = inverse_run(op, a.pl, a.field, NF, &o);
+        svp_set_threads(2);
+        progress_log log = {0, 0, 1, 1, 2.0, 0, 0, 0};
+        o.deconv.progress = log_progress;
+        o.deconv.progress_user = &log;
+        restored par = inverse_run(op, a.pl, a.field, NF, &o);
+        assert_true(log.thread_max == 1 && !log.overlap && log.monotone);
+        double diff = test_max_abs_diff(seq.pl, par.pl) / test_max_abs(seq.pl);
+        for (int c = 0; c < NF; c++)
+            diff = fmax(diff,
+                        test_max_abs_diff(seq.field[c], par.field[c]) / test_max_abs(seq.field[c]));
+        print_message("%s map: side by side (2 threads) vs 1 thread: max difference %.3g\n",
+                      rep ? "tent" : "low-rank", diff);
+        CHECK_BOUND(diff <= 1e-12, "side by side differs from sequential by %.3g", diff);
+        restored_free(&par, NF);
+        /* single precision: no copy, the runs in order */
+        ASSERT_OK(svp_blur_set_precision(op, 1));
+        assert_false(svp_blur_clonable(op));
+        expect_error(svp_blur_clone(op, &copy), SVP_ERR_UNSUPPORTED, "double precision");
+        progress_log one = {0, 0, 1, 1, 2.0, 0, 0, 0};
+        o.deconv.progress_user = &one;
+        restored single = inverse_run(op, a.pl, a.field, NF, &o);
+        assert_true(one.thread_max == 0);
+        restored_free(&single, NF);
+        restored_free(&seq, NF);
+        apparent_free(&a, NF);
+        svp_blur_free(op);
+    }
+    svp_set_threads(saved);
+    svp_image_free(x);
+    svp_image_free(y0);
+    svp_image_free(y1);
+    svp_image_free(pl);
+    free_images(b, NF);
+    svp_psf_field_free(field);
+}
+
 int main(void)
 {
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -1512,6 +1596,7 @@ int main(void)
         cmocka_unit_test(test_margin_view_frame),
         cmocka_unit_test(test_progress),
         cmocka_unit_test(test_side_by_side),
+        cmocka_unit_test(test_side_by_side_map),
     };
     if (getenv("SVP_TEST_FILTER")) cmocka_set_test_filter(getenv("SVP_TEST_FILTER"));
     int rc = cmocka_run_group_tests_name("transform", tests, NULL, NULL);

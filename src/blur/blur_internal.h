@@ -134,7 +134,7 @@ struct svp_blur {
     svp_image *kernel;    /* the normalised core kernel (kept for solvers that need another
                              frame, e.g. Wiener in a mirror frame) */
     int kcx, kcy;         /* its centre */
-    int kernel_borrowed;  /* kernel is another operator's (svp_blur_clone_invariant) */
+    int kernel_borrowed;  /* kernel is another operator's (svp_blur_clone) */
     int has_model;
     svp_psf psf;          /* when built from a model */
     /* Invariant operators make their frame (plans, OTF, work buffers) on first use
@@ -180,10 +180,17 @@ struct svp_blur {
  * b->work_r / work_c or svp_blur_spectrum_in / _out on an invariant operator calls it first. */
 svp_status svp_blur_ready(svp_blur *b);
 
-/* A new invariant operator equal to b (its view, precision and halo; b's kernel, read only, so b
- * must outlive it), with its own frame and buffers, made on first use: b and the copy can be
- * applied at the same time from two threads. SVP_ERR_UNSUPPORTED for the other kinds. */
+/* A copy of b that can be applied at the same time as b from another thread (T⁻¹'s runs side by
+ * side): what the build made (kernel; a PSF map's term spectra, weight tables and maps) is b's,
+ * read only, so b must outlive the copy; the copy has its own frame and buffers. Invariant
+ * operators (svp_blur_clone_invariant: its view, precision and halo; the frame made on first
+ * use) and tent, low-rank and region operators in double precision (svp_variant_clone: the
+ * frame's plans for the calling thread's plan thread count, svp_fft_local_threads).
+ * SVP_ERR_UNSUPPORTED for the others: svp_blur_clonable says which. */
+svp_status svp_blur_clone(const svp_blur *b, svp_blur **out);
+int svp_blur_clonable(const svp_blur *b);
 svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out);
+svp_status svp_variant_clone(const svp_blur *b, svp_blur **out);
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
  * (adjoint_side 0) or Cᵀ (1) — the same plain copy with zero padding in zero mode — with the

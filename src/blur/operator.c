@@ -494,6 +494,20 @@ svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out)
     return SVP_OK;
 }
 
+int svp_blur_clonable(const svp_blur *b)
+{
+    if (!b) return 0;
+    if (b->kind == SVP_BLUR_INVARIANT) return 1;
+    return (b->ops == &svp_tent_ops || b->ops == &svp_lowrank_ops || b->ops == &svp_regions_ops) &&
+           !b->single && svp_blur_has_double(b);
+}
+
+svp_status svp_blur_clone(const svp_blur *b, svp_blur **out)
+{
+    if (b && b->kind != SVP_BLUR_INVARIANT) return svp_variant_clone(b, out);
+    return svp_blur_clone_invariant(b, out);
+}
+
 void svp_blur_free(svp_blur *b)
 {
     if (!b) return;

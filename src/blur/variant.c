@@ -89,6 +89,10 @@ struct svp_variant_data {
      * in single precision, the double spectra and buffers were freed. */
     float **otf_f;
     int f_real, double_gone, rows_max;
+    /* A copy for another thread (svp_variant_clone): everything above that the build made is
+     * the original's, read only; the copy owns only its buffers (acc, ext, row_on, spec2, blk)
+     * and whatever single precision makes on it (otf_f, fr_f, spec_f, acc_f). */
+    int borrowed;
     float *fr_f;
     fftwf_complex *spec_f, *acc_f;
     const svp_fftf_rows *rows_img, *rows_win;
@@ -907,23 +911,39 @@ static svp_status variant_adjoint(svp_blur *b, const double *restrict y, double 
     return SVP_OK;
 }
 
+/* What a copy (svp_variant_clone) owns, or the original's share of the same buffers. */
+static void release_buffers(svp_variant_data *v)
+{
+    if (v->otf_f)
+        for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_f[k]);
+    free(v->otf_f);
+    svp_free(v->fr_f);
+    svp_free(v->spec_f);
+    svp_free(v->acc_f);
+    svp_free(v->acc);
+    svp_free(v->ext);
+    svp_free(v->spec2);
+    svp_free(v->blk);
+    free(v->row_on);
+}
+
 static void variant_release(svp_blur *b)
 {
     svp_variant_data *v = b->variant;
     if (v) {
+        release_buffers(v);
+        if (v->borrowed) {
+            free(v);
+            b->variant = NULL;
+            svp_variant_common_release(b);
+            return;
+        }
         if (v->otf)
             for (int k = 0; k < v->n_terms; k++) svp_free(v->otf[k]);
         free(v->otf);
         if (v->otf_re)
             for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_re[k]);
         free(v->otf_re);
-        if (v->otf_f)
-            for (int k = 0; k < v->n_terms; k++) svp_free(v->otf_f[k]);
-        free(v->otf_f);
-        svp_free(v->fr_f);
-        svp_free(v->spec_f);
-        svp_free(v->acc_f);
-        svp_free(v->acc);
         svp_free(v->scale);
         svp_free(v->alpha);
         free(v->ix0);
@@ -933,15 +953,11 @@ static void variant_release(svp_blur *b)
         free(v->coef);
         free(v->eig);
         free(v->start);
-        svp_free(v->ext);
-        svp_free(v->spec2);
-        svp_free(v->blk);
         free(v->wx);
         free(v->wy);
         free(v->ly0);
         free(v->lty);
         free(v->unit);
-        free(v->row_on);
         free(v);
         b->variant = NULL;
     }
@@ -972,7 +988,13 @@ static size_t variant_memory(const svp_blur *b)
     const svp_variant_data *v = b->variant;
     const size_t spectrum = (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex);
     bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
-    if (v) {
+    if (v && v->borrowed) { /* a copy: its accumulators, frame buffers and float state */
+        bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double) + spectrum * 2 + b->frame.ny;
+        if (v->otf_f) bytes += (size_t)v->n_terms * (v->f_real ? spectrum / 4 : spectrum / 2);
+        if (v->fr_f) bytes += (size_t)v->rows_max * b->frame.nx * sizeof(float) + spectrum;
+        if (v->blk)
+            bytes += (size_t)v->blk_threads * 3 * SVP_FFT_BLOCK * v->block->bx * sizeof(double);
+    } else if (v) {
         if (!v->double_gone) {
             bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* spectra */
             bytes += spectrum; /* accumulator (work_c counted by frame) */
@@ -2264,6 +2286,65 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     info.memory_bytes = svp_blur_memory(b);
     b->info = info;
     *out = b;
+    return SVP_OK;
+}
+
+svp_status svp_variant_clone(const svp_blur *b, svp_blur **out)
+{
+    *out = NULL;
+    const svp_variant_data *v = b ? b->variant : NULL;
+    if (!v || b->single || v->double_gone ||
+        (b->ops != &svp_tent_ops && b->ops != &svp_lowrank_ops && b->ops != &svp_regions_ops))
+        return svp_fail(SVP_ERR_UNSUPPORTED, "only a tent, low-rank or region operator in double "
+                                             "precision can be copied");
+    svp_blur *c = calloc(1, sizeof *c);
+    svp_variant_data *u = c ? malloc(sizeof *u) : NULL;
+    if (!u) {
+        free(c);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a copy of the operator");
+    }
+    *u = *v; /* the spectra, weight tables, maps and grid: b's, read only */
+    u->borrowed = 1;
+    u->acc = NULL, u->spec2 = NULL, u->ext = NULL, u->blk = NULL, u->blk_threads = 0;
+    u->row_on = NULL;
+    u->otf_f = NULL, u->fr_f = NULL, u->spec_f = NULL, u->acc_f = NULL;
+    u->rows_img = u->rows_win = NULL;
+    c->ops = b->ops;
+    c->kind = b->kind;
+    c->variant = u;
+    c->width = b->width;
+    c->height = b->height;
+    c->boundary = b->boundary;
+    c->halo = b->halo;
+    c->has_model = b->has_model;
+    c->psf = b->psf;
+    c->kcx = b->kcx;
+    c->kcy = b->kcy;
+    c->kernel = b->kernel; /* read only, as the invariant copy's */
+    c->kernel_borrowed = 1;
+    c->info = b->info;
+    const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
+    /* the frame's geometry and the plans anew, for this thread's plan thread count */
+    svp_status st = svp_frame_init(&c->frame, b->width, b->height, b->kcx, b->kcy, b->boundary);
+    if (st == SVP_OK) st = svp_psf_field_copy(b->field, &c->field);
+    if (st == SVP_OK) st = svp_fft_block_get(c->frame.nx, &u->block);
+    if (st == SVP_OK) st = svp_fft_pruned_get(c->frame.ny, c->frame.nx, 0, &u->cols);
+    if (st == SVP_OK) {
+        c->work_c = svp_alloc(ns * sizeof(fftw_complex));
+        c->work_r_image = svp_alloc((size_t)b->width * b->height * sizeof(double));
+        u->acc = svp_alloc(ns * sizeof(fftw_complex));
+        u->ext = svp_alloc((size_t)c->frame.ny * c->frame.nx * sizeof(double));
+        u->row_on = calloc((size_t)c->frame.ny, 1);
+        if (v->spec2) u->spec2 = svp_alloc(ns * sizeof(fftw_complex));
+        if (!c->work_c || !c->work_r_image || !u->acc || !u->ext || !u->row_on ||
+            (v->spec2 && !u->spec2))
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for a copy of the operator");
+    }
+    if (st != SVP_OK) {
+        svp_blur_free(c);
+        return st;
+    }
+    *out = c;
     return SVP_OK;
 }
 

@@ -642,8 +642,9 @@ static svp_status deconvolve_numerators(inverse_run *r)
 
 /* Side by side: plain Richardson–Lucy with a fixed count on both halves of (4) (method R
  * without acceleration or automatic choices) needs no result of one deconvolution in another,
- * so with two or more threads and an invariant operator the PL's and each numerator's run at
- * the same time, each worker on its own copy of the operator (a second frame and its buffers).
+ * so with two or more threads the PL's and each numerator's run at the same time, each worker
+ * on its own copy of the operator (svp_blur_clone: a second frame and its buffers; for a PSF
+ * map in double precision also its accumulators, the term spectra shared).
  * FFTW's own threads gain 1.0–1.55× on two cores at these sizes, two one-thread transforms at
  * once nearly 2× (docs/performance.md). The arithmetic of each run is unchanged; only its FFT
  * plans (thread count) differ, so results agree with the sequential order to the transforms'
@@ -661,7 +662,7 @@ static int side_by_side_workers(const inverse_run *r)
 {
     const svp_correct_options *o = &r->opt;
     if (!r->rl_pl || !r->rl_field || r->accel || o->auto_iterations || o->balance_auto) return 1;
-    if (r->blur->kind != SVP_BLUR_INVARIANT || r->n < SIDE_BY_SIDE_MIN) return 1;
+    if (!svp_blur_clonable(r->blur) || r->n < SIDE_BY_SIDE_MIN) return 1;
     const int threads = svp_get_threads(), tasks = 1 + r->n_fields;
     /* the levels still free: the workers' region needs one, their threads another */
     const int free_levels = omp_get_max_active_levels() - omp_get_active_level();
@@ -726,10 +727,16 @@ static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
         goto cleanup;
     }
     r->n_copies = workers;
+    /* each worker's share of the threads, for its FFT plans and its own loops (which only get
+     * them where nesting is allowed: side_by_side_workers); a PSF map's copy takes its plans
+     * when it is made, an invariant one when first used in its worker */
+    const int per_worker = svp_get_threads() / workers > 1 ? svp_get_threads() / workers : 1;
+    svp_fft_local_threads(per_worker);
     for (int t = 0; t < workers && st == SVP_OK; t++) {
-        st = svp_blur_clone_invariant(r->blur, &r->copies[t]);
+        st = svp_blur_clone(r->blur, &r->copies[t]);
         if (st == SVP_OK) st = svp_image_new(r->w, r->h, &works[t]);
     }
+    svp_fft_local_threads(0);
     if (st != SVP_OK) goto cleanup;
     /* progress: each run's own fraction, summed for the caller */
     memcpy(all, r->shares, (size_t)tasks * sizeof *all);
@@ -740,9 +747,6 @@ static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
         r->shares[k] = (svp_progress_share){.fn = progress_part_fn, .user = &parts[k], .base = 0,
                                             .span = 1};
     }
-    /* each worker's share of the threads, for its FFT plans and its own loops (which only get
-     * them where nesting is allowed: side_by_side_workers) */
-    const int per_worker = svp_get_threads() / workers > 1 ? svp_get_threads() / workers : 1;
 #pragma omp parallel num_threads(workers)
     {
         const int t = omp_get_thread_num();
