@@ -166,8 +166,7 @@ static svp_image *field_scene(int w, int h, int component)
     return b;
 }
 
-/* Every operator of the suite: Moffat, FWHM 3 px, β 1.5 (in deconv_sweep also the PSF map's
- * node at the centre). */
+/* Every operator of the suite: Moffat, FWHM 3 px, β 1.5 (and two nodes of corner_map). */
 static svp_psf moffat_psf(void)
 {
     svp_psf psf;
@@ -184,6 +183,20 @@ static svp_blur *moffat_blur(int w, int h)
     svp_blur *op = NULL;
     ASSERT_OK(svp_blur_new(&psf, w, h, SVP_BOUNDARY_ZERO, &op));
     return op;
+}
+
+/* A PSF map: moffat_psf() at two opposite corners of a 2 x 2 node grid, FWHM 4.5 px at the
+ * other two. */
+static svp_psf_field *corner_map(int w, int h)
+{
+    const svp_psf base = moffat_psf();
+    svp_psf corner = base;
+    corner.fwhm = 4.5;
+    const svp_psf nodes[4] = {base, corner, corner, base};
+    const double nx[2] = {0, w - 1}, ny[2] = {0, h - 1};
+    svp_psf_field *map = NULL;
+    ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 2, nx, ny, nodes, &map));
+    return map;
 }
 
 /* ---- T⁻¹ ------------------------------------------------------------------------------------- */
@@ -329,13 +342,7 @@ static void test_inverse_map_side_by_side(void **state)
     inverse_ctx c = {0};
     inverse_setup(&c, n, n, 0, SVP_METHOD_R, 4, NULL);
     svp_blur_free(c.blur);
-    const svp_psf base = moffat_psf();
-    svp_psf corner = base;
-    corner.fwhm = 4.5;
-    const svp_psf nodes[4] = {base, corner, corner, base};
-    const double nx[2] = {0, n - 1}, ny[2] = {0, n - 1};
-    svp_psf_field *map = NULL;
-    ASSERT_OK(svp_psf_field_new_grid(n, n, 2, 2, nx, ny, nodes, &map));
+    svp_psf_field *map = corner_map(n, n);
     svp_variant_options vo;
     svp_variant_defaults(&vo);
     vo.representation = SVP_VARIANT_LOWRANK;
@@ -425,14 +432,7 @@ static void deconv_sweep(const char *name, int single, int variant, svp_rl_accel
     c.opt.acceleration = accel;
     c.single = single;
     c.variant = variant;
-    if (variant) {
-        const svp_psf base = moffat_psf();
-        svp_psf corner = base;
-        corner.fwhm = 4.0;
-        const svp_psf nodes[4] = {base, corner, corner, base};
-        const double nx[2] = {0, w - 1}, ny[2] = {0, h - 1};
-        ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 2, nx, ny, nodes, &c.field));
-    }
+    if (variant) c.field = corner_map(w, h);
     c.x = test_image(w, h);
     c.ref = test_image(w, h);
     svp_image *keep = c.x;
@@ -665,12 +665,7 @@ static void test_physics(void **state)
     c.bz = field_scene(w, h, 0);
     for (size_t i = 0; i < (size_t)w * h; i++) c.bz->data[i] *= 1e-5;
     c.pl = pl_scene(w, h, 4);
-    const svp_psf base = moffat_psf();
-    svp_psf corner = base;
-    corner.fwhm = 4.0;
-    const svp_psf nodes[4] = {base, corner, corner, base};
-    const double nx[2] = {0, w - 1}, ny[2] = {0, h - 1};
-    ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 2, nx, ny, nodes, &c.map));
+    c.map = corner_map(w, h);
     c.mz = c.ref_mz = test_image(w, h);
     c.pl_app = c.ref_pl = test_image(w, h);
     c.b_app = c.ref_b = test_image(w, h);

@@ -191,6 +191,9 @@ svp_status svp_blur_clone(const svp_blur *b, svp_blur **out);
 int svp_blur_clonable(const svp_blur *b);
 svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out);
 svp_status svp_variant_clone(const svp_blur *b, svp_blur **out);
+/* The copies' common part: a zeroed operator with b's kind, operations, size, boundary, halo,
+ * PSF and kernel (b's, borrowed); NULL when out of memory. */
+svp_blur *svp_blur_copy_header(const svp_blur *b);
 
 /* Invariant operators: b->work_c = the spectrum of an image placed in b->frame, by E
  * (adjoint_side 0) or Cᵀ (1) — the same plain copy with zero padding in zero mode — with the

@@ -469,15 +469,12 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
     return blur_finish(b, out);
 }
 
-svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out)
+svp_blur *svp_blur_copy_header(const svp_blur *b)
 {
-    *out = NULL;
-    if (!b || b->kind != SVP_BLUR_INVARIANT)
-        return svp_fail(SVP_ERR_UNSUPPORTED, "only an invariant operator can be cloned");
     svp_blur *c = calloc(1, sizeof *c);
-    if (!c) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
-    c->kind = SVP_BLUR_INVARIANT;
-    c->ops = &svp_invariant_ops;
+    if (!c) return NULL;
+    c->kind = b->kind;
+    c->ops = b->ops;
     c->width = b->width;
     c->height = b->height;
     c->boundary = b->boundary;
@@ -486,10 +483,20 @@ svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out)
     c->psf = b->psf;
     c->kcx = b->kcx;
     c->kcy = b->kcy;
-    c->view_margin = b->view_margin;
-    c->single = b->single;
     c->kernel = b->kernel; /* b's, read only: b must outlive the copy */
     c->kernel_borrowed = 1;
+    return c;
+}
+
+svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out)
+{
+    *out = NULL;
+    if (!b || b->kind != SVP_BLUR_INVARIANT)
+        return svp_fail(SVP_ERR_UNSUPPORTED, "only an invariant operator can be cloned");
+    svp_blur *c = svp_blur_copy_header(b);
+    if (!c) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
+    c->view_margin = b->view_margin;
+    c->single = b->single;
     *out = c;
     return SVP_OK;
 }

@@ -2297,7 +2297,7 @@ svp_status svp_variant_clone(const svp_blur *b, svp_blur **out)
         (b->ops != &svp_tent_ops && b->ops != &svp_lowrank_ops && b->ops != &svp_regions_ops))
         return svp_fail(SVP_ERR_UNSUPPORTED, "only a tent, low-rank or region operator in double "
                                              "precision can be copied");
-    svp_blur *c = calloc(1, sizeof *c);
+    svp_blur *c = svp_blur_copy_header(b);
     svp_variant_data *u = c ? malloc(sizeof *u) : NULL;
     if (!u) {
         free(c);
@@ -2309,19 +2309,7 @@ svp_status svp_variant_clone(const svp_blur *b, svp_blur **out)
     u->row_on = NULL;
     u->otf_f = NULL, u->fr_f = NULL, u->spec_f = NULL, u->acc_f = NULL;
     u->rows_img = u->rows_win = NULL;
-    c->ops = b->ops;
-    c->kind = b->kind;
     c->variant = u;
-    c->width = b->width;
-    c->height = b->height;
-    c->boundary = b->boundary;
-    c->halo = b->halo;
-    c->has_model = b->has_model;
-    c->psf = b->psf;
-    c->kcx = b->kcx;
-    c->kcy = b->kcy;
-    c->kernel = b->kernel; /* read only, as the invariant copy's */
-    c->kernel_borrowed = 1;
     c->info = b->info;
     const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
     /* the frame's geometry and the plans anew, for this thread's plan thread count */
