@@ -589,6 +589,41 @@ static int count_files(const char *dir)
     return n;
 }
 
+/* svp_dots: several dot products in one pass, each bit-equal to svp_dot's (the same block
+ * order; Biggs–Andrews' α depends on it), across block boundaries and thread counts, and equal
+ * to a long-double sum to round-off. */
+static void test_dots(void **state)
+{
+    (void)state;
+    const size_t sizes[] = {1, 4095, 4096, 4097, 3 * 4096 + 5, 200000};
+    const int saved = svp_get_threads();
+    for (size_t t = 0; t < sizeof sizes / sizeof *sizes; t++) {
+        const size_t n = sizes[t];
+        double *v[3], *scratch = malloc(n * sizeof(double));
+        uint64_t seed = 77 + t;
+        for (int k = 0; k < 3; k++) {
+            v[k] = malloc(n * sizeof(double));
+            for (size_t i = 0; i < n; i++) v[k][i] = test_rand(&seed) - 0.3;
+        }
+        const double *a[4] = {v[0], v[0], v[1], v[2]}, *b[4] = {v[1], v[0], v[2], v[2]};
+        for (int threads = 1; threads <= 2; threads++) {
+            svp_set_threads(threads);
+            double d[4];
+            svp_dots(a, b, 4, n, d);
+            for (int j = 0; j < 4; j++) {
+                const double one = svp_dot(a[j], b[j], scratch, n);
+                assert_true(d[j] == one);
+                long double ref = 0;
+                for (size_t i = 0; i < n; i++) ref += (long double)a[j][i] * b[j][i];
+                ASSERT_CLOSE(d[j], (double)ref, 1e-12 * (1 + fabs((double)ref)));
+            }
+        }
+        for (int k = 0; k < 3; k++) free(v[k]);
+        free(scratch);
+    }
+    svp_set_threads(saved);
+}
+
 static void test_plan_callback_and_wisdom(void **state)
 {
     (void)state;
@@ -653,9 +688,8 @@ int main(void)
         cmocka_unit_test(test_unit_flux),          cmocka_unit_test(test_linearity_and_delta),
         cmocka_unit_test(test_real_otf),           cmocka_unit_test(test_block_transforms),
         cmocka_unit_test(test_bad_arguments),      cmocka_unit_test(test_plan_callback_and_wisdom),
-        cmocka_unit_test(test_view_frame),
-        cmocka_unit_test(test_view_only_frame),
-        cmocka_unit_test(test_blur_rows),
+        cmocka_unit_test(test_view_frame),         cmocka_unit_test(test_view_only_frame),
+        cmocka_unit_test(test_blur_rows),          cmocka_unit_test(test_dots),
     };
     int rc = cmocka_run_group_tests_name("operator", tests, NULL, NULL);
     svp_fft_cleanup();

@@ -138,6 +138,45 @@ double svp_dot(const double *a, const double *b, double *restrict prod, size_t n
     return svp_sum(prod, n);
 }
 
+/* Block b's m sums Σ a_j b_j in index order (svp_sum's order within a block). */
+static void dots_block(const double *const *a, const double *const *b, int m, size_t i0,
+                       size_t i1, double *out)
+{
+    for (int j = 0; j < m; j++) {
+        const double *restrict x = a[j], *restrict y = b[j];
+        double s = 0;
+        for (size_t i = i0; i < i1; i++) s += x[i] * y[i];
+        out[j] = s;
+    }
+}
+
+void svp_dots(const double *const *a, const double *const *b, int m, size_t n, double *out)
+{
+    const size_t nblocks = n ? (n + SUM_BLOCK - 1) / SUM_BLOCK : 1;
+    double *partial = nblocks > 1 ? malloc(nblocks * (size_t)m * sizeof *partial) : NULL;
+    if (!partial) { /* one block, or no room: serially, in the same block order */
+        for (int j = 0; j < m; j++) out[j] = 0;
+        for (size_t blk = 0; blk < nblocks; blk++) {
+            double sb[SVP_DOTS_MAX];
+            const size_t end = (blk + 1) * SUM_BLOCK < n ? (blk + 1) * SUM_BLOCK : n;
+            dots_block(a, b, m, blk * SUM_BLOCK, end, sb);
+            for (int j = 0; j < m; j++) out[j] = nblocks > 1 ? out[j] + sb[j] : sb[j];
+        }
+        return;
+    }
+#pragma omp parallel for schedule(static) if (n > SVP_PARALLEL_MIN)
+    for (size_t blk = 0; blk < nblocks; blk++) {
+        const size_t end = (blk + 1) * SUM_BLOCK < n ? (blk + 1) * SUM_BLOCK : n;
+        dots_block(a, b, m, blk * SUM_BLOCK, end, partial + blk * (size_t)m);
+    }
+    for (int j = 0; j < m; j++) {
+        double s = 0;
+        for (size_t blk = 0; blk < nblocks; blk++) s += partial[blk * (size_t)m + j];
+        out[j] = s;
+    }
+    free(partial);
+}
+
 double svp_max(const double *restrict x, size_t n)
 {
     double m = -INFINITY;

@@ -48,6 +48,10 @@ void svp_free(void *p);
 double svp_sum(const double *restrict x, size_t n);
 /* Σ a b with svp_sum's order (prod: n scratch values, overwritten with a ⊙ b). */
 double svp_dot(const double *a, const double *b, double *restrict prod, size_t n);
+/* out[j] = Σ a[j] b[j] for j < m (at most SVP_DOTS_MAX) in one pass over the data, each with
+ * svp_dot's order and so the same bits, without its scratch. */
+#define SVP_DOTS_MAX 8
+void svp_dots(const double *const *a, const double *const *b, int m, size_t n, double *out);
 double svp_max(const double *restrict x, size_t n); /* of finite values; -inf when none */
 /* Median of v[0..n), n >= 1 (sorts v in place; the mean of the middle two for even n). */
 double svp_median(double *v, size_t n);

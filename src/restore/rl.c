@@ -133,23 +133,26 @@ typedef struct step_dot {
  * RL steps (0 for the first two), or alpha_in[k] when given; alpha_out[k] records it. z > 0
  * wherever x_k, x_{k−1} > 0 (a zero stays), and with one α for two images their ratio is
  * extrapolated the same way, (x/y)_k ((x/y)_k / (x/y)_{k−1})^α: the numerator and the PL of T⁻¹
- * (eq. 4) keep their ratio. scratch: n values for the dot products; *last carries
- * <g_{k−1}, g_{k−1}> to the next iteration, whose <g_{k−2}, g_{k−2}> it is (the same sum). */
+ * (eq. 4) keep their ratio. *last carries <g_{k−1}, g_{k−1}> to the next iteration, whose
+ * <g_{k−2}, g_{k−2}> it is (the same sum). */
 static void extrapolate(double *restrict x, double *restrict x_prev, const double *step_1,
-                        const double *step_2, double *scratch, size_t n, int k,
+                        const double *step_2, size_t n, int k,
                         const double *alpha_in, double *alpha_out, step_dot *last_dot)
 {
     double alpha = 0;
     if (alpha_in) {
         alpha = alpha_in[k];
     } else if (k >= 2) {
-        const double num = svp_dot(step_1, step_2, scratch, n);
-        const double den =
-            last_dot->k == k - 1 ? last_dot->value : svp_dot(step_2, step_2, scratch, n);
-        const double last = svp_dot(step_1, step_1, scratch, n);
+        /* <g_{k−1}, g_{k−2}>, <g_{k−1}, g_{k−1}>, <x, x> and, unless the last iteration made
+         * it, <g_{k−2}, g_{k−2}>: in one pass */
+        const double *a[4] = {step_1, step_1, x, step_2}, *b[4] = {step_2, step_1, x, step_2};
+        double d[4];
+        const int have_den = last_dot->k == k - 1;
+        svp_dots(a, b, have_den ? 3 : 4, n, d);
+        const double num = d[0], last = d[1], size = d[2];
+        const double den = have_den ? last_dot->value : d[3];
         last_dot->k = k;
         last_dot->value = last;
-        const double size = svp_dot(x, x, scratch, n);
         alpha = den > 0 && last > STEP_FLOOR * STEP_FLOOR * size ? num / den : 0.0;
         alpha = alpha > 0 ? (alpha < ALPHA_MAX ? alpha : ALPHA_MAX) : 0.0;
     }
@@ -679,7 +682,7 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
     step_dot last_dot = {-1, 0.0};
     for (int k = 0; k < o->iterations; k++) {
         if (accel)
-            extrapolate(xd, r->x_prev, r->step_1, r->step_2, r->correction, n, k, alpha_in,
+            extrapolate(xd, r->x_prev, r->step_1, r->step_2, n, k, alpha_in,
                         alpha_out, &last_dot);
         SVP_CHECK(rl_forward(r, xd, auto_stop)); /* the stopping rule needs Hx whole */
         if (auto_stop) {
