@@ -1486,7 +1486,8 @@ static void test_side_by_side(void **state)
     free_images(b, NF);
 }
 
-/* The same with PSF maps in double precision (low rank, tent): each worker on a copy of the
+/* The same with PSF maps in double precision (low rank, tent, a row-pruned tent whose nodes
+ * transform only their window's rows): each worker on a copy of the
  * operator that shares its term spectra and weight tables (svp_blur_clone). Asserted: the copy
  * applies exactly the original's H and Hᵀ; 2 threads (side by side: the second worker reports)
  * give the 1-thread result bit for bit (one-thread plans both ways; bound 1e-12); an operator
@@ -1511,13 +1512,15 @@ static void test_side_by_side_map(void **state)
     svp_image *pl = pl_spot_chessboard(w, h, 16, 9);
     svp_image *b[NF] = {field_smooth(w, h, 0), field_smooth(w, h, 1)};
     svp_image *x = test_random_image(w, h, 21), *y0 = test_image(w, h), *y1 = test_image(w, h);
-    for (int rep = 0; rep < 2; rep++) {
+    static const char *const names[3] = {"low-rank", "tent", "tent, 12 px support (row-pruned)"};
+    for (int rep = 0; rep < 3; rep++) {
         svp_variant_options vo;
         svp_variant_defaults(&vo);
         vo.representation = rep ? SVP_VARIANT_TENT : SVP_VARIANT_LOWRANK;
         vo.rank = 3;
         vo.samples_x = vo.samples_y = 4;
-        vo.grid_x = vo.grid_y = 3;
+        vo.grid_x = vo.grid_y = rep == 2 ? 5 : 3;
+        vo.support = rep == 2 ? 12 : 0;
         svp_blur *op = NULL, *copy = NULL;
         ASSERT_OK(svp_blur_new_field(field, w, h, SVP_BOUNDARY_ZERO, &vo, &op));
         assert_true(svp_blur_clonable(op));
@@ -1544,7 +1547,7 @@ static void test_side_by_side_map(void **state)
             diff = fmax(diff,
                         test_max_abs_diff(seq.field[c], par.field[c]) / test_max_abs(seq.field[c]));
         print_message("%s map: side by side (2 threads) vs 1 thread: max difference %.3g\n",
-                      rep ? "tent" : "low-rank", diff);
+                      names[rep], diff);
         CHECK_BOUND(diff <= 1e-12, "side by side differs from sequential by %.3g", diff);
         restored_free(&par, NF);
         /* single precision: no copy, the runs in order */
