@@ -772,6 +772,66 @@ static void test_spot_fit(void **state)
     svp_image_free(spot);
 }
 
+/* A polynomial PSF map from 30 spot fits (the fit above as the template, FWHM and β varying
+ * smoothly over a 400² field; one outlier): the fits, the surfaces' degrees chosen by the
+ * library, the outlier clipped, the report. */
+typedef struct map_ctx {
+    svp_psf_sample samples[30];
+    svp_psf ref_centre, got_centre;
+} map_ctx;
+
+static svp_status map_call(void *user)
+{
+    map_ctx *c = user;
+    svp_psf_field *field = NULL;
+    svp_map_report *rep = NULL;
+    svp_status st = svp_psf_map_poly(c->samples, 30, 400, 400, NULL, &field, &rep);
+    if (st == SVP_OK) st = svp_psf_field_at(field, 200, 150, &c->got_centre);
+    svp_psf_field_free(field);
+    svp_map_report_free(rep);
+    return st;
+}
+
+static double map_diff(void *user)
+{
+    map_ctx *c = user;
+    return fmax(fabs(c->got_centre.fwhm - c->ref_centre.fwhm),
+                fabs(c->got_centre.beta - c->ref_centre.beta));
+}
+
+static void test_map_poly(void **state)
+{
+    (void)state;
+    const int n = 31;
+    svp_image *spot = test_image(n, n);
+    uint64_t s = 5;
+    for (int y = 0; y < n; y++)
+        for (int x = 0; x < n; x++) {
+            const double r2 = (x - 15.2) * (x - 15.2) + (y - 15.1) * (y - 15.1);
+            spot->data[(size_t)y * n + x] = 4 + 800 * pow(1 + r2 / 8.0, -2.0) + test_rand(&s);
+        }
+    svp_spot_options so;
+    svp_spot_defaults(&so);
+    svp_spot_result fit;
+    ASSERT_OK(svp_spot_fit(spot, &so, &fit, NULL, NULL));
+    map_ctx c;
+    for (int k = 0; k < 30; k++) {
+        const double u = (k % 6) / 5.0, v = (k / 6) / 4.0;
+        c.samples[k].x = 20 + 360 * u;
+        c.samples[k].y = 20 + 360 * v;
+        c.samples[k].fit = fit;
+        c.samples[k].fit.fwhm *= 1 + 0.2 * u + 0.1 * v;
+        c.samples[k].fit.beta *= 1 + 0.1 * v;
+    }
+    c.samples[7].fit.fwhm *= 1.5; /* an outlier */
+    ASSERT_OK(map_call(&c));
+    c.ref_centre = c.got_centre;
+    const sweep_case sc = {"polynomial PSF map from 30 spot fits", map_call, map_diff, &c, 1e-12};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 5 && r.nomem > 0);
+    svp_image_free(spot);
+}
+
 int main(void)
 {
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -788,6 +848,7 @@ int main(void)
         cmocka_unit_test(test_mat_and_stack),
         cmocka_unit_test(test_odmr_fit),
         cmocka_unit_test(test_physics),
+        cmocka_unit_test(test_map_poly),
     };
     if (getenv("SVP_TEST_FILTER")) cmocka_set_test_filter(getenv("SVP_TEST_FILTER"));
     int rc = cmocka_run_group_tests_name("nomem", tests, NULL, NULL);
