@@ -515,6 +515,10 @@ typedef struct svp_correct_summary {
     int rl_iterations;      /* RL on Ĩ: iterations taken (0 for method W) */
     int rl_stop;            /* an svp_rl_stop */
     double rl_chi2;         /* auto_iterations: χ² per datum where the PL's RL stopped */
+    int side_by_side;       /* the deconvolutions ran side by side on this many workers, each on
+                               a copy of the operator (docs/model.md §3), or 1: in order */
+    int side_by_side_fallback; /* 1: side by side was chosen, but its copies found no memory,
+                                  so the runs went in order on the caller's operator */
 } svp_correct_summary;
 
 /* The PL's noise model from the image itself: in blocks of 16 x 16 the local mean and the

@@ -210,6 +210,8 @@ typedef struct inverse_ctx {
     svp_correct_options opt;
     svp_image *pl, *field[NF], *valid;             /* the call's outputs */
     svp_image *ref_pl, *ref_field[NF], *ref_valid; /* the unharmed call's */
+    svp_correct_summary sum;
+    int fallbacks; /* armed calls that returned SVP_OK with side_by_side_fallback set */
 } inverse_ctx;
 
 static svp_status inverse_call(void *user)
@@ -222,6 +224,7 @@ static svp_status inverse_call(void *user)
 static double inverse_diff(void *user)
 {
     inverse_ctx *c = user;
+    c->fallbacks += c->sum.side_by_side_fallback;
     double d = test_max_abs_diff(c->pl, c->ref_pl) / test_max_abs(c->ref_pl);
     for (int k = 0; k < NF; k++)
         d = fmax(d,
@@ -270,6 +273,7 @@ static void inverse_setup(inverse_ctx *c, int w, int h, int margin, svp_method m
     c->opt.method = method;
     c->opt.deconv.iterations = iterations;
     c->opt.margin = margin;
+    c->opt.summary = &c->sum;
     if (more) more(&c->opt); /* options beyond these */
     c->pl = test_image(w, h);
     c->valid = test_image(w, h);
@@ -305,15 +309,19 @@ static void inverse_free(inverse_ctx *c)
     }
 }
 
-/* One T⁻¹ swept: name, the view, margin, method, iterations and any further options. */
+/* One T⁻¹ swept: name, the view, margin, method, iterations and any further options;
+ * *fallbacks (may be NULL): the armed calls that returned SVP_OK after the side-by-side runs'
+ * fallback to the runs in order (svp_correct_summary.side_by_side_fallback). */
 static sweep_result sweep_inverse(const char *name, int w, int h, int margin, svp_method method,
-                                  int iterations, void (*more)(svp_correct_options *o))
+                                  int iterations, void (*more)(svp_correct_options *o),
+                                  int *fallbacks)
 {
     inverse_ctx c = {0};
     inverse_setup(&c, w, h, margin, method, iterations, more);
     const sweep_case sc = {name, inverse_call, inverse_diff, &c, 1e-10};
     const sweep_result r = sweep(&sc);
     assert_true(r.allocations > 10 && r.nomem > 0);
+    if (fallbacks) *fallbacks = c.fallbacks;
     inverse_free(&c);
     return r;
 }
@@ -326,9 +334,12 @@ static void test_inverse_side_by_side(void **state)
 {
     (void)state;
     svp_set_threads(2);
-    const sweep_result r =
-        sweep_inverse("T⁻¹ R, 2 threads, side by side", 128, 128, 0, SVP_METHOD_R, 4, NULL);
-    assert_true(r.ok_after_failure > 0); /* the fallback to the runs in order */
+    int fallbacks = 0;
+    const sweep_result r = sweep_inverse("T⁻¹ R, 2 threads, side by side", 128, 128, 0,
+                                         SVP_METHOD_R, 4, NULL, &fallbacks);
+    /* the fallback to the runs in order ran, and the summary said so */
+    assert_true(r.ok_after_failure > 0 && fallbacks > 0);
+    print_message("  of which %d through the fallback to the runs in order\n", fallbacks);
     svp_set_threads(1);
 }
 
@@ -354,7 +365,8 @@ static void test_inverse_map_side_by_side(void **state)
     const sweep_case sc = {"T⁻¹ R, 2 threads, low-rank map side by side", inverse_call,
                            inverse_diff, &c, 1e-10};
     const sweep_result r = sweep(&sc);
-    assert_true(r.allocations > 10 && r.nomem > 0 && r.ok_after_failure > 0);
+    assert_true(r.allocations > 10 && r.nomem > 0 && r.ok_after_failure > 0 && c.fallbacks > 0);
+    print_message("  of which %d through the fallback to the runs in order\n", c.fallbacks);
     inverse_free(&c);
     svp_psf_field_free(map);
     svp_set_threads(1);
@@ -365,8 +377,8 @@ static void test_inverse_map_side_by_side(void **state)
 static void test_inverse_in_order(void **state)
 {
     (void)state;
-    sweep_inverse("T⁻¹ R, 1 thread, margin 6", 48, 40, 6, SVP_METHOD_R, 4, NULL);
-    sweep_inverse("T⁻¹ RW, 1 thread", 48, 40, 0, SVP_METHOD_RW, 4, NULL);
+    sweep_inverse("T⁻¹ R, 1 thread, margin 6", 48, 40, 6, SVP_METHOD_R, 4, NULL, NULL);
+    sweep_inverse("T⁻¹ RW, 1 thread", 48, 40, 0, SVP_METHOD_RW, 4, NULL, NULL);
 }
 
 /* The automatic choices, whose searches allocate on their own: method W with the discrepancy
@@ -375,8 +387,8 @@ static void test_inverse_in_order(void **state)
 static void test_inverse_automatic(void **state)
 {
     (void)state;
-    sweep_inverse("T⁻¹ W, balance auto", 48, 40, 0, SVP_METHOD_W, 4, auto_balance);
-    sweep_inverse("T⁻¹ R, iterations auto", 48, 40, 0, SVP_METHOD_R, 40, auto_iterations);
+    sweep_inverse("T⁻¹ W, balance auto", 48, 40, 0, SVP_METHOD_W, 4, auto_balance, NULL);
+    sweep_inverse("T⁻¹ R, iterations auto", 48, 40, 0, SVP_METHOD_R, 40, auto_iterations, NULL);
 }
 
 /* ---- operators and deconvolutions -------------------------------------------------------------- */

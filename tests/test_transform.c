@@ -1422,12 +1422,17 @@ static void test_side_by_side(void **state)
     svp_image *b[NF] = {field_smooth(w, h, 0), field_smooth(w, h, 1)};
     apparent a = forward_run(op, pl, b, NF);
     svp_correct_options o = options_for(SVP_METHOD_R, 25, 1e-3);
+    svp_correct_summary sum;
+    o.summary = &sum;
     restored seq = inverse_run(op, a.pl, a.field, NF, &o);
+    assert_int_equal(sum.side_by_side, 1); /* one thread: in order */
     svp_set_threads(2);
     progress_log log = {0, 0, 1, 1, 2.0, 0, 0, 0};
     o.deconv.progress = log_progress;
     o.deconv.progress_user = &log;
     restored par = inverse_run(op, a.pl, a.field, NF, &o);
+    assert_int_equal(sum.side_by_side, 2); /* the summary says so */
+    assert_int_equal(sum.side_by_side_fallback, 0);
     assert_true(log.monotone && log.in_range && log.calls >= 3);
     ASSERT_CLOSE(log.last, 1.0, 1e-12);
     /* the runs did go side by side: the second worker reported too, never at the same time */
@@ -1470,6 +1475,7 @@ static void test_side_by_side(void **state)
         print_message("4 threads, nesting %s: %s, max difference %.3g\n", nest ? "allowed" : "off",
                       four.thread_max ? "side by side" : "in order", d4);
         assert_true(nest ? four.thread_max >= 1 : four.thread_max == 0);
+        assert_int_equal(sum.side_by_side, nest ? 3 : 1);
         assert_true(!four.overlap && four.monotone);
         CHECK_BOUND(d4 <= 1e-10, "4 threads differ from 1 by %.3g", d4);
         restored_free(&r4, NF);

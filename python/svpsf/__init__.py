@@ -595,7 +595,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             "spread_ratio": s.spread_ratio, "pl_gain": s.pl_gain,
             "pl_gain_offset": s.pl_gain_offset, "shift": [s.shift[i] for i in range(min(16, len(fl)))],
             "rl_iterations": s.rl_iterations, "rl_stop": _STOPS.get(s.rl_stop, s.rl_stop),
-            "rl_chi2": s.rl_chi2}
+            "rl_chi2": s.rl_chi2, "side_by_side": s.side_by_side,
+            "side_by_side_fallback": bool(s.side_by_side_fallback)}
     f_out = [o[0] for o in outs]
     return CorrectResult(pl_out, f_out[0] if single else f_out, val, int(n_missing[0]), summ,
                          [_report(reports[i]) for i in range(len(fl) + 1)])

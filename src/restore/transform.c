@@ -908,6 +908,10 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
                 svp_clear_error();
                 st = SVP_OK;
             }
+            if (options->summary) {
+                options->summary->side_by_side = in_order ? 1 : workers;
+                options->summary->side_by_side_fallback = in_order;
+            }
         }
         if (in_order) {
             if (st == SVP_OK) st = deconvolve_pl(&r, r.blur, r.work);
@@ -1142,6 +1146,8 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
     const size_t n = (size_t)w * h;
     svp_correct_summary local_sum, *sum = opt.summary ? opt.summary : &local_sum;
     memset(sum, 0, sizeof *sum);
+    sum->side_by_side = 1; /* in order unless inverse_core runs them side by side */
+    opt.summary = sum;
 
     /* The PL noise model: the gain given, or estimated from the view when a choice needs it. */
     if ((opt.auto_iterations || opt.balance_auto) && opt.pl_gain == 0) {

@@ -234,6 +234,11 @@ if cmp -s corr_side1/pl.npy corr_side2/pl.npy && cmp -s corr_side1/field_b1024.n
 else
     fail "side by side" "$(ls corr_side1 corr_side2 | tr '\n' ' ')"
 fi
+# and the summary says how they ran: 2 workers with 2 threads, in order (1) with one
+grep -q '"side_by_side": 2' corr_side2/summary.json && grep -q '"side_by_side": 1' corr_side1/summary.json &&
+    ! grep -q side_by_side_fallback corr_side2/summary.json &&
+    pass "correct: summary.json records side by side (2 workers) and in order (1)" ||
+    fail "side_by_side in summary.json" "$(grep -h side_by_side corr_side1/summary.json corr_side2/summary.json)"
 expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
     --psf moffat_periodic.yaml --method w --precision single -o corr_w32
 if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then

@@ -507,6 +507,9 @@ static void correct_report(cli_run *run, const struct correct_args *a, struct co
         cli_result_str(run, "rl_stop", cli_rl_stop_names[summary->rl_stop]);
         if (opt->auto_iterations) cli_result_num(run, "rl_chi2", summary->rl_chi2);
     }
+    /* how the deconvolutions ran: side by side on copies of the operator, or in order */
+    cli_result_int(run, "side_by_side", summary->side_by_side);
+    if (summary->side_by_side_fallback) cli_result_int(run, "side_by_side_fallback", 1);
     if (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED)
         for (int k = 0; k < n_fields && k < 16; k++) {
             char key[64];
