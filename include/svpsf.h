@@ -486,6 +486,11 @@ typedef struct svp_correct_options {
                                     is below shrink_factor · the measured field's spread there
                                     was regularised away; default 0.1 */
     struct svp_correct_summary *summary; /* optional out; default NULL */
+    int side_by_side;            /* 1 (default): with methods R / RL_SIGNED, plain RL and a fixed
+                                    count, the deconvolutions may run side by side, each on a
+                                    copy of the operator (docs/model.md §3; a copy's memory
+                                    each); 0: always in order on `blur` (one operator's memory,
+                                    every FFT on all threads) */
 } svp_correct_options;
 
 /* A Wiener (CG) solve that stops at its step cap counts as not converged, a result in doubt,

@@ -155,6 +155,7 @@ static void test_defaults(void **state)
     ASSERT_CLOSE(o.pl_floor, 1e-3, 0);
     ASSERT_CLOSE(o.shift, 0, 0);
     assert_null(o.deconv.progress);
+    assert_int_equal(o.side_by_side, 1);
 }
 
 /* ---- limit cases (docs/model.md §2 and §4) ---------------------------------------------------------- */
@@ -1451,8 +1452,8 @@ static void test_side_by_side(void **state)
     progress_log cancel = {0, 0, 1, 1, 0.5, 0, 0, 0};
     o.deconv.progress_user = &cancel;
     svp_image *pl_out = test_image(w, h), *out[NF] = {test_image(w, h), test_image(w, h)};
-    expect_error(svp_inverse_transform(op, a.pl, (const svp_image *const *)a.field, NF, &o,
-                                       pl_out, out, NULL, NULL),
+    expect_error(svp_inverse_transform(op, a.pl, (const svp_image *const *)a.field, NF, &o, pl_out,
+                                       out, NULL, NULL),
                  SVP_ERR_CANCELLED, "cancelled");
     assert_true(cancel.monotone && cancel.last >= 0.5 && cancel.last < 1.0);
     /* the caller's OpenMP thread count is its own again */
@@ -1481,6 +1482,22 @@ static void test_side_by_side(void **state)
         restored_free(&r4, NF);
     }
     omp_set_max_active_levels(levels);
+    /* side_by_side 0: in order with 2 threads (two-thread plans: the 1-thread result to
+     * round-off), and a value other than 0 or 1 is refused */
+    svp_set_threads(2);
+    o.side_by_side = 0;
+    progress_log off = {0, 0, 1, 1, 2.0, 0, 0, 0};
+    o.deconv.progress_user = &off;
+    restored ord = inverse_run(op, a.pl, a.field, NF, &o);
+    assert_true(off.thread_max == 0 && sum.side_by_side == 1 && !sum.side_by_side_fallback);
+    double d_off = 0;
+    for (int c = 0; c < NF; c++) d_off = fmax(d_off, test_max_abs_diff(seq.field[c], ord.field[c]));
+    CHECK_BOUND(d_off / scale <= 1e-10, "side_by_side 0 differs from 1 thread by %.3g", d_off);
+    restored_free(&ord, NF);
+    o.side_by_side = 2;
+    expect_error(svp_inverse_transform(op, a.pl, (const svp_image *const *)a.field, NF, &o, pl_out,
+                                       out, NULL, NULL),
+                 SVP_ERR_INVALID, "side_by_side");
     svp_set_threads(saved);
     svp_image_free(pl_out);
     free_images(out, NF);

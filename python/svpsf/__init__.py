@@ -513,7 +513,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             pl_floor=None, shift=None, cg_max_steps=None, precision="double",
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
             keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
-            field_names=None, operator_tol=1e-2, regions=False):
+            field_names=None, operator_tol=1e-2, regions=False, side_by_side=True):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
@@ -522,7 +522,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
     gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
     operator error budget (default 1e-2, as `svpsf correct`); regions=True one kernel per region
-    of a map of kind regions (`--regions`). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
+    of a map of kind regions (`--regions`); side_by_side=False keeps the deconvolutions in
+    order, one operator's memory (`--side-by-side off`). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
     deconvolution ([0] the PL's, [1 + c] field c's numerator). Raises DoubtfulError (the
@@ -556,6 +557,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     if cg_max_steps is not None:
         opt.deconv.cg_max_steps = int(cg_max_steps)
     opt.deconv.single_precision = int(precision == "single")
+    opt.side_by_side = int(bool(side_by_side))
     if acceleration is not None:
         opt.deconv.acceleration = _ACCELERATIONS[acceleration]
     if margin is not None:

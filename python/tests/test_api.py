@@ -65,6 +65,7 @@ def test_forward_equals_cli(cli, tmp_path, maps, psf_text, extra):
     (["--method", "r", "--iterations", "40"], dict(method="r", iterations=40)),
     (["--iterations", "auto", "--acceleration", "biggs-andrews", "--keep-doubtful"],
      dict(iterations="auto", acceleration="biggs-andrews", keep_doubtful=True)),
+    (["--side-by-side", "off"], dict(side_by_side=False)),
 ])
 def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     pl, field = maps
@@ -86,6 +87,7 @@ def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     results = json.load(open(out / "summary.json"))["results"]
     assert r.n_missing == results["n_missing"] == 0
     assert int(np.count_nonzero(r.validity < 1)) == results["n_flagged"]
+    assert r.summary["side_by_side"] == results["side_by_side"]
 
 
 def test_correct_with_a_psf_map_and_missing_pixels_equals_cli(cli, tmp_path, maps):

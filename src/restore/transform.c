@@ -56,6 +56,7 @@ void svp_correct_defaults(svp_correct_options *options)
     options->plausible_factor = 10.0;
     options->shrink_factor = 0.1;
     options->summary = NULL;
+    options->side_by_side = 1;
 }
 
 /* ---- argument checks --------------------------------------------------------------------- */
@@ -323,6 +324,8 @@ static svp_status check_correct_options(const svp_correct_options *o)
         return svp_fail(SVP_ERR_INVALID, "pl_gain must be >= 0 and finite, got %g", o->pl_gain);
     if (!isfinite(o->pl_offset))
         return svp_fail(SVP_ERR_INVALID, "pl_offset must be finite, got %g", o->pl_offset);
+    if (o->side_by_side != 0 && o->side_by_side != 1)
+        return svp_fail(SVP_ERR_INVALID, "side_by_side must be 0 or 1, got %d", o->side_by_side);
     if (!(o->plausible_factor > 1) || !isfinite(o->plausible_factor))
         return svp_fail(SVP_ERR_INVALID, "plausible_factor must be > 1 and finite, got %g",
                         o->plausible_factor);
@@ -661,6 +664,7 @@ static svp_status deconvolve_numerators(inverse_run *r)
 static int side_by_side_workers(const inverse_run *r)
 {
     const svp_correct_options *o = &r->opt;
+    if (!o->side_by_side) return 1; /* the caller's choice: in order */
     if (!r->rl_pl || !r->rl_field || r->accel || o->auto_iterations || o->balance_auto) return 1;
     if (!svp_blur_clonable(r->blur) || r->n < SIDE_BY_SIDE_MIN) return 1;
     const int threads = svp_get_threads(), tasks = 1 + r->n_fields;

@@ -239,6 +239,14 @@ grep -q '"side_by_side": 2' corr_side2/summary.json && grep -q '"side_by_side": 
     ! grep -q side_by_side_fallback corr_side2/summary.json &&
     pass "correct: summary.json records side by side (2 workers) and in order (1)" ||
     fail "side_by_side in summary.json" "$(grep -h side_by_side corr_side1/summary.json corr_side2/summary.json)"
+# --side-by-side off: in order with 2 threads (one operator's memory), recorded both ways
+expect_ok corr_side_off correct --field b1024.txt --pl pl1024.txt --psf moffat_s.yaml --iterations 2 \
+    --margin 0 -o corr_side_off --format npy --threads 2 --side-by-side off $FAST
+grep -q '"side_by_side": 1' corr_side_off/summary.json && grep -q '"side_by_side": "off"' corr_side_off/summary.json &&
+    pass "correct --side-by-side off: the runs in order with 2 threads, in summary.json" ||
+    fail "--side-by-side off" "$(grep -h side_by_side corr_side_off/summary.json)"
+expect_bad corr_side_bad "--side-by-side" correct --field b1024.txt --pl pl1024.txt --psf moffat_s.yaml \
+    -o corr_side_bad --side-by-side maybe $FAST
 expect_bad corr_w32 "--precision single|--method w" correct --field fwd_p/field.npy --pl fwd_p/pl.npy \
     --psf moffat_periodic.yaml --method w --precision single -o corr_w32
 if grep -q "corrected with" out.corr_r && grep -q "flagged" out.corr_r && grep -q "missing" out.corr_r; then

@@ -14,7 +14,10 @@ enum {
     OPT_OFFSET,
     OPT_FIELD_SIGMA,
     OPT_PLAUSIBLE,
+    OPT_SIDE_BY_SIDE,
 };
+
+static const char *const on_off[] = {"off", "on", NULL};
 
 static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound",
                                           "iterations_at_cap", "implausible_values",
@@ -137,7 +140,12 @@ static void print_help(const cli_run *run, FILE *out)
             "  --pl-floor F          the recovered PL is floored at F x max(PL) before dividing;\n"
             "                        pixels below it get validity < 1 (default %g)\n"
             "  --shift C             the constant c of the signed shift for r/rl-signed\n"
-            "                        (default: automatic, 2 max|Bt| per map)\n"
+            "                        (default: automatic, 100 max|Bt| per map)\n"
+            "  --side-by-side on|off  on (default): with r / rl-signed, a fixed count and no\n"
+            "                        acceleration, the PL's and the fields' Richardson-Lucy run\n"
+            "                        side by side, each on a copy of the operator (faster on\n"
+            "                        several cores; a copy's memory each, docs/model.md); off:\n"
+            "                        in order, one operator's memory\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
             d.pl_floor);
@@ -204,6 +212,8 @@ static int correct_option(cli_run *run, struct correct_args *a, int c)
     case OPT_PL_FLOOR:
         return cli_parse_double_in(run, "--pl-floor", optarg, 0, 0, 1, 0, &opt->pl_floor);
     case OPT_SHIFT: return cli_parse_double(run, "--shift", optarg, &opt->shift);
+    case OPT_SIDE_BY_SIDE:
+        return cli_parse_choice(run, "--side-by-side", optarg, on_off, &opt->side_by_side);
     default: {
         int bad = cli_deconv_option(run, &a->deconv, c, optarg);
         if (bad < 0) bad = cli_maps_option(run, &a->maps, c, optarg);
@@ -256,6 +266,7 @@ static int parse_correct_args(cli_run *run, struct correct_args *a)
         {"offset", required_argument, NULL, OPT_OFFSET},
         {"field-sigma", required_argument, NULL, OPT_FIELD_SIGMA},
         {"plausible-factor", required_argument, NULL, OPT_PLAUSIBLE},
+        {"side-by-side", required_argument, NULL, OPT_SIDE_BY_SIDE},
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
@@ -369,6 +380,7 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     cli_setting_int(run, "cg_max_steps", opt->deconv.cg_max_steps);
     cli_setting_num(run, "pl_floor", opt->pl_floor);
     cli_setting_num(run, "shift", opt->shift);
+    cli_setting_str(run, "side_by_side", on_off[opt->side_by_side]);
     return 0;
 }
 
