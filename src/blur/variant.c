@@ -981,44 +981,46 @@ size_t svp_variant_common_memory(const svp_blur *b)
     return bytes;
 }
 
+/* What release_buffers frees: the accumulators, the adjoint's frame, the row blocks and the
+ * float state (a copy's whole own memory). */
+static size_t buffers_memory(const svp_blur *b, const svp_variant_data *v, size_t spectrum)
+{
+    const svp_frame *f = &b->frame;
+    size_t bytes = 0;
+    if (v->acc) bytes += spectrum;
+    if (v->spec2) bytes += spectrum;
+    if (v->ext) bytes += (size_t)f->ny * f->nx * sizeof(double);
+    if (v->row_on) bytes += (size_t)f->ny;
+    if (v->blk) bytes += (size_t)v->blk_threads * 3 * SVP_FFT_BLOCK * v->block->bx * sizeof(double);
+    if (v->otf_f) /* float spectra */
+        bytes += (size_t)v->n_terms * (v->f_real ? spectrum / 4 : spectrum / 2);
+    if (v->fr_f) /* float frame rows, a term's spectrum and the accumulator */
+        bytes += (size_t)v->rows_max * f->nx * sizeof(float) + spectrum;
+    return bytes;
+}
+
 static size_t variant_memory(const svp_blur *b)
 {
     size_t bytes = svp_variant_common_memory(b);
     const size_t n = (size_t)b->width * b->height;
     const svp_variant_data *v = b->variant;
     const size_t spectrum = (size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex);
-    bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum */;
-    if (v && v->borrowed) { /* a copy: its accumulators, frame buffers and float state */
-        bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double) + spectrum * 2 + b->frame.ny;
-        if (v->otf_f) bytes += (size_t)v->n_terms * (v->f_real ? spectrum / 4 : spectrum / 2);
-        if (v->fr_f) bytes += (size_t)v->rows_max * b->frame.nx * sizeof(float) + spectrum;
-        if (v->blk)
-            bytes += (size_t)v->blk_threads * 3 * SVP_FFT_BLOCK * v->block->bx * sizeof(double);
-    } else if (v) {
-        if (!v->double_gone) {
-            bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* spectra */
-            bytes += spectrum; /* accumulator (work_c counted by frame) */
-        }
-        if (v->otf_f) /* float spectra */
-            bytes += (size_t)v->n_terms * (v->f_real ? spectrum / 4 : spectrum / 2);
-        if (v->fr_f) /* float frame rows, a term's spectrum and the accumulator */
-            bytes += (size_t)v->rows_max * b->frame.nx * sizeof(float) + spectrum;
-        bytes += n * sizeof(double) * ((v->scale != NULL) + (v->alpha != NULL));
-        bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
-        if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
-        if (v->start) bytes += (size_t)v->n_terms * sizeof(int);
-        if (v->ext) bytes += (size_t)b->frame.ny * b->frame.nx * sizeof(double);
-        if (v->wx)
-            bytes += (size_t)(b->kind == SVP_BLUR_TENT ? v->gx : v->n_terms * v->gy) * b->frame.nx *
-                     sizeof(double);
-        if (v->wy) bytes += (size_t)v->gy * b->frame.ny * sizeof(double);
-        if (v->ly0) bytes += (size_t)b->frame.ny * (sizeof(int) + sizeof(double));
-        bytes += (size_t)v->n_terms;
-        if (v->row_on) bytes += (size_t)b->frame.ny;
-        if (v->spec2) bytes += spectrum;
-        if (v->blk)
-            bytes += (size_t)v->blk_threads * 3 * SVP_FFT_BLOCK * v->block->bx * sizeof(double);
-    }
+    bytes += svp_frame_memory(&b->frame) /* geometry; counts one spectrum (work_c) */;
+    if (!v) return bytes;
+    bytes += buffers_memory(b, v, spectrum);
+    if (v->borrowed) return bytes; /* the rest is the original's */
+    if (!v->double_gone)
+        bytes += (size_t)v->n_terms * (v->otf_re ? spectrum / 2 : spectrum); /* spectra */
+    bytes += n * sizeof(double) * ((v->scale != NULL) + (v->alpha != NULL));
+    bytes += (size_t)(b->width + b->height) * (sizeof(int) + sizeof(double));
+    if (v->coef) bytes += (size_t)v->n_terms * v->gx * v->gy * sizeof(double);
+    if (v->start) bytes += (size_t)v->n_terms * sizeof(int);
+    if (v->wx)
+        bytes += (size_t)(b->kind == SVP_BLUR_TENT ? v->gx : v->n_terms * v->gy) * b->frame.nx *
+                 sizeof(double);
+    if (v->wy) bytes += (size_t)v->gy * b->frame.ny * sizeof(double);
+    if (v->ly0) bytes += (size_t)b->frame.ny * (sizeof(int) + sizeof(double));
+    bytes += (size_t)v->n_terms;
     return bytes;
 }
 
@@ -2292,11 +2294,10 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
 svp_status svp_variant_clone(const svp_blur *b, svp_blur **out)
 {
     *out = NULL;
-    const svp_variant_data *v = b ? b->variant : NULL;
-    if (!v || b->single || v->double_gone ||
-        (b->ops != &svp_tent_ops && b->ops != &svp_lowrank_ops && b->ops != &svp_regions_ops))
+    if (!b || b->kind == SVP_BLUR_INVARIANT || !svp_blur_clonable(b))
         return svp_fail(SVP_ERR_UNSUPPORTED, "only a tent, low-rank or region operator in double "
                                              "precision can be copied");
+    const svp_variant_data *v = b->variant;
     svp_blur *c = svp_blur_copy_header(b);
     svp_variant_data *u = c ? malloc(sizeof *u) : NULL;
     if (!u) {

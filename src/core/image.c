@@ -160,7 +160,7 @@ void svp_dots(const double *const *a, const double *const *b, int m, size_t n, d
             double sb[SVP_DOTS_MAX];
             const size_t end = (blk + 1) * SUM_BLOCK < n ? (blk + 1) * SUM_BLOCK : n;
             dots_block(a, b, m, blk * SUM_BLOCK, end, sb);
-            for (int j = 0; j < m; j++) out[j] = nblocks > 1 ? out[j] + sb[j] : sb[j];
+            for (int j = 0; j < m; j++) out[j] += sb[j]; /* 0 + s is s: svp_sum's sums */
         }
         return;
     }
