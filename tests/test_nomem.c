@@ -211,12 +211,24 @@ typedef struct inverse_ctx {
     svp_image *pl, *field[NF], *valid;             /* the call's outputs */
     svp_image *ref_pl, *ref_field[NF], *ref_valid; /* the unharmed call's */
     svp_correct_summary sum;
-    int fallbacks; /* armed calls that returned SVP_OK with side_by_side_fallback set */
+    int fallbacks;   /* armed calls that returned SVP_OK with side_by_side_fallback set */
+    double progress; /* the call's last progress fraction */
+    int backwards;   /* 1 once the call's progress went back */
 } inverse_ctx;
+
+static int track_progress(void *user, double fraction)
+{
+    inverse_ctx *c = user;
+    if (fraction < c->progress) c->backwards = 1;
+    c->progress = fraction;
+    return 0;
+}
 
 static svp_status inverse_call(void *user)
 {
     inverse_ctx *c = user;
+    c->progress = 0;
+    c->backwards = 0;
     return svp_inverse_transform(c->blur, c->pl_app, c->field_app, NF, &c->opt, c->pl, c->field,
                                  c->valid, NULL);
 }
@@ -225,6 +237,10 @@ static double inverse_diff(void *user)
 {
     inverse_ctx *c = user;
     c->fallbacks += c->sum.side_by_side_fallback;
+    /* progress monotone to 1, through a fallback too */
+    if (c->backwards || c->progress != 1.0)
+        fail_msg("progress went back or ended at %.17g (fallback %d)", c->progress,
+                 c->sum.side_by_side_fallback);
     double d = test_max_abs_diff(c->pl, c->ref_pl) / test_max_abs(c->ref_pl);
     for (int k = 0; k < NF; k++)
         d = fmax(d,
@@ -232,7 +248,6 @@ static double inverse_diff(void *user)
     return fmax(d, test_max_abs_diff(c->valid, c->ref_valid));
 }
 
-/* The view's apparent maps from a (w + 2m)² scene blurred on its own grid, cropped to the view. */
 static void auto_balance(svp_correct_options *o)
 {
     o->balance_auto = 1;
@@ -247,6 +262,7 @@ static void auto_iterations(svp_correct_options *o)
     o->keep_doubtful = 1;
 }
 
+/* The view's apparent maps from a (w + 2m)² scene blurred on its own grid, cropped to the view. */
 static void inverse_setup(inverse_ctx *c, int w, int h, int margin, svp_method method,
                           int iterations, void (*more)(svp_correct_options *o))
 {
@@ -274,6 +290,8 @@ static void inverse_setup(inverse_ctx *c, int w, int h, int margin, svp_method m
     c->opt.deconv.iterations = iterations;
     c->opt.margin = margin;
     c->opt.summary = &c->sum;
+    c->opt.deconv.progress = track_progress;
+    c->opt.deconv.progress_user = c;
     if (more) more(&c->opt); /* options beyond these */
     c->pl = test_image(w, h);
     c->valid = test_image(w, h);

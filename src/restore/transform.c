@@ -464,6 +464,7 @@ typedef struct inverse_run {
      * kept for the validity map */
     svp_blur **copies;
     int n_copies;
+    double progress_reached; /* the last fraction side by side reported, before a fallback */
 } inverse_run;
 
 /* Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution, so
@@ -682,6 +683,7 @@ typedef struct progress_sum {
     void *user;
     const svp_progress_share *shares; /* each run's share of the whole (plan_progress) */
     double *done;                     /* each run's fraction */
+    double *reached;                  /* the last sum reported */
     int n, stop;
 } progress_sum;
 
@@ -701,6 +703,7 @@ static int progress_part_fn(void *user, double fraction)
         double at = 0;
         for (int k = 0; k < s->n; k++) at += s->shares[k].span * s->done[k];
         if (!s->stop && s->fn(s->user, at)) s->stop = 1;
+        *s->reached = at;
         stop = s->stop;
     }
     return stop;
@@ -745,7 +748,8 @@ static svp_status deconvolve_side_by_side(inverse_run *r, int workers)
     /* progress: each run's own fraction, summed for the caller */
     memcpy(all, r->shares, (size_t)tasks * sizeof *all);
     progress_sum sum = {.fn = r->opt.deconv.progress, .user = r->opt.deconv.progress_user,
-                        .shares = all, .done = done, .n = tasks};
+                        .shares = all, .done = done, .reached = &r->progress_reached,
+                        .n = tasks};
     for (int k = 0; k < tasks; k++) {
         parts[k] = (progress_part){.sum = &sum, .k = k};
         r->shares[k] = (svp_progress_share){.fn = progress_part_fn, .user = &parts[k], .base = 0,
@@ -911,6 +915,13 @@ static svp_status inverse_core(svp_blur *blur, const svp_image *pl_apparent,
                 drop_copies(&r);
                 svp_clear_error();
                 st = SVP_OK;
+                /* the runs in order report from where side by side got to, so the caller's
+                 * progress never goes back */
+                const double a = r.progress_reached;
+                for (int k = 0; k <= n_fields; k++) {
+                    r.shares[k].base = a + (1 - a) * r.shares[k].base;
+                    r.shares[k].span *= 1 - a;
+                }
             }
             if (options->summary) {
                 options->summary->side_by_side = in_order ? 1 : workers;
