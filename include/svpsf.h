@@ -997,6 +997,16 @@ SVP_API svp_status svp_warp(const svp_image *moving, const double affine[6],
  * part is singular (|det| < 1e-12). */
 SVP_API svp_status svp_affine_invert(const double affine[6], double inverse[6]);
 
+/* A sub-pixel translation by Fourier interpolation: out(x, y) = in(x − dx, y − dy), the
+ * content moved by (+dx, +dy). The image is continued by its mirror image (period 2 width ×
+ * 2 height, no jump at the edges) and its spectrum multiplied by e^{−iω·d} (at the Nyquist
+ * frequency by cos(π d)); exact for a band-limited image, so sub-pixel shifts neither smooth
+ * nor ring the way bilinear interpolation does (svp_warp). The |d| pixels next to an edge that
+ * the shift brings in are the mirror image's, not data. NaN/Inf pixels are filled from their
+ * neighbours for the transform and out is NaN where the nearest source pixel was not finite.
+ * |dx| < width and |dy| < height; in and out of one size, out may be in. */
+SVP_API svp_status svp_shift(const svp_image *in, double dx, double dy, svp_image *out);
+
 /* ---------------------------------------------------------------------------------------- */
 /* Fitting: Levenberg–Marquardt, PSF spot fits, PSF maps                                     */
 /* @@section fit */
@@ -1666,6 +1676,71 @@ typedef struct svp_cube {
 SVP_API svp_status svp_cube_new(int width, int height, int n_freq, const double *freq,
                                 svp_cube **out);
 SVP_API void svp_cube_free(svp_cube *cube);
+
+/* What svp_cube_align measured. */
+typedef struct svp_align_info {
+    double max_shift;        /* the largest |d| of a frame, pixels */
+    double max_deviation;    /* the largest distance between a frame's measured shift and the
+                                smooth drift applied (0 for degree −1), pixels: the frames the
+                                dips pulled */
+    double median_deviation; /* the median distance: the scatter of the measured shifts about
+                                the polynomial (registration noise: 5e-4 px noiseless, 0.01 px
+                                for 1000-count frames in the tests; and any drift the polynomial
+                                does not follow: compare degrees) */
+    double min_correlation;  /* the lowest correlation of a registered frame with the mean
+                                frame (svp_register_result.correlation): near 1 for frames of
+                                one scene whose texture stands above the noise */
+    int worst_frame;         /* that frame */
+    int n_low_correlation;   /* frames below SVP_ALIGN_MIN_CORRELATION: too little texture
+                                above their noise (or not the scene of the others) for a shift
+                                to be trusted; the caller decides (svpsf fit-odmr --register
+                                refuses them) */
+    double min_significance; /* the lowest phase-correlation significance (informative only: a
+                                regular pattern, a grid of squares, keeps it below 10 while the
+                                shift is found to 1e-4 px) */
+} svp_align_info;
+
+/* Frames whose correlation with the mean frame is below this are not trusted (no texture above
+ * the noise: measured −0.01 for frames of noise on a uniform PL, 0.9995 for the textured frames
+ * of tests/test_register.c). */
+#define SVP_ALIGN_MIN_CORRELATION 0.5
+
+/* How svp_cube_align aligns (svp_align_defaults). */
+typedef struct svp_align_options {
+    int degree;          /* the drift applied: a polynomial of this degree in the frame index,
+                            fitted robustly to the measured shifts; −1: each frame its own
+                            measured shift; −1 .. 5, default 1 (a steady drift) */
+    int reference_frame; /* where the frames go: −1 (default) the sweep's mean position (each
+                            frame moves by at most half the drift); k >= 0 frame k's position
+                            (on the drift polynomial) */
+    const svp_register_options *registration; /* each frame's registration; NULL (default) =
+                            svp_register_defaults; translation only, its contrast is set to
+                            SAME */
+} svp_align_options;
+
+SVP_API void svp_align_defaults(svp_align_options *options);
+
+/* Aligns every frame of an ODMR cube (or any stack of images of one scene), in place: the
+ * sample drifting during a sweep moves its PL edges by gradient × drift between frames, which
+ * a per-pixel spectrum reads as a dip (docs/model.md §10, "Drift"). Each frame is registered
+ * on the mean of all frames (svp_register, phase correlation, translation). A frame on a
+ * resonance differs from the mean by its dips as well as by the drift, which pulls its
+ * measured shift by up to a few 0.01 px; drift is slow, so with degree >= 0 the shifts applied
+ * are a polynomial of that degree in the frame index (the order of acquisition), fitted to the
+ * measured ones robustly (Tukey's biweight, iteratively reweighted: the frames the dips pull
+ * are outliers). Each frame is moved by svp_shift to the reference position. shift_x / shift_y
+ * (n_freq values each, may be NULL) receive the displacement of each frame's content from the
+ * reference position (moving(x) = reference(x − d); the frame was moved back by it); info (may
+ * be NULL) the largest shift, the measured shifts' deviation from the polynomial and the
+ * weakest registration. A frame whose correlation with the mean frame is below
+ * SVP_ALIGN_MIN_CORRELATION is counted in info->n_low_correlation: the caller decides (svpsf
+ * fit-odmr --register refuses it).
+ * Progress once per frame registered and once per frame moved; options NULL =
+ * svp_align_defaults; a cube needs >= 2 frames (> degree + 1 with degree >= 0) of >= 8 x 8
+ * pixels. */
+SVP_API svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options,
+                                  double *shift_x, double *shift_y, svp_align_info *info,
+                                  svp_progress_fn progress, void *progress_user);
 
 typedef struct svp_odmr {
     double zero_field_hz;  /* D, default 2.870e9 */

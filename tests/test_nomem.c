@@ -648,6 +648,56 @@ static void test_odmr_fit(void **state)
     svp_cube_free(c.cube);
 }
 
+/* Frames of a drifting sweep aligned (svp_cube_align: registrations, the drift fit, Fourier
+ * shifts; the FFT plans made in the call). */
+typedef struct align_ctx {
+    svp_cube *drifted, *work, *ref;
+} align_ctx;
+
+static svp_status align_call(void *user)
+{
+    align_ctx *c = user;
+    svp_fft_cleanup();
+    const size_t n = (size_t)c->work->width * c->work->height;
+    for (int f = 0; f < c->work->n_freq; f++)
+        memcpy(c->work->frame[f]->data, c->drifted->frame[f]->data, n * sizeof(double));
+    return svp_cube_align(c->work, NULL, NULL, NULL, NULL, NULL, NULL);
+}
+
+static double align_diff(void *user)
+{
+    align_ctx *c = user;
+    double d = 0;
+    for (int f = 0; f < c->work->n_freq; f++)
+        d = fmax(d, test_max_abs_diff(c->work->frame[f], c->ref->frame[f]));
+    return d;
+}
+
+static void test_align(void **state)
+{
+    (void)state;
+    const int w = 24, h = 20, nf = 8;
+    double freq[8];
+    for (int f = 0; f < nf; f++) freq[f] = 2.8e9 + 1e6 * f;
+    align_ctx c = {0};
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.drifted));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.work));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.ref));
+    svp_image *pl = pl_scene(w, h, 5);
+    for (int f = 0; f < nf; f++) ASSERT_OK(svp_shift(pl, 0.05 * f, -0.02 * f, c.drifted->frame[f]));
+    svp_cube *keep = c.work;
+    c.work = c.ref;
+    ASSERT_OK(align_call(&c));
+    c.work = keep;
+    const sweep_case sc = {"cube alignment, 8 frames of 24 x 20", align_call, align_diff, &c, 1e-12};
+    const sweep_result r = sweep(&sc);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    svp_image_free(pl);
+    svp_cube_free(c.drifted);
+    svp_cube_free(c.work);
+    svp_cube_free(c.ref);
+}
+
 /* The magnetisation reconstructed from B_z (padded FFTs) and T with a tent PSF map built in the
  * call. */
 typedef struct physics_ctx {
@@ -877,6 +927,7 @@ int main(void)
         cmocka_unit_test(test_scene_load),
         cmocka_unit_test(test_mat_and_stack),
         cmocka_unit_test(test_odmr_fit),
+        cmocka_unit_test(test_align),
         cmocka_unit_test(test_physics),
         cmocka_unit_test(test_map_poly),
     };

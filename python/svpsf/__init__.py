@@ -876,7 +876,7 @@ def _stack_frames(stack):
 
 def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
              gamma_hz_per_t=28.033e9, linewidth_hz=1e6, baseline_frames=3, max_iterations=None,
-             failed="nan"):
+             failed="nan", register=False, drift_degree=1, align_to="mean"):
     """Per-pixel Lorentzian fits of an ODMR stack (svp_odmr_fit_maps; `svpsf fit-odmr`,
     docs/model.md §10): stack of shape (n_freq, height, width) (or a sequence of 2-D frames),
     one frame per frequency (Hz; a decreasing sweep is put in increasing order, as the program
@@ -888,6 +888,15 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     starting FWHM; baseline_frames: frames at each end for the starting baseline;
     max_iterations: Levenberg–Marquardt steps per pixel (default 200). failed: 'nan' (as the
     program: the field maps are NaN where the fit did not converge) or 'keep'.
+
+    register=True aligns the frames first (svp_cube_align; `svpsf fit-odmr --register`,
+    docs/model.md §10 "Drift"), on a copy: the caller's stack is left as it is. drift_degree:
+    the degree of the drift polynomial in the frame index (-1: each frame its own shift);
+    align_to: 'mean' (the sweep's mean position) or the index of the stack's frame whose
+    position the maps take. The result then has .drift, an (n_freq, 2) array of each stack
+    frame's (shift_x, shift_y) in pixels (what drift.csv holds), and .register, a dict of
+    max_shift, median_deviation, max_deviation, min_correlation (px, px, px, 1). A frame whose
+    correlation with the mean frame is below 0.5 raises DoubtfulError (the program's exit 3).
 
     Returns an OdmrFit (a dict, keys also attributes) with the maps `svpsf fit-odmr` writes,
     in SI units (field in T, linewidth in Hz): field, field_sigma (with lines='two' also
@@ -917,6 +926,13 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         if not fr[f] > fr[f - 1]:
             raise ValueError("frequencies: not monotonic: frame %d at %.9g Hz after %.9g Hz"
                              % (nf - f if decreasing else f + 1, fr[f], fr[f - 1]))
+    if register and not (isinstance(drift_degree, (int, np.integer)) and -1 <= drift_degree <= 5):
+        raise ValueError("drift_degree %r: an integer in -1 .. 5" % (drift_degree,))
+    if register and not (align_to == "mean" or (isinstance(align_to, (int, np.integer))
+                                                and 0 <= align_to < nf)):
+        raise ValueError("align_to %r: 'mean' or a frame index 0 .. %d" % (align_to, nf - 1))
+    if register:
+        frames = [np.array(f, dtype=np.float64, order="C") for f in frames]  # aligned in place
     h, w = frames[0].shape if nf else (0, 0)
     imgs = _Images()
     cube = ffi.new("svp_cube *")
@@ -924,6 +940,26 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     fbuf = ffi.from_buffer("double[]", fr)
     cube.freq = fbuf
     cube.frame = imgs.array([imgs.view(f) for f in frames])
+    drift = info = None
+    if register:
+        ao = ffi.new("svp_align_options *")
+        lib.svp_align_defaults(ao)
+        ao.degree = int(drift_degree)
+        if align_to != "mean":  # the stack's frame k is nf − 1 − k of a decreasing sweep
+            ao.reference_frame = nf - 1 - int(align_to) if decreasing else int(align_to)
+        sx, sy = ffi.new("double[]", nf), ffi.new("double[]", nf)
+        info = ffi.new("svp_align_info *")
+        _check(lib.svp_cube_align(cube, ao, sx, sy, info, ffi.NULL, ffi.NULL))
+        if info.n_low_correlation:
+            worst = info.worst_frame
+            raise DoubtfulError(lib.SVP_ERR_DOUBTFUL,
+                "register: %d of %d frames correlate too weakly with the mean frame to be "
+                "aligned (weakest: frame %d of the stack, correlation %.2f < 0.5)"
+                % (info.n_low_correlation, nf, nf - 1 - worst if decreasing else worst,
+                   info.min_correlation))
+        drift = np.array([[sx[f], sy[f]] for f in range(nf)])
+        if decreasing:
+            drift = drift[::-1].copy()
     odmr = ffi.new("svp_odmr *")
     lib.svp_odmr_defaults(odmr)
     odmr.zero_field_hz, odmr.gamma_hz_per_t, odmr.linewidth_hz = (zero_field_hz, gamma_hz_per_t,
@@ -953,4 +989,9 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             if name in result:
                 result[name][bad] = np.nan
     result.n_failed = int(n_failed[0])
+    if register:
+        result.drift = drift
+        result.register = dict(max_shift=info.max_shift, median_deviation=info.median_deviation,
+                               max_deviation=info.max_deviation,
+                               min_correlation=info.min_correlation)
     return result

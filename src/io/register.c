@@ -23,6 +23,7 @@
 #include "image_io.h"
 
 #include <float.h>
+#include <stdio.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -771,5 +772,353 @@ cleanup:
     svp_free(mov);
     svp_free(ref_nan);
     svp_free(mov_nan);
+    return st;
+}
+
+/* ---- sub-pixel shifts and cube alignment ---------------------------------------------------- */
+
+/* e^{−iωd} per frequency bin of one axis of length n (ω = 2π k / n, k folded to [−n/2, n/2));
+ * at the Nyquist bin (even n) the real cos(π d), so the product keeps the spectrum Hermitian. */
+static void shift_phases(int n, int bins, double d, fftw_complex *e)
+{
+    for (int k = 0; k < bins; k++) {
+        const int kk = k <= n / 2 ? k : k - n;
+        const double w = 2 * M_PI * kk / n;
+        e[k] = n % 2 == 0 && k == n / 2 ? cos(M_PI * d) : cexp(-I * w * d);
+    }
+}
+
+/* svp_shift's continuation of one line v[0 .. n − 1] (stride sv) into out (length len, stride
+ * so): the data, then p pixels each side continued by odd reflection about the end pixel
+ * (2 v_end − v_mirror: value and slope continue, so a sub-pixel shift extrapolates the edge
+ * linearly instead of flattening it), tapered by cos² to the mean of the two end pixels,
+ * which fills the rest of the period: continuous with continuous slope all round, so the
+ * spectrum has no edge jump or kink to ring from. */
+#define SHIFT_PAD 16
+static void continue_line(const double *v, size_t sv, int n, int p, int len, double *out,
+                          size_t so)
+{
+    const double first = v[0], last = v[(size_t)(n - 1) * sv], m = 0.5 * (first + last);
+    for (int x = 0; x < n; x++) out[(size_t)x * so] = v[(size_t)x * sv];
+    for (int x = n; x < len; x++) out[(size_t)x * so] = m;
+    for (int j = 1; j <= p; j++) {
+        const double c = cos(0.5 * M_PI * j / p), t = c * c;
+        const int k = j < n - 1 ? j : n - 1;
+        const double right = 2 * last - v[(size_t)(n - 1 - k) * sv];
+        const double left = 2 * first - v[(size_t)k * sv];
+        out[(size_t)(n - 1 + j) * so] = m + (right - m) * t;
+        out[(size_t)(len - j) * so] = m + (left - m) * t;
+    }
+}
+
+svp_status svp_shift(const svp_image *in, double dx, double dy, svp_image *out)
+{
+    if (!in || !in->data || in->width < 1 || in->height < 1)
+        return svp_fail(SVP_ERR_INVALID, "shift: no input image");
+    if (!out || !out->data) return svp_fail(SVP_ERR_INVALID, "shift: no output image");
+    if (out->width != in->width || out->height != in->height)
+        return svp_fail(SVP_ERR_SIZE, "shift: input %d x %d but output %d x %d", in->width,
+                        in->height, out->width, out->height);
+    const int w = in->width, h = in->height;
+    if (!(fabs(dx) < w) || !(fabs(dy) < h))
+        return svp_fail(SVP_ERR_INVALID,
+                        "shift: (%g, %g) px for a %d x %d image (|d| must be "
+                        "below the size)",
+                        dx, dy, w, h);
+    /* the continuation: P pixels or more each side, enough for the shift and a taper */
+    const int px = (int)ceil(fabs(dx)) + SHIFT_PAD, py = (int)ceil(fabs(dy)) + SHIFT_PAD;
+    const int W = svp_fft_good_size(w + 2 * px), H = svp_fft_good_size(h + 2 * py);
+    const int ncx = W / 2 + 1;
+    const size_t n = (size_t)w * h;
+    const svp_fft_plan *plan = NULL;
+    SVP_CHECK(svp_fft_plan_get(H, W, &plan));
+    double *img = svp_alloc(n * sizeof(double)), *ext = svp_alloc((size_t)W * H * sizeof(double));
+    fftw_complex *spec = svp_alloc((size_t)H * ncx * sizeof(fftw_complex));
+    fftw_complex *ex = svp_alloc((size_t)ncx * sizeof(fftw_complex));
+    fftw_complex *ey = svp_alloc((size_t)H * sizeof(fftw_complex));
+    double *line = svp_alloc((size_t)(W > H ? W : H) * sizeof(double));
+    unsigned char *bad = calloc(n, 1);
+    svp_status st = SVP_OK;
+    if (!img || !ext || !spec || !ex || !ey || !line || !bad) {
+        st = svp_fail(SVP_ERR_NOMEM, "shift: out of memory for a %d x %d image", w, h);
+        goto done;
+    }
+    size_t n_bad = 0;
+    double sum = 0;
+    for (size_t i = 0; i < n; i++) {
+        const double v = in->data[i];
+        if (isfinite(v)) {
+            img[i] = v;
+            sum += v;
+        } else {
+            img[i] = NAN;
+            bad[i] = 1;
+            n_bad++;
+        }
+    }
+    if (n_bad == n) {
+        for (size_t i = 0; i < n; i++) out->data[i] = NAN;
+        goto done;
+    }
+    if (n_bad && (st = fill_holes(img, w, h, sum / (double)(n - n_bad))) != SVP_OK) goto done;
+    /* rows continued along x (data at 0 .. w − 1, the right side next, the left side at the
+     * end: the period wraps), then every column along y */
+    for (int y = 0; y < h; y++) continue_line(img + (size_t)y * w, 1, w, px, W, ext + (size_t)y * W, 1);
+    for (int x = 0; x < W; x++) {
+        for (int y = 0; y < h; y++) line[y] = ext[(size_t)y * W + x];
+        continue_line(line, 1, h, py, H, ext + x, W);
+    }
+    svp_fft_forward(plan, ext, spec);
+    shift_phases(W, ncx, dx, ex);
+    shift_phases(H, H, dy, ey);
+    const double scale = 1.0 / ((double)W * H);
+    for (int ky = 0; ky < H; ky++) {
+        fftw_complex *restrict row = spec + (size_t)ky * ncx;
+        const fftw_complex eyk = ey[ky] * scale;
+        for (int kx = 0; kx < ncx; kx++) row[kx] *= eyk * ex[kx];
+    }
+    svp_fft_inverse_unscaled(plan, spec, ext);
+    /* NaN where the nearest source pixel (x − dx, y − dy) was not finite */
+    const int ix = (int)floor(dx + 0.5), iy = (int)floor(dy + 0.5);
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++) {
+            double v = ext[(size_t)y * W + x];
+            if (n_bad) {
+                int sx = x - ix, sy = y - iy;
+                sx = sx < 0 ? 0 : sx >= w ? w - 1 : sx;
+                sy = sy < 0 ? 0 : sy >= h ? h - 1 : sy;
+                if (bad[(size_t)sy * w + sx]) v = NAN;
+            }
+            out->data[(size_t)y * w + x] = v;
+        }
+done:
+    svp_free(img);
+    svp_free(ext);
+    svp_free(spec);
+    svp_free(ex);
+    svp_free(ey);
+    svp_free(line);
+    free(bad);
+    return st;
+}
+
+/* Weighted least squares of a polynomial of degree `deg` in t (the frame index mapped onto
+ * [−1, 1]) to v: c[0 .. deg] by Gaussian elimination with partial pivoting of the normal
+ * equations (at most 6 x 6, well conditioned on [−1, 1]). 0 when singular. */
+static int poly_fit(int n, const double *t, const double *v, const double *wt, int deg, double *c)
+{
+    const int k = deg + 1;
+    double A[6][7] = {{0}};
+    for (int i = 0; i < n; i++) {
+        double p[6];
+        p[0] = 1;
+        for (int j = 1; j < k; j++) p[j] = p[j - 1] * t[i];
+        for (int r = 0; r < k; r++) {
+            for (int q = 0; q < k; q++) A[r][q] += wt[i] * p[r] * p[q];
+            A[r][k] += wt[i] * p[r] * v[i];
+        }
+    }
+    for (int col = 0; col < k; col++) {
+        int piv = col;
+        for (int r = col + 1; r < k; r++)
+            if (fabs(A[r][col]) > fabs(A[piv][col])) piv = r;
+        if (!(fabs(A[piv][col]) > 1e-12 * (fabs(A[0][0]) + DBL_MIN))) return 0;
+        for (int q = 0; q <= k; q++) {
+            const double tmp = A[col][q];
+            A[col][q] = A[piv][q];
+            A[piv][q] = tmp;
+        }
+        for (int r = 0; r < k; r++) {
+            if (r == col) continue;
+            const double f = A[r][col] / A[col][col];
+            for (int q = col; q <= k; q++) A[r][q] -= f * A[col][q];
+        }
+    }
+    for (int r = 0; r < k; r++) c[r] = A[r][k] / A[r][r];
+    return 1;
+}
+
+static double poly_eval(const double *c, int deg, double t)
+{
+    double v = 0;
+    for (int j = deg; j >= 0; j--) v = v * t + c[j];
+    return v;
+}
+
+static int cmp_double(const void *a, const void *b)
+{
+    const double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+/* The smooth drift: the polynomial fit of the measured shifts (mx, my) by Tukey's biweight,
+ * iteratively reweighted (scale 1.4826 × the median distance to the fit, at least 1e-4 px;
+ * cut-off 4.685 scales); the fitted shifts to (fx, fy). */
+static svp_status smooth_drift(int n, int deg, const double *mx, const double *my, double *fx,
+                               double *fy, double *median)
+{
+    double *t = malloc((size_t)n * 4 * sizeof(double));
+    if (!t) return svp_fail(SVP_ERR_NOMEM, "align: out of memory");
+    double *wt = t + n, *res = t + 2 * n, *sorted = t + 3 * n, cx[6], cy[6];
+    for (int i = 0; i < n; i++) {
+        t[i] = n > 1 ? 2.0 * i / (n - 1) - 1 : 0;
+        wt[i] = 1;
+    }
+    svp_status st = SVP_OK;
+    for (int it = 0; it < 30; it++) {
+        if (!poly_fit(n, t, mx, wt, deg, cx) || !poly_fit(n, t, my, wt, deg, cy)) {
+            st = svp_fail(SVP_ERR_NUMERIC,
+                          "align: the drift polynomial of degree %d is "
+                          "undetermined (too few frames agree on a drift)",
+                          deg);
+            break;
+        }
+        for (int i = 0; i < n; i++) {
+            res[i] = hypot(mx[i] - poly_eval(cx, deg, t[i]), my[i] - poly_eval(cy, deg, t[i]));
+            sorted[i] = res[i];
+        }
+        qsort(sorted, (size_t)n, sizeof(double), cmp_double);
+        const double med = n % 2 ? sorted[n / 2] : 0.5 * (sorted[n / 2 - 1] + sorted[n / 2]);
+        *median = med;
+        const double cut = 4.685 * fmax(1.4826 * med, 1e-4);
+        double change = 0;
+        for (int i = 0; i < n; i++) {
+            const double u = res[i] / cut, w = u < 1 ? (1 - u * u) * (1 - u * u) : 0;
+            change = fmax(change, fabs(w - wt[i]));
+            wt[i] = w;
+        }
+        if (change < 1e-6) break;
+    }
+    for (int i = 0; i < n && st == SVP_OK; i++) {
+        fx[i] = poly_eval(cx, deg, t[i]);
+        fy[i] = poly_eval(cy, deg, t[i]);
+    }
+    free(t);
+    return st;
+}
+
+/* Registers frame f of the cube on ref: its displacement to (mx, my); the weakest
+ * registration into info. */
+static svp_status align_measure(const svp_image *ref, const svp_cube *cube, int f,
+                                svp_register_options *o, double *mx, double *my,
+                                svp_align_info *info)
+{
+    char name[48];
+    snprintf(name, sizeof name, "frame %d", f);
+    o->moving_name = name;
+    svp_register_result r;
+    svp_status st = svp_register(ref, cube->frame[f], o, &r);
+    o->moving_name = NULL;
+    if (st != SVP_OK) return st;
+    *mx = r.affine[2];
+    *my = r.affine[5];
+    if (info) {
+        if (!(r.correlation >= info->min_correlation)) {
+            info->min_correlation = r.correlation;
+            info->worst_frame = f;
+        }
+        info->n_low_correlation += !(r.correlation >= SVP_ALIGN_MIN_CORRELATION);
+        info->min_significance = fmin(info->min_significance, r.significance);
+    }
+    return SVP_OK;
+}
+
+
+void svp_align_defaults(svp_align_options *options)
+{
+    if (!options) return;
+    options->degree = 1;
+    options->reference_frame = -1;
+    options->registration = NULL;
+}
+
+svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options, double *shift_x,
+                          double *shift_y, svp_align_info *info, svp_progress_fn progress,
+                          void *progress_user)
+{
+    svp_align_options ao;
+    svp_align_defaults(&ao);
+    if (options) ao = *options;
+    const int degree = ao.degree;
+    if (info) *info = (svp_align_info){0, 0, 0, INFINITY, -1, 0, INFINITY};
+    if (!cube || !cube->frame) return svp_fail(SVP_ERR_INVALID, "align: no cube");
+    const int w = cube->width, h = cube->height, nf = cube->n_freq;
+    if (degree < -1 || degree > 5)
+        return svp_fail(SVP_ERR_INVALID, "align: drift degree %d (must be -1 .. 5)", degree);
+    if (nf < 2 || (degree >= 0 && nf <= degree + 1))
+        return svp_fail(SVP_ERR_INVALID, "align: %d frame(s); at least %d needed", nf,
+                        degree + 2 > 2 ? degree + 2 : 2);
+    if (ao.reference_frame < -1 || ao.reference_frame >= nf)
+        return svp_fail(SVP_ERR_INVALID, "align: reference frame %d of %d frames (-1: the mean "
+                        "position)", ao.reference_frame, nf);
+    for (int f = 0; f < nf; f++)
+        if (!cube->frame[f] || !cube->frame[f]->data || cube->frame[f]->width != w ||
+            cube->frame[f]->height != h)
+            return svp_fail(SVP_ERR_SIZE, "align: frame %d is missing or not %d x %d", f, w, h);
+    svp_register_options o;
+    svp_register_defaults(&o);
+    if (ao.registration) o = *ao.registration;
+    if (o.motion != SVP_MOTION_TRANSLATION)
+        return svp_fail(SVP_ERR_INVALID,
+                        "align: frames are aligned by translation only (motion "
+                        "%s)",
+                        motion_name(o.motion));
+    o.initial_affine = NULL;
+    o.contrast = SVP_CONTRAST_SAME; /* frames of one scene: a trough is no match */
+    const size_t n = (size_t)w * h;
+    svp_image *mean = NULL;
+    svp_status st = svp_image_new(w, h, &mean);
+    double *count = st == SVP_OK ? svp_alloc(n * sizeof(double)) : NULL;
+    double *d = st == SVP_OK ? malloc((size_t)nf * 4 * sizeof(double)) : NULL;
+    if (st == SVP_OK && (!count || !d)) st = svp_fail(SVP_ERR_NOMEM, "align: out of memory");
+    if (st != SVP_OK) goto done;
+    double *mx = d, *my = d + nf, *ax = d + 2 * nf, *ay = d + 3 * nf, median = 0;
+    /* the reference: the mean frame (over the finite values of each pixel) */
+    memset(count, 0, n * sizeof(double));
+    for (int f = 0; f < nf; f++) {
+        const double *v = cube->frame[f]->data;
+        for (size_t i = 0; i < n; i++)
+            if (isfinite(v[i])) {
+                mean->data[i] += v[i];
+                count[i] += 1;
+            }
+    }
+    for (size_t i = 0; i < n; i++) mean->data[i] = count[i] > 0 ? mean->data[i] / count[i] : NAN;
+    o.reference_name = "the mean frame";
+    for (int f = 0; f < nf && st == SVP_OK; f++) {
+        st = align_measure(mean, cube, f, &o, &mx[f], &my[f], info);
+        if (st == SVP_OK && progress && progress(progress_user, (f + 1.0) / (2 * nf)))
+            st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
+    }
+    if (st == SVP_OK && degree >= 0) st = smooth_drift(nf, degree, mx, my, ax, ay, &median);
+    if (st != SVP_OK) goto done;
+    if (degree < 0) {
+        memcpy(ax, mx, (size_t)nf * sizeof(double));
+        memcpy(ay, my, (size_t)nf * sizeof(double));
+    }
+    if (info) info->median_deviation = median;
+    if (ao.reference_frame >= 0) { /* to frame k's position: every shift relative to its */
+        const double kx = ax[ao.reference_frame], ky = ay[ao.reference_frame];
+        for (int f = 0; f < nf; f++) {
+            ax[f] -= kx, ay[f] -= ky;
+            mx[f] -= kx, my[f] -= ky;
+        }
+    }
+    for (int f = 0; f < nf && st == SVP_OK; f++) {
+        if (shift_x) shift_x[f] = ax[f];
+        if (shift_y) shift_y[f] = ay[f];
+        if (info) {
+            info->max_shift = fmax(info->max_shift, hypot(ax[f], ay[f]));
+            info->max_deviation = fmax(info->max_deviation, hypot(mx[f] - ax[f], my[f] - ay[f]));
+        }
+        /* moving(x) = mean(x − d): moved back by −d, in place */
+        st = svp_shift(cube->frame[f], -ax[f], -ay[f], cube->frame[f]);
+        if (st == SVP_OK && progress && progress(progress_user, (nf + f + 1.0) / (2 * nf)))
+            st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
+    }
+done:
+    svp_image_free(mean);
+    svp_free(count);
+    free(d);
     return st;
 }

@@ -544,24 +544,50 @@ static svp_status stage_noise(run_ctx *c)
 
 /* ---- the cube ------------------------------------------------------------------------------- */
 
-/* out(i, j) = in(i − dx, j − dy), bilinear, zero outside. */
-static void shift_frame(const svp_image *in, double dx, double dy, svp_image *out)
+/* The sample moves: frame f of n, blurred, translates by f / (n − 1) × the drift (Fourier
+ * interpolation, exact for the band-limited blurred frame); its time goes to the drift stage. */
+static svp_status drift_frame(run_ctx *c, int f, int n, const svp_image *blurred,
+                              svp_image *shifted)
 {
-    const int w = in->width, h = in->height;
-#pragma omp parallel for schedule(static)
-    for (int j = 0; j < h; j++)
-        for (int i = 0; i < w; i++) {
-            double x = i - dx, y = j - dy;
-            int x0 = (int)floor(x), y0 = (int)floor(y);
-            double fx = x - x0, fy = y - y0, v = 0;
-            for (int b = 0; b < 2; b++)
-                for (int a = 0; a < 2; a++) {
-                    int xi = x0 + a, yi = y0 + b;
-                    if (xi < 0 || yi < 0 || xi >= w || yi >= h) continue;
-                    v += (a ? fx : 1 - fx) * (b ? fy : 1 - fy) * in->data[(size_t)yi * w + xi];
-                }
-            out->data[(size_t)j * w + i] = v;
-        }
+    const svp_scene *s = c->s;
+    const double t = now_s(), a = n > 1 ? (double)f / (n - 1) : 0;
+    svp_status st = svp_shift(blurred, a * s->drift_um[0] / s->pixel_um,
+                              a * s->drift_um[1] / s->pixel_um, shifted);
+    c->drift_seconds += now_s() - t;
+    return st;
+}
+
+/* effects.drift.register: as a user would, the view's frames aligned before the estimate,
+ * to frame 0's position (the drift's start, where the true maps are); its time goes to the
+ * drift stage; how far each applied shift is from the drift simulated is recorded. */
+static svp_status cube_register(run_ctx *c, svp_cube *view_cube, const char *cn)
+{
+    const svp_scene *s = c->s;
+    const int nfreq = view_cube->n_freq;
+    const double t = now_s();
+    svp_align_options ao;
+    svp_align_defaults(&ao);
+    ao.reference_frame = 0;
+    svp_align_info info;
+    double *sx = malloc(2 * (size_t)nfreq * sizeof(double));
+    if (!sx) return svp_fail(SVP_ERR_NOMEM, "out of memory");
+    svp_status st = svp_cube_align(view_cube, &ao, sx, sx + nfreq, &info, NULL, NULL);
+    double worst = 0;
+    for (int f = 0; f < nfreq && st == SVP_OK; f++) {
+        const double a = nfreq > 1 ? (double)f / (nfreq - 1) : 0;
+        worst = fmax(worst, hypot(sx[f] - a * s->drift_um[0] / s->pixel_um,
+                                  sx[nfreq + f] - a * s->drift_um[1] / s->pixel_um));
+    }
+    free(sx);
+    c->drift_seconds += now_s() - t;
+    if (st == SVP_OK && info.n_low_correlation)
+        st = svp_fail(SVP_ERR_DOUBTFUL,
+                      "%s: effects.drift.register: %d frames of B_%s correlate too weakly with "
+                      "the mean frame to be aligned (lowest %.3g)",
+                      s->path, info.n_low_correlation, cn, info.min_correlation);
+    if (st == SVP_OK) st = value(c, info.max_shift, "cube/%s/register_max_shift_px", cn);
+    if (st == SVP_OK) st = value(c, worst, "cube/%s/register_shift_error_px", cn);
+    return st;
 }
 
 static svp_status stage_cube(run_ctx *c)
@@ -649,14 +675,8 @@ static svp_status stage_cube(run_ctx *c)
             if (st == SVP_OK) st = svp_blur_apply(c->blur, one->frame[0], blurred);
             if (st != SVP_OK) break;
             svp_image *frame = blurred;
-            if (s->drift) {
-                double t = now_s();
-                double a = nfreq > 1 ? (double)f / (nfreq - 1) : 0;
-                shift_frame(blurred, a * s->drift_um[0] / s->pixel_um,
-                            a * s->drift_um[1] / s->pixel_um, shifted);
-                frame = shifted;
-                c->drift_seconds += now_s() - t;
-            }
+            if (s->drift && (st = drift_frame(c, f, nfreq, blurred, shifted)) != SVP_OK) break;
+            if (s->drift) frame = shifted;
             svp_image *vf = view_cube->frame[f];
             crop_into(s, frame, vf);
             if (s->noise) {
@@ -675,6 +695,8 @@ static svp_status stage_cube(run_ctx *c)
             }
             SVP_CHECK(progress(c, (k + (f + 1.0) / nfreq) / s->n_fields));
         }
+        if (st != SVP_OK) break;
+        if (s->drift_register) st = cube_register(c, view_cube, cn);
         if (st != SVP_OK) break;
         /* the off-resonance baseline (the measured PL map): mean of the end frames */
         for (size_t p = 0; p < nview; p++) {

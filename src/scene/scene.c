@@ -972,13 +972,14 @@ static svp_status parse_effects(struct svp_scene *s, const svp_yaml_node *root)
 
     const svp_yaml_node *dr = svp_yaml_get(e, "drift");
     if (dr) {
-        static const char *const dkeys[] = {"total_um", NULL};
+        static const char *const dkeys[] = {"total_um", "register", NULL};
         if (!s->spectrum)
             return svp_yaml_fail(dr, SVP_ERR_INVALID,
                                  "effects.drift needs effects.spectrum: drift shifts the "
                                  "spectral frames, which exist only in the simulated cube");
         SVP_CHECK(check_keys(dr, "effects.drift", dkeys));
         SVP_CHECK(get_pair(dr, "effects.drift", "total_um", s->drift_um, 1));
+        SVP_CHECK(get_bool(dr, "effects.drift", "register", &s->drift_register));
         s->drift = 1;
     }
     return SVP_OK;

@@ -252,6 +252,8 @@ struct svp_scene {
     int n_contrast_pattern;
     int drift;
     double drift_um[2];
+    int drift_register; /* effects.drift.register: the view's frames aligned before the
+                           estimate (svp_cube_align, to frame 0's position) */
 
     scene_correct correct[SCENE_MAX_CORRECT];
     int n_correct;

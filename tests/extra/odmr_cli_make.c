@@ -4,6 +4,11 @@
  *       B known, between 1 and 3 mT), FWHM 5 MHz, contrast 3 %, PL 800..1200 counts, Gaussian
  *       noise σ = 3 counts; as a multi-page float32 TIFF built byte by byte (not by OpenCV),
  *       the frequencies (Hz, one per line), the true field (T) and PL as .npy
+ *   odmr_cli_make drift OUT.tif FREQ.txt TRUTH.npy PL.npy W H NF SEED DX DY
+ *       the same lines about D (field 1..3 mT, PL 400..1600 counts: 40 random blobs squashed
+ *       by tanh; uniform 1000 when DX = DY = 0), noise σ = 1 count, while the sample drifts
+ *       linearly from 0 to (DX, DY) px over the sweep; each frame rendered analytically at its
+ *       position; truth and PL at the mean position (DX, DY) / 2
  *   odmr_cli_make pages OUT.tif N          a 16-bit TIFF of N 8 x 6 pages
  *   odmr_cli_make compare EST.npy TRUTH.npy SCALE MEAN_TOL MAX_TOL [SIGMA.npy]
  *       EST / SCALE against TRUTH: mean and max |difference| within the tolerances (NaN pixels
@@ -74,9 +79,23 @@ static int write_tiff(const char *path, int w, int h, int n, int bits, const voi
     return bad;
 }
 
+/* The stack as a float32 TIFF (a[0]) and the truth and PL as .npy (a[2], a[3]); frees the
+ * three. */
+static int write_sweep(char **a, int w, int h, int nf, float *pix, svp_image *truth,
+                       svp_image *pl)
+{
+    int bad = write_tiff(a[0], w, h, nf, 32, pix);
+    bad |= svp_image_write(a[2], truth, SVP_FORMAT_NPY, 1) != SVP_OK;
+    bad |= svp_image_write(a[3], pl, SVP_FORMAT_NPY, 1) != SVP_OK;
+    free(pix);
+    svp_image_free(truth);
+    svp_image_free(pl);
+    return bad;
+}
+
 static int make_stack(char **a)
 {
-    const char *out = a[0], *freq_path = a[1], *truth_path = a[2], *pl_path = a[3];
+    const char *freq_path = a[1];
     const int w = atoi(a[4]), h = atoi(a[5]), nf = atoi(a[6]);
     rng = strtoull(a[7], NULL, 10);
     const double D = 2.870e9 + 0.5e6, g = 28.033e9, fwhm = 5e6, C = 0.03, noise = 3;
@@ -102,13 +121,61 @@ static int make_stack(char **a)
         }
     }
     if (fclose(ff)) return 1;
-    int bad = write_tiff(out, w, h, nf, 32, pix);
-    bad |= svp_image_write(truth_path, truth, SVP_FORMAT_NPY, 1) != SVP_OK;
-    bad |= svp_image_write(pl_path, pl, SVP_FORMAT_NPY, 1) != SVP_OK;
-    free(pix);
-    svp_image_free(truth);
-    svp_image_free(pl);
-    return bad;
+    return write_sweep(a, w, h, nf, pix, truth, pl);
+}
+
+/* A sweep during which the sample drifts linearly from 0 to (dx, dy) px: PL (a textured
+ * pattern of tanh edges) and field rendered analytically at each frame's position, so no
+ * interpolation of the library's is involved; the truth maps are at the mean position
+ * (dx, dy) / 2, where svp_cube_align brings the frames. */
+static int make_drift(char **a)
+{
+    const char *freq_path = a[1];
+    const int w = atoi(a[4]), h = atoi(a[5]), nf = atoi(a[6]);
+    rng = strtoull(a[7], NULL, 10);
+    const double ddx = atof(a[8]), ddy = atof(a[9]);
+    const double D = 2.870e9, g = 28.033e9, fwhm = 5e6, C = 0.03, noise = 1;
+    const size_t n = (size_t)w * h;
+    svp_image *truth = NULL, *pl = NULL;
+    if (svp_image_new(w, h, &truth) || svp_image_new(w, h, &pl)) return 1;
+    float *pix = malloc(n * (size_t)nf * sizeof(float));
+    FILE *ff = fopen(freq_path, "w");
+    if (!pix || !ff) return 1;
+    /* the texture: 40 blobs (σ 1.5..4 px) placed at random over and around the view */
+    double bx[40], by[40], bs[40], ba[40];
+    for (int k = 0; k < 40; k++) {
+        bx[k] = uniform() * (w + 10) - 5;
+        by[k] = uniform() * (h + 10) - 5;
+        bs[k] = 1.5 + 2.5 * uniform();
+        ba[k] = uniform() - 0.5;
+    }
+    for (int f = -1; f < nf; f++) { /* f = -1: the truth at the mean position */
+        const double t = f < 0 ? 0.5 : (double)f / (nf - 1);
+        const double wf = 2.870e9 - 120e6 + 240e6 * (f < 0 ? 0 : f) / (nf - 1);
+        if (f >= 0) fprintf(ff, "%.17g\n", wf);
+        for (int y = 0; y < h; y++)
+            for (int x = 0; x < w; x++) {
+                const double sx = x - t * ddx, sy = y - t * ddy;
+                const double b = 1e-3 + 2e-3 * (0.5 + 0.5 * sin(0.3 * sx) * cos(0.2 * sy));
+                double u = 0;
+                for (int k = 0; k < 40; k++)
+                    u += ba[k] * exp(-((sx - bx[k]) * (sx - bx[k]) + (sy - by[k]) * (sy - by[k])) /
+                                     (2 * bs[k] * bs[k]));
+                const double p = ddx == 0 && ddy == 0 ? 1000 : 1000 + 600 * tanh(2 * u);
+                const size_t i = (size_t)y * w + x;
+                if (f < 0) {
+                    truth->data[i] = b;
+                    pl->data[i] = p;
+                    continue;
+                }
+                const double h2 = 0.25 * fwhm * fwhm, s = g * b;
+                const double lo = wf - (D - s), hi = wf - (D + s);
+                const double dip = h2 / (lo * lo + h2) + h2 / (hi * hi + h2);
+                pix[(size_t)f * n + i] = (float)(p * (1 - C * dip) + noise * gauss());
+            }
+    }
+    if (fclose(ff)) return 1;
+    return write_sweep(a, w, h, nf, pix, truth, pl);
 }
 
 static int make_pages(char **a)
@@ -163,6 +230,7 @@ int main(int argc, char **argv)
 {
     if (argc == 10 && !strcmp(argv[1], "stack")) return make_stack(argv + 2);
     if (argc == 4 && !strcmp(argv[1], "pages")) return make_pages(argv + 2);
+    if (argc == 12 && !strcmp(argv[1], "drift")) return make_drift(argv + 2);
     if ((argc == 7 || argc == 8) && !strcmp(argv[1], "compare")) return compare(argc - 2, argv + 2);
     fprintf(stderr, "usage: see the comment at the top of odmr_cli_make.c\n");
     return 2;

@@ -75,6 +75,51 @@ run 0 correct --pl fit/pl.npy --field fit/field.npy --field-sigma fit/field_sigm
     --psf delta.txt -o corr --format npy --fft estimate --quiet
 [ -s corr/field.npy ] || fail "correct on fit-odmr's maps wrote no field"
 
+# 3b. --register: a sample that drifts by (0.4, -0.25) px during the sweep (frames rendered
+#     analytically at their positions by odmr_cli_make). Without alignment the PL edges moving
+#     under a pixel change its PL across the sweep by more than the 3 % dips: measured max error
+#     2.6 mT (mean 2.7 uT); aligned, the field is the noise-limited fit at the sweep's mean
+#     position (measured max 11.5 uT, mean 2.1 uT; stated tolerances 60 and 10 uT), and
+#     drift.csv holds each frame's shift (the first frame at -(0.2, -0.125), the last at
+#     +(0.2, -0.125): measured 0.0012 px off, asserted 0.01). A stack of uniform PL has nothing
+#     to register on: exit 3, nothing written.
+"$make" drift drift.tif dfreq.txt dtruth.npy dpl.npy 64 56 100 3 0.4 -0.25 || { echo "FAIL: cannot write the drifting stack"; exit 1; }
+run 0 fit-odmr drift.tif --frequencies dfreq.txt --linewidth 4e6 -o nodrift --format npy --quiet
+echo "fit-odmr of a drifting sweep, not aligned (expected far off):"
+"$make" compare nodrift/field.npy dtruth.npy 1 10e-6 60e-6 && fail "the drifting sweep fits within the tolerance without --register: the test has no drift to correct"
+run 0 fit-odmr drift.tif --frequencies dfreq.txt --linewidth 4e6 --register -o aligned --format npy
+expect_in err "frames aligned: largest drift"
+echo "fit-odmr --register:"
+"$make" compare aligned/field.npy dtruth.npy 1 10e-6 60e-6 || fail "fit-odmr --register: field off"
+expect_in aligned/summary.json '"register": 1'
+expect_in aligned/summary.json '"drift_degree": 1'
+expect_in aligned/summary.json '"align_to": -1'
+expect_in aligned/summary.json '"register_max_shift_px"'
+expect_in aligned/drift.csv 'frame,frequency_hz,shift_x_px,shift_y_px'
+awk -F, 'NR == 2 {e = (($3 + 0.2) ^ 2 + ($4 - 0.125) ^ 2) ^ 0.5}
+         NR == 101 {e2 = (($3 - 0.2) ^ 2 + ($4 + 0.125) ^ 2) ^ 0.5}
+         END {printf "drift.csv: first frame off by %.4f px, last by %.4f px\n", e, e2;
+              exit !(NR == 101 && e < 0.01 && e2 < 0.01)}' aligned/drift.csv || fail "drift.csv shifts off"
+# --align-to 0: the frames go to the first frame's position: its shift is 0, the last's
+# (0.4, -0.25)
+run 0 fit-odmr drift.tif --frequencies dfreq.txt --linewidth 4e6 --register --align-to 0 -o aligned0 --format npy --quiet
+awk -F, 'NR == 2 {e = ($3 ^ 2 + $4 ^ 2) ^ 0.5}
+         NR == 101 {e2 = (($3 - 0.4) ^ 2 + ($4 + 0.25) ^ 2) ^ 0.5}
+         END {printf "--align-to 0: first frame shift %.2g px, last off by %.4f px\n", e, e2;
+              exit !(NR == 101 && e < 1e-12 && e2 < 0.01)}' aligned0/drift.csv || fail "--align-to 0: drift.csv shifts off"
+run 1 fit-odmr drift.tif --frequencies dfreq.txt --register --align-to 100 -o bad12
+expect_in err "--align-to 100: the stack's frames are 0 to 99"
+run 1 fit-odmr drift.tif --frequencies dfreq.txt --align-to mean -o bad13
+expect_in err "--align-to needs --register"
+run 1 fit-odmr drift.tif --frequencies dfreq.txt --drift-degree 2 -o bad9
+expect_in err "--drift-degree needs --register"
+run 1 fit-odmr drift.tif --frequencies dfreq.txt --register --drift-degree 6 -o bad10
+expect_in err "--drift-degree"
+# a stack without texture to register on (uniform PL, noise only): exit 3, nothing written
+"$make" drift flat.tif ffreq.txt ftruth.npy fpl.npy 32 32 20 5 0 0 || { echo "FAIL: cannot write"; exit 1; }
+run 3 fit-odmr flat.tif --frequencies ffreq.txt --register -o bad11
+expect_in err "flat.tif: --register: .* frames correlate too weakly with the mean frame to be aligned"
+
 # 4. bad input and no overwrite
 run 1 fit-odmr stack.tif --frequencies 2750:2990:99 --frequency-unit MHz -o bad1
 expect_in err "2750:2990:99: 99 frequencies for a stack of 100 frames (stack.tif)"
@@ -95,7 +140,7 @@ expect_in err "--frequencies is required"
 awk 'NR == 50 {print 2.9e9; next} {print}' freq.txt >freq_bad.txt
 run 1 fit-odmr stack.tif --frequencies freq_bad.txt -o bad6
 expect_in err "freq_bad.txt: not monotonic"
-for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8; do [ -e "$d" ] && fail "$d was created by a refused run"; done
+for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8 bad9 bad10 bad11 bad12 bad13; do [ -e "$d" ] && fail "$d was created by a refused run"; done
 cp fit/field.npy field.before
 run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
 expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"

@@ -19,7 +19,10 @@ enum {
     OPT_BASELINE_FRAMES,
     OPT_MAX_ITERATIONS,
     OPT_UNIT,
-    OPT_FAILED
+    OPT_FAILED,
+    OPT_REGISTER,
+    OPT_DRIFT_DEGREE,
+    OPT_ALIGN_TO
 };
 
 static const char *const lines_names[] = {"pair", "two", "one", NULL};
@@ -65,6 +68,23 @@ static void print_help(const cli_run *run, FILE *out)
           "  --baseline-frames N   frames at each end averaged for the starting baseline\n"
           "                        (default 3)\n"
           "  --max-iterations N    Levenberg-Marquardt steps per pixel (default 200)\n"
+          "drift (docs/model.md section 10, \"Drift\"):\n"
+          "  --register            align the frames before the fit: each is registered on the\n"
+          "                        mean frame (phase correlation, translation) and moved by\n"
+          "                        Fourier interpolation; the shifts go to DIR/drift.csv.\n"
+          "                        A sample that drifts by a few hundredths of a pixel during\n"
+          "                        the sweep already moves its PL edges by more than the dips\n"
+          "                        are deep. A frame that correlates with the mean frame\n"
+          "                        below 0.5 (too little texture above the noise) is an\n"
+          "                        error (exit 3)\n"
+          "  --drift-degree N      the drift applied is a polynomial of degree N in the frame\n"
+          "                        index, fitted robustly to the measured shifts (the frames on\n"
+          "                        a resonance are pulled by their dips); -1: each frame its\n"
+          "                        own measured shift (default 1: a steady drift)\n"
+          "  --align-to mean|K     where the frames go: the sweep's mean position (default;\n"
+          "                        each frame moves by at most half the drift) or the\n"
+          "                        position of the stack's frame K (0 = the first), e.g. where\n"
+          "                        a reference image was taken\n"
           "outputs:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n"
           "  --unit T|mT|uT|nT     unit of the field maps written (default T)\n"
@@ -77,10 +97,12 @@ static void print_help(const cli_run *run, FILE *out)
           "outputs in DIR: field.EXT, field_sigma.EXT (and with --lines two field_lower,\n"
           "field_lower_sigma, field_upper, field_upper_sigma), pl.EXT, pl_sigma.EXT,\n"
           "contrast.EXT, contrast_sigma.EXT, linewidth.EXT (Hz), linewidth_sigma.EXT,\n"
-          "quality.EXT (R^2 of each fit: 1 perfect, near 0 no dip), summary.json. Then:\n"
+          "quality.EXT (R^2 of each fit: 1 perfect, near 0 no dip), summary.json (and with\n"
+          "--register drift.csv). Then:\n"
           "  svpsf correct --pl DIR/pl.tif --field DIR/field.tif \\\n"
           "                --field-sigma DIR/field_sigma.tif --psf PSF -o OUT\n"
-          "exit status: 0 ok, 1 bad usage or bad input, 2 runtime failure.\n",
+          "exit status: 0 ok, 1 bad usage or bad input, 2 runtime failure, 3 a frame that\n"
+          "--register cannot align (nothing written).\n",
           out);
 }
 
@@ -144,6 +166,8 @@ struct fit_odmr_args {
     const char *stack_path;                                    /* STACK */
     const char *freq_arg;                                      /* --frequencies */
     int freq_unit, lines, line, line_given, unit, failed_mode; /* indices in the name tables */
+    int align, drift_degree, drift_degree_given;              /* --register, --drift-degree */
+    int align_to, align_to_given;                             /* --align-to: -1 mean, k frame */
     svp_odmr od;              /* --zero-field, --gamma, --linewidth */
     svp_odmr_fit_options opt; /* --baseline-frames, --max-iterations; lines and line */
 };
@@ -157,9 +181,11 @@ struct fit_odmr_job {
     double *freq;       /* increasing, Hz */
     svp_image **frames; /* in the order of freq */
     svp_image *img[N_MAPS];
-    const char *paths[N_MAPS], *summary_path;
+    const char *paths[N_MAPS], *summary_path, *drift_path;
     size_t n_failed;
     double fit_seconds;
+    double *shift_x, *shift_y; /* --register: each frame's, in the order of freq */
+    int decreasing;            /* the stack's frames were in decreasing frequency */
 };
 
 static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
@@ -189,6 +215,17 @@ static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
     case OPT_UNIT: return cli_parse_choice(run, "--unit", optarg, unit_names, &a->unit);
     case OPT_FAILED:
         return cli_parse_choice(run, "--failed", optarg, failed_names, &a->failed_mode);
+    case OPT_REGISTER: a->align = 1; return 0;
+    case OPT_DRIFT_DEGREE:
+        a->drift_degree_given = 1;
+        return cli_parse_int(run, "--drift-degree", optarg, -1, 5, &a->drift_degree);
+    case OPT_ALIGN_TO:
+        a->align_to_given = 1;
+        if (!strcmp(optarg, "mean")) {
+            a->align_to = -1;
+            return 0;
+        }
+        return cli_parse_int(run, "--align-to", optarg, 0, 1000000000, &a->align_to);
     default: return cli_error(run, "internal: option %d", c);
     }
 }
@@ -207,9 +244,14 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
         {"max-iterations", required_argument, NULL, OPT_MAX_ITERATIONS},
         {"unit", required_argument, NULL, OPT_UNIT},
         {"failed", required_argument, NULL, OPT_FAILED},
+        {"register", no_argument, NULL, OPT_REGISTER},
+        {"drift-degree", required_argument, NULL, OPT_DRIFT_DEGREE},
+        {"align-to", required_argument, NULL, OPT_ALIGN_TO},
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
+    a->drift_degree = 1;
+    a->align_to = -1;
     svp_odmr_defaults(&a->od);
     svp_odmr_fit_defaults(&a->opt);
     int c;
@@ -226,6 +268,9 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
     if (!run->output) return cli_error(run, "-o DIR is required");
     if (a->line_given && a->lines != 2)
         return cli_error(run, "--line %s needs --lines one", line_names[a->line]);
+    if (a->drift_degree_given && !a->align)
+        return cli_error(run, "--drift-degree needs --register");
+    if (a->align_to_given && !a->align) return cli_error(run, "--align-to needs --register");
     a->opt.lines = a->lines == 1   ? SVP_ODMR_LINES_TWO
                    : a->lines == 2 ? SVP_ODMR_LINES_ONE
                                    : SVP_ODMR_LINES_PAIR;
@@ -244,7 +289,7 @@ static int fit_odmr_frequencies(cli_run *run, const struct fit_odmr_args *a,
     if ((code = read_frequencies(run, a->freq_arg, freq_unit_hz[a->freq_unit], nf, a->stack_path,
                                  freq)))
         return code;
-    int decreasing = freq[nf - 1] < freq[0];
+    const int decreasing = job->decreasing = freq[nf - 1] < freq[0];
     for (int f = 0; f < nf; f++) {
         job->frames[f] = job->stack->frame[decreasing ? nf - 1 - f : f];
         if (decreasing && f < nf / 2) {
@@ -305,6 +350,18 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
         job->paths[k] = cli_output_in_dir(run, names[k], names[k], 1);
     }
     job->summary_path = cli_output_in_dir(run, "summary", "summary.json", 0);
+    if (a->align) {
+        job->drift_path = cli_output_in_dir(run, "drift", "drift.csv", 0);
+        job->shift_x = malloc(2 * (size_t)job->nf * sizeof(double));
+        if (!job->shift_x) return cli_error(run, "out of memory");
+        job->shift_y = job->shift_x + job->nf;
+        if (job->nf <= a->drift_degree + 1)
+            return cli_error(run, "--drift-degree %d: a stack of %d frames fits at most degree %d",
+                             a->drift_degree, job->nf, job->nf - 2);
+        if (a->align_to >= job->nf)
+            return cli_error(run, "--align-to %d: the stack's frames are 0 to %d", a->align_to,
+                             job->nf - 1);
+    }
     if ((code = cli_outputs_check(run))) return code;
     svp_status st = SVP_OK;
     for (int k = 0; k < 14 && st == SVP_OK; k++)
@@ -323,7 +380,76 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
     cli_setting_int(run, "max_iterations", opt->lm.max_iterations);
     cli_setting_str(run, "unit", unit_names[a->unit]);
     cli_setting_str(run, "failed", failed_names[a->failed_mode]);
+    cli_setting_int(run, "register", a->align);
+    if (a->align) cli_setting_int(run, "drift_degree", a->drift_degree);
+    if (a->align) cli_setting_int(run, "align_to", a->align_to);
     return 0;
+}
+
+/* --register: the frames aligned on the mean frame (svp_cube_align); a frame it cannot vouch
+ * for stops the run (exit 3). */
+static int fit_odmr_align(cli_run *run, const struct fit_odmr_args *a, struct fit_odmr_job *job)
+{
+    if (!a->align) return 0;
+    cli_stage_begin(run, "register");
+    svp_cube cube = {.width = job->w,
+                     .height = job->h,
+                     .n_freq = job->nf,
+                     .freq = job->freq,
+                     .frame = job->frames};
+    svp_align_info info;
+    cli_progress_start(run, "aligning frames");
+    svp_align_options ao;
+    svp_align_defaults(&ao);
+    ao.degree = a->drift_degree;
+    /* the stack's frame k is frame nf − 1 − k of the cube when the sweep decreased */
+    ao.reference_frame = a->align_to < 0 ? -1 : job->decreasing ? job->nf - 1 - a->align_to
+                                                                : a->align_to;
+    svp_status st =
+        svp_cube_align(&cube, &ao, job->shift_x, job->shift_y, &info, cli_progress, run);
+    cli_progress_done(run);
+    if (st != SVP_OK) return cli_fail(run, st, a->stack_path);
+    const int nf = job->nf;
+    const int worst = info.worst_frame < 0 ? 0 : info.worst_frame;
+    if (info.n_low_correlation) {
+        cli_error(run,
+                  "%s: --register: %d of %d frames correlate too weakly with the mean frame to "
+                  "be aligned (weakest: frame %d of the stack, correlation %.2f < %g): the PL "
+                  "has too little texture above the noise, or the frames do not show one "
+                  "scene; nothing written (run without --register)",
+                  a->stack_path, info.n_low_correlation, nf,
+                  job->decreasing ? nf - 1 - worst : worst, info.min_correlation,
+                  SVP_ALIGN_MIN_CORRELATION);
+        return CLI_EXIT_DOUBTFUL;
+    }
+    cli_result_num(run, "register_max_shift_px", info.max_shift);
+    cli_result_num(run, "register_median_deviation_px", info.median_deviation);
+    cli_result_num(run, "register_max_deviation_px", info.max_deviation);
+    cli_result_num(run, "register_min_correlation", info.min_correlation);
+    cli_result_num(run, "register_min_significance", info.min_significance);
+    cli_note(run,
+             "frames aligned: largest drift %.3g px; the measured shifts lie %.2g px (median) "
+             "from the degree-%d drift",
+             info.max_shift, info.median_deviation, a->drift_degree);
+    return 0;
+}
+
+/* DIR/drift.csv: each frame's shift, in the stack's order. */
+static int fit_odmr_write_drift(cli_run *run, const struct fit_odmr_job *job)
+{
+    const int nf = job->nf;
+    const size_t cap = 64 + 96 * (size_t)nf;
+    char *text = malloc(cap);
+    if (!text) return cli_error(run, "out of memory");
+    size_t len = (size_t)snprintf(text, cap, "frame,frequency_hz,shift_x_px,shift_y_px\n");
+    for (int k = 0; k < nf; k++) {
+        const int f = job->decreasing ? nf - 1 - k : k; /* k: the stack's frame */
+        len += (size_t)snprintf(text + len, cap - len, "%d,%.10g,%.6g,%.6g\n", k, job->freq[f],
+                                job->shift_x[f], job->shift_y[f]);
+    }
+    const int code = cli_write_text(run, job->drift_path, text);
+    free(text);
+    return code;
 }
 
 /* The per-pixel fits. */
@@ -405,6 +531,7 @@ static int fit_odmr_write(cli_run *run, const struct fit_odmr_args *a, struct fi
     cli_stage_begin(run, "write");
     for (int k = 0; k < 13 && !code; k++)
         if (job->paths[k]) code = cli_write_image(run, job->paths[k], job->img[k]);
+    if (!code && job->drift_path) code = fit_odmr_write_drift(run, job);
     if (!code) code = cli_summary_write(run, job->summary_path);
     if (code) return code;
     cli_stage_end(run);
@@ -422,6 +549,7 @@ static int run_fit_odmr(cli_run *run, const struct fit_odmr_args *a)
     memset(&job, 0, sizeof job);
     int code = fit_odmr_read(run, a, &job);
     if (!code) code = fit_odmr_plan(run, a, &job);
+    if (!code) code = fit_odmr_align(run, a, &job);
     if (!code) code = fit_odmr_fit(run, a, &job);
     if (!code) {
         fit_odmr_report(run, a, &job);
@@ -430,6 +558,7 @@ static int run_fit_odmr(cli_run *run, const struct fit_odmr_args *a)
     for (int k = 0; k < N_MAPS; k++) svp_image_free(job.img[k]);
     free(job.frames);
     free(job.freq);
+    free(job.shift_x);
     svp_stack_free(job.stack);
     return code;
 }
@@ -437,7 +566,8 @@ static int run_fit_odmr(cli_run *run, const struct fit_odmr_args *a)
 int cmd_fit_odmr(int argc, char **argv)
 {
     cli_run run;
-    cli_run_init(&run, "fit-odmr", argc, argv, CLI_COMMON_OUTPUT | CLI_COMMON_FORMAT);
+    cli_run_init(&run, "fit-odmr", argc, argv, CLI_COMMON_OUTPUT_DIR);
+    run.fft_measure = 0; /* --register's transforms: one size, as `register`: not worth it */
     struct fit_odmr_args args;
     int code = parse_fit_odmr_args(&run, &args);
     if (code == 0) code = run_fit_odmr(&run, &args);
