@@ -1735,7 +1735,8 @@ SVP_API void svp_align_defaults(svp_align_options *options);
  * weakest registration. A frame whose correlation with the mean frame is below
  * SVP_ALIGN_MIN_CORRELATION is counted in info->n_low_correlation: the caller decides (svpsf
  * fit-odmr --register refuses it).
- * Progress once per frame registered and once per frame moved; options NULL =
+ * The frames go to the threads (one-thread FFT plans each: bit-identical for any thread
+ * count); progress from the calling thread; options NULL =
  * svp_align_defaults; a cube needs >= 2 frames (> degree + 1 with degree >= 0) of >= 8 x 8
  * pixels. */
 SVP_API svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options,

@@ -90,4 +90,21 @@ static inline int test_all_finite(const svp_image *a)
     return svp_image_count_nonfinite(a) == 0;
 }
 
+/* A progress callback's record: calls, the last fraction, whether the fractions never went
+ * down (strict: always went up) and stayed <= 1; it cancels at call cancel_at (> 0). */
+typedef struct test_progress_rec {
+    int calls, cancel_at;
+    double last;
+    int monotone, strict;
+} test_progress_rec;
+
+static inline int test_progress_record(void *user, double fraction)
+{
+    test_progress_rec *p = user;
+    p->calls++;
+    if ((p->strict ? !(fraction > p->last) : fraction < p->last) || fraction > 1) p->monotone = 0;
+    p->last = fraction;
+    return p->cancel_at > 0 && p->calls >= p->cancel_at;
+}
+
 #endif

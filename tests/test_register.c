@@ -921,6 +921,28 @@ static void test_cube_align(void **state)
             assert_true(info.max_deviation == 0 && info.median_deviation == 0);
         }
     }
+    /* 1 and 2 threads: the same frames bit for bit (one-thread transforms either way);
+     * progress monotone to 1, from the calling thread; a cancel stops the call */
+    svp_cube *two = NULL;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &two));
+    drift_sweep(&sc, &od, freq, 0, dx, dy, still, drifted);
+    for (int f = 0; f < nf; f++)
+        memcpy(two->frame[f]->data, drifted->frame[f]->data, (size_t)w * h * sizeof(double));
+    const int threads = svp_get_threads();
+    svp_set_threads(1);
+    ASSERT_OK(svp_cube_align(drifted, NULL, NULL, NULL, NULL, NULL, NULL));
+    svp_set_threads(2);
+    test_progress_rec prog = {.monotone = 1};
+    ASSERT_OK(svp_cube_align(two, NULL, NULL, NULL, NULL, test_progress_record, &prog));
+    svp_set_threads(threads);
+    for (int f = 0; f < nf; f++)
+        assert_memory_equal(two->frame[f]->data, drifted->frame[f]->data,
+                            (size_t)w * h * sizeof(double));
+    assert_true(prog.calls > 0 && prog.monotone && prog.last == 1.0);
+    prog = (test_progress_rec){.cancel_at = 5, .monotone = 1};
+    assert_int_equal(svp_cube_align(two, NULL, NULL, NULL, NULL, test_progress_record, &prog),
+                     SVP_ERR_CANCELLED);
+    svp_cube_free(two);
     /* to frame 0's position: the shifts relative to frame 0's, and the frames at the drift's
      * start (frame 0 of the freshly drifted cube is then moved by 0) */
     drift_sweep(&sc, &od, freq, 0, dx, dy, still, drifted);

@@ -880,21 +880,6 @@ static void test_bad_input(void **state)
     svp_image_free(psf);
 }
 
-typedef struct progress_log {
-    int calls, cancel_at;
-    double last;
-    int monotone;
-} progress_log;
-
-static int log_progress(void *user, double fraction)
-{
-    progress_log *p = user;
-    p->calls++;
-    if (!(fraction > p->last) || fraction > 1) p->monotone = 0;
-    p->last = fraction;
-    return p->cancel_at > 0 && p->calls >= p->cancel_at;
-}
-
 /* The zero-boundary Wiener solve reports its CG: with the default cap it converges (residual
  * <= 1e-8, not capped); a cap of 2 steps stops short and says so (capped, residual above the
  * tolerance, exactly 2 steps) and the result differs from the converged one. The library does
@@ -981,26 +966,26 @@ static void test_progress_and_cancel(void **state)
     svp_image *y = test_random_image(w, h, 8), *x = test_image(w, h);
     svp_deconv_options opt;
     svp_deconv_defaults(&opt);
-    progress_log log = {0, 0, 0, 1};
+    test_progress_rec log = {0, 0, 0, 1, 1};
     opt.iterations = 7;
-    opt.progress = log_progress;
+    opt.progress = test_progress_record;
     opt.progress_user = &log;
     ASSERT_OK(svp_deconv_rl(op, y, &opt, x));
     assert_int_equal(log.calls, 7);
     assert_true(log.monotone);
     ASSERT_CLOSE(log.last, 1.0, 0);
 
-    log = (progress_log){0, 3, 0, 1};
+    log = (test_progress_rec){0, 3, 0, 1, 1};
     assert_int_equal(svp_deconv_rl(op, y, &opt, x), SVP_ERR_CANCELLED);
     assert_int_equal(log.calls, 3);
     assert_non_null(strstr(svp_last_error(), "cancel"));
 
-    log = (progress_log){0, 1, 0, 1};
+    log = (test_progress_rec){0, 1, 0, 1, 1};
     assert_int_equal(svp_deconv_wiener(op, y, &opt, x), SVP_ERR_CANCELLED);
 
-    log = (progress_log){0, 2, 0, 1};
+    log = (test_progress_rec){0, 2, 0, 1, 1};
     svp_image *psf = test_random_image(3, 4, 2);
-    assert_int_equal(svp_skimage_richardson_lucy(y, psf, 6, log_progress, &log, x),
+    assert_int_equal(svp_skimage_richardson_lucy(y, psf, 6, test_progress_record, &log, x),
                      SVP_ERR_CANCELLED);
     assert_int_equal(log.calls, 2);
     svp_image_free(psf);

@@ -23,8 +23,10 @@
 #include "image_io.h"
 
 #include <float.h>
-#include <stdio.h>
 #include <math.h>
+#include <omp.h>
+#include <stdatomic.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -997,32 +999,87 @@ static svp_status smooth_drift(int n, int deg, const double *mx, const double *m
     return st;
 }
 
-/* Registers frame f of the cube on ref: its displacement to (mx, my); the weakest
- * registration into info. */
-static svp_status align_measure(const svp_image *ref, const svp_cube *cube, int f,
-                                svp_register_options *o, double *mx, double *my,
-                                svp_align_info *info)
+/* One pass of svp_cube_align over the frames: registered on `mean` (moving 0: the
+ * displacement, correlation and significance of each), or moved back by (ax, ay) in place
+ * (moving 1). */
+typedef struct align_job {
+    svp_cube *cube;
+    const svp_image *mean;
+    const svp_register_options *o;
+    double *mx, *my, *corr, *sig;
+    const double *ax, *ay;
+    int moving;
+    svp_progress_fn progress;
+    void *progress_user;
+    double base, span; /* the pass's share of the progress */
+} align_job;
+
+static svp_status align_frame(const align_job *j, int f)
 {
+    if (j->moving) return svp_shift(j->cube->frame[f], -j->ax[f], -j->ay[f], j->cube->frame[f]);
+    svp_register_options o = *j->o;
     char name[48];
     snprintf(name, sizeof name, "frame %d", f);
-    o->moving_name = name;
+    o.moving_name = name;
     svp_register_result r;
-    svp_status st = svp_register(ref, cube->frame[f], o, &r);
-    o->moving_name = NULL;
-    if (st != SVP_OK) return st;
-    *mx = r.affine[2];
-    *my = r.affine[5];
-    if (info) {
-        if (!(r.correlation >= info->min_correlation)) {
-            info->min_correlation = r.correlation;
-            info->worst_frame = f;
-        }
-        info->n_low_correlation += !(r.correlation >= SVP_ALIGN_MIN_CORRELATION);
-        info->min_significance = fmin(info->min_significance, r.significance);
-    }
+    SVP_CHECK(svp_register(j->mean, j->cube->frame[f], &o, &r));
+    j->mx[f] = r.affine[2];
+    j->my[f] = r.affine[5];
+    j->corr[f] = r.correlation;
+    j->sig[f] = r.significance;
     return SVP_OK;
 }
 
+/* The frames go to the threads (dynamic, one at a time), each transforming with one-thread FFT
+ * plans, so the results do not depend on the thread count; progress from the calling thread
+ * only; the first frame's error (in frame order) is the call's. */
+static svp_status align_frames(const align_job *j)
+{
+    const int nf = j->cube->n_freq;
+    int workers = svp_get_threads();
+    if (workers > nf) workers = nf;
+    if (workers < 1) workers = 1;
+    svp_status *status = malloc((size_t)nf * sizeof *status);
+    char *msg = malloc((size_t)nf * SVP_ERROR_LEN);
+    if (!status || !msg) {
+        free(status);
+        free(msg);
+        return svp_fail(SVP_ERR_NOMEM, "align: out of memory");
+    }
+    atomic_int done = 0, stop = 0, cancelled = 0;
+#pragma omp parallel num_threads(workers)
+    {
+        svp_fft_local_threads(1);
+#pragma omp for schedule(dynamic, 1)
+        for (int f = 0; f < nf; f++) {
+            status[f] = SVP_OK;
+            msg[(size_t)f * SVP_ERROR_LEN] = '\0';
+            if (atomic_load(&stop)) continue;
+            svp_clear_error();
+            status[f] = align_frame(j, f);
+            if (status[f] != SVP_OK) {
+                snprintf(msg + (size_t)f * SVP_ERROR_LEN, SVP_ERROR_LEN, "%s", svp_last_error());
+                atomic_store(&stop, 1);
+            }
+            const int k = atomic_fetch_add(&done, 1) + 1;
+            if (omp_get_thread_num() == 0 && j->progress && !atomic_load(&stop) &&
+                j->progress(j->progress_user, j->base + j->span * k / nf)) {
+                atomic_store(&cancelled, 1);
+                atomic_store(&stop, 1);
+            }
+        }
+        svp_fft_local_threads(0);
+    }
+    svp_status st = SVP_OK;
+    for (int f = 0; f < nf && st == SVP_OK; f++)
+        if (status[f] != SVP_OK) st = svp_fail(status[f], "%s", msg + (size_t)f * SVP_ERROR_LEN);
+    if (st == SVP_OK && atomic_load(&cancelled)) st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
+    if (st == SVP_OK && j->progress && j->progress(j->progress_user, j->base + j->span))
+        st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
+    free(status);
+    free(msg);
+    return st;
+}
 
 void svp_align_defaults(svp_align_options *options)
 {
@@ -1069,10 +1126,11 @@ svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options, doub
     svp_image *mean = NULL;
     svp_status st = svp_image_new(w, h, &mean);
     double *count = st == SVP_OK ? svp_alloc(n * sizeof(double)) : NULL;
-    double *d = st == SVP_OK ? malloc((size_t)nf * 4 * sizeof(double)) : NULL;
+    double *d = st == SVP_OK ? malloc((size_t)nf * 6 * sizeof(double)) : NULL;
     if (st == SVP_OK && (!count || !d)) st = svp_fail(SVP_ERR_NOMEM, "align: out of memory");
     if (st != SVP_OK) goto done;
     double *mx = d, *my = d + nf, *ax = d + 2 * nf, *ay = d + 3 * nf, median = 0;
+    double *corr = d + 4 * nf, *sig = d + 5 * nf;
     /* the reference: the mean frame (over the finite values of each pixel) */
     memset(count, 0, n * sizeof(double));
     for (int f = 0; f < nf; f++) {
@@ -1085,10 +1143,17 @@ svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options, doub
     }
     for (size_t i = 0; i < n; i++) mean->data[i] = count[i] > 0 ? mean->data[i] / count[i] : NAN;
     o.reference_name = "the mean frame";
-    for (int f = 0; f < nf && st == SVP_OK; f++) {
-        st = align_measure(mean, cube, f, &o, &mx[f], &my[f], info);
-        if (st == SVP_OK && progress && progress(progress_user, (f + 1.0) / (2 * nf)))
-            st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
+    align_job job = {.cube = cube, .mean = mean, .o = &o, .mx = mx, .my = my, .corr = corr,
+                     .sig = sig, .ax = ax, .ay = ay, .moving = 0, .progress = progress,
+                     .progress_user = progress_user, .base = 0, .span = 0.5};
+    st = align_frames(&job);
+    for (int f = 0; f < nf && st == SVP_OK && info; f++) {
+        if (!(corr[f] >= info->min_correlation)) {
+            info->min_correlation = corr[f];
+            info->worst_frame = f;
+        }
+        info->n_low_correlation += !(corr[f] >= SVP_ALIGN_MIN_CORRELATION);
+        info->min_significance = fmin(info->min_significance, sig[f]);
     }
     if (st == SVP_OK && degree >= 0) st = smooth_drift(nf, degree, mx, my, ax, ay, &median);
     if (st != SVP_OK) goto done;
@@ -1104,18 +1169,18 @@ svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options, doub
             mx[f] -= kx, my[f] -= ky;
         }
     }
-    for (int f = 0; f < nf && st == SVP_OK; f++) {
+    for (int f = 0; f < nf; f++) {
         if (shift_x) shift_x[f] = ax[f];
         if (shift_y) shift_y[f] = ay[f];
         if (info) {
             info->max_shift = fmax(info->max_shift, hypot(ax[f], ay[f]));
             info->max_deviation = fmax(info->max_deviation, hypot(mx[f] - ax[f], my[f] - ay[f]));
         }
-        /* moving(x) = mean(x − d): moved back by −d, in place */
-        st = svp_shift(cube->frame[f], -ax[f], -ay[f], cube->frame[f]);
-        if (st == SVP_OK && progress && progress(progress_user, (nf + f + 1.0) / (2 * nf)))
-            st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
     }
+    /* moving(x) = mean(x − d): each frame moved back by −d, in place */
+    job.moving = 1;
+    job.base = 0.5;
+    st = align_frames(&job);
 done:
     svp_image_free(mean);
     svp_free(count);
