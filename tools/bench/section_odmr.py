@@ -39,13 +39,14 @@ def f(v, nd=3):
     return f"{v:.{nd}g}"
 
 
-def cli_runs(svpsf, work, reps):
+def cli_runs(svpsf, work, reps, extra=(), threads=2, out_name="fit"):
     """`svpsf fit-odmr` on work/stack.tif, reps times; per run the summary's timings."""
     runs = []
     for r in range(reps):
-        out = os.path.join(work, "fit")
+        out = os.path.join(work, out_name)
         cmd = [svpsf, "fit-odmr", os.path.join(work, "stack.tif"), "--frequencies",
-               os.path.join(work, "freq.txt"), "-o", out, "--threads", "2", "--quiet", "--force"]
+               os.path.join(work, "freq.txt"), "-o", out, "--threads", str(threads), "--quiet",
+               "--force", *extra]
         log(" ".join(os.path.relpath(c, ROOT) if c.startswith(ROOT) else c for c in cmd))
         r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.monotonic()
@@ -60,6 +61,8 @@ def cli_runs(svpsf, work, reps):
             s = json.load(fh)
         t = s.get("timings_s", {})
         runs.append({"wall": wall, "cpu": cpu, "read": t.get("read"), "fit": t.get("fit"),
+                     "register": t.get("register"),
+                     "max_shift": s["results"].get("register_max_shift_px"),
                      "write": t.get("write"), "total": t.get("total"),
                      "fits_per_second": s["results"].get("fits_per_second"),
                      "n_failed": s["results"].get("n_failed"),
@@ -172,21 +175,31 @@ def main():
                 cmd += ["--out", work]  # the noisy cube, for the program and Python
             fits[(noise, t)] = run_json(cmd)
     cli = cli_runs(svpsf, work, reps) if ok(fits[(NOISES[-1], 2)]) else None
+    # --register: the frames aligned before the fit, on 2 threads and on 1 (the same maps)
+    reg = None
+    if cli:
+        reg = {t: cli_runs(svpsf, work, 1, ["--register", "--format", "npy"], t, f"reg{t}")
+               for t in (2, 1)}
+        if reg[1] and reg[2]:
+            with open(os.path.join(work, "reg1", "field.npy"), "rb") as a, \
+                    open(os.path.join(work, "reg2", "field.npy"), "rb") as b:
+                reg["same"] = a.read() == b.read()
     py = python_overhead(args.build, work, reps) if cli else None
     shutil.rmtree(work, ignore_errors=True)
-    md = render(fits, cli, py, size, points, reps, args.quick, load0, loadavg())
+    md = render(fits, cli, py, size, points, reps, args.quick, load0, loadavg(), reg)
     sys.stdout.write(md)
     try:
         with open(os.path.join(args.build, "tools", "bench", "results-odmr.json"), "w") as fh:
             json.dump({"fits": {f"{k[0]}/{k[1]}": v for k, v in fits.items()}, "cli": cli,
-                       "python": py}, fh, indent=1)
+                       "python": py, "register": {str(k): v for k, v in (reg or {}).items()}},
+                      fh, indent=1)
     except OSError:
         pass
     bad = [r for r in fits.values() if not ok(r)] or (cli is None)
     return 1 if bad else 0
 
 
-def render(fits, cli, py, size, points, reps, quick, load0, load1):
+def render(fits, cli, py, size, points, reps, quick, load0, load1, reg=None):
     out = []
     w = out.append
     w("## ODMR stacks: `svpsf fit-odmr` against the scene engine's fitter\n")
@@ -244,6 +257,21 @@ def render(fits, cli, py, size, points, reps, quick, load0, load1):
             w(f"| {k + 1} | {f(c['read'])} | {f(c['fit'])} | {f(c['write'])} | {f(c['total'])} "
               f"| {f(c['wall'])} | {f(c['cpu'])} | {f(c['fits_per_second'])} | {c['n_failed']} | "
               f"{f(c['peak_mb'])} |")
+        w("")
+    if reg and reg.get(1) and reg.get(2):
+        w("### Drift alignment (`--register`)\n")
+        w("The same program with `--register --format npy` (each frame registered on the mean "
+          "frame and moved back by Fourier interpolation before the fit; docs/model.md §10 "
+          "\"Drift\"), one run each on 2 threads and on 1. This cube has no drift: the "
+          "shifts are the registration's own scatter.\n")
+        w("| threads | register (s) | fit (s) | total (s) | register / fit | largest shift (px) | "
+          "field = other thread count's |")
+        w("|---|---|---|---|---|---|---|")
+        for t in (2, 1):
+            c = reg[t][0]
+            w(f"| {t} | {f(c['register'])} | {f(c['fit'])} | {f(c['total'])} | "
+              f"{c['register'] / c['fit']:.2f} | {f(c['max_shift'])} | "
+              f"{'yes' if reg.get('same') else '**no**'} |")
         w("")
     if py:
         h, wd, nf = py["size"]
