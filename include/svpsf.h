@@ -1743,6 +1743,23 @@ SVP_API svp_status svp_cube_align(svp_cube *cube, const svp_align_options *optio
                                   double *shift_x, double *shift_y, svp_align_info *info,
                                   svp_progress_fn progress, void *progress_user);
 
+/* Deconvolves every frame of a cube in place by Richardson–Lucy (svp_deconv_rl with options;
+ * NULL = svp_deconv_defaults; their progress is not used): the frames of an ODMR stack are PL
+ * images blurred by one PSF, so this undoes the blur before any per-pixel estimate — the
+ * correction for an estimator that is not linear in the frames (a Lorentzian fit), where T⁻¹
+ * on its maps is only approximate (docs/model.md §10, "Blur before the estimate"). blur is
+ * built for the frames plus `margin` pixels per side (zero boundary); each frame is
+ * estimated on that grid with the margin missing (NaN: the data term over the frame only, so
+ * light from outside the view is explained by the margin, as svp_correct_options.margin does),
+ * and the frame's own missing pixels stay NaN. Frames must be >= 0 where finite (RL; the
+ * error names the frame). With two or more threads and an operator svp_blur_clone can copy
+ * (invariant, or a map's tent, low-rank or region operator in double precision) the frames go
+ * to the threads, each on its own copy with one-thread FFT plans: the same result for any
+ * thread count. Progress once per frame, from the calling thread. */
+SVP_API svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
+                                       const svp_deconv_options *options,
+                                       svp_progress_fn progress, void *progress_user);
+
 typedef struct svp_odmr {
     double zero_field_hz;  /* D, default 2.870e9 */
     double gamma_hz_per_t; /* γ_NV / 2π, default 28.033e9 Hz/T */

@@ -698,6 +698,75 @@ static void test_align(void **state)
     svp_cube_free(c.ref);
 }
 
+/* Every frame of a cube deconvolved (svp_cube_deconvolve: copies of the operator per worker on
+ * 2 threads, RL per frame; the FFT plans made in the call). */
+typedef struct cubedec_ctx {
+    svp_cube *blurred, *work, *ref;
+    svp_psf psf;
+    int margin;
+} cubedec_ctx;
+
+static svp_status cubedec_call(void *user)
+{
+    cubedec_ctx *c = user;
+    svp_fft_cleanup();
+    const int w = c->work->width, h = c->work->height;
+    for (int f = 0; f < c->work->n_freq; f++)
+        memcpy(c->work->frame[f]->data, c->blurred->frame[f]->data, (size_t)w * h * sizeof(double));
+    svp_blur *op = NULL;
+    svp_status st = svp_blur_new(&c->psf, w + 2 * c->margin, h + 2 * c->margin,
+                                 SVP_BOUNDARY_ZERO, &op);
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    o.iterations = 5;
+    if (st == SVP_OK) st = svp_cube_deconvolve(op, c->work, c->margin, &o, NULL, NULL);
+    svp_blur_free(op);
+    return st;
+}
+
+static double cubedec_diff(void *user)
+{
+    cubedec_ctx *c = user;
+    double d = 0;
+    for (int f = 0; f < c->work->n_freq; f++)
+        d = fmax(d, test_max_abs_diff(c->work->frame[f], c->ref->frame[f]));
+    return d;
+}
+
+static void test_cube_deconvolve(void **state)
+{
+    (void)state;
+    const int w = 20, h = 16, nf = 4;
+    double freq[4] = {2.86e9, 2.865e9, 2.87e9, 2.875e9};
+    cubedec_ctx c = {0};
+    svp_psf_defaults(&c.psf);
+    c.psf.model = SVP_PSF_GAUSSIAN;
+    c.psf.fwhm = 3;
+    c.margin = 3;
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.blurred));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.work));
+    ASSERT_OK(svp_cube_new(w, h, nf, freq, &c.ref));
+    svp_image *pl = pl_scene(w, h, 4);
+    for (int f = 0; f < nf; f++)
+        for (size_t i = 0; i < (size_t)w * h; i++)
+            c.blurred->frame[f]->data[i] = pl->data[i] * (1 - 0.01 * f);
+    const int threads = svp_get_threads();
+    svp_set_threads(2);
+    svp_cube *keep = c.work;
+    c.work = c.ref;
+    ASSERT_OK(cubedec_call(&c));
+    c.work = keep;
+    const sweep_case sc = {"cube deconvolution, 4 frames of 20 x 16, 2 threads", cubedec_call,
+                           cubedec_diff, &c, 1e-12};
+    const sweep_result r = sweep(&sc);
+    svp_set_threads(threads);
+    assert_true(r.allocations > 0 && r.nomem > 0);
+    svp_image_free(pl);
+    svp_cube_free(c.blurred);
+    svp_cube_free(c.work);
+    svp_cube_free(c.ref);
+}
+
 /* The magnetisation reconstructed from B_z (padded FFTs) and T with a tent PSF map built in the
  * call. */
 typedef struct physics_ctx {
@@ -928,6 +997,7 @@ int main(void)
         cmocka_unit_test(test_mat_and_stack),
         cmocka_unit_test(test_odmr_fit),
         cmocka_unit_test(test_align),
+        cmocka_unit_test(test_cube_deconvolve),
         cmocka_unit_test(test_physics),
         cmocka_unit_test(test_map_poly),
     };

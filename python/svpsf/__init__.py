@@ -876,7 +876,8 @@ def _stack_frames(stack):
 
 def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
              gamma_hz_per_t=28.033e9, linewidth_hz=1e6, baseline_frames=3, max_iterations=None,
-             failed="nan", register=False, drift_degree=1, align_to="mean"):
+             failed="nan", register=False, drift_degree=1, align_to="mean", psf=None,
+             iterations=75, margin="auto"):
     """Per-pixel Lorentzian fits of an ODMR stack (svp_odmr_fit_maps; `svpsf fit-odmr`,
     docs/model.md §10): stack of shape (n_freq, height, width) (or a sequence of 2-D frames),
     one frame per frequency (Hz; a decreasing sweep is put in increasing order, as the program
@@ -897,6 +898,12 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     frame's (shift_x, shift_y) in pixels (what drift.csv holds), and .register, a dict of
     max_shift, median_deviation, max_deviation, min_correlation (px, px, px, 1). A frame whose
     correlation with the mean frame is below 0.5 raises DoubtfulError (the program's exit 3).
+
+    psf (a PSF, or a Blur built for the frames plus `margin` pixels per side) deconvolves every
+    frame (Richardson–Lucy, `iterations` each; svp_cube_deconvolve, `svpsf fit-odmr --psf`,
+    docs/model.md §10 "Blur before the estimate") on a copy before the fit; margin: pixels per
+    side whose light comes from outside the view, or 'auto' (a PSF's reach, 0 with a halo;
+    0 for anything else).
 
     Returns an OdmrFit (a dict, keys also attributes) with the maps `svpsf fit-odmr` writes,
     in SI units (field in T, linewidth in Hz): field, field_sigma (with lines='two' also
@@ -940,6 +947,16 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     fbuf = ffi.from_buffer("double[]", fr)
     cube.freq = fbuf
     cube.frame = imgs.array([imgs.view(f) for f in frames])
+    if psf is not None:
+        if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
+            raise ValueError("iterations %r: an integer >= 1" % (iterations,))
+        if margin == "auto":
+            margin = (lib.svp_psf_auto_margin(psf._c, w, h) if isinstance(psf, PSF) else 0)
+        if not (isinstance(margin, (int, np.integer)) and margin >= 0):
+            raise ValueError("margin %r: 'auto' or an integer >= 0" % (margin,))
+        if not register:  # deconvolved in place: on a copy
+            frames = [np.array(f, dtype=np.float64, order="C") for f in frames]
+            cube.frame = imgs.array([imgs.view(f) for f in frames])
     drift = info = None
     if register:
         ao = ffi.new("svp_align_options *")
@@ -960,6 +977,12 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         drift = np.array([[sx[f], sy[f]] for f in range(nf)])
         if decreasing:
             drift = drift[::-1].copy()
+    if psf is not None:
+        blur = _blur_for(psf, (h + 2 * margin, w + 2 * margin), "zero", None, None)
+        dopt = ffi.new("svp_deconv_options *")
+        lib.svp_deconv_defaults(dopt)
+        dopt.iterations = int(iterations)
+        _check(lib.svp_cube_deconvolve(blur._ptr, cube, int(margin), dopt, ffi.NULL, ffi.NULL))
     odmr = ffi.new("svp_odmr *")
     lib.svp_odmr_defaults(odmr)
     odmr.zero_field_hz, odmr.gamma_hz_per_t, odmr.linewidth_hz = (zero_field_hz, gamma_hz_per_t,

@@ -421,6 +421,49 @@ def test_fit_odmr_register_equals_cli(cli, tmp_path):
         svpsf.fit_odmr(flat, freq[:20], register=True)
 
 
+def test_fit_odmr_psf_equals_cli(cli, tmp_path):
+    # psf= deconvolves every frame before the fit, as `fit-odmr --psf` (bit for bit, margin
+    # auto from the same Gaussian), on a copy; on a sweep blurred here by numpy (a Gaussian of
+    # σ 1.7 px by FFT on a canvas 10 px beyond the view) over a field step the fit of the
+    # deconvolved stack is closer to the truth (measured rms 2.4 uT against 8.4 uT as blurred)
+    rng = np.random.default_rng(5)
+    D, gamma, lw, nf, h, w, pad = 2.870e9, 28.033e9, 1e6, 50, 40, 48, 10
+    freq = D - 12e6 + 24e6 * np.arange(nf) / (nf - 1.0)
+    y, x = np.mgrid[-pad:h + pad, -pad:w + pad].astype(float)
+    u = sum(a * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / 30.0)
+            for cx, cy, a in zip(rng.uniform(-5, w + 5, 10), rng.uniform(-5, h + 5, 10),
+                                 rng.uniform(-0.5, 0.5, 10)))
+    pl = 1000 + 600 * np.tanh(2 * u)
+    b = 150e-6 + 120e-6 * np.tanh((x + 0.3 * y - 0.6 * w) / 1.5)
+    ky = np.fft.fftfreq(h + 2 * pad)[:, None]
+    kx = np.fft.fftfreq(w + 2 * pad)[None, :]
+    otf = np.exp(-2 * (np.pi * 1.7) ** 2 * (kx ** 2 + ky ** 2))
+    stack = np.empty((nf, h, w))
+    for f in range(nf):
+        lor = sum((lw / 2) ** 2 / ((freq[f] - (D + s * gamma * b)) ** 2 + (lw / 2) ** 2)
+                  for s in (-1, 1))
+        blurred = np.real(np.fft.ifft2(np.fft.fft2(pl * (1 - 0.03 * lor)) * otf))
+        stack[f] = blurred[pad:pad + h, pad:pad + w] + rng.standard_normal((h, w))
+    truth = b[pad:pad + h, pad:pad + w]
+    before = stack.copy()
+    f = write(tmp_path, "stack.npy", stack)
+    ffile = tmp_path / "freq.txt"
+    ffile.write_text("".join("%r\n" % v for v in freq))
+    (tmp_path / "g.yaml").write_text("pixel_um: 1\npsf: {model: gaussian, fwhm_um: 4.003}\n")
+    cli("fit-odmr", f, "--frequencies", ffile, "--psf", tmp_path / "g.yaml", "-o",
+        tmp_path / "fit", *COMMON)
+    r = svpsf.fit_odmr(stack, freq, psf=svpsf.PSF("gaussian", fwhm=4.003))
+    assert np.array_equal(stack, before)
+    for k in ("field", "pl", "contrast", "quality"):
+        assert np.array_equal(r[k], np.load(tmp_path / "fit" / (k + ".npy")), equal_nan=True), k
+    plain = svpsf.fit_odmr(stack, freq, failed="keep")
+    e_plain = np.sqrt(np.mean((plain.field - truth) ** 2))
+    e_psf = np.sqrt(np.nanmean((r.field - truth) ** 2))
+    assert e_psf < 0.8 * e_plain, (e_psf, e_plain)
+    with pytest.raises(ValueError):
+        svpsf.fit_odmr(stack, freq, psf=svpsf.PSF("gaussian", fwhm=4.0), margin=-1)
+
+
 def test_fit_odmr_does_not_copy_the_stack():
     stack, freq, _ = odmr_stack(h=16, w=20, nf=100)
     svpsf.fit_odmr(stack, freq)

@@ -150,4 +150,15 @@ typedef struct svp_progress_share {
 } svp_progress_share;
 int svp_progress_share_fn(void *share, double fraction);
 
+/* Independent items 0 .. n − 1 (the frames of a cube) over `workers` threads (dynamic, one at
+ * a time): fn(ctx, worker, item) on worker 0 .. workers − 1, each worker's FFT plans made
+ * with one thread (svp_fft_local_threads(1)), so an item's result does not depend on the
+ * thread count; after the first failure the items not begun are skipped. Progress base +
+ * span · done / n from the calling thread only (a nonzero answer stops the items not begun:
+ * SVP_ERR_CANCELLED), and base + span at the end. The failure of the lowest failing item, its
+ * message included, is the call's. */
+svp_status svp_items_parallel(int n, int workers, svp_status (*fn)(void *ctx, int worker, int item),
+                              void *ctx, svp_progress_fn progress, void *progress_user, double base,
+                              double span);
+
 #endif

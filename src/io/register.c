@@ -24,8 +24,6 @@
 
 #include <float.h>
 #include <math.h>
-#include <omp.h>
-#include <stdatomic.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -1014,8 +1012,10 @@ typedef struct align_job {
     double base, span; /* the pass's share of the progress */
 } align_job;
 
-static svp_status align_frame(const align_job *j, int f)
+static svp_status align_frame(void *ctx, int worker, int f)
 {
+    const align_job *j = ctx;
+    (void)worker;
     if (j->moving) return svp_shift(j->cube->frame[f], -j->ax[f], -j->ay[f], j->cube->frame[f]);
     svp_register_options o = *j->o;
     char name[48];
@@ -1030,55 +1030,12 @@ static svp_status align_frame(const align_job *j, int f)
     return SVP_OK;
 }
 
-/* The frames go to the threads (dynamic, one at a time), each transforming with one-thread FFT
- * plans, so the results do not depend on the thread count; progress from the calling thread
- * only; the first frame's error (in frame order) is the call's. */
-static svp_status align_frames(const align_job *j)
+/* A pass over the frames on every thread (svp_items_parallel: one-thread FFT plans each, so
+ * the results do not depend on the thread count). */
+static svp_status align_frames(align_job *j)
 {
-    const int nf = j->cube->n_freq;
-    int workers = svp_get_threads();
-    if (workers > nf) workers = nf;
-    if (workers < 1) workers = 1;
-    svp_status *status = malloc((size_t)nf * sizeof *status);
-    char *msg = malloc((size_t)nf * SVP_ERROR_LEN);
-    if (!status || !msg) {
-        free(status);
-        free(msg);
-        return svp_fail(SVP_ERR_NOMEM, "align: out of memory");
-    }
-    atomic_int done = 0, stop = 0, cancelled = 0;
-#pragma omp parallel num_threads(workers)
-    {
-        svp_fft_local_threads(1);
-#pragma omp for schedule(dynamic, 1)
-        for (int f = 0; f < nf; f++) {
-            status[f] = SVP_OK;
-            msg[(size_t)f * SVP_ERROR_LEN] = '\0';
-            if (atomic_load(&stop)) continue;
-            svp_clear_error();
-            status[f] = align_frame(j, f);
-            if (status[f] != SVP_OK) {
-                snprintf(msg + (size_t)f * SVP_ERROR_LEN, SVP_ERROR_LEN, "%s", svp_last_error());
-                atomic_store(&stop, 1);
-            }
-            const int k = atomic_fetch_add(&done, 1) + 1;
-            if (omp_get_thread_num() == 0 && j->progress && !atomic_load(&stop) &&
-                j->progress(j->progress_user, j->base + j->span * k / nf)) {
-                atomic_store(&cancelled, 1);
-                atomic_store(&stop, 1);
-            }
-        }
-        svp_fft_local_threads(0);
-    }
-    svp_status st = SVP_OK;
-    for (int f = 0; f < nf && st == SVP_OK; f++)
-        if (status[f] != SVP_OK) st = svp_fail(status[f], "%s", msg + (size_t)f * SVP_ERROR_LEN);
-    if (st == SVP_OK && atomic_load(&cancelled)) st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
-    if (st == SVP_OK && j->progress && j->progress(j->progress_user, j->base + j->span))
-        st = svp_fail(SVP_ERR_CANCELLED, "align: cancelled");
-    free(status);
-    free(msg);
-    return st;
+    return svp_items_parallel(j->cube->n_freq, svp_get_threads(), align_frame, j, j->progress,
+                              j->progress_user, j->base, j->span);
 }
 
 void svp_align_defaults(svp_align_options *options)

@@ -9,6 +9,10 @@
  *       by tanh; uniform 1000 when DX = DY = 0), noise σ = 1 count, while the sample drifts
  *       linearly from 0 to (DX, DY) px over the sweep; each frame rendered analytically at its
  *       position; truth and PL at the mean position (DX, DY) / 2
+ *   odmr_cli_make blurred OUT.tif FREQ.txt TRUTH.npy PL.npy W H NF SEED SIGMA
+ *       a sweep blurred by a Gaussian of σ = SIGMA px by direct convolution here, on a canvas
+ *       10 px beyond the view: blobs of PL 400..1600 counts, a field step of 240 µT (1 MHz
+ *       lines 3 % deep), noise σ = 1 count; truth and PL unblurred
  *   odmr_cli_make pages OUT.tif N          a 16-bit TIFF of N 8 x 6 pages
  *   odmr_cli_make compare EST.npy TRUTH.npy SCALE MEAN_TOL MAX_TOL [SIGMA.npy]
  *       EST / SCALE against TRUTH: mean and max |difference| within the tolerances (NaN pixels
@@ -178,6 +182,74 @@ static int make_drift(char **a)
     return write_sweep(a, w, h, nf, pix, truth, pl);
 }
 
+/* A sweep blurred by a Gaussian of σ = SIGMA px with the test's own direct convolution, on a
+ * canvas 10 px beyond the view (light from outside), then cropped: PL of bright and dark blobs
+ * (400..1600 counts), a field step of 240 µT across a few pixels (the fit of a blurred pixel
+ * sees separated dips), two dips of 3 % and 1 MHz, noise σ = 1 count; truth and PL unblurred. */
+static int make_blurred(char **a)
+{
+    const char *freq_path = a[1];
+    const int w = atoi(a[4]), h = atoi(a[5]), nf = atoi(a[6]), pad = 10;
+    rng = strtoull(a[7], NULL, 10);
+    const double sigma = atof(a[8]), D = 2.870e9, g = 28.033e9, fwhm = 1e6, C = 0.03;
+    const int cw = w + 2 * pad, ch = h + 2 * pad, r = (int)ceil(4 * sigma);
+    svp_image *truth = NULL, *pl = NULL;
+    if (svp_image_new(w, h, &truth) || svp_image_new(w, h, &pl)) return 1;
+    float *pix = malloc((size_t)w * h * nf * sizeof(float));
+    double *cv = malloc((size_t)cw * ch * sizeof(double)), *tmp = malloc((size_t)cw * ch * sizeof(double));
+    double *k1 = malloc((size_t)(2 * r + 1) * sizeof(double)), ks = 0;
+    FILE *ff = fopen(freq_path, "w");
+    if (!pix || !cv || !tmp || !k1 || !ff) return 1;
+    for (int i = -r; i <= r; i++) ks += k1[i + r] = exp(-0.5 * i * i / (sigma * sigma));
+    for (int i = 0; i <= 2 * r; i++) k1[i] /= ks;
+    double bx[12], by[12], ba[12];
+    for (int k = 0; k < 12; k++) {
+        bx[k] = uniform() * (w + 10) - 5;
+        by[k] = uniform() * (h + 10) - 5;
+        ba[k] = uniform() - 0.5;
+    }
+    for (int f = 0; f < nf; f++) {
+        const double wf = D - 12e6 + 24e6 * f / (nf - 1);
+        fprintf(ff, "%.17g\n", wf);
+        for (int y = 0; y < ch; y++)
+            for (int x = 0; x < cw; x++) {
+                const double sx = x - pad, sy = y - pad;
+                double u = 0;
+                for (int k = 0; k < 12; k++)
+                    u += ba[k] * exp(-((sx - bx[k]) * (sx - bx[k]) + (sy - by[k]) * (sy - by[k])) / 30.0);
+                const double p = 1000 + 600 * tanh(2 * u);
+                const double b = 150e-6 + 120e-6 * tanh((sx + 0.3 * sy - 0.6 * w) / 1.5);
+                const double h2 = 0.25 * fwhm * fwhm, s = g * b;
+                const double lo = wf - (D - s), hi = wf - (D + s);
+                cv[(size_t)y * cw + x] = p * (1 - C * (h2 / (lo * lo + h2) + h2 / (hi * hi + h2)));
+                if (f == 0 && x >= pad && y >= pad && x < pad + w && y < pad + h) {
+                    truth->data[(size_t)(y - pad) * w + x - pad] = b;
+                    pl->data[(size_t)(y - pad) * w + x - pad] = p;
+                }
+            }
+        for (int y = 0; y < ch; y++)
+            for (int x = 0; x < cw; x++) {
+                double v = 0;
+                for (int i = -r; i <= r; i++)
+                    if (x + i >= 0 && x + i < cw) v += k1[i + r] * cv[(size_t)y * cw + x + i];
+                tmp[(size_t)y * cw + x] = v;
+            }
+        for (int y = 0; y < h; y++)
+            for (int x = 0; x < w; x++) {
+                double v = 0;
+                for (int i = -r; i <= r; i++)
+                    if (y + pad + i >= 0 && y + pad + i < ch)
+                        v += k1[i + r] * tmp[(size_t)(y + pad + i) * cw + x + pad];
+                pix[(size_t)f * w * h + (size_t)y * w + x] = (float)(v + gauss());
+            }
+    }
+    free(cv);
+    free(tmp);
+    free(k1);
+    if (fclose(ff)) return 1;
+    return write_sweep(a, w, h, nf, pix, truth, pl);
+}
+
 static int make_pages(char **a)
 {
     const int n = atoi(a[1]);
@@ -231,6 +303,7 @@ int main(int argc, char **argv)
     if (argc == 10 && !strcmp(argv[1], "stack")) return make_stack(argv + 2);
     if (argc == 4 && !strcmp(argv[1], "pages")) return make_pages(argv + 2);
     if (argc == 12 && !strcmp(argv[1], "drift")) return make_drift(argv + 2);
+    if (argc == 11 && !strcmp(argv[1], "blurred")) return make_blurred(argv + 2);
     if ((argc == 7 || argc == 8) && !strcmp(argv[1], "compare")) return compare(argc - 2, argv + 2);
     fprintf(stderr, "usage: see the comment at the top of odmr_cli_make.c\n");
     return 2;

@@ -1813,3 +1813,17 @@ const char *cli_one_argument(const cli_run *run, const char *missing, const char
 }
 
 int cli_parsed_status(int code) { return code == CLI_OPTION_HELP ? 0 : code; }
+
+/* --margin auto: the PSF's significant reach (svp_psf_reach: the radius where the profile falls
+ * to 1 % of its peak along the major axis; Gaussian 1.29 FWHM, Moffat β 1.1 4.3 FWHM; a kernel
+ * image: its half-width), at most a quarter of the view's larger side; 0 for a PSF with a halo,
+ * whose margin unknowns can take up halo flux (docs/model.md §3). */
+int cli_auto_margin(const cli_psf *psf, int w, int h)
+{
+    if (psf->is_model) return svp_psf_auto_margin(&psf->model, w, h);
+    if (!psf->kernel_raw) return 0;
+    const int cap = (w > h ? w : h) / 4;
+    const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
+    const int m = (int)ceil(0.5 * (kw > kh ? kw : kh));
+    return m < cap ? m : cap;
+}

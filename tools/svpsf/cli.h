@@ -267,6 +267,10 @@ int cli_psf_blur(cli_run *run, const cli_psf *psf, int width, int height, svp_bo
 void cli_psf_release(cli_psf *psf);
 /* Records the PSF's description in the summary settings (model, FWHM, beta, ...). */
 void cli_psf_describe(cli_run *run, const cli_psf *psf);
+/* --margin auto (correct, fit-odmr --psf): the PSF's significant reach (svp_psf_reach: the
+ * radius where the profile falls to 1 % of its peak; a kernel image: its half-width), at most a
+ * quarter of the view's larger side; 0 for a PSF with a halo (docs/model.md §3). */
+int cli_auto_margin(const cli_psf *psf, int w, int h);
 
 /* PSF maps (forward, correct): --psf may also be a PSF-map file (svp_psf_field_read; a map of
  * kind uniform or a plain PSF file is the single-PSF case above). A command adds

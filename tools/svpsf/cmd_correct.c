@@ -23,20 +23,6 @@ static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound"
                                           "iterations_at_cap", "implausible_values",
                                           "regularised_away"};
 
-/* --margin auto: the PSF's significant reach (svp_psf_reach: the radius where the profile falls
- * to 1 % of its peak along the major axis; Gaussian 1.29 FWHM, Moffat β 1.1 4.3 FWHM; a kernel
- * image: its half-width), at most a quarter of the view's larger side; 0 for a PSF with a halo,
- * whose margin unknowns can take up halo flux (docs/model.md §3). */
-static int auto_margin(const cli_psf *psf, int w, int h)
-{
-    if (psf->is_model) return svp_psf_auto_margin(&psf->model, w, h);
-    if (!psf->kernel_raw) return 0;
-    const int cap = (w > h ? w : h) / 4;
-    const int kw = psf->kernel_raw->width, kh = psf->kernel_raw->height;
-    const int m = (int)ceil(0.5 * (kw > kh ? kw : kh));
-    return m < cap ? m : cap;
-}
-
 /* correct's --operator-tol default: the field error of a correction is dominated by the
  * deconvolution's own (iterations, noise), not by an operator error of 1e-2; measured on the
  * smooth-map benchmark (docs/performance.md, space-variant correction) the field error is within
@@ -352,7 +338,7 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
                              job->psf.field ? " (this is a space-variant PSF map)" : "");
         opt->margin = 0; /* auto: only where it applies */
     } else if (margin_auto) {
-        opt->margin = auto_margin(&job->psf, w, h);
+        opt->margin = cli_auto_margin(&job->psf, w, h);
     }
     /* the library's margin rule, before the operator for that grid is built */
     svp_status st = svp_correct_check_margin(opt->margin, w, h);

@@ -22,7 +22,10 @@ enum {
     OPT_FAILED,
     OPT_REGISTER,
     OPT_DRIFT_DEGREE,
-    OPT_ALIGN_TO
+    OPT_ALIGN_TO,
+    OPT_PSF,
+    OPT_ITERATIONS,
+    OPT_MARGIN
 };
 
 static const char *const lines_names[] = {"pair", "two", "one", NULL};
@@ -68,7 +71,9 @@ static void print_help(const cli_run *run, FILE *out)
           "  --baseline-frames N   frames at each end averaged for the starting baseline\n"
           "                        (default 3)\n"
           "  --max-iterations N    Levenberg-Marquardt steps per pixel (default 200)\n"
-          "drift (docs/model.md section 10, \"Drift\"):\n"
+          ,
+          out);
+    fputs("drift (docs/model.md section 10, \"Drift\"):\n"
           "  --register            align the frames before the fit: each is registered on the\n"
           "                        mean frame (phase correlation, translation) and moved by\n"
           "                        Fourier interpolation; the shifts go to DIR/drift.csv.\n"
@@ -85,6 +90,15 @@ static void print_help(const cli_run *run, FILE *out)
           "                        each frame moves by at most half the drift) or the\n"
           "                        position of the stack's frame K (0 = the first), e.g. where\n"
           "                        a reference image was taken\n"
+          "blur (docs/model.md section 10, \"Blur before the estimate\"):\n"
+          "  --psf FILE            deconvolve every frame by this PSF (a PSF file or a kernel\n"
+          "                        image, as `correct` takes) before the fit: Richardson-Lucy\n"
+          "                        on the frame plus a margin, the margin's light explained by\n"
+          "                        sources outside the view. The fit then sees each pixel's own\n"
+          "                        spectrum, where T^-1 on fitted maps (`correct`) assumes the\n"
+          "                        PL-weighted mean field, which a fit of mixed dips is not\n"
+          "  --iterations N        Richardson-Lucy iterations per frame (default 75)\n"
+          "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo)\n"
           "outputs:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n"
           "  --unit T|mT|uT|nT     unit of the field maps written (default T)\n"
@@ -168,6 +182,8 @@ struct fit_odmr_args {
     int freq_unit, lines, line, line_given, unit, failed_mode; /* indices in the name tables */
     int align, drift_degree, drift_degree_given;              /* --register, --drift-degree */
     int align_to, align_to_given;                             /* --align-to: -1 mean, k frame */
+    const char *psf_path;                                     /* --psf */
+    int iterations, iterations_given, margin, margin_auto, margin_given;
     svp_odmr od;              /* --zero-field, --gamma, --linewidth */
     svp_odmr_fit_options opt; /* --baseline-frames, --max-iterations; lines and line */
 };
@@ -185,8 +201,18 @@ struct fit_odmr_job {
     size_t n_failed;
     double fit_seconds;
     double *shift_x, *shift_y; /* --register: each frame's, in the order of freq */
+    cli_psf psf;               /* --psf */
+    int psf_loaded, margin;
     int decreasing;            /* the stack's frames were in decreasing frequency */
 };
+
+/* The stack's frames as the library's cube (in the order of freq; not copied). */
+static svp_cube job_cube(const struct fit_odmr_job *job)
+{
+    return (svp_cube){
+        .width = job->w, .height = job->h, .n_freq = job->nf, .freq = job->freq,
+        .frame = job->frames};
+}
 
 static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
 {
@@ -219,6 +245,14 @@ static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
     case OPT_DRIFT_DEGREE:
         a->drift_degree_given = 1;
         return cli_parse_int(run, "--drift-degree", optarg, -1, 5, &a->drift_degree);
+    case OPT_PSF: a->psf_path = optarg; return 0;
+    case OPT_ITERATIONS:
+        a->iterations_given = 1;
+        return cli_parse_int(run, "--iterations", optarg, 1, 1000000, &a->iterations);
+    case OPT_MARGIN:
+        a->margin_given = 1;
+        a->margin_auto = strcmp(optarg, "auto") == 0;
+        return a->margin_auto ? 0 : cli_parse_int(run, "--margin", optarg, 0, 100000, &a->margin);
     case OPT_ALIGN_TO:
         a->align_to_given = 1;
         if (!strcmp(optarg, "mean")) {
@@ -247,11 +281,16 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
         {"register", no_argument, NULL, OPT_REGISTER},
         {"drift-degree", required_argument, NULL, OPT_DRIFT_DEGREE},
         {"align-to", required_argument, NULL, OPT_ALIGN_TO},
+        {"psf", required_argument, NULL, OPT_PSF},
+        {"iterations", required_argument, NULL, OPT_ITERATIONS},
+        {"margin", required_argument, NULL, OPT_MARGIN},
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
     a->drift_degree = 1;
     a->align_to = -1;
+    a->iterations = 75;
+    a->margin_auto = 1;
     svp_odmr_defaults(&a->od);
     svp_odmr_fit_defaults(&a->opt);
     int c;
@@ -271,6 +310,8 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
     if (a->drift_degree_given && !a->align)
         return cli_error(run, "--drift-degree needs --register");
     if (a->align_to_given && !a->align) return cli_error(run, "--align-to needs --register");
+    if ((a->iterations_given || a->margin_given) && !a->psf_path)
+        return cli_error(run, "--%s needs --psf", a->iterations_given ? "iterations" : "margin");
     a->opt.lines = a->lines == 1   ? SVP_ODMR_LINES_TWO
                    : a->lines == 2 ? SVP_ODMR_LINES_ONE
                                    : SVP_ODMR_LINES_PAIR;
@@ -362,6 +403,15 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
             return cli_error(run, "--align-to %d: the stack's frames are 0 to %d", a->align_to,
                              job->nf - 1);
     }
+    if (a->psf_path) {
+        if ((code = cli_psf_load(run, a->psf_path, &job->psf))) return code;
+        job->psf_loaded = 1;
+        job->psf.boundary = SVP_BOUNDARY_ZERO;
+        if (a->margin_auto) job->margin = cli_auto_margin(&job->psf, job->w, job->h);
+        else job->margin = a->margin;
+        svp_status ms = svp_correct_check_margin(job->margin, job->w, job->h);
+        if (ms != SVP_OK) return cli_fail(run, ms, a->psf_path);
+    }
     if ((code = cli_outputs_check(run))) return code;
     svp_status st = SVP_OK;
     for (int k = 0; k < 14 && st == SVP_OK; k++)
@@ -383,7 +433,34 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
     cli_setting_int(run, "register", a->align);
     if (a->align) cli_setting_int(run, "drift_degree", a->drift_degree);
     if (a->align) cli_setting_int(run, "align_to", a->align_to);
+    if (a->psf_path) {
+        cli_psf_describe(run, &job->psf);
+        cli_setting_int(run, "iterations", a->iterations);
+        cli_setting_int(run, "margin", job->margin);
+    }
     return 0;
+}
+
+/* --psf: every frame deconvolved (svp_cube_deconvolve) before the fit. */
+static int fit_odmr_deconvolve(cli_run *run, const struct fit_odmr_args *a,
+                               struct fit_odmr_job *job)
+{
+    if (!a->psf_path) return 0;
+    cli_stage_begin(run, "deconvolve");
+    svp_blur *blur = NULL;
+    const int m = job->margin;
+    int code = cli_psf_blur(run, &job->psf, job->w + 2 * m, job->h + 2 * m, SVP_BOUNDARY_ZERO,
+                            &blur);
+    if (code) return code;
+    svp_cube cube = job_cube(job);
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    o.iterations = a->iterations;
+    cli_progress_start(run, "deconvolving frames");
+    svp_status st = svp_cube_deconvolve(blur, &cube, m, &o, cli_progress, run);
+    cli_progress_done(run);
+    svp_blur_free(blur);
+    return st == SVP_OK ? 0 : cli_fail(run, st, a->stack_path);
 }
 
 /* --register: the frames aligned on the mean frame (svp_cube_align); a frame it cannot vouch
@@ -392,11 +469,7 @@ static int fit_odmr_align(cli_run *run, const struct fit_odmr_args *a, struct fi
 {
     if (!a->align) return 0;
     cli_stage_begin(run, "register");
-    svp_cube cube = {.width = job->w,
-                     .height = job->h,
-                     .n_freq = job->nf,
-                     .freq = job->freq,
-                     .frame = job->frames};
+    svp_cube cube = job_cube(job);
     svp_align_info info;
     cli_progress_start(run, "aligning frames");
     svp_align_options ao;
@@ -457,11 +530,7 @@ static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_
 {
     svp_image **img = job->img;
     cli_stage_begin(run, "fit");
-    svp_cube cube = {.width = job->w,
-                     .height = job->h,
-                     .n_freq = job->nf,
-                     .freq = job->freq,
-                     .frame = job->frames};
+    svp_cube cube = job_cube(job);
     svp_odmr_maps maps = {.field = img[0],
                           .field_sigma = img[1],
                           .field_lower = img[2],
@@ -550,6 +619,7 @@ static int run_fit_odmr(cli_run *run, const struct fit_odmr_args *a)
     int code = fit_odmr_read(run, a, &job);
     if (!code) code = fit_odmr_plan(run, a, &job);
     if (!code) code = fit_odmr_align(run, a, &job);
+    if (!code) code = fit_odmr_deconvolve(run, a, &job);
     if (!code) code = fit_odmr_fit(run, a, &job);
     if (!code) {
         fit_odmr_report(run, a, &job);
@@ -559,6 +629,7 @@ static int run_fit_odmr(cli_run *run, const struct fit_odmr_args *a)
     free(job.frames);
     free(job.freq);
     free(job.shift_x);
+    if (job.psf_loaded) cli_psf_release(&job.psf);
     svp_stack_free(job.stack);
     return code;
 }

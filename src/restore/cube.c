@@ -1,0 +1,103 @@
+/* Richardson–Lucy on every frame of a cube (svp_cube_deconvolve; docs/model.md §10, "Blur
+ * before the estimate"): the frames of an ODMR stack are PL images, each blurred by the same
+ * PSF, so deconvolving them one by one undoes the blur before any per-pixel estimate — the
+ * correction for estimators that are not linear in the frames (a Lorentzian fit), where T⁻¹
+ * on the estimated maps only approximates. */
+#include "restore_internal.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+typedef struct cube_job {
+    svp_cube *cube;
+    svp_blur **ops;   /* one operator per worker: a copy each (svp_blur_clone), or the caller's */
+    svp_image **grid; /* per worker: the frame on the view plus the margin (the margin NaN) */
+    svp_image **out;  /* per worker: RL's result on that grid */
+    int margin;
+    svp_deconv_options o;
+} cube_job;
+
+static svp_status deconvolve_frame(void *ctx, int worker, int f)
+{
+    const cube_job *j = ctx;
+    svp_image *frame = j->cube->frame[f], *grid = j->grid[worker], *out = j->out[worker];
+    const int w = frame->width, h = frame->height, m = j->margin, gw = grid->width;
+    const size_t n = (size_t)gw * grid->height;
+    for (size_t i = 0; i < n; i++) grid->data[i] = NAN;
+    for (int y = 0; y < h; y++)
+        memcpy(grid->data + (size_t)(y + m) * gw + m, frame->data + (size_t)y * w,
+               (size_t)w * sizeof(double));
+    svp_status st = svp_deconv_rl(j->ops[worker], grid, &j->o, out);
+    if (st != SVP_OK) return svp_fail_context(st, "frame %d", f);
+    for (int y = 0; y < h; y++) {
+        double *row = frame->data + (size_t)y * w;
+        const double *src = out->data + (size_t)(y + m) * gw + m;
+        for (int x = 0; x < w; x++) row[x] = isfinite(row[x]) ? src[x] : NAN; /* missing stays */
+    }
+    return SVP_OK;
+}
+
+static svp_status check_cube(const svp_blur *blur, const svp_cube *cube, int margin)
+{
+    if (!blur) return svp_fail(SVP_ERR_INVALID, "cube deconvolution: no operator");
+    if (!cube || !cube->frame || cube->n_freq < 1)
+        return svp_fail(SVP_ERR_INVALID, "cube deconvolution: no cube (or no frame)");
+    if (margin < 0)
+        return svp_fail(SVP_ERR_INVALID, "cube deconvolution: margin %d (must be >= 0)", margin);
+    const int w = cube->width, h = cube->height;
+    for (int f = 0; f < cube->n_freq; f++)
+        if (!cube->frame[f] || !cube->frame[f]->data || cube->frame[f]->width != w ||
+            cube->frame[f]->height != h)
+            return svp_fail(SVP_ERR_SIZE, "cube deconvolution: frame %d is missing or not %d x %d",
+                            f, w, h);
+    if (svp_blur_width(blur) != w + 2 * margin || svp_blur_height(blur) != h + 2 * margin)
+        return svp_fail(SVP_ERR_SIZE,
+                        "cube deconvolution: the operator is %d x %d, but %d x %d frames with a "
+                        "margin of %d need %d x %d",
+                        svp_blur_width(blur), svp_blur_height(blur), w, h, margin, w + 2 * margin,
+                        h + 2 * margin);
+    return SVP_OK;
+}
+
+svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
+                               const svp_deconv_options *options, svp_progress_fn progress,
+                               void *progress_user)
+{
+    SVP_CHECK(check_cube(blur, cube, margin));
+    cube_job j = {.cube = cube, .margin = margin};
+    svp_deconv_defaults(&j.o);
+    if (options) j.o = *options;
+    j.o.progress = NULL; /* the frames report, not their iterations */
+    j.o.progress_user = NULL;
+    /* the frames over the threads, each on its own copy of the operator when it has one */
+    int workers = svp_get_threads() < cube->n_freq ? svp_get_threads() : cube->n_freq;
+    if (workers < 1 || !svp_blur_clonable(blur)) workers = 1;
+    const int gw = cube->width + 2 * margin, gh = cube->height + 2 * margin;
+    j.ops = calloc((size_t)workers, sizeof *j.ops);
+    j.grid = calloc((size_t)workers, sizeof *j.grid);
+    j.out = calloc((size_t)workers, sizeof *j.out);
+    svp_status st = j.ops && j.grid && j.out ? SVP_OK
+                                              : svp_fail(SVP_ERR_NOMEM, "cube deconvolution: out "
+                                                                        "of memory");
+    svp_fft_local_threads(1); /* a map's copy takes its plans when it is made */
+    for (int t = 0; t < workers && st == SVP_OK; t++) {
+        if (workers > 1) st = svp_blur_clone(blur, &j.ops[t]);
+        else j.ops[t] = blur;
+        if (st == SVP_OK) st = svp_image_new(gw, gh, &j.grid[t]);
+        if (st == SVP_OK) st = svp_image_new(gw, gh, &j.out[t]);
+    }
+    svp_fft_local_threads(0);
+    if (st == SVP_OK)
+        st = svp_items_parallel(cube->n_freq, workers, deconvolve_frame, &j, progress,
+                                progress_user, 0, 1);
+    for (int t = 0; t < workers && j.ops; t++) {
+        if (workers > 1) svp_blur_free(j.ops[t]);
+        if (j.grid) svp_image_free(j.grid[t]);
+        if (j.out) svp_image_free(j.out[t]);
+    }
+    free(j.ops);
+    free(j.grid);
+    free(j.out);
+    return st;
+}
