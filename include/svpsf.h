@@ -998,11 +998,13 @@ SVP_API svp_status svp_warp(const svp_image *moving, const double affine[6],
 SVP_API svp_status svp_affine_invert(const double affine[6], double inverse[6]);
 
 /* A sub-pixel translation by Fourier interpolation: out(x, y) = in(x − dx, y − dy), the
- * content moved by (+dx, +dy). The image is continued by its mirror image (period 2 width ×
- * 2 height, no jump at the edges) and its spectrum multiplied by e^{−iω·d} (at the Nyquist
- * frequency by cos(π d)); exact for a band-limited image, so sub-pixel shifts neither smooth
- * nor ring the way bilinear interpolation does (svp_warp). The |d| pixels next to an edge that
- * the shift brings in are the mirror image's, not data. NaN/Inf pixels are filled from their
+ * content moved by (+dx, +dy). The image is continued by 16 + ⌈|d|⌉ pixels each side by odd
+ * reflection about its edge pixels (value and slope continue), tapered to the mean of the two
+ * edge pixels so that the period closes smoothly (docs/model.md §10, "Drift"), and its
+ * spectrum multiplied by e^{−iω·d} (at the Nyquist frequency by cos(π d)); exact for a
+ * band-limited image, so sub-pixel shifts neither smooth nor ring the way bilinear
+ * interpolation does (svp_warp). The |d| pixels next to an edge that the shift brings in are
+ * extrapolated (linearly, by the odd reflection), not data. NaN/Inf pixels are filled from their
  * neighbours for the transform and out is NaN where the nearest source pixel was not finite.
  * |dx| < width and |dy| < height; in and out of one size, out may be in. */
 SVP_API svp_status svp_shift(const svp_image *in, double dx, double dy, svp_image *out);

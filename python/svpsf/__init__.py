@@ -957,6 +957,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         if not register:  # deconvolved in place: on a copy
             frames = [np.array(f, dtype=np.float64, order="C") for f in frames]
             cube.frame = imgs.array([imgs.view(f) for f in frames])
+        for f in frames:  # RL needs data >= 0: values below 0 taken as 0, as the program does
+            np.maximum(f, 0, out=f, where=np.isfinite(f))
     drift = info = None
     if register:
         ao = ffi.new("svp_align_options *")
