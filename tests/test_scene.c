@@ -654,6 +654,40 @@ static void test_cube_drift_register(void **state)
     assert_true(diff[2] < 0.02 * diff[1]);
 }
 
+/* correct: method cube deconvolves the cube's frames before the estimate (svp_cube_deconvolve):
+ * on a Lorentzian-fit scene (the fit of a blurred pixel's mixed dips is not the PL-weighted
+ * mean field T⁻¹ assumes) its B_z is closer to the truth than the apparent map and than T⁻¹
+ * (R, 75 iterations) on the fitted maps. Measured median |error| of B_z over the view:
+ * apparent 11 %, T⁻¹ 5.04 %, cube 3.54 %. A scene without the cube is refused. */
+static void test_cube_correction(void **state)
+{
+    (void)state;
+    svp_scene *s =
+        load("cubefix.yaml", CUBE_HEAD
+             "effects: {spectrum: {points: 60, estimator: lorentzian_fit}}\n"
+             "correct:\n"
+             "  - {method: r, iterations: 75, margin: auto, name: default}\n"
+             "  - {method: cube, iterations: 75, margin: auto, name: cube}\n"
+             "metrics: {masks: [{name: view}]}\n");
+    svp_scene_result *r = run_nowrite(s);
+    const double app = value(r, "B_z/view/apparent/median_abs_rel_err_pct");
+    const double t = value(r, "B_z/view/corrected_default/median_abs_rel_err_pct");
+    const double cube = value(r, "B_z/view/corrected_cube/median_abs_rel_err_pct");
+    print_message("Lorentzian-fit scene, B_z median |error| over the view: apparent %.3g %%, "
+                  "T^-1 %.3g %%, cube %.3g %%\n",
+                  app, t, cube);
+    assert_true(cube < app && cube < t);
+    assert_true(value(r, "correct/cube/seconds") > 0);
+    assert_true(test_all_finite(map(r, "B_z_corrected_cube")));
+    svp_scene_result_free(r);
+    svp_scene_free(s);
+    /* the method needs the cube */
+    svp_scene *bad = NULL;
+    const char *text = CUBE_HEAD "correct: {method: cube}\n";
+    assert_int_equal(svp_scene_load_string("nocube.yaml", text, strlen(text), &bad), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "method cube deconvolves the frames"));
+}
+
 /* The Lorentzian fit of a blurred cube whose contrast varies departs from the closed form
  * (which weights by the PL alone) where blurring mixes different contrasts. */
 static void test_cube_fit_contrast(void **state)
@@ -801,6 +835,7 @@ int main(void)
         cmocka_unit_test(test_cube_centroid_is_closed_form),
         cmocka_unit_test(test_cube_fit_contrast),
         cmocka_unit_test(test_cube_drift_register),
+        cmocka_unit_test(test_cube_correction),
         cmocka_unit_test(test_figure_diverging),
         cmocka_unit_test(test_outputs_written),
     };

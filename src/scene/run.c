@@ -43,6 +43,8 @@ typedef struct run_ctx {
     int cropped;
     int drift_stage, noise_stage; /* plan indices (cube path: timed inside the cube loop) */
     double drift_seconds, noise_seconds;
+    double cube_seconds[SCENE_MAX_CORRECT]; /* method cube: its deconvolutions and estimates */
+    int cube_margin[SCENE_MAX_CORRECT];
     scene_analysis analysis;
     int have_analysis;
 } run_ctx;
@@ -590,6 +592,99 @@ static svp_status cube_register(run_ctx *c, svp_cube *view_cube, const char *cn)
     return st;
 }
 
+/* The per-pixel estimate of a cube (centroid with the baseline, or the Lorentzian fit), the
+ * bias removed. */
+static svp_status cube_estimate(const svp_scene *s, const svp_odmr *odmr, const svp_cube *cube,
+                                const svp_image *baseline, double bias, svp_image *est,
+                                size_t *failed)
+{
+    const size_t n = (size_t)cube->width * cube->height;
+    *failed = 0;
+    svp_status st = s->estimator == 0
+                        ? svp_odmr_centroid(odmr, cube, baseline, 0, 0, est, NULL)
+                        : svp_odmr_fit(odmr, cube, NULL, est, NULL, NULL, NULL, failed);
+    for (size_t p = 0; p < n && st == SVP_OK; p++) est->data[p] -= bias;
+    return st;
+}
+
+/* The baseline of a cube: the mean of nend frames at each end. */
+static void cube_baseline(const svp_cube *cube, int nend, svp_image *baseline)
+{
+    const int nf = cube->n_freq;
+    for (size_t p = 0; p < (size_t)cube->width * cube->height; p++) {
+        double b = 0;
+        for (int e = 0; e < nend; e++) b += cube->frame[e]->data[p] + cube->frame[nf - 1 - e]->data[p];
+        baseline->data[p] = b / (2 * nend);
+    }
+}
+
+static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, int w, int h,
+                                 int *m);
+static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, svp_blur **out);
+
+/* Correction j of method cube, component k: a copy of the view's cube deconvolved frame by
+ * frame (svp_cube_deconvolve, RL with the correction's iterations, on the view plus its
+ * margin, the assumed PSF if it has one), then estimated as the apparent map was: the maps
+ * B_<c>_corrected_<name> and, for the first component, pl_corrected_<name> (the deconvolved
+ * cube's baseline) and validity_<name> (1; 0 where the estimate is not finite). */
+static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
+                               const svp_cube *view_cube, double bias)
+{
+    const svp_scene *s = c->s;
+    const scene_correct *cr = &s->correct[j];
+    const scene_psf *psf = cr->has_psf ? &cr->psf : &s->psf;
+    const int w = view_cube->width, h = view_cube->height, nf = view_cube->n_freq;
+    const size_t n = (size_t)w * h;
+    const char *cn = scene_component_name(s->field_comp[k]);
+    const double t0 = now_s();
+    int m = 0;
+    SVP_CHECK(correct_margin(cr, psf, w, h, &m));
+    c->cube_margin[j] = m;
+    svp_cube *copy = NULL;
+    svp_blur *op = NULL;
+    svp_image *base = NULL;
+    svp_status st = svp_cube_new(w, h, nf, view_cube->freq, &copy);
+    for (int f = 0; f < nf && st == SVP_OK; f++)
+        memcpy(copy->frame[f]->data, view_cube->frame[f]->data, n * sizeof(double));
+    if (st == SVP_OK) st = make_blur(c, psf, w + 2 * m, h + 2 * m, &op);
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    o.iterations = cr->iterations;
+    o.single_precision = cr->single;
+    o.acceleration = cr->accelerated ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
+    if (st == SVP_OK) st = svp_cube_deconvolve(op, copy, m, &o, NULL, NULL);
+    if (st == SVP_OK) st = svp_image_new(w, h, &base);
+    char name[96];
+    snprintf(name, sizeof name, "B_%s_corrected_%s", cn, cr->name);
+    svp_image *est = st == SVP_OK ? new_map(c, name, w, h) : NULL;
+    if (st == SVP_OK && !est) st = svp_fail(SVP_ERR_NOMEM, "out of memory");
+    size_t failed = 0;
+    if (st == SVP_OK) {
+        cube_baseline(copy, nf >= 12 ? 3 : 1, base);
+        st = cube_estimate(s, odmr, copy, base, bias, est, &failed);
+    }
+    if (st == SVP_OK && k == 0) {
+        snprintf(name, sizeof name, "pl_corrected_%s", cr->name);
+        svp_image *pl = new_map(c, name, w, h);
+        snprintf(name, sizeof name, "validity_%s", cr->name);
+        svp_image *valid = new_map(c, name, w, h);
+        if (!pl || !valid) st = svp_fail(SVP_ERR_NOMEM, "out of memory");
+        for (size_t p = 0; p < n && st == SVP_OK; p++) {
+            pl->data[p] = base->data[p];
+            valid->data[p] = isfinite(est->data[p]) ? 1 : 0;
+        }
+    }
+    /* outputs are never NaN: a failed fit's pixel gets 0 with validity 0 */
+    for (size_t p = 0; p < n && st == SVP_OK; p++)
+        if (!isfinite(est->data[p])) est->data[p] = 0;
+    svp_image_free(base);
+    svp_blur_free(op);
+    svp_cube_free(copy);
+    c->cube_seconds[j] += now_s() - t0;
+    if (st != SVP_OK) return svp_fail_context(st, "correction '%s' (%s)", cr->name, cr->where);
+    return value(c, (double)failed, "correct/%s/fits_not_converged_%s", cr->name, cn);
+}
+
 static svp_status stage_cube(run_ctx *c)
 {
     const svp_scene *s = c->s;
@@ -699,12 +794,7 @@ static svp_status stage_cube(run_ctx *c)
         if (s->drift_register) st = cube_register(c, view_cube, cn);
         if (st != SVP_OK) break;
         /* the off-resonance baseline (the measured PL map): mean of the end frames */
-        for (size_t p = 0; p < nview; p++) {
-            double b = 0;
-            for (int e = 0; e < nend; e++)
-                b += view_cube->frame[e]->data[p] + view_cube->frame[nfreq - 1 - e]->data[p];
-            baseline->data[p] = b / (2 * nend);
-        }
+        cube_baseline(view_cube, nend, baseline);
         if (k == 0) memcpy(pl_app->data, baseline->data, nview * sizeof(double));
         char name[64];
         snprintf(name, sizeof name, "B_%s_apparent", cn);
@@ -714,16 +804,14 @@ static svp_status stage_cube(run_ctx *c)
             break;
         }
         double t_est = now_s();
-        if (s->estimator == 0) {
-            st = svp_odmr_centroid(&odmr, view_cube, baseline, 0, 0, est, NULL);
-        } else {
-            size_t failed = 0;
-            st = svp_odmr_fit(&odmr, view_cube, NULL, est, NULL, NULL, NULL, &failed);
-            total_failed += (double)failed;
-            if (st == SVP_OK) st = value(c, (double)failed, "cube/%s/fits_not_converged", cn);
-        }
-        for (size_t p = 0; p < nview && st == SVP_OK; p++) est->data[p] -= bias;
+        size_t failed = 0;
+        st = cube_estimate(s, &odmr, view_cube, baseline, bias, est, &failed);
+        total_failed += (double)failed;
+        if (st == SVP_OK && s->estimator)
+            st = value(c, (double)failed, "cube/%s/fits_not_converged", cn);
         if (st == SVP_OK) st = value(c, now_s() - t_est, "cube/%s/estimate_seconds", cn);
+        for (int j = 0; j < s->n_correct && st == SVP_OK; j++)
+            if (s->correct[j].cube) st = cube_correct(c, j, k, &odmr, view_cube, bias);
     }
     svp_cube_free(one);
     svp_cube_free(view_cube);
@@ -857,6 +945,11 @@ static svp_status stage_correct(run_ctx *c)
     const scene_correct *cr = &s->correct[k];
     const int w = s->view_w, h = s->view_h;
     const scene_psf *psf = cr->has_psf ? &cr->psf : &s->psf;
+    if (cr->cube) { /* done in the cube loop (stage_cube): its time and margin */
+        SVP_CHECK(value(c, (double)c->cube_margin[k], "correct/%s/margin_px", cr->name));
+        SVP_CHECK(value(c, 0, "correct/%s/doubts", cr->name));
+        return value(c, c->cube_seconds[k], "correct/%s/seconds", cr->name);
+    }
     int m = 0;
     SVP_CHECK(correct_margin(cr, psf, w, h, &m));
     const double t0 = now_s(); /* the correction's time, its operator's build included */
@@ -1301,6 +1394,13 @@ svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scen
                     if (svp_scene_result_value(r, key, &v)) est += v;
                 }
                 double moved = est + c.drift_seconds + c.noise_seconds;
+                /* a cube correction's deconvolutions and estimates: its correct stage's */
+                for (int k = 0; k < s->n_stages; k++)
+                    if (s->plan[k].stage == SCENE_STAGE_CORRECT &&
+                        s->correct[s->plan[k].index].cube) {
+                        r->seconds[k] += c.cube_seconds[s->plan[k].index];
+                        moved += c.cube_seconds[s->plan[k].index];
+                    }
                 r->seconds[cube_stage] = fmax(0, r->seconds[cube_stage] - moved);
                 if (estimate_stage >= 0) r->seconds[estimate_stage] += est;
                 if (c.drift_stage >= 0) r->seconds[c.drift_stage] += c.drift_seconds;

@@ -994,15 +994,21 @@ static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c,
                                        "name",   "margin",     "precision", "acceleration", NULL};
     static const char *const precisions[] = {"double", "single", NULL};
     static const char *const accelerations[] = {"none", "biggs-andrews", NULL};
-    static const char *const methods[] = {"rw", "r", "w", "rl_signed", NULL};
+    static const char *const methods[] = {"rw", "r", "w", "rl_signed", "cube", NULL};
     SVP_CHECK(check_keys(c, what, keys));
     where_of(c, out->where);
     int m = 0;
     SVP_CHECK(get_choice(c, what, "method", methods, &m, 1));
     out->method = m == 0   ? SVP_METHOD_RW
-                  : m == 1 ? SVP_METHOD_R
                   : m == 2 ? SVP_METHOD_W
-                           : SVP_METHOD_RL_SIGNED;
+                  : m == 3 ? SVP_METHOD_RL_SIGNED
+                           : SVP_METHOD_R;
+    out->cube = m == 4;
+    if (out->cube && !s->spectrum)
+        return svp_yaml_fail(c, SVP_ERR_INVALID,
+                             "%s: method cube deconvolves the frames of the ODMR cube, which "
+                             "needs effects.spectrum",
+                             what);
     snprintf(out->name, sizeof out->name, "%s", methods[m]);
     SVP_CHECK(get_name(c, what, out->name));
     /* the reference study's simulation settings (docs/model.md §12) */

@@ -115,6 +115,9 @@ typedef struct scene_correct {
     int accelerated; /* 1: Biggs–Andrews extrapolation for RL (as `--acceleration biggs-andrews`) */
     int has_psf; /* an assumed PSF different from the scene's */
     scene_psf psf;
+    int cube;    /* method cube: every frame of the cube deconvolved (RL, `iterations`, the
+                    margin) before the estimate (svp_cube_deconvolve; fit-odmr --psf), not T⁻¹
+                    on the estimated maps; needs effects.spectrum */
     char where[SCENE_WHERE];
 } scene_correct;
 
