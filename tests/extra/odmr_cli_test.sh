@@ -139,6 +139,15 @@ echo "fit-odmr --psf:"
 run 0 correct --pl bfit/pl.npy --field bfit/field.npy --psf gauss.yaml -o bcor --format npy --fft estimate --quiet
 echo "correct on the fitted maps (expected outside the tolerance):"
 "$make" compare bcor/field.npy btruth.npy 1 3e-6 60e-6 && fail "T^-1 on the fitted maps is as good as --psf: the test shows nothing"
+# a PSF map whose four nodes hold that Gaussian: the single PSF's field with --margin 0
+# (measured 5e-17 T apart; a map gets no margin)
+printf 'pixel_um: 1\nimage: {width: 64, height: 56}\nmodel: gaussian\nkind: grid\nnodes: {nx: 2, ny: 2}\nnode_psfs:\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n' >gmap.yaml
+run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml -o bmap --format npy --quiet
+run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gauss.yaml --margin 0 -o bdec0 --format npy --quiet
+echo "fit-odmr --psf MAP against the single PSF:"
+"$make" compare bmap/field.npy bdec0/field.npy 1 1e-12 1e-12 || fail "fit-odmr --psf MAP differs from its single PSF"
+run 1 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml --margin 5 -o bad16
+expect_in err "--margin needs one PSF (gmap.yaml is a space-variant PSF map)"
 run 1 fit-odmr blur.tif --frequencies bfreq.txt --iterations 10 -o bad14
 expect_in err "--iterations needs --psf"
 run 1 fit-odmr blur.tif --frequencies bfreq.txt --psf nosuch.yaml -o bad15
@@ -164,7 +173,7 @@ expect_in err "--frequencies is required"
 awk 'NR == 50 {print 2.9e9; next} {print}' freq.txt >freq_bad.txt
 run 1 fit-odmr stack.tif --frequencies freq_bad.txt -o bad6
 expect_in err "freq_bad.txt: not monotonic"
-for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8 bad9 bad10 bad11 bad12 bad13 bad14 bad15; do [ -e "$d" ] && fail "$d was created by a refused run"; done
+for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8 bad9 bad10 bad11 bad12 bad13 bad14 bad15 bad16; do [ -e "$d" ] && fail "$d was created by a refused run"; done
 cp fit/field.npy field.before
 run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
 expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"

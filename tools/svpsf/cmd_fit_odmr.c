@@ -91,15 +91,19 @@ static void print_help(const cli_run *run, FILE *out)
           "                        position of the stack's frame K (0 = the first), e.g. where\n"
           "                        a reference image was taken\n"
           "blur (docs/model.md section 10, \"Blur before the estimate\"):\n"
-          "  --psf FILE            deconvolve every frame by this PSF (a PSF file or a kernel\n"
-          "                        image, as `correct` takes) before the fit: Richardson-Lucy\n"
-          "                        on the frame plus a margin, the margin's light explained by\n"
-          "                        sources outside the view. The fit then sees each pixel's own\n"
-          "                        spectrum, where T^-1 on fitted maps (`correct`) assumes the\n"
-          "                        PL-weighted mean field, which a fit of mixed dips is not\n"
+          "  --psf FILE            deconvolve every frame by this PSF (a PSF file, a PSF map\n"
+          "                        or a kernel image, as `correct` takes) before the fit:\n"
+          "                        Richardson-Lucy on the frame plus a margin, the margin's\n"
+          "                        light explained by sources outside the view. The fit then\n"
+          "                        sees each pixel's own spectrum, where T^-1 on fitted maps\n"
+          "                        (`correct`) assumes the PL-weighted mean field, which a fit\n"
+          "                        of mixed dips is not\n"
           "  --iterations N        Richardson-Lucy iterations per frame (default 75)\n"
-          "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo)\n"
-          "outputs:\n"
+          "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo\n"
+          "                        or a PSF map)\n",
+          out);
+    cli_print_variant_help(out, 1e-2);
+    fputs("outputs:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n"
           "  --unit T|mT|uT|nT     unit of the field maps written (default T)\n"
           "  --failed nan|keep     pixels whose fit did not converge: NaN in the field maps\n"
@@ -183,6 +187,8 @@ struct fit_odmr_args {
     int align, drift_degree, drift_degree_given;              /* --register, --drift-degree */
     int align_to, align_to_given;                             /* --align-to: -1 mean, k frame */
     const char *psf_path;                                     /* --psf */
+    svp_variant_options variant; /* a PSF map's operator (--nodes, --rank, ...) */
+    int variant_given;
     int iterations, iterations_given, margin, margin_auto, margin_given;
     svp_odmr od;              /* --zero-field, --gamma, --linewidth */
     svp_odmr_fit_options opt; /* --baseline-frames, --max-iterations; lines and line */
@@ -260,7 +266,12 @@ static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
             return 0;
         }
         return cli_parse_int(run, "--align-to", optarg, 0, 1000000000, &a->align_to);
-    default: return cli_error(run, "internal: option %d", c);
+    default:
+        if (c >= CLI_OPT_NODES && c <= CLI_OPT_REGIONS) {
+            a->variant_given = 1;
+            return cli_variant_option(run, &a->variant, c, optarg);
+        }
+        return cli_error(run, "internal: option %d", c);
     }
 }
 
@@ -284,6 +295,7 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
         {"psf", required_argument, NULL, OPT_PSF},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
         {"margin", required_argument, NULL, OPT_MARGIN},
+        CLI_VARIANT_LONGOPTS,
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
@@ -291,6 +303,8 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
     a->align_to = -1;
     a->iterations = 75;
     a->margin_auto = 1;
+    cli_variant_defaults(&a->variant);
+    a->variant.tolerance = 1e-2; /* as correct's: the deconvolution's own error dominates */
     svp_odmr_defaults(&a->od);
     svp_odmr_fit_defaults(&a->opt);
     int c;
@@ -310,8 +324,11 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
     if (a->drift_degree_given && !a->align)
         return cli_error(run, "--drift-degree needs --register");
     if (a->align_to_given && !a->align) return cli_error(run, "--align-to needs --register");
-    if ((a->iterations_given || a->margin_given) && !a->psf_path)
-        return cli_error(run, "--%s needs --psf", a->iterations_given ? "iterations" : "margin");
+    if ((a->iterations_given || a->margin_given || a->variant_given) && !a->psf_path)
+        return cli_error(run, "--%s needs --psf",
+                         a->iterations_given ? "iterations"
+                         : a->margin_given   ? "margin"
+                                             : "nodes / --rank / --regions / --operator-tol");
     a->opt.lines = a->lines == 1   ? SVP_ODMR_LINES_TWO
                    : a->lines == 2 ? SVP_ODMR_LINES_ONE
                                    : SVP_ODMR_LINES_PAIR;
@@ -404,11 +421,21 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
                              job->nf - 1);
     }
     if (a->psf_path) {
-        if ((code = cli_psf_load(run, a->psf_path, &job->psf))) return code;
+        if ((code = cli_psf_load_map(run, a->psf_path, &a->variant, &job->psf))) return code;
         job->psf_loaded = 1;
         job->psf.boundary = SVP_BOUNDARY_ZERO;
-        if (a->margin_auto) job->margin = cli_auto_margin(&job->psf, job->w, job->h);
+        if (a->variant_given && !job->psf.field)
+            cli_note(run, "--nodes / --rank / --regions ignored: %s is a single PSF, not a "
+                     "space-variant map", a->psf_path);
+        if (job->psf.field && !a->margin_auto && a->margin > 0)
+            return cli_error(run, "--margin needs one PSF (%s is a space-variant PSF map)",
+                             a->psf_path);
+        if (job->psf.field) job->margin = 0; /* a map is for the view: no margin */
+        else if (a->margin_auto) job->margin = cli_auto_margin(&job->psf, job->w, job->h);
         else job->margin = a->margin;
+        if ((code = cli_psf_check(run, &job->psf, job->w + 2 * job->margin,
+                                  job->h + 2 * job->margin)))
+            return code;
         svp_status ms = svp_correct_check_margin(job->margin, job->w, job->h);
         if (ms != SVP_OK) return cli_fail(run, ms, a->psf_path);
     }
@@ -449,6 +476,9 @@ static int fit_odmr_deconvolve(cli_run *run, const struct fit_odmr_args *a,
     cli_stage_begin(run, "deconvolve");
     svp_blur *blur = NULL;
     const int m = job->margin;
+    /* a map's representation is chosen for this many H + Hᵀ pairs */
+    const long pairs = (long)a->iterations * job->nf;
+    job->psf.variant.applications = pairs < 1000000 ? (int)pairs : 1000000;
     int code = cli_psf_blur(run, &job->psf, job->w + 2 * m, job->h + 2 * m, SVP_BOUNDARY_ZERO,
                             &blur);
     if (code) return code;
