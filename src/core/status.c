@@ -1,4 +1,5 @@
-/* Status codes and the thread-local error message. */
+/* Status codes and the thread-local error message; the parallel runner of independent items,
+ * which carries each item's error message back to the calling thread (svp_items_parallel). */
 #include "internal.h"
 
 #include <omp.h>
