@@ -147,6 +147,11 @@ typedef struct svp_stack {
  * page 1 is 32 x 32". */
 SVP_API svp_status svp_stack_read(const char *path, svp_stack **out);
 SVP_API void svp_stack_free(svp_stack *stack);
+/* Writes frames as a float64 .npy of shape (n_frames, height, width) (the form svp_stack_read
+ * and numpy.load read), atomically; an existing file only with overwrite. The name must end in
+ * .npy (SVP_ERR_INVALID); frames of another size than the first are SVP_ERR_SIZE. */
+SVP_API svp_status svp_stack_write(const char *path, const svp_image *const *frames, int n_frames,
+                                   int overwrite);
 
 /* MATLAB .mat files (docs/cli.md "MATLAB / QDMlab files"): the v5/v7 MAT-files MATLAB's save
  * writes by default, as QDMlab's maps are (B111dataToPlot.mat, Bz_uc0.mat) and its raw ODMR

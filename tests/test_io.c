@@ -879,6 +879,36 @@ static void test_npy_stacks(void **state)
              "%s: 4-D array of shape (1, 5, 3, 4): expected a 2-D image (height, width) or a 3-D "
              "stack (frames, height, width)", path);
     ASSERT_FAILS(svp_stack_read(path, &s), SVP_ERR_FORMAT, expect);
+    /* svp_stack_write: the header numpy writes for (5, 3, 4) float64, C order, and the frames
+     * read back bit for bit; no overwrite without asking; only .npy; frames of one size */
+    svp_image *fr[F];
+    for (int f = 0; f < F; f++) {
+        fr[f] = test_image(W, H);
+        memcpy(fr[f]->data, data + (size_t)f * H * W, H * W * sizeof(double));
+    }
+    path = tmp_path("written.npy");
+    ASSERT_OK(svp_stack_write(path, (const svp_image *const *)fr, F, 0));
+    FILE *fp = fopen(path, "rb");
+    char head[128] = {0};
+    assert_non_null(fp);
+    assert_true(fread(head, 1, 127, fp) == 127);
+    fclose(fp);
+    assert_non_null(strstr(head + 10, "'shape': (5, 3, 4)"));
+    assert_non_null(strstr(head + 10, "'descr': '<f8'"));
+    ASSERT_OK(svp_stack_read(path, &s));
+    assert_int_equal(s->n_frames, F);
+    for (int f = 0; f < F; f++) assert_memory_equal(s->frame[f]->data, fr[f]->data, H * W * 8);
+    svp_stack_free(s);
+    assert_int_not_equal(svp_stack_write(path, (const svp_image *const *)fr, F, 0), SVP_OK);
+    ASSERT_OK(svp_stack_write(path, (const svp_image *const *)fr, F, 1));
+    assert_int_equal(svp_stack_write(tmp_path("written.tif"), (const svp_image *const *)fr, F, 0),
+                     SVP_ERR_INVALID);
+    svp_image *odd = test_image(W + 1, H);
+    svp_image *mixed[2] = {fr[0], odd};
+    assert_int_equal(svp_stack_write(tmp_path("mixed.npy"), (const svp_image *const *)mixed, 2, 0),
+                     SVP_ERR_SIZE);
+    svp_image_free(odd);
+    for (int f = 0; f < F; f++) svp_image_free(fr[f]);
 }
 
 static void test_colour_png_and_channels(void **state)

@@ -580,35 +580,67 @@ static svp_status read_npy(const char *path, const unsigned char *bytes, size_t 
     return SVP_OK;
 }
 
-static svp_status write_npy(const char *path, const svp_image *img, int overwrite)
+/* float64 little-endian .npy of n frames of one size: shape (height, width) for one image
+ * (stack 0), (n, height, width) for a stack. */
+static svp_status write_npy_frames(const char *path, const svp_image *const *frames, int n,
+                                   int stack, int overwrite)
 {
-    char header[160];
-    int n = snprintf(header, sizeof header,
-                     "{'descr': '<f8', 'fortran_order': False, 'shape': (%d, %d), }", img->height,
-                     img->width);
+    const svp_image *img = frames[0];
+    char header[192];
+    int hn = stack ? snprintf(header, sizeof header,
+                              "{'descr': '<f8', 'fortran_order': False, 'shape': (%d, %d, %d), }",
+                              n, img->height, img->width)
+                   : snprintf(header, sizeof header,
+                              "{'descr': '<f8', 'fortran_order': False, 'shape': (%d, %d), }",
+                              img->height, img->width);
     /* pad with spaces and a final newline so the data starts at a multiple of 64 bytes */
-    size_t header_len = (size_t)n + 1;
+    size_t header_len = (size_t)hn + 1;
     size_t total_header = (10 + header_len + 63) / 64 * 64;
     header_len = total_header - 10;
-    size_t count = (size_t)img->width * img->height;
-    size_t size = total_header + count * 8;
+    const size_t count = (size_t)img->width * img->height;
+    const size_t size = total_header + (size_t)n * count * 8;
     unsigned char *buf = malloc(size);
     if (!buf) return svp_fail(SVP_ERR_NOMEM, "%s: out of memory", path);
     memcpy(buf, "\x93NUMPY\x01\x00", 8);
     buf[8] = (unsigned char)(header_len & 0xff);
     buf[9] = (unsigned char)(header_len >> 8);
-    memcpy(buf + 10, header, (size_t)n);
-    memset(buf + 10 + n, ' ', header_len - (size_t)n - 1);
+    memcpy(buf + 10, header, (size_t)hn);
+    memset(buf + 10 + hn, ' ', header_len - (size_t)hn - 1);
     buf[total_header - 1] = '\n';
-    int little = host_is_little_endian();
-    for (size_t k = 0; k < count; k++) {
-        unsigned char b[8];
-        memcpy(b, &img->data[k], 8);
-        for (int i = 0; i < 8; i++) buf[total_header + 8 * k + i] = little ? b[i] : b[7 - i];
-    }
+    const int little = host_is_little_endian();
+    unsigned char *out = buf + total_header;
+    for (int f = 0; f < n; f++)
+        for (size_t k = 0; k < count; k++, out += 8) {
+            unsigned char b[8];
+            memcpy(b, &frames[f]->data[k], 8);
+            for (int i = 0; i < 8; i++) out[i] = little ? b[i] : b[7 - i];
+        }
     svp_status st = svp_io_atomic_write_bytes(path, buf, size, overwrite);
     free(buf);
     return st;
+}
+
+static svp_status write_npy(const char *path, const svp_image *img, int overwrite)
+{
+    return write_npy_frames(path, &img, 1, 0, overwrite);
+}
+
+svp_status svp_stack_write(const char *path, const svp_image *const *frames, int n_frames,
+                           int overwrite)
+{
+    if (!path || !*path) return svp_fail(SVP_ERR_INVALID, "svp_stack_write: no path given");
+    if (!frames || n_frames < 1)
+        return svp_fail(SVP_ERR_INVALID, "%s: no frames to write", path);
+    const char *dot = strrchr(path, '.');
+    if (!dot || strcmp(dot, ".npy") != 0)
+        return svp_fail(SVP_ERR_INVALID, "%s: a stack is written as a 3-D .npy (the name must "
+                        "end in .npy)", path);
+    for (int f = 0; f < n_frames; f++)
+        if (!frames[f] || !frames[f]->data || frames[f]->width != frames[0]->width ||
+            frames[f]->height != frames[0]->height)
+            return svp_fail(SVP_ERR_SIZE, "%s: frame %d is missing or not the first frame's size",
+                            path, f);
+    return write_npy_frames(path, frames, n_frames, 1, overwrite);
 }
 
 /* ---- numpy.savetxt text ------------------------------------------------------------------------ */

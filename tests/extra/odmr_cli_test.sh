@@ -100,6 +100,15 @@ awk -F, 'NR == 2 {e = (($3 + 0.2) ^ 2 + ($4 - 0.125) ^ 2) ^ 0.5}
          NR == 101 {e2 = (($3 - 0.2) ^ 2 + ($4 + 0.125) ^ 2) ^ 0.5}
          END {printf "drift.csv: first frame off by %.4f px, last by %.4f px\n", e, e2;
               exit !(NR == 101 && e < 0.01 && e2 < 0.01)}' aligned/drift.csv || fail "drift.csv shifts off"
+# --save-stack: the aligned stack as fitted, a 3-D .npy whose own fit gives the same field bit
+# for bit; a name without .npy is refused
+run 0 fit-odmr drift.tif --frequencies dfreq.txt --linewidth 4e6 --register --save-stack aligned.npy -o aligned_s --format npy --quiet
+run 0 fit-odmr aligned.npy --frequencies dfreq.txt --linewidth 4e6 -o refit --format npy --quiet
+cmp -s aligned_s/field.npy refit/field.npy || fail "the saved aligned stack does not fit to the same field"
+run 1 fit-odmr drift.tif --frequencies dfreq.txt --register --save-stack aligned.tif -o bad17
+expect_in err "--save-stack aligned.tif: the stack is written as a 3-D .npy"
+run 1 fit-odmr drift.tif --frequencies dfreq.txt --register --save-stack aligned.npy -o bad18
+expect_in err "aligned.npy exists"
 # --align-to 0: the frames go to the first frame's position: its shift is 0, the last's
 # (0.4, -0.25)
 run 0 fit-odmr drift.tif --frequencies dfreq.txt --linewidth 4e6 --register --align-to 0 -o aligned0 --format npy --quiet
@@ -173,7 +182,7 @@ expect_in err "--frequencies is required"
 awk 'NR == 50 {print 2.9e9; next} {print}' freq.txt >freq_bad.txt
 run 1 fit-odmr stack.tif --frequencies freq_bad.txt -o bad6
 expect_in err "freq_bad.txt: not monotonic"
-for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8 bad9 bad10 bad11 bad12 bad13 bad14 bad15 bad16; do [ -e "$d" ] && fail "$d was created by a refused run"; done
+for d in bad1 bad2 bad3 bad4 bad5 bad6 bad7 bad8 bad9 bad10 bad11 bad12 bad13 bad14 bad15 bad16 bad17 bad18; do [ -e "$d" ] && fail "$d was created by a refused run"; done
 cp fit/field.npy field.before
 run 1 fit-odmr stack.tif --frequencies freq.txt --lines two -o fit --format npy --quiet
 expect_in err "fit/field.npy exists, and 13 more of the 14 outputs (use --force to overwrite)"

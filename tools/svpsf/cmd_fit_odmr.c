@@ -25,7 +25,8 @@ enum {
     OPT_ALIGN_TO,
     OPT_PSF,
     OPT_ITERATIONS,
-    OPT_MARGIN
+    OPT_MARGIN,
+    OPT_SAVE_STACK
 };
 
 static const char *const lines_names[] = {"pair", "two", "one", NULL};
@@ -106,6 +107,9 @@ static void print_help(const cli_run *run, FILE *out)
     fputs("outputs:\n"
           "  -o, --output DIR      output folder, created when missing (required)\n"
           "  --unit T|mT|uT|nT     unit of the field maps written (default T)\n"
+          "  --save-stack FILE.npy  also write the stack as fitted (after --register and\n"
+          "                        --psf) as a float64 .npy (frames, height, width), in the\n"
+          "                        stack's order, for other tools\n"
           "  --failed nan|keep     pixels whose fit did not converge: NaN in the field maps\n"
           "                        (default; `correct` treats them as missing data) or the\n"
           "                        last parameters\n",
@@ -188,6 +192,7 @@ struct fit_odmr_args {
     int align_to, align_to_given;                             /* --align-to: -1 mean, k frame */
     const char *psf_path;                                     /* --psf */
     svp_variant_options variant; /* a PSF map's operator (--nodes, --rank, ...) */
+    const char *save_stack;      /* --save-stack FILE.npy */
     int variant_given;
     int iterations, iterations_given, margin, margin_auto, margin_given;
     svp_odmr od;              /* --zero-field, --gamma, --linewidth */
@@ -203,7 +208,7 @@ struct fit_odmr_job {
     double *freq;       /* increasing, Hz */
     svp_image **frames; /* in the order of freq */
     svp_image *img[N_MAPS];
-    const char *paths[N_MAPS], *summary_path, *drift_path;
+    const char *paths[N_MAPS], *summary_path, *drift_path, *stack_out;
     size_t n_failed;
     double fit_seconds;
     double *shift_x, *shift_y; /* --register: each frame's, in the order of freq */
@@ -252,6 +257,7 @@ static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
         a->drift_degree_given = 1;
         return cli_parse_int(run, "--drift-degree", optarg, -1, 5, &a->drift_degree);
     case OPT_PSF: a->psf_path = optarg; return 0;
+    case OPT_SAVE_STACK: a->save_stack = optarg; return 0;
     case OPT_ITERATIONS:
         a->iterations_given = 1;
         return cli_parse_int(run, "--iterations", optarg, 1, 1000000, &a->iterations);
@@ -293,6 +299,7 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
         {"drift-degree", required_argument, NULL, OPT_DRIFT_DEGREE},
         {"align-to", required_argument, NULL, OPT_ALIGN_TO},
         {"psf", required_argument, NULL, OPT_PSF},
+        {"save-stack", required_argument, NULL, OPT_SAVE_STACK},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
         {"margin", required_argument, NULL, OPT_MARGIN},
         CLI_VARIANT_LONGOPTS,
@@ -419,6 +426,13 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
         if (a->align_to >= job->nf)
             return cli_error(run, "--align-to %d: the stack's frames are 0 to %d", a->align_to,
                              job->nf - 1);
+    }
+    if (a->save_stack) {
+        const char *dot = strrchr(a->save_stack, '.');
+        if (!dot || strcmp(dot, ".npy") != 0)
+            return cli_error(run, "--save-stack %s: the stack is written as a 3-D .npy (the name "
+                             "must end in .npy)", a->save_stack);
+        job->stack_out = cli_output_file(run, "stack", a->save_stack);
     }
     if (a->psf_path) {
         if ((code = cli_psf_load_map(run, a->psf_path, &a->variant, &job->psf))) return code;
@@ -645,6 +659,15 @@ static int fit_odmr_write(cli_run *run, const struct fit_odmr_args *a, struct fi
     for (int k = 0; k < 13 && !code; k++)
         if (job->paths[k]) code = cli_write_image(run, job->paths[k], job->img[k]);
     if (!code && job->drift_path) code = fit_odmr_write_drift(run, job);
+    if (!code && job->stack_out) {
+        /* the frames as fitted (aligned, deconvolved), in the stack's order */
+        const svp_image **frames = malloc((size_t)nf * sizeof *frames);
+        if (!frames) return cli_error(run, "out of memory");
+        for (int k = 0; k < nf; k++) frames[k] = job->frames[job->decreasing ? nf - 1 - k : k];
+        svp_status st = svp_stack_write(job->stack_out, frames, nf, run->force);
+        free(frames);
+        if (st != SVP_OK) code = cli_fail(run, st, job->stack_out);
+    }
     if (!code) code = cli_summary_write(run, job->summary_path);
     if (code) return code;
     cli_stage_end(run);
