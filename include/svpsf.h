@@ -1758,13 +1758,14 @@ SVP_API svp_status svp_cube_align(svp_cube *cube, const svp_align_options *optio
  * built for the frames plus `margin` pixels per side (zero boundary); each frame is
  * estimated on that grid with the margin missing (NaN: the data term over the frame only, so
  * light from outside the view is explained by the margin, as svp_correct_options.margin does),
- * and the frame's own missing pixels stay NaN. Frames must be >= 0 where finite (RL; the
- * error names the frame). With two or more threads and an operator svp_blur_clone can copy
+ * and the frame's own missing pixels stay NaN. RL needs data >= 0: a finite value below 0
+ * (noise about a zero level, a subtracted background) is taken as 0, and *n_negative (may be
+ * NULL) counts them over the cube. With two or more threads and an operator svp_blur_clone can copy
  * (invariant, or a map's tent, low-rank or region operator in double precision) the frames go
  * to the threads, each on its own copy with one-thread FFT plans: the same result for any
  * thread count. Progress once per frame, from the calling thread. */
 SVP_API svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
-                                       const svp_deconv_options *options,
+                                       const svp_deconv_options *options, size_t *n_negative,
                                        svp_progress_fn progress, void *progress_user);
 
 typedef struct svp_odmr {

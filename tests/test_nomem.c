@@ -719,7 +719,7 @@ static svp_status cubedec_call(void *user)
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.iterations = 5;
-    if (st == SVP_OK) st = svp_cube_deconvolve(op, c->work, c->margin, &o, NULL, NULL);
+    if (st == SVP_OK) st = svp_cube_deconvolve(op, c->work, c->margin, &o, NULL, NULL, NULL);
     svp_blur_free(op);
     return st;
 }

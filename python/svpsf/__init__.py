@@ -903,7 +903,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     frame (Richardson–Lucy, `iterations` each; svp_cube_deconvolve, `svpsf fit-odmr --psf`,
     docs/model.md §10 "Blur before the estimate") on a copy before the fit; margin: pixels per
     side whose light comes from outside the view, or 'auto' (a PSF's reach, 0 with a halo;
-    0 for anything else).
+    0 for anything else). Values below 0 are taken as 0 (RL needs data >= 0), counted in
+    .negative_values.
 
     Returns an OdmrFit (a dict, keys also attributes) with the maps `svpsf fit-odmr` writes,
     in SI units (field in T, linewidth in Hz): field, field_sigma (with lines='two' also
@@ -938,8 +939,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     if register and not (align_to == "mean" or (isinstance(align_to, (int, np.integer))
                                                 and 0 <= align_to < nf)):
         raise ValueError("align_to %r: 'mean' or a frame index 0 .. %d" % (align_to, nf - 1))
-    if register:
-        frames = [np.array(f, dtype=np.float64, order="C") for f in frames]  # aligned in place
+    if register or psf is not None:  # aligned / deconvolved in place: on a copy
+        frames = [np.array(f, dtype=np.float64, order="C") for f in frames]
     h, w = frames[0].shape if nf else (0, 0)
     imgs = _Images()
     cube = ffi.new("svp_cube *")
@@ -954,11 +955,6 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             margin = (lib.svp_psf_auto_margin(psf._c, w, h) if isinstance(psf, PSF) else 0)
         if not (isinstance(margin, (int, np.integer)) and margin >= 0):
             raise ValueError("margin %r: 'auto' or an integer >= 0" % (margin,))
-        if not register:  # deconvolved in place: on a copy
-            frames = [np.array(f, dtype=np.float64, order="C") for f in frames]
-            cube.frame = imgs.array([imgs.view(f) for f in frames])
-        for f in frames:  # RL needs data >= 0: values below 0 taken as 0, as the program does
-            np.maximum(f, 0, out=f, where=np.isfinite(f))
     drift = info = None
     if register:
         ao = ffi.new("svp_align_options *")
@@ -984,7 +980,9 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         dopt = ffi.new("svp_deconv_options *")
         lib.svp_deconv_defaults(dopt)
         dopt.iterations = int(iterations)
-        _check(lib.svp_cube_deconvolve(blur._ptr, cube, int(margin), dopt, ffi.NULL, ffi.NULL))
+        negative = ffi.new("size_t *")
+        _check(lib.svp_cube_deconvolve(blur._ptr, cube, int(margin), dopt, negative, ffi.NULL,
+                                       ffi.NULL))
     odmr = ffi.new("svp_odmr *")
     lib.svp_odmr_defaults(odmr)
     odmr.zero_field_hz, odmr.gamma_hz_per_t, odmr.linewidth_hz = (zero_field_hz, gamma_hz_per_t,
@@ -1014,6 +1012,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             if name in result:
                 result[name][bad] = np.nan
     result.n_failed = int(n_failed[0])
+    if psf is not None:
+        result.negative_values = int(negative[0])
     if register:
         result.drift = drift
         result.register = dict(max_shift=info.max_shift, median_deviation=info.median_deviation,

@@ -15,6 +15,7 @@ typedef struct cube_job {
     svp_image **grid; /* per worker: the frame on the view plus the margin (the margin NaN) */
     svp_image **out;  /* per worker: RL's result on that grid */
     int margin;
+    size_t *negative; /* per frame: values below 0 taken as 0 */
     svp_deconv_options o;
 } cube_job;
 
@@ -25,9 +26,18 @@ static svp_status deconvolve_frame(void *ctx, int worker, int f)
     const int w = frame->width, h = frame->height, m = j->margin, gw = grid->width;
     const size_t n = (size_t)gw * grid->height;
     for (size_t i = 0; i < n; i++) grid->data[i] = NAN;
-    for (int y = 0; y < h; y++)
-        memcpy(grid->data + (size_t)(y + m) * gw + m, frame->data + (size_t)y * w,
-               (size_t)w * sizeof(double));
+    /* RL needs data >= 0: a value below 0 (noise about a zero level, a subtracted
+     * background) is taken as 0, and counted */
+    size_t negative = 0;
+    for (int y = 0; y < h; y++) {
+        double *dst = grid->data + (size_t)(y + m) * gw + m;
+        const double *src = frame->data + (size_t)y * w;
+        for (int x = 0; x < w; x++) {
+            negative += src[x] < 0;
+            dst[x] = src[x] < 0 ? 0 : src[x];
+        }
+    }
+    j->negative[f] = negative;
     svp_status st = svp_deconv_rl(j->ops[worker], grid, &j->o, out);
     if (st != SVP_OK) return svp_fail_context(st, "frame %d", f);
     for (int y = 0; y < h; y++) {
@@ -61,9 +71,10 @@ static svp_status check_cube(const svp_blur *blur, const svp_cube *cube, int mar
 }
 
 svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
-                               const svp_deconv_options *options, svp_progress_fn progress,
-                               void *progress_user)
+                               const svp_deconv_options *options, size_t *n_negative,
+                               svp_progress_fn progress, void *progress_user)
 {
+    if (n_negative) *n_negative = 0;
     SVP_CHECK(check_cube(blur, cube, margin));
     cube_job j = {.cube = cube, .margin = margin};
     svp_deconv_defaults(&j.o);
@@ -77,7 +88,8 @@ svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
     j.ops = calloc((size_t)workers, sizeof *j.ops);
     j.grid = calloc((size_t)workers, sizeof *j.grid);
     j.out = calloc((size_t)workers, sizeof *j.out);
-    svp_status st = j.ops && j.grid && j.out ? SVP_OK
+    j.negative = calloc((size_t)cube->n_freq, sizeof *j.negative);
+    svp_status st = j.ops && j.grid && j.out && j.negative ? SVP_OK
                                               : svp_fail(SVP_ERR_NOMEM, "cube deconvolution: out "
                                                                         "of memory");
     svp_fft_local_threads(1); /* a map's copy takes its plans when it is made */
@@ -91,6 +103,8 @@ svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
     if (st == SVP_OK)
         st = svp_items_parallel(cube->n_freq, workers, deconvolve_frame, &j, progress,
                                 progress_user, 0, 1);
+    for (int f = 0; f < cube->n_freq && st == SVP_OK && n_negative; f++)
+        *n_negative += j.negative[f];
     for (int t = 0; t < workers && j.ops; t++) {
         if (workers > 1) svp_blur_free(j.ops[t]);
         if (j.grid) svp_image_free(j.grid[t]);
@@ -99,5 +113,6 @@ svp_status svp_cube_deconvolve(svp_blur *blur, svp_cube *cube, int margin,
     free(j.ops);
     free(j.grid);
     free(j.out);
+    free(j.negative);
     return st;
 }

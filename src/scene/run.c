@@ -652,7 +652,7 @@ static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
     o.iterations = cr->iterations;
     o.single_precision = cr->single;
     o.acceleration = cr->accelerated ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
-    if (st == SVP_OK) st = svp_cube_deconvolve(op, copy, m, &o, NULL, NULL);
+    if (st == SVP_OK) st = svp_cube_deconvolve(op, copy, m, &o, NULL, NULL, NULL);
     if (st == SVP_OK) st = svp_image_new(w, h, &base);
     char name[96];
     snprintf(name, sizeof name, "B_%s_corrected_%s", cn, cr->name);

@@ -497,28 +497,21 @@ static int fit_odmr_deconvolve(cli_run *run, const struct fit_odmr_args *a,
                             &blur);
     if (code) return code;
     svp_cube cube = job_cube(job);
-    /* Richardson-Lucy needs data >= 0: values below 0 (noise about a zero level, a subtracted
-     * background) are taken as 0, and said so */
-    size_t negative = 0;
-    const size_t n = (size_t)job->w * job->h;
-    for (int f = 0; f < job->nf; f++)
-        for (size_t i = 0; i < n; i++)
-            if (job->frames[f]->data[i] < 0) {
-                job->frames[f]->data[i] = 0;
-                negative++;
-            }
-    if (negative)
-        cli_note(run, "%zu of %zu stack values were below 0 and were taken as 0 for the "
-                 "deconvolution (Richardson-Lucy needs data >= 0)", negative, n * (size_t)job->nf);
-    cli_result_int(run, "deconvolve_negative_values", (long long)negative);
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.iterations = a->iterations;
     cli_progress_start(run, "deconvolving frames");
-    svp_status st = svp_cube_deconvolve(blur, &cube, m, &o, cli_progress, run);
+    size_t negative = 0;
+    svp_status st = svp_cube_deconvolve(blur, &cube, m, &o, &negative, cli_progress, run);
     cli_progress_done(run);
     svp_blur_free(blur);
-    return st == SVP_OK ? 0 : cli_fail(run, st, a->stack_path);
+    if (st != SVP_OK) return cli_fail(run, st, a->stack_path);
+    if (negative)
+        cli_note(run, "%zu of %zu stack values were below 0 and were taken as 0 for the "
+                 "deconvolution (Richardson-Lucy needs data >= 0)", negative,
+                 (size_t)job->w * job->h * (size_t)job->nf);
+    cli_result_int(run, "deconvolve_negative_values", (long long)negative);
+    return 0;
 }
 
 /* --register: the frames aligned on the mean frame (svp_cube_align); a frame it cannot vouch
