@@ -863,7 +863,8 @@ svp_status svp_shift(const svp_image *in, double dx, double dy, svp_image *out)
     if (n_bad && (st = fill_holes(img, w, h, sum / (double)(n - n_bad))) != SVP_OK) goto done;
     /* rows continued along x (data at 0 .. w − 1, the right side next, the left side at the
      * end: the period wraps), then every column along y */
-    for (int y = 0; y < h; y++) continue_line(img + (size_t)y * w, 1, w, px, W, ext + (size_t)y * W, 1);
+    for (int y = 0; y < h; y++)
+        continue_line(img + (size_t)y * w, 1, w, px, W, ext + (size_t)y * W, 1);
     for (int x = 0; x < W; x++) {
         for (int y = 0; y < h; y++) line[y] = ext[(size_t)y * W + x];
         continue_line(line, 1, h, py, H, ext + x, W);

@@ -546,15 +546,23 @@ static svp_status stage_noise(run_ctx *c)
 
 /* ---- the cube ------------------------------------------------------------------------------- */
 
-/* The sample moves: frame f of n, blurred, translates by f / (n − 1) × the drift (Fourier
- * interpolation, exact for the band-limited blurred frame); its time goes to the drift stage. */
+/* Frame f of n is displaced by f / (n − 1) × effects.drift.total_um, in pixels. */
+static void drift_of(const svp_scene *s, int f, int n, double d[2])
+{
+    const double a = n > 1 ? (double)f / (n - 1) : 0;
+    d[0] = a * s->drift_um[0] / s->pixel_um;
+    d[1] = a * s->drift_um[1] / s->pixel_um;
+}
+
+/* The sample moves: frame f of n, blurred, translates by its drift (Fourier interpolation,
+ * exact for the band-limited blurred frame); its time goes to the drift stage. */
 static svp_status drift_frame(run_ctx *c, int f, int n, const svp_image *blurred,
                               svp_image *shifted)
 {
-    const svp_scene *s = c->s;
-    const double t = now_s(), a = n > 1 ? (double)f / (n - 1) : 0;
-    svp_status st = svp_shift(blurred, a * s->drift_um[0] / s->pixel_um,
-                              a * s->drift_um[1] / s->pixel_um, shifted);
+    const double t = now_s();
+    double d[2];
+    drift_of(c->s, f, n, d);
+    svp_status st = svp_shift(blurred, d[0], d[1], shifted);
     c->drift_seconds += now_s() - t;
     return st;
 }
@@ -576,9 +584,9 @@ static svp_status cube_register(run_ctx *c, svp_cube *view_cube, const char *cn)
     svp_status st = svp_cube_align(view_cube, &ao, sx, sx + nfreq, &info, NULL, NULL);
     double worst = 0;
     for (int f = 0; f < nfreq && st == SVP_OK; f++) {
-        const double a = nfreq > 1 ? (double)f / (nfreq - 1) : 0;
-        worst = fmax(worst, hypot(sx[f] - a * s->drift_um[0] / s->pixel_um,
-                                  sx[nfreq + f] - a * s->drift_um[1] / s->pixel_um));
+        double d[2];
+        drift_of(s, f, nfreq, d);
+        worst = fmax(worst, hypot(sx[f] - d[0], sx[nfreq + f] - d[1]));
     }
     free(sx);
     c->drift_seconds += now_s() - t;
@@ -607,13 +615,15 @@ static svp_status cube_estimate(const svp_scene *s, const svp_odmr *odmr, const 
     return st;
 }
 
-/* The baseline of a cube: the mean of nend frames at each end. */
-static void cube_baseline(const svp_cube *cube, int nend, svp_image *baseline)
+/* The baseline of a cube (the measured PL map): the mean of the 3 frames at each end of the
+ * sweep (1 below 12 frames). */
+static void cube_baseline(const svp_cube *cube, svp_image *baseline)
 {
-    const int nf = cube->n_freq;
+    const int nf = cube->n_freq, nend = nf >= 12 ? 3 : 1;
     for (size_t p = 0; p < (size_t)cube->width * cube->height; p++) {
         double b = 0;
-        for (int e = 0; e < nend; e++) b += cube->frame[e]->data[p] + cube->frame[nf - 1 - e]->data[p];
+        for (int e = 0; e < nend; e++)
+            b += cube->frame[e]->data[p] + cube->frame[nf - 1 - e]->data[p];
         baseline->data[p] = b / (2 * nend);
     }
 }
@@ -660,7 +670,7 @@ static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
     if (st == SVP_OK && !est) st = svp_fail(SVP_ERR_NOMEM, "out of memory");
     size_t failed = 0;
     if (st == SVP_OK) {
-        cube_baseline(copy, nf >= 12 ? 3 : 1, base);
+        cube_baseline(copy, base);
         st = cube_estimate(s, odmr, copy, base, bias, est, &failed);
     }
     if (st == SVP_OK && k == 0) {
@@ -722,7 +732,6 @@ static svp_status stage_cube(run_ctx *c)
         svp_image_free(tmp);
     }
     const svp_image *contrast = s->n_contrast_pattern ? get(c, "canvas_contrast") : NULL;
-    const int nend = nfreq >= 12 ? 3 : 1; /* frames per end averaged for the baseline */
     double total_failed = 0;
     for (int k = 0; k < s->n_fields && st == SVP_OK; k++) {
         const char *cn = scene_component_name(s->field_comp[k]);
@@ -793,8 +802,7 @@ static svp_status stage_cube(run_ctx *c)
         if (st != SVP_OK) break;
         if (s->drift_register) st = cube_register(c, view_cube, cn);
         if (st != SVP_OK) break;
-        /* the off-resonance baseline (the measured PL map): mean of the end frames */
-        cube_baseline(view_cube, nend, baseline);
+        cube_baseline(view_cube, baseline);
         if (k == 0) memcpy(pl_app->data, baseline->data, nview * sizeof(double));
         char name[64];
         snprintf(name, sizeof name, "B_%s_apparent", cn);
