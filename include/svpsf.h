@@ -293,6 +293,19 @@ SVP_API size_t svp_blur_memory(const svp_blur *blur);
  * SVP_ERR_UNSUPPORTED for the exact operator, and for returning to double an operator built
  * with svp_variant_options.single_precision. */
 SVP_API svp_status svp_blur_set_precision(svp_blur *blur, int single);
+/* The PSF's far tail on a coarse grid (docs/model.md §5, "The tail on a coarse grid"), for an
+ * invariant zero-boundary operator (others: ignored, SVP_OK): tol > 0 lets the operator convolve
+ * its kernel's core (radius 2 r0) exactly and the smooth rest on nodes every s pixels, with the
+ * (s, r0) that costs least among those whose estimated error ‖ΔH‖₁ / ‖k‖₁ is at most tol, when
+ * that costs less than 0.8 of the plain frame; 0 (the default of a new operator) = the plain
+ * frame always. The operator stays linear, non-negative for a non-negative kernel, and its
+ * adjoint exact. SVP_ERR_INVALID for tol outside [0, 1). */
+SVP_API svp_status svp_blur_set_tail(svp_blur *blur, double tol);
+/* The tail in use (made now if the frame is not): node spacing *step and split radius *split in
+ * pixels and its estimated error, all 0 when the plain frame serves. */
+SVP_API svp_status svp_blur_tail_info(svp_blur *blur, int *step, int *split, double *error);
+/* The tolerance svp_blur_set_tail last set (0: none). */
+SVP_API double svp_blur_tail_tol(const svp_blur *blur);
 
 /* ---------------------------------------------------------------------------------------- */
 /* Deconvolution (the ⊘ of eq. 4)                                                            */
@@ -496,6 +509,11 @@ typedef struct svp_correct_options {
                                     copy of the operator (docs/model.md §3; a copy's memory
                                     each); 0: always in order on `blur` (one operator's memory,
                                     every FFT on all threads) */
+    double tail_tol;             /* methods R / RL_SIGNED with an invariant zero-boundary
+                                    operator: the PSF's far tail on a coarse grid for this
+                                    call when its estimated error is at most tail_tol
+                                    (svp_blur_set_tail; docs/model.md §5); 0 = the plain
+                                    frame; default 1e-3 */
 } svp_correct_options;
 
 /* A Wiener (CG) solve that stops at its step cap counts as not converged, a result in doubt,
@@ -529,6 +547,10 @@ typedef struct svp_correct_summary {
                                a copy of the operator (docs/model.md §3), or 1: in order */
     int side_by_side_fallback; /* 1: side by side was chosen, but its copies found no memory,
                                   so the runs went in order on the caller's operator */
+    int tail_step;          /* the tail on a coarse grid (tail_tol): node spacing, split radius
+                               r0 (px) and estimated error; 0 when the plain frame served */
+    int tail_split;
+    double tail_error;
 } svp_correct_summary;
 
 /* The PL's noise model from the image itself: in blocks of 16 x 16 the local mean and the

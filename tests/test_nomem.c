@@ -361,6 +361,29 @@ static void test_inverse_side_by_side(void **state)
     svp_set_threads(1);
 }
 
+static void tail_loose(svp_correct_options *o) { o->tail_tol = 2e-2; }
+
+/* The same with the PSF's far tail on a coarse grid (docs/model.md §5): the tail's choice, its
+ * nodes, frames and the copies' tails fail as the frames do. */
+static void test_inverse_tail(void **state)
+{
+    (void)state;
+    const int n = 160;
+    svp_blur *op = moffat_blur(n, n);
+    int step = 0, split = 0;
+    double est = 0;
+    ASSERT_OK(svp_blur_set_tail(op, 2e-2));
+    ASSERT_OK(svp_blur_tail_info(op, &step, &split, &est));
+    assert_true(step > 0); /* the sweep below runs with a tail */
+    svp_blur_free(op);
+    svp_set_threads(2);
+    sweep_inverse("T⁻¹ R, 2 threads, tail on a coarse grid", n, n, 0, SVP_METHOD_R, 3,
+                  tail_loose, NULL);
+    svp_set_threads(1);
+    sweep_inverse("T⁻¹ R, 1 thread, tail on a coarse grid, margin 8", n, n, 8, SVP_METHOD_R, 3,
+                  tail_loose, NULL);
+}
+
 /* The same with a low-rank PSF map: the workers' copies share its term spectra
  * (svp_blur_clone), their own accumulators and frames fail as the invariant copies do. */
 static void test_inverse_map_side_by_side(void **state)
@@ -987,6 +1010,7 @@ int main(void)
     svp_set_threads(1);
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_inverse_side_by_side),
+        cmocka_unit_test(test_inverse_tail),
         cmocka_unit_test(test_inverse_map_side_by_side),
         cmocka_unit_test(test_inverse_in_order),
         cmocka_unit_test(test_inverse_automatic),

@@ -1304,6 +1304,9 @@ static void test_margin_view_frame(void **state)
         svp_correct_options o = options_for(methods[k % 2], k >= 2 ? 10 : 30, 1e-3);
         if (k >= 2) o.deconv.acceleration = SVP_RL_BIGGS_ANDREWS;
         o.margin = m;
+        /* the view's frame against the plain one, exactly: no tail on a coarse grid here (the
+         * two grids would choose different ones; test_tail_transform) */
+        o.tail_tol = 0;
         restored r = inverse_run(op, view_pl, view_b, NF, &o);
         svp_set_threads(2);
         restored r2 = inverse_run(op, view_pl, view_b, NF, &o);
@@ -1346,6 +1349,61 @@ static void test_margin_view_frame(void **state)
     free_images(b, NF);
     free_images(view_b, NF);
     free_images(pad_b, NF);
+}
+
+/* T⁻¹ with the PSF's tail on a coarse grid (svp_correct_options.tail_tol; docs/model.md §5)
+ * against the plain frame, with and without a margin: the summary reports the tail taken (node
+ * spacing, split, estimated error within the tolerance), the field and PL agree to a small
+ * fraction of their peaks, and the caller's operator comes back with its own tolerance (0). */
+static void test_tail_transform(void **state)
+{
+    (void)state;
+    const int w = 300, h = 260, m = 20;
+    for (int margin = 0; margin <= m; margin += m) {
+        const int gw = w + 2 * margin, gh = h + 2 * margin;
+        svp_image *pl = pl_spot_chessboard(gw, gh, 12, 7);
+        svp_image *b[NF] = {field_smooth(gw, gh, 0), field_smooth(gw, gh, 1)};
+        svp_blur *op = blur_model(SVP_PSF_MOFFAT, 4.0, 1.1, 0.0, gw, gh, SVP_BOUNDARY_ZERO);
+        apparent a = forward_run(op, pl, b, NF);
+        svp_image *view_pl = test_image(w, h), *view_b[NF];
+        for (int c = 0; c < NF; c++) view_b[c] = test_image(w, h);
+        for (int y = 0; y < h; y++)
+            for (int x = 0; x < w; x++) {
+                const size_t v = (size_t)y * w + x, g = (size_t)(y + margin) * gw + x + margin;
+                view_pl->data[v] = a.pl->data[g];
+                for (int c = 0; c < NF; c++) view_b[c]->data[v] = a.field[c]->data[g];
+            }
+        svp_correct_options o = options_for(SVP_METHOD_R, 30, 1e-3);
+        o.margin = margin;
+        svp_correct_summary sum;
+        o.summary = &sum;
+        o.tail_tol = 0;
+        restored plain = inverse_run(op, view_pl, view_b, NF, &o);
+        assert_int_equal(sum.tail_step, 0);
+        o.tail_tol = 3e-3;
+        restored tail = inverse_run(op, view_pl, view_b, NF, &o);
+        assert_true(sum.tail_step >= 2 && sum.tail_split >= 4);
+        assert_true(sum.tail_error > 0 && sum.tail_error <= 3e-3);
+        assert_true(svp_blur_tail_tol(op) == 0);
+        double d_b = 0, scale = 0;
+        for (int c = 0; c < NF; c++) {
+            d_b = fmax(d_b, test_max_abs_diff(tail.field[c], plain.field[c]));
+            scale = fmax(scale, test_max_abs(plain.field[c]));
+        }
+        const double d_pl = test_max_abs_diff(tail.pl, plain.pl) / test_max_abs(plain.pl);
+        print_message("margin %d: tail s %d, r0 %d, estimate %.3g: field %.3g, PL %.3g of the "
+                      "peak from the plain frame's\n",
+                      margin, sum.tail_step, sum.tail_split, sum.tail_error, d_b / scale, d_pl);
+        assert_true(d_b / scale <= 5e-3 && d_pl <= 5e-3);
+        restored_free(&plain, NF);
+        restored_free(&tail, NF);
+        apparent_free(&a, NF);
+        svp_blur_free(op);
+        svp_image_free(pl);
+        svp_image_free(view_pl);
+        free_images(b, NF);
+        free_images(view_b, NF);
+    }
 }
 
 typedef struct progress_log {
@@ -1619,7 +1677,7 @@ int main(void)
         cmocka_unit_test(test_dynamic_range),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_threads),
-        cmocka_unit_test(test_margin_view_frame),
+        cmocka_unit_test(test_margin_view_frame), cmocka_unit_test(test_tail_transform),
         cmocka_unit_test(test_progress),
         cmocka_unit_test(test_side_by_side),
         cmocka_unit_test(test_side_by_side_map),

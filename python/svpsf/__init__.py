@@ -513,7 +513,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             pl_floor=None, shift=None, cg_max_steps=None, precision="double",
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
             keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
-            field_names=None, operator_tol=1e-2, regions=False, side_by_side=True):
+            field_names=None, operator_tol=1e-2, regions=False, side_by_side=True,
+            tail_tol=None):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
@@ -523,7 +524,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
     operator error budget (default 1e-2, as `svpsf correct`); regions=True one kernel per region
     of a map of kind regions (`--regions`); side_by_side=False keeps the deconvolutions in
-    order, one operator's memory (`--side-by-side off`). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
+    order, one operator's memory (`--side-by-side off`); tail_tol the error budget of the PSF's
+    far tail on a coarse grid (`--tail-tol`, 0 = never). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
     deconvolution ([0] the PL's, [1 + c] field c's numerator). Raises DoubtfulError (the
@@ -558,6 +560,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
         opt.deconv.cg_max_steps = int(cg_max_steps)
     opt.deconv.single_precision = int(precision == "single")
     opt.side_by_side = int(bool(side_by_side))
+    if tail_tol is not None:
+        opt.tail_tol = float(tail_tol)
     if acceleration is not None:
         opt.deconv.acceleration = _ACCELERATIONS[acceleration]
     if margin is not None:
@@ -598,7 +602,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             "pl_gain_offset": s.pl_gain_offset, "shift": [s.shift[i] for i in range(min(16, len(fl)))],
             "rl_iterations": s.rl_iterations, "rl_stop": _STOPS.get(s.rl_stop, s.rl_stop),
             "rl_chi2": s.rl_chi2, "side_by_side": s.side_by_side,
-            "side_by_side_fallback": bool(s.side_by_side_fallback)}
+            "side_by_side_fallback": bool(s.side_by_side_fallback),
+            "tail_step": s.tail_step, "tail_split": s.tail_split, "tail_error": s.tail_error}
     f_out = [o[0] for o in outs]
     return CorrectResult(pl_out, f_out[0] if single else f_out, val, int(n_missing[0]), summ,
                          [_report(reports[i]) for i in range(len(fl) + 1)])

@@ -122,6 +122,41 @@ typedef struct svp_blur_cache {
     size_t (*memory)(const void *data);
 } svp_blur_cache;
 
+/* The PSF's far tail on a coarse grid (tail.c, docs/model.md §5 "The tail on a coarse grid"):
+ * the kernel's core k (1 − w) (w a smooth step from r0 to 2 r0) convolved on a frame sized for
+ * radius 2 r0, its tail k w as P K_c Pᵀ on nodes every s pixels (Pᵀ: bilinear gather, K_c the
+ * tail sampled every s pixels, P: bilinear spread). */
+typedef struct svp_tail svp_tail;
+/* The estimated ‖tail − P K_c Pᵀ‖₁ / ‖k‖₁ (an ℓ1 operator-norm bound per unit of the kernel's
+ * flux) for a kernel centred at (cx, cy) on a width x height zero-boundary grid whose data lie
+ * `margin` pixels in from each side (0: the whole grid): the bilinear interpolation bound
+ * (s² / 4) Σ (|Δxx| + |Δyy|) of the tail over the offsets the operator uses, with a kernel that
+ * stops inside them counted with its edge. */
+double svp_tail_estimate(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                         int s, int r0);
+/* The cheapest (s, r0) whose estimate is at most tol and whose core frame, node frame and
+ * passes cost less than 0.8 of the plain frame pnx x pny: *s 0 when none does. */
+svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                           double tol, int pnx, int pny, int *s, int *r0, double *error);
+/* The core kernel k (1 − w), radius 2 r0 (less where the kernel is smaller), centre (*ocx, *ocy). */
+svp_status svp_tail_core(const svp_image *k, int cx, int cy, int r0, svp_image **out, int *ocx,
+                         int *ocy);
+/* The tail for (s, r0) (svp_tail_choose's), `error` its estimate (kept for svp_tail_error). */
+svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                        int s, int r0, double error, svp_tail **out);
+void svp_tail_free(svp_tail *t);
+size_t svp_tail_memory(const svp_tail *t);
+int svp_tail_step(const svp_tail *t);
+int svp_tail_split(const svp_tail *t);
+double svp_tail_error(const svp_tail *t);
+/* The tail's part of H (adjoint 0) or Hᵀ (1): gather reads the width x height input (rows
+ * `stride` values apart) and convolves the nodes; spread then adds the result to the output
+ * (rows `stride` apart). In double or from / into float frames. */
+void svp_tail_gather(svp_tail *t, const double *in, size_t stride, int adjoint);
+void svp_tail_gather_f(svp_tail *t, const float *in, size_t stride, int adjoint);
+void svp_tail_spread(svp_tail *t, double *out, size_t stride);
+void svp_tail_spread_f(svp_tail *t, float *out, size_t stride);
+
 typedef struct svp_variant_data svp_variant_data; /* variant.c */
 typedef struct svp_exact_data svp_exact_data;     /* exact.c */
 
@@ -169,6 +204,18 @@ struct svp_blur {
     fftwf_complex *work_cf;
     float *otf_f;
     int otf_f_real;
+    /* The tail on a coarse grid (svp_blur_set_tail): tail_tol > 0 lets an invariant
+     * zero-boundary operator's frame (svp_blur_ready) be the core's, with `tail` for the rest,
+     * when svp_tail_choose finds it cheaper; core is then the core kernel (centre core_cx,
+     * core_cy). Made and freed with the frame. */
+    double tail_tol;
+    svp_tail *tail;
+    /* svp_tail_choose's answer for tail_tol and the view margin tail_for − 1 (0: none yet), kept
+     * so that copies (svp_blur_clone) and later frames do not choose again */
+    int tail_for, tail_s, tail_r0;
+    double tail_err;
+    svp_image *core;
+    int core_cx, core_cy;
     /* 1 while the work frame holds the output of the last svp_blur_rows (rows 0 .. height − 1,
      * in the precision then in use); any other use of the frame clears it */
     int rows_held;

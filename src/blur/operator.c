@@ -346,12 +346,14 @@ static void kernel_radii(const svp_blur *b, int *rx, int *ry)
 static svp_status invariant_frame(const svp_blur *b, int margin, svp_frame *f,
                                   const svp_fft_pruned **pruned)
 {
-    const svp_image *k = b->kernel;
-    int rx, ry;
-    kernel_radii(b, &rx, &ry);
+    /* with a tail on a coarse grid the frame is the core's */
+    const svp_image *k = b->core ? b->core : b->kernel;
+    const int kcx = b->core ? b->core_cx : b->kcx, kcy = b->core ? b->core_cy : b->kcy;
+    const int rx = k->width - 1 - kcx > kcx ? k->width - 1 - kcx : kcx;
+    const int ry = k->height - 1 - kcy > kcy ? k->height - 1 - kcy : kcy;
     *pruned = NULL;
     svp_status st = frame_init(f, b->width, b->height, rx, ry, b->boundary, margin);
-    if (st == SVP_OK) st = svp_frame_set_kernel(f, k, b->kcx, b->kcy, b->boundary);
+    if (st == SVP_OK) st = svp_frame_set_kernel(f, k, kcx, kcy, b->boundary);
     if (st == SVP_OK) svp_frame_keep_real(f);
     /* zero mode: the image fills only the first height rows of the frame */
     if (st == SVP_OK && b->boundary == SVP_BOUNDARY_ZERO && f->ny > b->height)
@@ -497,6 +499,11 @@ svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out)
     if (!c) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
     c->view_margin = b->view_margin;
     c->single = b->single;
+    c->tail_tol = b->tail_tol;
+    c->tail_for = b->tail_for;
+    c->tail_s = b->tail_s;
+    c->tail_r0 = b->tail_r0;
+    c->tail_err = b->tail_err;
     *out = c;
     return SVP_OK;
 }
@@ -521,6 +528,8 @@ void svp_blur_free(svp_blur *b)
     if (b->ops) b->ops->release(b);
     if (b->restore.release) b->restore.release(b->restore.data);
     svp_frame_release(&b->frame);
+    svp_tail_free(b->tail);
+    svp_image_free(b->core);
     if (!b->kernel_borrowed) svp_image_free(b->kernel);
     svp_free(b->work_r);
     svp_free(b->work_c);
@@ -675,6 +684,10 @@ static void drop_single(svp_blur *b)
 static void drop_frame(svp_blur *b)
 {
     svp_frame_release(&b->frame);
+    svp_tail_free(b->tail);
+    b->tail = NULL;
+    svp_image_free(b->core);
+    b->core = NULL;
     b->pruned = NULL;
     svp_free(b->work_r);
     svp_free(b->work_c);
@@ -684,10 +697,44 @@ static void drop_frame(svp_blur *b)
     drop_single(b);
 }
 
+/* The tail an invariant zero-boundary operator with tail_tol > 0 takes for its frame in use
+ * (svp_tail_choose against that frame's plain size): *s 0 for none. */
+static svp_status tail_choice(svp_blur *b, int *s, int *r0, double *err)
+{
+    int nx = 0, ny = 0;
+    *s = 0;
+    *r0 = 0;
+    *err = 0;
+    if (!(b->tail_tol > 0) || b->boundary != SVP_BOUNDARY_ZERO) return SVP_OK;
+    if (b->tail_for != b->view_margin + 1) { /* tail_for holds the margin + 1, 0: none yet */
+        SVP_CHECK(frame_dims(b, b->view_margin, &nx, &ny));
+        SVP_CHECK(svp_tail_choose(b->kernel, b->kcx, b->kcy, b->width, b->height,
+                                  b->view_margin, b->tail_tol, nx, ny, &b->tail_s, &b->tail_r0,
+                                  &b->tail_err));
+        b->tail_for = b->view_margin + 1;
+    }
+    *s = b->tail_s;
+    *r0 = b->tail_r0;
+    *err = b->tail_err;
+    return SVP_OK;
+}
+
 svp_status svp_blur_ready(svp_blur *b)
 {
     if (b->kind != SVP_BLUR_INVARIANT || b->frame.plan) return SVP_OK;
-    svp_status st = invariant_frame(b, b->view_margin, &b->frame, &b->pruned);
+    svp_status st = SVP_OK;
+    if (b->tail_tol > 0 && b->boundary == SVP_BOUNDARY_ZERO) {
+        int s = 0, r0 = 0;
+        double err;
+        st = tail_choice(b, &s, &r0, &err);
+        if (st == SVP_OK && s > 0)
+            st = svp_tail_core(b->kernel, b->kcx, b->kcy, r0, &b->core, &b->core_cx,
+                               &b->core_cy);
+        if (st == SVP_OK && s > 0)
+            st = svp_tail_new(b->kernel, b->kcx, b->kcy, b->width, b->height, b->view_margin, s,
+                              r0, err, &b->tail);
+    }
+    if (st == SVP_OK) st = invariant_frame(b, b->view_margin, &b->frame, &b->pruned);
     if (st == SVP_OK) {
         b->frames_built++;
         b->work_r = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
@@ -727,6 +774,41 @@ svp_status svp_blur_set_view(svp_blur *b, int margin, int *applied)
     return SVP_OK;
 }
 
+svp_status svp_blur_set_tail(svp_blur *blur, double tol)
+{
+    if (!blur || !(tol >= 0 && tol < 1))
+        return svp_fail(SVP_ERR_INVALID, "svp_blur_set_tail: no operator, or tolerance %g not in "
+                                         "[0, 1)",
+                        tol);
+    if (blur->kind != SVP_BLUR_INVARIANT || blur->boundary != SVP_BOUNDARY_ZERO) return SVP_OK;
+    if (tol != blur->tail_tol) { /* the frame in use goes; the wanted one comes on first use */
+        drop_frame(blur);
+        blur->tail_tol = tol;
+        blur->tail_for = 0;
+    }
+    return SVP_OK;
+}
+
+double svp_blur_tail_tol(const svp_blur *blur) { return blur ? blur->tail_tol : 0.0; }
+
+svp_status svp_blur_tail_info(svp_blur *blur, int *step, int *split, double *error)
+{
+    if (!blur || !step || !split || !error)
+        return svp_fail(SVP_ERR_INVALID, "svp_blur_tail_info: NULL argument");
+    *step = 0;
+    *split = 0;
+    *error = 0;
+    if (blur->kind != SVP_BLUR_INVARIANT || !(blur->tail_tol > 0)) return SVP_OK;
+    if (!blur->frame.plan) /* what svp_blur_ready would choose, without making the frame */
+        return tail_choice(blur, step, split, error);
+    if (blur->tail) {
+        *step = svp_tail_step(blur->tail);
+        *split = svp_tail_split(blur->tail);
+        *error = svp_tail_error(blur->tail);
+    }
+    return SVP_OK;
+}
+
 svp_status svp_blur_set_precision(svp_blur *blur, int single)
 {
     return svp_blur_set_single(blur, single != 0);
@@ -756,9 +838,12 @@ static void apply_single(svp_blur *b, const double *restrict in, double *restric
         svp_frame_embed_f(f, in, fr);
     else
         svp_frame_extend_f(f, in, fr);
+    /* the tail from and into the float frame, as svp_blur_rows does it */
+    if (b->tail) svp_tail_gather_f(b->tail, fr, (size_t)f->nx, adjoint);
     svp_fftf_forward_rows(p, fr, b->work_cf);
     single_product(b, adjoint);
     svp_fftf_inverse_rows_unscaled(p, b->work_cf, fr);
+    if (b->tail) svp_tail_spread_f(b->tail, fr, (size_t)f->nx);
     if (adjoint && b->boundary != SVP_BOUNDARY_ZERO)
         svp_frame_fold_f(f, fr, out);
     else
@@ -860,7 +945,16 @@ svp_status svp_blur_rows(svp_blur *b, int adjoint, int chained, svp_blur_row_fn 
         rows_load_f(f, b->work_rf, chained, load, user, tmp, stride);
     else
         rows_load(f, b->work_r, chained, load, user, tmp, stride);
+    /* the tail's nodes from the input rows before the transforms overwrite them */
+    if (b->tail && b->single)
+        svp_tail_gather_f(b->tail, b->work_rf, (size_t)f->nx, adjoint);
+    else if (b->tail)
+        svp_tail_gather(b->tail, b->work_r, (size_t)f->nx, adjoint);
     rows_transform(b, adjoint);
+    if (b->tail && b->single)
+        svp_tail_spread_f(b->tail, b->work_rf, (size_t)f->nx);
+    else if (b->tail)
+        svp_tail_spread(b->tail, b->work_r, (size_t)f->nx);
     if (store && b->single)
         rows_store_f(f, b->work_rf, store, store_every, user, tmp, stride);
     else if (store)
@@ -872,19 +966,27 @@ svp_status svp_blur_rows(svp_blur *b, int adjoint, int chained, svp_blur_row_fn 
 
 /* ---- the invariant representation ----------------------------------------------------- */
 
+/* out += the tail's part of H in (adjoint: of Hᵀ), when the operator has one. */
+static void add_tail(svp_blur *b, const double *in, double *out, int adjoint)
+{
+    if (!b->tail) return;
+    svp_tail_gather(b->tail, in, (size_t)b->width, adjoint);
+    svp_tail_spread(b->tail, out, (size_t)b->width);
+}
+
 static svp_status invariant_apply(svp_blur *b, const double *restrict x, double *restrict y)
 {
     SVP_CHECK(svp_blur_ready(b));
     b->rows_held = 0;
     if (b->single) {
-        apply_single(b, x, y, 0);
-        add_halo(b, x, y);
-        return SVP_OK;
+        apply_single(b, x, y, 0); /* with the tail */
+    } else {
+        svp_frame *f = &b->frame;
+        svp_blur_spectrum_in(b, x, 0);
+        svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
+        svp_blur_spectrum_out(b, y, 0);
+        add_tail(b, x, y, 0);
     }
-    svp_frame *f = &b->frame;
-    svp_blur_spectrum_in(b, x, 0);
-    svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
-    svp_blur_spectrum_out(b, y, 0);
     add_halo(b, x, y);
     return SVP_OK;
 }
@@ -894,14 +996,14 @@ static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, doubl
     SVP_CHECK(svp_blur_ready(b));
     b->rows_held = 0;
     if (b->single) {
-        apply_single(b, y, x, 1);
-        add_halo(b, y, x);
-        return SVP_OK;
+        apply_single(b, y, x, 1); /* with the tail */
+    } else {
+        svp_frame *f = &b->frame;
+        svp_blur_spectrum_in(b, y, 1);
+        svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
+        svp_blur_spectrum_out(b, x, 1);
+        add_tail(b, y, x, 1);
     }
-    svp_frame *f = &b->frame;
-    svp_blur_spectrum_in(b, y, 1);
-    svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
-    svp_blur_spectrum_out(b, x, 1);
     add_halo(b, y, x);
     return SVP_OK;
 }
@@ -918,8 +1020,10 @@ static size_t invariant_memory(const svp_blur *b)
         single = (size_t)f->ny * f->nx * sizeof(float) +
                  (size_t)f->ny * f->ncx * (sizeof(fftwf_complex) + sizeof(float) *
                                                                  (b->otf_f_real ? 1 : 2));
+    const size_t core = b->core ? (size_t)b->core->width * b->core->height * sizeof(double) : 0;
     return svp_frame_memory(f) + (size_t)f->ny * f->nx * sizeof(double) +
-           (size_t)f->ny * f->ncx * sizeof(fftw_complex) + kernel + single;
+           (size_t)f->ny * f->ncx * sizeof(fftw_complex) + kernel + single + core +
+           svp_tail_memory(b->tail);
 }
 
 static void invariant_release(svp_blur *b) { (void)b; }

@@ -57,6 +57,7 @@ void svp_correct_defaults(svp_correct_options *options)
     options->shrink_factor = 0.1;
     options->summary = NULL;
     options->side_by_side = 1;
+    options->tail_tol = 1e-3;
 }
 
 /* ---- argument checks --------------------------------------------------------------------- */
@@ -298,7 +299,11 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
     }
     if (st != SVP_OK) return st;
     if (base->progress && share) {
-        if (share->fn(share->user, share->base + share->span))
+        /* the share's end; the last share's is 1 exactly, which base + span (rescaled after a
+         * fallback from side by side) can miss by an ulp */
+        double end = share->base + share->span;
+        if (end > 1 - 1e-12) end = 1;
+        if (share->fn(share->user, end))
             return svp_fail(SVP_ERR_CANCELLED, "cancelled by the progress callback");
     }
     return SVP_OK;
@@ -1208,14 +1213,23 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
         /* Richardson–Lucy on both halves uses H x on the data (the view) and Hᵀ of data on the
          * view only: the operator's frame for the view serves, smaller than the grid's */
         int view = 0;
-        if (m > 0 && uses_rl_for_pl(opt.method) && uses_rl_for_field(opt.method))
-            st = svp_blur_set_view(blur, m, &view);
+        const int rl_both = uses_rl_for_pl(opt.method) && uses_rl_for_field(opt.method);
+        if (m > 0 && rl_both) st = svp_blur_set_view(blur, m, &view);
+        /* and the PSF's far tail on a coarse grid, for this call (docs/model.md §5) */
+        const double tail_before = svp_blur_tail_tol(blur);
+        if (st == SVP_OK && rl_both && opt.tail_tol > 0) st = svp_blur_set_tail(blur, opt.tail_tol);
+        if (st == SVP_OK)
+            st = svp_blur_tail_info(blur, &sum->tail_step, &sum->tail_split, &sum->tail_error);
         if (st == SVP_OK)
             st = inverse_core(blur, copy_pl ? pl_in : pl_apparent, f_in, n_fields, &opt, s_in,
                               m > 0 ? pl_out : pl_true, f_out, valid, reports, shifts, &miss,
                               n_repaired);
         if (view) {
             svp_status back = svp_blur_set_view(blur, 0, &view);
+            if (st == SVP_OK) st = back;
+        }
+        if (svp_blur_tail_tol(blur) != tail_before) {
+            svp_status back = svp_blur_set_tail(blur, tail_before);
             if (st == SVP_OK) st = back;
         }
         if (st != SVP_OK) goto cleanup;

@@ -15,6 +15,7 @@ enum {
     OPT_FIELD_SIGMA,
     OPT_PLAUSIBLE,
     OPT_SIDE_BY_SIDE,
+    OPT_TAIL_TOL,
 };
 
 static const char *const on_off[] = {"off", "on", NULL};
@@ -132,9 +133,13 @@ static void print_help(const cli_run *run, FILE *out)
             "                        side by side, each on a copy of the operator (faster on\n"
             "                        several cores; a copy's memory each, docs/model.md); off:\n"
             "                        in order, one operator's memory\n"
+            "  --tail-tol TOL        with r / rl-signed and one PSF: the PSF's far tail\n"
+            "                        convolved on a coarser grid when that is cheaper and its\n"
+            "                        estimated relative error is at most TOL (default %g; 0:\n"
+            "                        never; docs/model.md)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
-            d.pl_floor);
+            d.pl_floor, d.tail_tol);
     cli_print_variant_help(out, CORRECT_OPERATOR_TOL);
     cli_print_common_help(run, out);
     fputs("\n"
@@ -200,6 +205,8 @@ static int correct_option(cli_run *run, struct correct_args *a, int c)
     case OPT_SHIFT: return cli_parse_double(run, "--shift", optarg, &opt->shift);
     case OPT_SIDE_BY_SIDE:
         return cli_parse_choice(run, "--side-by-side", optarg, on_off, &opt->side_by_side);
+    case OPT_TAIL_TOL:
+        return cli_parse_double_in(run, "--tail-tol", optarg, 0, 1, 1, 0, &opt->tail_tol);
     default: {
         int bad = cli_deconv_option(run, &a->deconv, c, optarg);
         if (bad < 0) bad = cli_maps_option(run, &a->maps, c, optarg);
@@ -253,6 +260,7 @@ static int parse_correct_args(cli_run *run, struct correct_args *a)
         {"field-sigma", required_argument, NULL, OPT_FIELD_SIGMA},
         {"plausible-factor", required_argument, NULL, OPT_PLAUSIBLE},
         {"side-by-side", required_argument, NULL, OPT_SIDE_BY_SIDE},
+        {"tail-tol", required_argument, NULL, OPT_TAIL_TOL},
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
@@ -367,6 +375,7 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
     cli_setting_num(run, "pl_floor", opt->pl_floor);
     cli_setting_num(run, "shift", opt->shift);
     cli_setting_str(run, "side_by_side", on_off[opt->side_by_side]);
+    cli_setting_num(run, "tail_tol", opt->tail_tol);
     return 0;
 }
 
@@ -508,6 +517,12 @@ static void correct_report(cli_run *run, const struct correct_args *a, struct co
     /* how the deconvolutions ran: side by side on copies of the operator, or in order */
     cli_result_int(run, "side_by_side", summary->side_by_side);
     if (summary->side_by_side_fallback) cli_result_int(run, "side_by_side_fallback", 1);
+    /* the PSF's far tail on a coarse grid (--tail-tol), or the plain frame (step 0) */
+    cli_result_int(run, "tail_step_px", summary->tail_step);
+    if (summary->tail_step > 0) {
+        cli_result_int(run, "tail_split_px", summary->tail_split);
+        cli_result_num(run, "tail_error", summary->tail_error);
+    }
     if (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED)
         for (int k = 0; k < n_fields && k < 16; k++) {
             char key[64];
