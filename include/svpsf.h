@@ -301,6 +301,9 @@ SVP_API svp_status svp_blur_set_precision(svp_blur *blur, int single);
  * frame always. The operator stays linear, non-negative for a non-negative kernel, and its
  * adjoint exact. SVP_ERR_INVALID for tol outside [0, 1). */
 SVP_API svp_status svp_blur_set_tail(svp_blur *blur, double tol);
+/* The tolerance svpsf's corrections take by default (svp_correct_options.tail_tol, `correct` and
+ * `fit-odmr --tail-tol`, the scenes' corrections). */
+#define SVP_TAIL_TOL_DEFAULT 1e-3
 /* The tail in use (made now if the frame is not): node spacing *step and split radius *split in
  * pixels and its estimated error, all 0 when the plain frame serves. */
 SVP_API svp_status svp_blur_tail_info(svp_blur *blur, int *step, int *split, double *error);

@@ -882,7 +882,7 @@ def _stack_frames(stack):
 def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
              gamma_hz_per_t=28.033e9, linewidth_hz=1e6, baseline_frames=3, max_iterations=None,
              failed="nan", register=False, drift_degree=1, align_to="mean", psf=None,
-             iterations=75, margin="auto"):
+             iterations=75, margin="auto", tail_tol=1e-3):
     """Per-pixel Lorentzian fits of an ODMR stack (svp_odmr_fit_maps; `svpsf fit-odmr`,
     docs/model.md §10): stack of shape (n_freq, height, width) (or a sequence of 2-D frames),
     one frame per frequency (Hz; a decreasing sweep is put in increasing order, as the program
@@ -908,7 +908,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     frame (Richardson–Lucy, `iterations` each; svp_cube_deconvolve, `svpsf fit-odmr --psf`,
     docs/model.md §10 "Blur before the estimate") on a copy before the fit; margin: pixels per
     side whose light comes from outside the view, or 'auto' (a PSF's reach, 0 with a halo;
-    0 for anything else). Values below 0 are taken as 0 (RL needs data >= 0), counted in
+    0 for anything else); tail_tol: one PSF's far tail on a coarse grid within this error
+    (`--tail-tol`, 0 = never). Values below 0 are taken as 0 (RL needs data >= 0), counted in
     .negative_values.
 
     Returns an OdmrFit (a dict, keys also attributes) with the maps `svpsf fit-odmr` writes,
@@ -982,12 +983,17 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             drift = drift[::-1].copy()
     if psf is not None:
         blur = _blur_for(psf, (h + 2 * margin, w + 2 * margin), "zero", None, None)
+        tol_before = lib.svp_blur_tail_tol(blur._ptr)  # a caller's Blur gets it back
+        _check(lib.svp_blur_set_tail(blur._ptr, float(tail_tol)))
         dopt = ffi.new("svp_deconv_options *")
         lib.svp_deconv_defaults(dopt)
         dopt.iterations = int(iterations)
         negative = ffi.new("size_t *")
-        _check(lib.svp_cube_deconvolve(blur._ptr, cube, int(margin), dopt, negative, ffi.NULL,
-                                       ffi.NULL))
+        try:
+            _check(lib.svp_cube_deconvolve(blur._ptr, cube, int(margin), dopt, negative,
+                                           ffi.NULL, ffi.NULL))
+        finally:
+            lib.svp_blur_set_tail(blur._ptr, tol_before)
     odmr = ffi.new("svp_odmr *")
     lib.svp_odmr_defaults(odmr)
     odmr.zero_field_hz, odmr.gamma_hz_per_t, odmr.linewidth_hz = (zero_field_hz, gamma_hz_per_t,

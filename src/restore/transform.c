@@ -57,7 +57,7 @@ void svp_correct_defaults(svp_correct_options *options)
     options->shrink_factor = 0.1;
     options->summary = NULL;
     options->side_by_side = 1;
-    options->tail_tol = 1e-3;
+    options->tail_tol = SVP_TAIL_TOL_DEFAULT;
 }
 
 /* ---- argument checks --------------------------------------------------------------------- */

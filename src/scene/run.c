@@ -657,6 +657,8 @@ static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
     for (int f = 0; f < nf && st == SVP_OK; f++)
         memcpy(copy->frame[f]->data, view_cube->frame[f]->data, n * sizeof(double));
     if (st == SVP_OK) st = make_blur(c, psf, w + 2 * m, h + 2 * m, &op);
+    /* as `fit-odmr --psf`: one PSF's far tail on a coarse grid when cheaper */
+    if (st == SVP_OK) st = svp_blur_set_tail(op, SVP_TAIL_TOL_DEFAULT);
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.iterations = cr->iterations;

@@ -152,9 +152,16 @@ echo "correct on the fitted maps (expected outside the tolerance):"
 # (measured 5e-17 T apart; a map gets no margin)
 printf 'pixel_um: 1\nimage: {width: 64, height: 56}\nmodel: gaussian\nkind: grid\nnodes: {nx: 2, ny: 2}\nnode_psfs:\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n' >gmap.yaml
 run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml -o bmap --format npy --quiet
-run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gauss.yaml --margin 0 -o bdec0 --format npy --quiet
+run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gauss.yaml --margin 0 --tail-tol 0 -o bdec0 --format npy --quiet
 echo "fit-odmr --psf MAP against the single PSF:"
 "$make" compare bmap/field.npy bdec0/field.npy 1 1e-12 1e-12 || fail "fit-odmr --psf MAP differs from its single PSF"
+# the single PSF with its default --tail-tol: a Gaussian's tail is ~0, so the core's small frame
+# serves with nodes that carry almost nothing (docs/model.md §5): the same field to 1e-10 T
+run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gauss.yaml --margin 0 -o bdect --format npy --quiet
+grep -q '"deconvolve_tail_step_px": [1-9]' bdect/summary.json || fail "fit-odmr --psf: no tail on a coarse grid taken"
+grep -q '"tail_step_px"\|"deconvolve_tail_step_px": 0' bdec0/summary.json || fail "fit-odmr --tail-tol 0: a tail was taken"
+echo "fit-odmr --psf with the tail on a coarse grid against the plain frame:"
+"$make" compare bdect/field.npy bdec0/field.npy 1 1e-10 1e-10 || fail "fit-odmr --psf: the tail on a coarse grid changed the field"
 run 1 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml --margin 5 -o bad16
 expect_in err "--margin needs one PSF (gmap.yaml is a space-variant PSF map)"
 run 1 fit-odmr blur.tif --frequencies bfreq.txt --iterations 10 -o bad14

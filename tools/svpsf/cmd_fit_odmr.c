@@ -25,6 +25,7 @@ enum {
     OPT_ALIGN_TO,
     OPT_PSF,
     OPT_ITERATIONS,
+    OPT_TAIL_TOL,
     OPT_MARGIN,
     OPT_SAVE_STACK
 };
@@ -101,7 +102,9 @@ static void print_help(const cli_run *run, FILE *out)
           "                        of mixed dips is not\n"
           "  --iterations N        Richardson-Lucy iterations per frame (default 75)\n"
           "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo\n"
-          "                        or a PSF map)\n",
+          "                        or a PSF map)\n"
+          "  --tail-tol TOL        one PSF: its far tail on a coarser grid when cheaper and\n"
+          "                        within TOL (default 1e-3; 0: never; as `correct`)\n",
           out);
     cli_print_variant_help(out, 1e-2);
     fputs("outputs:\n"
@@ -195,6 +198,7 @@ struct fit_odmr_args {
     const char *save_stack;      /* --save-stack FILE.npy */
     int variant_given;
     int iterations, iterations_given, margin, margin_auto, margin_given;
+    double tail_tol; /* --tail-tol */
     svp_odmr od;              /* --zero-field, --gamma, --linewidth */
     svp_odmr_fit_options opt; /* --baseline-frames, --max-iterations; lines and line */
 };
@@ -261,6 +265,8 @@ static int fit_odmr_option(cli_run *run, struct fit_odmr_args *a, int c)
     case OPT_ITERATIONS:
         a->iterations_given = 1;
         return cli_parse_int(run, "--iterations", optarg, 1, 1000000, &a->iterations);
+    case OPT_TAIL_TOL:
+        return cli_parse_double_in(run, "--tail-tol", optarg, 0, 1, 1, 0, &a->tail_tol);
     case OPT_MARGIN:
         a->margin_given = 1;
         a->margin_auto = strcmp(optarg, "auto") == 0;
@@ -301,6 +307,7 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
         {"psf", required_argument, NULL, OPT_PSF},
         {"save-stack", required_argument, NULL, OPT_SAVE_STACK},
         {"iterations", required_argument, NULL, OPT_ITERATIONS},
+        {"tail-tol", required_argument, NULL, OPT_TAIL_TOL},
         {"margin", required_argument, NULL, OPT_MARGIN},
         CLI_VARIANT_LONGOPTS,
         {NULL, 0, NULL, 0},
@@ -309,6 +316,7 @@ static int parse_fit_odmr_args(cli_run *run, struct fit_odmr_args *a)
     a->drift_degree = 1;
     a->align_to = -1;
     a->iterations = 75;
+    a->tail_tol = SVP_TAIL_TOL_DEFAULT;
     a->margin_auto = 1;
     cli_variant_defaults(&a->variant);
     a->variant.tolerance = 1e-2; /* as correct's: the deconvolution's own error dominates */
@@ -477,6 +485,7 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
     if (a->psf_path) {
         cli_psf_describe(run, &job->psf);
         cli_setting_int(run, "iterations", a->iterations);
+        cli_setting_num(run, "tail_tol", a->tail_tol);
         cli_setting_int(run, "margin", job->margin);
     }
     return 0;
@@ -496,13 +505,27 @@ static int fit_odmr_deconvolve(cli_run *run, const struct fit_odmr_args *a,
     int code = cli_psf_blur(run, &job->psf, job->w + 2 * m, job->h + 2 * m, SVP_BOUNDARY_ZERO,
                             &blur);
     if (code) return code;
+    /* one PSF: its far tail on a coarse grid when cheaper (docs/model.md §5) */
+    int step = 0, split = 0;
+    double tail_err = 0;
+    svp_status st = svp_blur_set_tail(blur, a->tail_tol);
+    if (st == SVP_OK) st = svp_blur_tail_info(blur, &step, &split, &tail_err);
+    if (st != SVP_OK) {
+        svp_blur_free(blur);
+        return cli_fail(run, st, a->psf_path);
+    }
+    cli_result_int(run, "deconvolve_tail_step_px", step);
+    if (step > 0) {
+        cli_result_int(run, "deconvolve_tail_split_px", split);
+        cli_result_num(run, "deconvolve_tail_error", tail_err);
+    }
     svp_cube cube = job_cube(job);
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.iterations = a->iterations;
     cli_progress_start(run, "deconvolving frames");
     size_t negative = 0;
-    svp_status st = svp_cube_deconvolve(blur, &cube, m, &o, &negative, cli_progress, run);
+    st = svp_cube_deconvolve(blur, &cube, m, &o, &negative, cli_progress, run);
     cli_progress_done(run);
     svp_blur_free(blur);
     if (st != SVP_OK) return cli_fail(run, st, a->stack_path);
