@@ -93,7 +93,8 @@ SVP_API svp_status svp_fft_wisdom_save(const char *path);
  * thread that plans: it must not call the library. NULL (default): none. Process-wide. */
 typedef void (*svp_fft_plan_fn)(void *user, int ny, int nx, int single_precision);
 SVP_API void svp_set_fft_plan_callback(svp_fft_plan_fn callback, void *user);
-/* The smallest 2,3,5,7-smooth integer >= n (n >= 1). */
+/* The smallest even 2,3,5,7-smooth integer >= n (n >= 2; 1 for n <= 1): the FFT frame sizes of
+ * the operators (FFTW transforms odd lengths up to 2x slower, docs/model.md §5). */
 SVP_API int svp_fft_good_size(int n);
 
 /* ---------------------------------------------------------------------------------------- */

@@ -66,6 +66,8 @@ def test_forward_equals_cli(cli, tmp_path, maps, psf_text, extra):
     (["--iterations", "auto", "--acceleration", "biggs-andrews", "--keep-doubtful"],
      dict(iterations="auto", acceleration="biggs-andrews", keep_doubtful=True)),
     (["--side-by-side", "off"], dict(side_by_side=False)),
+    (["--tail-tol", "0"], dict(tail_tol=0)),
+    (["--tail-tol", "0.05"], dict(tail_tol=0.05)),
 ])
 def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     pl, field = maps
@@ -88,6 +90,7 @@ def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     assert r.n_missing == results["n_missing"] == 0
     assert int(np.count_nonzero(r.validity < 1)) == results["n_flagged"]
     assert r.summary["side_by_side"] == results["side_by_side"]
+    assert r.summary["tail_step"] == results["tail_step_px"]
 
 
 def test_correct_with_a_psf_map_and_missing_pixels_equals_cli(cli, tmp_path, maps):
