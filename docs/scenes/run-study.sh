@@ -5,7 +5,7 @@
 #   docs/scenes/run-study.sh --tables-only [OUT]     (the tables from an earlier run)
 # SVPSF: the svpsf program (default build/tools/svpsf/svpsf), OUT: the output folder (default
 # out/study). Each scene goes to OUT/<scene name>/ (report.md, figures/, tables/, summary.json);
-# the tables go to OUT/tables.md. About 17 minutes on 2 idle cores (the corrections-* scenes
+# the tables go to OUT/tables.md. About 5 minutes on 2 idle cores (the corrections-* scenes
 # run seven corrections each). Python 3 (standard library only)
 # formats the tables.
 set -eu
