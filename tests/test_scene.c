@@ -214,6 +214,9 @@ static void test_bad_scenes(void **state)
         {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
                           "correct: {method: r, acceleration: nesterov}\n",
          SVP_ERR_INVALID, "bad.yaml:6:36:", "must be one of none, biggs-andrews"},
+        {FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                          "correct: {method: r, tail_tol: 1}\n",
+         SVP_ERR_INVALID, "bad.yaml:6:32:", "correct.tail_tol must be in [0, 1), got 1"},
         /* malformed YAML */
         {"grid: {pixel_um: 0.1, size_um: [6.4, 6.4]\n", SVP_ERR_FORMAT, "bad.yaml:", ""},
     };
@@ -348,7 +351,8 @@ static void test_end_to_end_matches_transforms(void **state)
 
 /* Corrections with a margin: `auto` is the PSF's reach at 1 % of its peak (at most a quarter of
  * the view), a number is µm; each equals svp_inverse_transform run directly on an operator of the
- * view plus that margin (the third with Biggs–Andrews acceleration, as `acceleration:` asks). */
+ * view plus that margin (the third with Biggs–Andrews acceleration, as `acceleration:` asks;
+ * the fourth on the plain frame, as `tail_tol: 0` asks). */
 static void test_correct_margin(void **state)
 {
     (void)state;
@@ -365,7 +369,9 @@ static void test_correct_margin(void **state)
                         "  - {method: r, iterations: 20, margin: 0.5, name: half_um,"
                         " precision: single}\n"
                         "  - {method: r, iterations: 20, margin: auto, name: accelerated,"
-                        " acceleration: biggs-andrews}\n");
+                        " acceleration: biggs-andrews}\n"
+                        "  - {method: r, iterations: 20, margin: auto, name: plain_frame,"
+                        " tail_tol: 0}\n");
     svp_scene_result *r = run_nowrite(s);
     svp_psf psf;
     svp_psf_defaults(&psf);
@@ -386,14 +392,16 @@ static void test_correct_margin(void **state)
     svp_psf haloed = psf;
     haloed.halo = 0.2;
     assert_int_equal(svp_psf_auto_margin(&haloed, w, h), 0);
-    const int margins[3] = {m_auto, 5, m_auto};
-    const char *names[3] = {"B_z_corrected_auto", "B_z_corrected_half_um",
-                            "B_z_corrected_accelerated"};
+    const int margins[4] = {m_auto, 5, m_auto, m_auto};
+    const char *names[4] = {"B_z_corrected_auto", "B_z_corrected_half_um",
+                            "B_z_corrected_accelerated", "B_z_corrected_plain_frame"};
+    /* tail_tol: 0 keeps the plain frame (the key reached T⁻¹) */
+    assert_int_equal((int)value(r, "correct/plain_frame/tail_step_px"), 0);
     /* the accelerated correction is not the plain one: the key reached the solver */
     const double plain_peak = test_max_abs(map(r, names[0]));
     if (test_max_abs_diff(map(r, names[0]), map(r, names[2])) < 1e-6 * plain_peak)
         fail_msg("acceleration: biggs-andrews gave the plain correction");
-    for (int k = 0; k < 3; k++) {
+    for (int k = 0; k < 4; k++) {
         svp_blur *blur = NULL;
         ASSERT_OK(svp_blur_new(&psf, w + 2 * margins[k], h + 2 * margins[k], SVP_BOUNDARY_ZERO,
                                &blur));
@@ -405,6 +413,7 @@ static void test_correct_margin(void **state)
         o.deconv.single_precision = k == 1;
         o.deconv.acceleration = k == 2 ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
         o.margin = margins[k];
+        if (k == 3) o.tail_tol = 0;
         o.keep_doubtful = 1;
         svp_image *plc = test_image(w, h), *bzc = test_image(w, h), *val = test_image(w, h);
         const svp_image *fa[1] = {map(r, "B_z_apparent")};

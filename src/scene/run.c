@@ -658,7 +658,7 @@ static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
         memcpy(copy->frame[f]->data, view_cube->frame[f]->data, n * sizeof(double));
     if (st == SVP_OK) st = make_blur(c, psf, w + 2 * m, h + 2 * m, &op);
     /* as `fit-odmr --psf`: one PSF's far tail on a coarse grid when cheaper */
-    if (st == SVP_OK) st = svp_blur_set_tail(op, SVP_TAIL_TOL_DEFAULT);
+    if (st == SVP_OK) st = svp_blur_set_tail(op, cr->tail_tol);
     svp_deconv_options o;
     svp_deconv_defaults(&o);
     o.iterations = cr->iterations;
@@ -982,6 +982,7 @@ static svp_status stage_correct(run_ctx *c)
     o.margin = m;
     o.deconv.single_precision = cr->single;
     o.deconv.acceleration = cr->accelerated ? SVP_RL_BIGGS_ANDREWS : SVP_RL_PLAIN;
+    o.tail_tol = cr->tail_tol;
     /* a study compares corrections, doubtful ones included: kept (validity 0 where in doubt)
      * and their doubts recorded */
     svp_correct_summary summary;
@@ -1017,6 +1018,8 @@ static svp_status stage_correct(run_ctx *c)
     SVP_CHECK(value(c, (double)summary.doubts, "correct/%s/doubts", cr->name));
     SVP_CHECK(value(c, (double)summary.n_implausible, "correct/%s/n_implausible", cr->name));
     SVP_CHECK(value(c, seconds, "correct/%s/seconds", cr->name));
+    /* the PSF's far tail on a coarse grid: node spacing (0: the plain frame) */
+    SVP_CHECK(value(c, (double)summary.tail_step, "correct/%s/tail_step_px", cr->name));
     return value(c, low / ((double)w * h), "correct/%s/low_validity_fraction", cr->name);
 }
 
@@ -1241,6 +1244,7 @@ static svp_status write_summary(run_ctx *c, double total)
             svp_json_key_int(j, "margin_px", cr->margin_px);
         svp_json_key_string(j, "precision", cr->single ? "single" : "double");
         svp_json_key_string(j, "acceleration", cr->accelerated ? "biggs-andrews" : "none");
+        svp_json_key_number(j, "tail_tol", cr->tail_tol);
         if (cr->has_psf) svp_json_key_string(j, "psf", cr->psf.describe);
         svp_json_end_object(j);
     }

@@ -990,8 +990,9 @@ static svp_status parse_effects(struct svp_scene *s, const svp_yaml_node *root)
 static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c, const char *what,
                                     scene_correct *out)
 {
-    static const char *const keys[] = {"method", "iterations", "balance",   "pl_floor",     "psf",
-                                       "name",   "margin",     "precision", "acceleration", NULL};
+    static const char *const keys[] = {"method",    "iterations",   "balance",  "pl_floor",
+                                       "psf",       "name",         "margin",   "precision",
+                                       "acceleration", "tail_tol", NULL};
     static const char *const precisions[] = {"double", "single", NULL};
     static const char *const accelerations[] = {"none", "biggs-andrews", NULL};
     static const char *const methods[] = {"rw", "r", "w", "rl_signed", "cube", NULL};
@@ -1030,6 +1031,8 @@ static svp_status parse_one_correct(struct svp_scene *s, const svp_yaml_node *c,
     int acc = 0;
     SVP_CHECK(get_choice(c, what, "acceleration", accelerations, &acc, 0));
     out->accelerated = acc == 1;
+    out->tail_tol = SVP_TAIL_TOL_DEFAULT;
+    SVP_CHECK(get_num(c, what, "tail_tol", 0, 1, SVP_YAML_OPEN_HI, &out->tail_tol, 0));
     const svp_yaml_node *mg = svp_yaml_get(c, "margin");
     const char *mtext = NULL;
     if (mg && svp_yaml_type_of(mg) == SVP_YAML_SCALAR &&

@@ -113,6 +113,8 @@ typedef struct scene_correct {
                       as `svpsf correct --margin auto`); 0 (default) = the view only */
     int single;    /* 1: single-precision transforms for RL (as `--precision single`) */
     int accelerated; /* 1: Biggs–Andrews extrapolation for RL (as `--acceleration biggs-andrews`) */
+    double tail_tol; /* RL (r, rl_signed, cube): the PSF's far tail on a coarse grid within this
+                        error (as `--tail-tol`; 0: never); default SVP_TAIL_TOL_DEFAULT */
     int has_psf; /* an assumed PSF different from the scene's */
     scene_psf psf;
     int cube;    /* method cube: every frame of the cube deconvolved (RL, `iterations`, the
