@@ -487,6 +487,10 @@ static void test_tail(void **state)
             ASSERT_OK(svp_blur_tail_info(tail, &step, &split, &est));
             if (step == 0) fail_msg("no tail taken: kind %d, margin %d", kind, margin);
             assert_true(est > 0 && est <= tol);
+            /* the chooser's estimate is svp_tail_estimate's for the pair it took */
+            ASSERT_CLOSE(svp_tail_estimate(tail->kernel, tail->kcx, tail->kcy, w, h, margin, step,
+                                           split),
+                         est, 1e-12 * est);
             ASSERT_OK(svp_blur_ready(tail));
             assert_true((size_t)tail->frame.nx * tail->frame.ny <
                         (size_t)(plain->frame.nx ? plain->frame.nx : 2 * w) * 2 * h);

@@ -81,15 +81,17 @@ typedef struct profile {
     double flux;
 } profile;
 
-static double stencil(const profile *p, int dx, int dy, int r0, int r1)
+/* The kernel at offset (dx, dy), continued or cut as tail_at does (w = 1). */
+static inline double plain_at(const profile *p, int dx, int dy)
 {
     const svp_image *k = p->k;
-    const double c = tail_at(k, p->cx, p->cy, dx, dy, r0, r1, p->extend);
-    const double xx = tail_at(k, p->cx, p->cy, dx - 1, dy, r0, r1, p->extend) - 2 * c +
-                      tail_at(k, p->cx, p->cy, dx + 1, dy, r0, r1, p->extend);
-    const double yy = tail_at(k, p->cx, p->cy, dx, dy - 1, r0, r1, p->extend) - 2 * c +
-                      tail_at(k, p->cx, p->cy, dx, dy + 1, r0, r1, p->extend);
-    return fabs(xx) + fabs(yy);
+    int x = p->cx + dx, y = p->cy + dy;
+    if (x < 0 || y < 0 || x >= k->width || y >= k->height) {
+        if (!p->extend) return 0.0;
+        x = x < 0 ? 0 : (x >= k->width ? k->width - 1 : x);
+        y = y < 0 ? 0 : (y >= k->height ? k->height - 1 : y);
+    }
+    return k->data[(size_t)y * k->width + x];
 }
 
 static void profile_free(profile *p) { free(p->outer); }
@@ -114,32 +116,48 @@ static svp_status profile_make(const svp_image *k, int cx, int cy, int width, in
     p->n_bins = (int)ceil(hypot(mx, my)) + 2;
     p->outer = calloc((size_t)p->n_bins + 1, sizeof *p->outer);
     if (!p->outer) return svp_fail(SVP_ERR_NOMEM, "out of memory for the tail's profile");
-    /* r0 = r1 = 0: w = 1 everywhere, the kernel's own second differences (serial: the sums do
-     * not depend on the threads) */
+    /* w = 1: the kernel's own second differences, binned by whole radius (serial: the sums do
+     * not depend on the threads). Only bins beyond the smallest r1 + 2 are read. */
     for (int dy = p->y0; dy <= p->y1; dy++)
-        for (int dx = p->x0; dx <= p->x1; dx++)
-            p->outer[(int)hypot(dx, dy)] += stencil(p, dx, dy, 0, 0);
+        for (int dx = p->x0; dx <= p->x1; dx++) {
+            const double c = plain_at(p, dx, dy);
+            const double xx = plain_at(p, dx - 1, dy) - 2 * c + plain_at(p, dx + 1, dy);
+            const double yy = plain_at(p, dx, dy - 1) - 2 * c + plain_at(p, dx, dy + 1);
+            p->outer[(int)sqrt((double)dx * dx + (double)dy * dy)] += fabs(xx) + fabs(yy);
+        }
     for (int b = p->n_bins - 1; b >= 0; b--) p->outer[b] += p->outer[b + 1];
     return SVP_OK;
 }
 
-/* Σ |Δxx| + |Δyy| of the tail for split r0 over the used offsets, relative to the flux: exact
- * inside radius r1 + 2, the profile beyond (there w = 1 on every stencil point). */
-static double profile_sum(const profile *p, int r0)
+/* *out = Σ |Δxx| + |Δyy| of the tail for split r0 over the used offsets, relative to the flux:
+ * exact inside radius r1 + 2 (from a table of the tail there), the profile beyond (there w = 1
+ * on every stencil point). */
+static svp_status profile_sum(const profile *p, int r0, double *out)
 {
-    if (!(p->flux > 0)) return 0.0;
-    const int r1 = 2 * r0, rb = r1 + 2;
+    *out = 0.0;
+    if (!(p->flux > 0)) return SVP_OK;
+    const int r1 = 2 * r0, rb = r1 + 2, side = 2 * rb + 3;
+    double *t = malloc((size_t)side * side * sizeof *t);
+    if (!t) return svp_fail(SVP_ERR_NOMEM, "out of memory for the tail's estimate");
+    for (int j = 0; j < side; j++)
+        for (int i = 0; i < side; i++)
+            t[(size_t)j * side + i] =
+                tail_at(p->k, p->cx, p->cy, i - rb - 1, j - rb - 1, r0, r1, p->extend);
     double sum = rb < p->n_bins ? p->outer[rb] : 0.0;
     for (int dy = -rb; dy <= rb; dy++) {
         if (dy < p->y0 || dy > p->y1) continue;
         for (int dx = -rb; dx <= rb; dx++) {
             if (dx < p->x0 || dx > p->x1) continue;
-            const double r = hypot(dx, dy);
+            const double r = sqrt((double)dx * dx + (double)dy * dy);
             if (r >= rb || r + 1.5 < r0) continue; /* beyond: the profile; within: 0 */
-            sum += stencil(p, dx, dy, r0, r1);
+            const double *c = t + (size_t)(dy + rb + 1) * side + dx + rb + 1;
+            const double xx = c[-1] - 2 * c[0] + c[1], yy = c[-side] - 2 * c[0] + c[side];
+            sum += fabs(xx) + fabs(yy);
         }
     }
-    return sum / p->flux;
+    free(t);
+    *out = sum / p->flux;
+    return SVP_OK;
 }
 
 double svp_tail_estimate(const svp_image *k, int cx, int cy, int width, int height, int margin,
@@ -150,9 +168,10 @@ double svp_tail_estimate(const svp_image *k, int cx, int cy, int width, int heig
         profile_free(&p);
         return HUGE_VAL; /* no memory: no tail is chosen */
     }
-    const double e = 0.25 * s * s * profile_sum(&p, r0);
+    double sum = 0.0;
+    const svp_status st = profile_sum(&p, r0, &sum);
     profile_free(&p);
-    return e;
+    return st == SVP_OK ? 0.25 * s * s * sum : HUGE_VAL;
 }
 
 svp_status svp_tail_core(const svp_image *k, int cx, int cy, int r0, svp_image **out, int *ocx,
@@ -389,11 +408,13 @@ svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int he
         return st;
     }
     double sums[sizeof splits / sizeof *splits];
-    for (int i = 0; i < n_splits; i++)
-        sums[i] = (splits[i] >= 4 && 2 * splits[i] < (rx < ry ? rx : ry))
-                      ? profile_sum(&p, splits[i])
-                      : HUGE_VAL;
+    for (int i = 0; i < n_splits && st == SVP_OK; i++) {
+        sums[i] = HUGE_VAL; /* a split the kernel cannot hold */
+        if (splits[i] >= 4 && 2 * splits[i] < (rx < ry ? rx : ry))
+            st = profile_sum(&p, splits[i], &sums[i]);
+    }
     profile_free(&p);
+    if (st != SVP_OK) return st;
     double best = 0.8 * plain; /* a tail must save at least a fifth */
     for (size_t a = 0; a < sizeof steps / sizeof *steps; a++) {
         const int s = steps[a];
