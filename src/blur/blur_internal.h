@@ -28,6 +28,12 @@ typedef struct svp_frame {
     double *otf_re;
 } svp_frame;
 
+/* A kernel's reach along an axis: the largest offset from its centre. */
+static inline int svp_kernel_reach(int size, int centre)
+{
+    return size - 1 - centre > centre ? size - 1 - centre : centre;
+}
+
 /* The frame size svp_frame_init would choose, without planning or tables. */
 svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
                           int *ny);

@@ -335,9 +335,8 @@ void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int
 /* The kernel's radii: the largest offset from its centre on each axis. */
 static void kernel_radii(const svp_blur *b, int *rx, int *ry)
 {
-    const svp_image *k = b->kernel;
-    *rx = k->width - 1 - b->kcx > b->kcx ? k->width - 1 - b->kcx : b->kcx;
-    *ry = k->height - 1 - b->kcy > b->kcy ? k->height - 1 - b->kcy : b->kcy;
+    *rx = svp_kernel_reach(b->kernel->width, b->kcx);
+    *ry = svp_kernel_reach(b->kernel->height, b->kcy);
 }
 
 /* The frame of an invariant operator (margin > 0: for data on the inner view), its OTF (real
@@ -349,8 +348,7 @@ static svp_status invariant_frame(const svp_blur *b, int margin, svp_frame *f,
     /* with a tail on a coarse grid the frame is the core's */
     const svp_image *k = b->core ? b->core : b->kernel;
     const int kcx = b->core ? b->core_cx : b->kcx, kcy = b->core ? b->core_cy : b->kcy;
-    const int rx = k->width - 1 - kcx > kcx ? k->width - 1 - kcx : kcx;
-    const int ry = k->height - 1 - kcy > kcy ? k->height - 1 - kcy : kcy;
+    const int rx = svp_kernel_reach(k->width, kcx), ry = svp_kernel_reach(k->height, kcy);
     *pruned = NULL;
     svp_status st = frame_init(f, b->width, b->height, rx, ry, b->boundary, margin);
     if (st == SVP_OK) st = svp_frame_set_kernel(f, k, kcx, kcy, b->boundary);
@@ -974,38 +972,33 @@ static void add_tail(svp_blur *b, const double *in, double *out, int adjoint)
     svp_tail_spread(b->tail, out, (size_t)b->width);
 }
 
-static svp_status invariant_apply(svp_blur *b, const double *restrict x, double *restrict y)
+/* H in (adjoint 0) or Hᵀ in (1): the frame's convolution, the tail's part and the halo. */
+static svp_status invariant_run(svp_blur *b, const double *restrict in, double *restrict out,
+                                int adjoint)
 {
     SVP_CHECK(svp_blur_ready(b));
     b->rows_held = 0;
     if (b->single) {
-        apply_single(b, x, y, 0); /* with the tail */
+        apply_single(b, in, out, adjoint); /* with the tail */
     } else {
         svp_frame *f = &b->frame;
-        svp_blur_spectrum_in(b, x, 0);
-        svp_frame_multiply(f, b->work_c, 0, 1.0 / ((double)f->nx * f->ny));
-        svp_blur_spectrum_out(b, y, 0);
-        add_tail(b, x, y, 0);
+        svp_blur_spectrum_in(b, in, adjoint);
+        svp_frame_multiply(f, b->work_c, adjoint, 1.0 / ((double)f->nx * f->ny));
+        svp_blur_spectrum_out(b, out, adjoint);
+        add_tail(b, in, out, adjoint);
     }
-    add_halo(b, x, y);
+    add_halo(b, in, out);
     return SVP_OK;
+}
+
+static svp_status invariant_apply(svp_blur *b, const double *restrict x, double *restrict y)
+{
+    return invariant_run(b, x, y, 0);
 }
 
 static svp_status invariant_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
 {
-    SVP_CHECK(svp_blur_ready(b));
-    b->rows_held = 0;
-    if (b->single) {
-        apply_single(b, y, x, 1); /* with the tail */
-    } else {
-        svp_frame *f = &b->frame;
-        svp_blur_spectrum_in(b, y, 1);
-        svp_frame_multiply(f, b->work_c, 1, 1.0 / ((double)f->nx * f->ny));
-        svp_blur_spectrum_out(b, x, 1);
-        add_tail(b, y, x, 1);
-    }
-    add_halo(b, y, x);
-    return SVP_OK;
+    return invariant_run(b, y, x, 1);
 }
 
 static size_t invariant_memory(const svp_blur *b)

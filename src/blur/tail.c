@@ -38,12 +38,6 @@ static double step(double r, int r0, int r1)
     return t * t * t * (10.0 + t * (-15.0 + 6.0 * t));
 }
 
-/* The largest offset from the kernel's centre along an axis. */
-static int radius(int size, int centre)
-{
-    return size - 1 - centre > centre ? size - 1 - centre : centre;
-}
-
 /* The tail's value at offset (dx, dy): the kernel times w; beyond the kernel's rectangle the
  * value at the nearest offset inside it when `extend` (a kernel that covers every offset the
  * operator uses: what lies beyond is never used, and the continuation keeps the tail smooth
@@ -234,7 +228,7 @@ svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int heigh
     /* the node offsets whose tail value some used fine offset interpolates: up to the largest
      * used offset plus a node spacing at each end */
     const int ux = width - margin - 1, uy = height - margin - 1;
-    int rkx = extend ? ux : radius(k->width, cx), rky = extend ? uy : radius(k->height, cy);
+    int rkx = extend ? ux : svp_kernel_reach(k->width, cx), rky = extend ? uy : svp_kernel_reach(k->height, cy);
     if (rkx > ux) rkx = ux;
     if (rky > uy) rky = uy;
     const int rcx = rkx / s + 2, rcy = rky / s + 2;
@@ -394,7 +388,7 @@ svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int he
     *r0_out = 0;
     *error = 0;
     const int ux = width - margin - 1, uy = height - margin - 1;
-    int rx = radius(k->width, cx), ry = radius(k->height, cy);
+    int rx = svp_kernel_reach(k->width, cx), ry = svp_kernel_reach(k->height, cy);
     if (rx > ux) rx = ux;
     if (ry > uy) ry = uy;
     const double plain = fft_cost(pnx, pny);
