@@ -687,13 +687,18 @@ static svp_status align_call(void *user)
     return svp_cube_align(c->work, NULL, NULL, NULL, NULL, NULL, NULL);
 }
 
+/* The largest difference between two cubes' frames. */
+static double cube_diff(const svp_cube *a, const svp_cube *b)
+{
+    double d = 0;
+    for (int f = 0; f < a->n_freq; f++) d = fmax(d, test_max_abs_diff(a->frame[f], b->frame[f]));
+    return d;
+}
+
 static double align_diff(void *user)
 {
     align_ctx *c = user;
-    double d = 0;
-    for (int f = 0; f < c->work->n_freq; f++)
-        d = fmax(d, test_max_abs_diff(c->work->frame[f], c->ref->frame[f]));
-    return d;
+    return cube_diff(c->work, c->ref);
 }
 
 static void test_align(void **state)
@@ -750,10 +755,7 @@ static svp_status cubedec_call(void *user)
 static double cubedec_diff(void *user)
 {
     cubedec_ctx *c = user;
-    double d = 0;
-    for (int f = 0; f < c->work->n_freq; f++)
-        d = fmax(d, test_max_abs_diff(c->work->frame[f], c->ref->frame[f]));
-    return d;
+    return cube_diff(c->work, c->ref);
 }
 
 static void test_cube_deconvolve(void **state)

@@ -37,6 +37,10 @@ static inline int svp_kernel_reach(int size, int centre)
 /* The frame size svp_frame_init would choose, without planning or tables. */
 svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary boundary, int *nx,
                           int *ny);
+/* The same for a zero-boundary operator whose data lie on the view `margin` pixels in from each
+ * side (svp_blur_set_view's frame; margin 0: svp_frame_size's). */
+svp_status svp_frame_size_view(int width, int height, int rx, int ry, int margin, int *nx,
+                               int *ny);
 /* Frame geometry for an image of width x height, kernel radii rx, ry (offsets that reach). */
 svp_status svp_frame_init(svp_frame *f, int width, int height, int rx, int ry,
                           svp_boundary boundary);
@@ -87,6 +91,11 @@ void svp_spectrum_product(const double *restrict otf, double *restrict s, size_t
                           double scale);
 void svp_spectrum_product_f(const float *restrict otf, float *restrict s, size_t n, int conjugate,
                             float scale);
+/* frame = C K E of what the frame holds, in place, without the load and crop: the forward
+ * transform (pruned to the image's rows when `pruned` is given), the product with the OTF / (nx ny)
+ * (adjoint: its conjugate), the inverse (pruned alike); spectrum is the work spectrum. */
+void svp_frame_filter(const svp_frame *f, const svp_fft_pruned *pruned, double *frame,
+                      fftw_complex *spectrum, int adjoint);
 /* spectrum *= otf (conj != 0: *= conj(otf)), scaled by `scale`. */
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale);

@@ -109,6 +109,12 @@ svp_status svp_frame_size(int width, int height, int rx, int ry, svp_boundary bo
     return frame_size(width, height, rx, ry, boundary, 0, nx, ny);
 }
 
+svp_status svp_frame_size_view(int width, int height, int rx, int ry, int margin, int *nx,
+                               int *ny)
+{
+    return frame_size(width, height, rx, ry, SVP_BOUNDARY_ZERO, margin, nx, ny);
+}
+
 void svp_frame_release(svp_frame *f)
 {
     free(f->src_x);
@@ -319,6 +325,20 @@ SVP_FRAME_OPS(svp_frame_extend, svp_frame_crop, svp_frame_embed, svp_frame_fold,
 SVP_FRAME_OPS(svp_frame_extend_f, svp_frame_crop_f, svp_frame_embed_f, svp_frame_fold_f,
               svp_frame_zero_load_f, svp_spectrum_product_f, float)
 /* clang-format on */
+
+void svp_frame_filter(const svp_frame *f, const svp_fft_pruned *pruned, double *frame,
+                      fftw_complex *spectrum, int adjoint)
+{
+    if (pruned)
+        svp_fft_forward_pruned(pruned, frame, spectrum);
+    else
+        svp_fft_forward(f->plan, frame, spectrum);
+    svp_frame_multiply(f, spectrum, adjoint, 1.0 / ((double)f->nx * f->ny));
+    if (pruned)
+        svp_fft_inverse_pruned_unscaled(pruned, spectrum, frame);
+    else
+        svp_fft_inverse_unscaled(f->plan, spectrum, frame);
+}
 
 void svp_frame_multiply(const svp_frame *f, fftw_complex *restrict spectrum, int conjugate,
                         double scale)
@@ -912,15 +932,7 @@ static void rows_transform(svp_blur *b, int adjoint)
         svp_fftf_inverse_rows_unscaled(b->rows_f, b->work_cf, b->work_rf);
         return;
     }
-    if (b->pruned)
-        svp_fft_forward_pruned(b->pruned, b->work_r, b->work_c);
-    else
-        svp_fft_forward(f->plan, b->work_r, b->work_c);
-    svp_frame_multiply(f, b->work_c, adjoint, 1.0 / ((double)f->nx * f->ny));
-    if (b->pruned)
-        svp_fft_inverse_pruned_unscaled(b->pruned, b->work_c, b->work_r);
-    else
-        svp_fft_inverse_unscaled(f->plan, b->work_c, b->work_r);
+    svp_frame_filter(f, b->pruned, b->work_r, b->work_c, adjoint);
 }
 
 svp_status svp_blur_rows(svp_blur *b, int adjoint, int chained, svp_blur_row_fn load,

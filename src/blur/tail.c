@@ -16,7 +16,7 @@
 #include <string.h>
 
 struct svp_tail {
-    int s, r0, r1;
+    int s, r0;                    /* node spacing, split (the core reaches 2 r0) */
     int w, h;                     /* fine grid */
     int cw, ch;                   /* nodes: node ni at fine x = ni s, ni = 0 .. cw − 1 */
     svp_frame frame;              /* the nodes' frame (zero mode) with the OTF of K_c */
@@ -38,12 +38,10 @@ static double step(double r, int r0, int r1)
     return t * t * t * (10.0 + t * (-15.0 + 6.0 * t));
 }
 
-/* The tail's value at offset (dx, dy): the kernel times w; beyond the kernel's rectangle the
- * value at the nearest offset inside it when `extend` (a kernel that covers every offset the
- * operator uses: what lies beyond is never used, and the continuation keeps the tail smooth
- * there), else 0. */
-static double tail_at(const svp_image *k, int cx, int cy, int dx, int dy, int r0, int r1,
-                      int extend)
+/* The kernel at offset (dx, dy); beyond its rectangle the value at the nearest offset inside it
+ * when `extend` (a kernel that covers every offset the operator uses: what lies beyond is never
+ * used, and the continuation keeps the tail smooth there), else 0. */
+static inline double kernel_at(const svp_image *k, int cx, int cy, int dx, int dy, int extend)
 {
     int x = cx + dx, y = cy + dy;
     if (x < 0 || y < 0 || x >= k->width || y >= k->height) {
@@ -51,7 +49,14 @@ static double tail_at(const svp_image *k, int cx, int cy, int dx, int dy, int r0
         x = x < 0 ? 0 : (x >= k->width ? k->width - 1 : x);
         y = y < 0 ? 0 : (y >= k->height ? k->height - 1 : y);
     }
-    return k->data[(size_t)y * k->width + x] * step(hypot(dx, dy), r0, r1);
+    return k->data[(size_t)y * k->width + x];
+}
+
+/* The tail's value at offset (dx, dy): the kernel (kernel_at) times w. */
+static double tail_at(const svp_image *k, int cx, int cy, int dx, int dy, int r0, int r1,
+                      int extend)
+{
+    return kernel_at(k, cx, cy, dx, dy, extend) * step(hypot(dx, dy), r0, r1);
 }
 
 /* Whether the kernel reaches every offset an operator on this grid uses (view: `margin` pixels
@@ -74,19 +79,6 @@ typedef struct profile {
     double *outer; /* outer[b] = the sum over offsets with radius >= b */
     double flux;
 } profile;
-
-/* The kernel at offset (dx, dy), continued or cut as tail_at does (w = 1). */
-static inline double plain_at(const profile *p, int dx, int dy)
-{
-    const svp_image *k = p->k;
-    int x = p->cx + dx, y = p->cy + dy;
-    if (x < 0 || y < 0 || x >= k->width || y >= k->height) {
-        if (!p->extend) return 0.0;
-        x = x < 0 ? 0 : (x >= k->width ? k->width - 1 : x);
-        y = y < 0 ? 0 : (y >= k->height ? k->height - 1 : y);
-    }
-    return k->data[(size_t)y * k->width + x];
-}
 
 static void profile_free(profile *p) { free(p->outer); }
 
@@ -114,9 +106,11 @@ static svp_status profile_make(const svp_image *k, int cx, int cy, int width, in
      * not depend on the threads). Only bins beyond the smallest r1 + 2 are read. */
     for (int dy = p->y0; dy <= p->y1; dy++)
         for (int dx = p->x0; dx <= p->x1; dx++) {
-            const double c = plain_at(p, dx, dy);
-            const double xx = plain_at(p, dx - 1, dy) - 2 * c + plain_at(p, dx + 1, dy);
-            const double yy = plain_at(p, dx, dy - 1) - 2 * c + plain_at(p, dx, dy + 1);
+            const double c = kernel_at(k, cx, cy, dx, dy, p->extend);
+            const double xx = kernel_at(k, cx, cy, dx - 1, dy, p->extend) - 2 * c +
+                              kernel_at(k, cx, cy, dx + 1, dy, p->extend);
+            const double yy = kernel_at(k, cx, cy, dx, dy - 1, p->extend) - 2 * c +
+                              kernel_at(k, cx, cy, dx, dy + 1, p->extend);
             p->outer[(int)sqrt((double)dx * dx + (double)dy * dy)] += fabs(xx) + fabs(yy);
         }
     for (int b = p->n_bins - 1; b >= 0; b--) p->outer[b] += p->outer[b + 1];
@@ -210,6 +204,20 @@ int svp_tail_step(const svp_tail *t) { return t->s; }
 int svp_tail_split(const svp_tail *t) { return t->r0; }
 double svp_tail_error(const svp_tail *t) { return t->error; }
 
+/* The reach of K_c in nodes: the node offsets whose tail value some used fine offset
+ * interpolates, up to the largest used offset (the kernel's, when it stops short of it) plus a
+ * node spacing at each end. */
+static void node_reach(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                       int s, int *rcx, int *rcy)
+{
+    const int ux = width - margin - 1, uy = height - margin - 1;
+    const int extend = covers(k, cx, cy, width, height, margin);
+    int rkx = extend ? ux : svp_kernel_reach(k->width, cx);
+    int rky = extend ? uy : svp_kernel_reach(k->height, cy);
+    *rcx = (rkx < ux ? rkx : ux) / s + 2;
+    *rcy = (rky < uy ? rky : uy) / s + 2;
+}
+
 svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int height, int margin,
                         int s, int r0, double error, svp_tail **out)
 {
@@ -218,27 +226,21 @@ svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int heigh
     if (!t) return svp_fail(SVP_ERR_NOMEM, "out of memory for the coarse tail");
     t->s = s;
     t->r0 = r0;
-    t->r1 = 2 * r0;
     t->w = width;
     t->h = height;
     t->cw = (width - 1) / s + 2;
     t->ch = (height - 1) / s + 2;
     t->error = error;
     const int extend = covers(k, cx, cy, width, height, margin);
-    /* the node offsets whose tail value some used fine offset interpolates: up to the largest
-     * used offset plus a node spacing at each end */
-    const int ux = width - margin - 1, uy = height - margin - 1;
-    int rkx = extend ? ux : svp_kernel_reach(k->width, cx), rky = extend ? uy : svp_kernel_reach(k->height, cy);
-    if (rkx > ux) rkx = ux;
-    if (rky > uy) rky = uy;
-    const int rcx = rkx / s + 2, rcy = rky / s + 2;
+    int rcx, rcy;
+    node_reach(k, cx, cy, width, height, margin, s, &rcx, &rcy);
     svp_image *kc = NULL;
     svp_status st = svp_image_new(2 * rcx + 1, 2 * rcy + 1, &kc);
     if (st == SVP_OK) {
         for (int j = -rcy; j <= rcy; j++)
             for (int i = -rcx; i <= rcx; i++)
                 kc->data[(size_t)(j + rcy) * kc->width + i + rcx] =
-                    tail_at(k, cx, cy, i * s, j * s, r0, t->r1, extend);
+                    tail_at(k, cx, cy, i * s, j * s, r0, 2 * r0, extend);
         st = svp_frame_init(&t->frame, t->cw, t->ch, rcx, rcy, SVP_BOUNDARY_ZERO);
     }
     if (st == SVP_OK) st = svp_frame_set_kernel(&t->frame, kc, rcx, rcy, SVP_BOUNDARY_ZERO);
@@ -268,18 +270,9 @@ svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int heigh
 static void nodes_convolve(svp_tail *t, int adjoint)
 {
     const svp_frame *f = &t->frame;
-    if (t->pruned) { /* only the node rows are read in and kept out */
-        svp_frame_zero_load(f, t->ch, t->nodes, t->frame_r);
-        svp_fft_forward_pruned(t->pruned, t->frame_r, t->frame_c);
-    } else {
-        svp_frame_zero_load(f, f->ny, t->nodes, t->frame_r);
-        svp_fft_forward(f->plan, t->frame_r, t->frame_c);
-    }
-    svp_frame_multiply(f, t->frame_c, adjoint, 1.0 / ((double)f->nx * f->ny));
-    if (t->pruned)
-        svp_fft_inverse_pruned_unscaled(t->pruned, t->frame_c, t->frame_r);
-    else
-        svp_fft_inverse_unscaled(f->plan, t->frame_c, t->frame_r);
+    /* pruned: only the node rows are read in and kept out */
+    svp_frame_zero_load(f, t->pruned ? t->ch : f->ny, t->nodes, t->frame_r);
+    svp_frame_filter(f, t->pruned, t->frame_r, t->frame_c, adjoint);
     svp_frame_crop(f, t->frame_r, t->nodes);
 }
 
@@ -416,12 +409,12 @@ svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int he
             const int r0 = splits[i], r1 = 2 * r0;
             const double e = 0.25 * s * s * sums[i];
             if (r0 < 2 * s || !(e <= tol)) continue;
-            const int cnx =
-                svp_fft_good_size(width - margin + r1 > width ? width - margin + r1 : width);
-            const int cny =
-                svp_fft_good_size(height - margin + r1 > height ? height - margin + r1 : height);
-            const int cw = (width - 1) / s + 2, ch = (height - 1) / s + 2;
-            const int tnx = svp_fft_good_size(2 * cw), tny = svp_fft_good_size(2 * ch);
+            /* the frames svp_blur_ready and svp_tail_new would make: the core's, the nodes' */
+            int cnx, cny, tnx, tny, rcx, rcy;
+            SVP_CHECK(svp_frame_size_view(width, height, r1, r1, margin, &cnx, &cny));
+            node_reach(k, cx, cy, width, height, margin, s, &rcx, &rcy);
+            SVP_CHECK(svp_frame_size((width - 1) / s + 2, (height - 1) / s + 2, rcx, rcy,
+                                     SVP_BOUNDARY_ZERO, &tnx, &tny));
             /* the gather and spread: about half a transform's work over the fine grid */
             const double cost =
                 fft_cost(cnx, cny) + fft_cost(tnx, tny) + 0.5 * fft_cost(width, height);
