@@ -824,6 +824,67 @@ static void test_rl_single_precision_level(void **state)
     svp_image_free(field);
 }
 
+/* Single precision with a margin wider than the PSF's reach: T⁻¹ with R, a Gaussian of 5 px
+ * FWHM and a 40 px margin around a 100 x 90 view (the sharp-edged field and band PL of
+ * test_rl_single_precision_level, light from outside the view). Pixels of the margin beyond
+ * the reach have Hᵀm ~ 1e-12 of its peak, below float's round-off of Hᵀ; with the double
+ * threshold of "seen" (rl.c SEEN_DOUBLE) the float steps there grew without bound: the field
+ * came back 1.2e-3 (uniform PL) and 1.0 (bands) of its peak from the double one. With
+ * SEEN_SINGLE (1e-6) measured 4.6e-7 and 2.0e-5 (thresholds 1e-7 – 1e-5 give 1.5e-7 – 4.3e-6
+ * and 1.7e-5 – 1.9e-5), asserted ≤ 5e-5. */
+static void test_rl_single_precision_margin(void **state)
+{
+    (void)state;
+    const int w = 100, h = 90, m = 40, gw = w + 2 * m, gh = h + 2 * m;
+    svp_psf psf;
+    svp_psf_defaults(&psf);
+    psf.model = SVP_PSF_GAUSSIAN;
+    psf.fwhm = 5;
+    svp_blur *op = NULL;
+    ASSERT_OK(svp_blur_new(&psf, gw, gh, SVP_BOUNDARY_ZERO, &op));
+    svp_image *pl = test_image(gw, gh), *field = test_image(gw, gh);
+    svp_image *pl_app = test_image(gw, gh), *b_app = test_image(gw, gh);
+    svp_image *valid_g = test_image(gw, gh);
+    svp_image *pl_v = test_image(w, h), *b_v = test_image(w, h), *valid = test_image(w, h);
+    svp_image *pl_rec = test_image(w, h), *bd = test_image(w, h), *bs = test_image(w, h);
+    for (int kind = 0; kind < 2; kind++) {
+        for (int j = 0; j < gh; j++)
+            for (int i = 0; i < gw; i++) {
+                const double x = (i - 0.5 * gw) / w, y = (j - 0.5 * gh) / h;
+                const double inside = fabs(x) < 0.3 && fabs(y) < 0.25 ? 1.0 : 0.0;
+                field->data[(size_t)j * gw + i] =
+                    2e-3 * (inside * (1 - 0.5 * cos(25 * x)) - 0.3 * sin(7 * y) +
+                            0.2 * cos(9 * x + 5 * y));
+                pl->data[(size_t)j * gw + i] = kind && ((i / 13 + j / 17) % 2) ? 0.3 : 1.0;
+            }
+        const svp_image *f_in[1] = {field};
+        svp_image *f_app[1] = {b_app};
+        ASSERT_OK(svp_forward_transform(op, pl, f_in, 1, pl_app, f_app, valid_g));
+        for (int j = 0; j < h; j++)
+            for (int i = 0; i < w; i++) {
+                const size_t v = (size_t)j * w + i, g = (size_t)(j + m) * gw + i + m;
+                pl_v->data[v] = pl_app->data[g];
+                b_v->data[v] = b_app->data[g];
+            }
+        svp_correct_options o;
+        svp_correct_defaults(&o);
+        o.margin = m;
+        const svp_image *b_in[1] = {b_v};
+        svp_image *f_d[1] = {bd}, *f_s[1] = {bs};
+        ASSERT_OK(svp_inverse_transform(op, pl_v, b_in, 1, &o, pl_rec, f_d, valid, NULL));
+        o.deconv.single_precision = 1;
+        ASSERT_OK(svp_inverse_transform(op, pl_v, b_in, 1, &o, pl_rec, f_s, valid, NULL));
+        const double rel = test_max_abs_diff(bs, bd) / test_max_abs(bd);
+        print_message("signed R, %s PL, margin %d beyond a Gaussian's reach: single vs double "
+                      "%.3g of the field's peak\n",
+                      kind ? "bands" : "uniform", m, rel);
+        assert_true(rel > 0 && rel < 5e-5);
+    }
+    svp_blur_free(op);
+    svp_image *imgs[] = {pl, field, pl_app, b_app, valid_g, pl_v, b_v, valid, pl_rec, bd, bs};
+    for (size_t k = 0; k < sizeof imgs / sizeof *imgs; k++) svp_image_free(imgs[k]);
+}
+
 /* ---- bad input, progress, threads -------------------------------------------------------- */
 
 static void test_bad_input(void **state)
@@ -1181,6 +1242,7 @@ int main(void)
         cmocka_unit_test(test_variant_operator),
         cmocka_unit_test(test_rl_single_precision),
         cmocka_unit_test(test_rl_single_precision_level),
+        cmocka_unit_test(test_rl_single_precision_margin),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_progress_and_cancel),
         cmocka_unit_test(test_wiener_cg_cap_reported),

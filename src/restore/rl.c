@@ -21,6 +21,13 @@
 /* auto_stop: stalled when χ² fell by less than STALL_FALL of itself over STALL_SPAN iterations */
 #define STALL_SPAN 10
 #define STALL_FALL 0.001
+/* Boundary weights: a pixel whose Hᵀm is below this fraction of its largest value keeps its
+ * start (the light it sends into the data is that small). In single precision Hᵀ's round-off,
+ * about 1e-7 of what it transforms, exceeds such a pixel's true Hᵀ(m y / Hx) and Hᵀm: divided
+ * by Hᵀm it made a step of any size, and a margin wider than a Gaussian PSF's reach (Hᵀm
+ * 1e-12 there) blew up within ten iterations or left errors of 1 % (docs/model.md §6). */
+#define SEEN_DOUBLE 1e-12
+#define SEEN_SINGLE 1e-6
 /* Biggs–Andrews: the extrapolation weight's cap. Repeated with weight α, a step moves the
  * iterate 1 / (1 − α) RL steps' worth; on noisy data α climbs towards 1 as RL starts fitting the
  * noise, and a cap of 0.95 (20 steps' worth) let the lit field's error of 100-photon foreign
@@ -437,7 +444,8 @@ static svp_status rl_normalisation(rl_run *r)
     }
     if (r->o->boundary_weights) {
         /* Pixels no finite datum sees (Hᵀm ~ 0) keep their value: 0 marks them. */
-        const double tiny = 1e-12 * svp_max(inv_norm, n);
+        const double seen = r->blur->single ? SEEN_SINGLE : SEEN_DOUBLE;
+        const double tiny = seen * svp_max(inv_norm, n);
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) inv_norm[i] = inv_norm[i] > tiny ? 1.0 / inv_norm[i] : 0.0;
     } else {
