@@ -531,7 +531,9 @@ enum {
     SVP_DOUBT_BALANCE_BOUND = 2, /* an automatic balance ended on its search's bound */
     SVP_DOUBT_RL_CAP = 4,        /* automatic RL iterations ended on the cap */
     SVP_DOUBT_IMPLAUSIBLE = 8,   /* |B_c| beyond plausible_factor · max|B̃_c| somewhere */
-    SVP_DOUBT_SHRUNK = 16        /* a field regularised away (spread below shrink_factor) */
+    SVP_DOUBT_SHRUNK = 16,       /* a field regularised away (spread below shrink_factor) */
+    SVP_DOUBT_LIGHT_LOST = 32    /* the corrected PL keeps under 1 % of the measured PL's light
+                                    on the view */
 };
 
 /* What T⁻¹ did and what it doubts (svp_correct_options.summary). */

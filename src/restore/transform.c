@@ -1002,13 +1002,24 @@ static double spread(const double *v, const unsigned char *where, size_t n)
     return sqrt(s2 / (double)k);
 }
 
+/* The doubt "light lost": no pixel of the view lit (validity 1) while the measured PL has light,
+ * or the corrected PL's light (its positive part) over the view's measured pixels below this
+ * fraction of the measured PL's. RL keeps the data's flux (Σ Hx = Σ y at convergence) and
+ * Wiener–Hunt its mean; only light explained by sources outside the view (a margin) leaves the
+ * view's sum legitimately, and a view all of whose light comes from outside has nothing to
+ * correct. Before rl.c's SEEN_SINGLE a float RL with a wide margin returned a PL of 0
+ * everywhere, every pixel validity 0 and the field 0; a PL of about 1e-322 (or 1e306) underflows
+ * (overflows) the same way; no other check saw either. */
+#define LIGHT_KEPT_MIN 0.01
+
 /* The doubt checks (docs/model.md §3, "Results in doubt") on the view: fills sum, and either
  * sets validity 0 where the doubt applies (keep_doubtful) or returns SVP_ERR_DOUBTFUL with a
  * message that says what to change. */
 static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl_apparent,
                                const svp_image *const *field_apparent, int n_fields,
-                               svp_image *const *field_true, svp_image *validity,
-                               const svp_deconv_report *reports, svp_correct_summary *sum)
+                               const svp_image *pl_true, svp_image *const *field_true,
+                               svp_image *validity, const svp_deconv_report *reports,
+                               svp_correct_summary *sum)
 {
     const int w = pl_apparent->width;
     const size_t n = (size_t)w * pl_apparent->height;
@@ -1053,15 +1064,30 @@ static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl
                      "iterations (chi2 per datum %.3g, still falling): raise the iteration cap",
                      reports[0].iterations, reports[0].chi2);
     }
-    /* the result: implausible values, a field regularised away */
+    /* the result: the light kept, implausible values, a field regularised away */
     unsigned char *lit = malloc(n);
     if (!lit) return svp_fail(SVP_ERR_NOMEM, "out of memory for the doubt checks");
     size_t n_lit = 0;
+    double light_in = 0, light_out = 0;
     for (size_t i = 0; i < n; i++) {
         int ok = validity->data[i] >= 1.0 && isfinite(pl_apparent->data[i]);
         for (int c = 0; c < n_fields && ok; c++) ok = isfinite(field_apparent[c]->data[i]);
         lit[i] = (unsigned char)ok;
         n_lit += (size_t)ok;
+        if (isfinite(pl_apparent->data[i])) {
+            light_in += fmax(pl_apparent->data[i], 0.0);
+            light_out += fmax(pl_true->data[i], 0.0);
+        }
+    }
+    if (light_in > 0 && (n_lit == 0 || !(light_out >= LIGHT_KEPT_MIN * light_in))) {
+        doubts |= SVP_DOUBT_LIGHT_LOST;
+        if (!msg[0])
+            snprintf(msg, sizeof msg,
+                     "the corrected %s holds %.3g of the measured light on the view (doubt below "
+                     "%g) and %zu of its pixels are lit (validity 1): the deconvolution lost the "
+                     "light, or the view's light comes from outside it; check the PSF, the "
+                     "margin and the PL's scale, or use double precision",
+                     pl_name(o), light_out / light_in, LIGHT_KEPT_MIN, n_lit);
     }
     size_t n_bad = 0;
     double worst = 0;
@@ -1257,8 +1283,8 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
             pl_view = pl_tmp;
         }
         if (st == SVP_OK)
-            st = doubt_checks(&opt, pl_view, field_apparent, n_fields, field_true, vv, reports,
-                              sum);
+            st = doubt_checks(&opt, pl_view, field_apparent, n_fields, pl_true, field_true, vv,
+                              reports, sum);
         svp_image_free(pl_tmp);
     }
     if (vv != validity) svp_image_free(vv);
