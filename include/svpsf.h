@@ -536,6 +536,11 @@ enum {
                                     on the view */
 };
 
+/* The name of doubt bit `bit` (SVP_DOUBT_* = 1 << bit) as summary.json writes it
+ * ("cg_not_converged", "balance_at_bound", "iterations_at_cap", "implausible_values",
+ * "regularised_away", "light_lost"); NULL beyond the last. */
+SVP_API const char *svp_doubt_name(int bit);
+
 /* What T⁻¹ did and what it doubts (svp_correct_options.summary). */
 typedef struct svp_correct_summary {
     unsigned doubts;        /* SVP_DOUBT_* bits */

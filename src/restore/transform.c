@@ -1002,6 +1002,14 @@ static double spread(const double *v, const unsigned char *where, size_t n)
     return sqrt(s2 / (double)k);
 }
 
+const char *svp_doubt_name(int bit)
+{
+    static const char *const names[] = {"cg_not_converged",  "balance_at_bound",
+                                        "iterations_at_cap", "implausible_values",
+                                        "regularised_away",  "light_lost"};
+    return bit >= 0 && bit < (int)(sizeof names / sizeof *names) ? names[bit] : NULL;
+}
+
 /* The doubt "light lost": no pixel of the view lit (validity 1) while the measured PL has light,
  * or the corrected PL's light (its positive part) over the view's measured pixels below this
  * fraction of the measured PL's. RL keeps the data's flux (Σ Hx = Σ y at convergence) and

@@ -146,6 +146,26 @@ static void num(svp_strbuf *b, double x, const char *fmt)
         svp_strbuf_puts(b, "–");
 }
 
+/* A line for each correction in doubt (kept for the comparison, its doubtful pixels at
+ * validity 0; its SVP_DOUBT_* bits in correct/<name>/doubts). */
+static void report_doubts(svp_strbuf *b, const svp_scene_result *r)
+{
+    for (int i = 0; i < r->n_values; i++) {
+        const char *k = r->keys[i];
+        const size_t kl = strlen(k);
+        if (strncmp(k, "correct/", 8) || kl < 16 || strcmp(k + kl - 7, "/doubts") ||
+            !(r->values[i] > 0))
+            continue;
+        svp_strbuf_printf(b, "**In doubt:** correction `%.*s` (", (int)(kl - 15), k + 8);
+        const unsigned d = (unsigned)r->values[i];
+        for (int bit = 0, n = 0; svp_doubt_name(bit); bit++)
+            if (d & (1u << bit)) svp_strbuf_printf(b, "%s%s", n++ ? ", " : "", svp_doubt_name(bit));
+        svp_strbuf_puts(b, "): a result the program cannot vouch for, kept here for the "
+                           "comparison with its doubtful pixels at validity 0 (docs/model.md "
+                           "§3, \"Results in doubt\").\n\n");
+    }
+}
+
 svp_status scene_report_text(const svp_scene *s, const svp_scene_result *r, const scene_analysis *a,
                              char **text)
 {
@@ -168,6 +188,7 @@ svp_status scene_report_text(const svp_scene *s, const svp_scene_result *r, cons
     }
     svp_strbuf_printf(&b, "\nTotal %.2f s on %d thread%s.\n\n", total, svp_get_threads(),
                       svp_get_threads() == 1 ? "" : "s");
+    report_doubts(&b, r);
     /* headline table */
     svp_strbuf_puts(&b,
                     "## Errors\n\nRelative error = (map − true) / reference, the reference being "

@@ -1,7 +1,8 @@
 #!/bin/sh
 # svpsf simulate / svpsf reconstruct from the command line: bad scene files exit 1 with
 # FILE:LINE:COLUMN, --dry-run prints the plan and writes nothing, a small scene writes every
-# output it lists, refuses to overwrite without --force, and `reconstruct` runs on its maps.
+# output it lists, refuses to overwrite without --force, and `reconstruct` runs on its maps; a
+# correction in doubt is kept and said to be.
 # usage: scene_cli_test.sh path/to/svpsf
 set -u
 SVPSF=$1
@@ -189,6 +190,30 @@ if "$SVPSF" simulate "$T/region.yaml" -o "$T/region" -q >/dev/null 2>"$T/region.
     done
 else
     fail "region scene run: $(cat "$T/region.err")"
+fi
+
+# a correction the program cannot vouch for (Wiener at a vanishing balance: its CG stops at the
+# cap) is kept for the comparison, and said to be in doubt: summary line, stderr, report.md
+printf '%s
+emission: [{uniform: {level: 1}}]
+psf: {model: gaussian, fwhm_um: 0.6}
+correct: [{method: r, iterations: 10, name: sound}, {method: w, balance: 1e-12, name: wild}]
+outputs: {maps: false, figures: false}
+' "$head" >"$T/doubt.yaml"
+if "$SVPSF" simulate "$T/doubt.yaml" -o "$T/doubt" >"$T/doubt.out" 2>"$T/doubt.err"; then
+    if grep -q "corrected (wild, in doubt: cg_not_converged" "$T/doubt.out" &&
+        ! grep -q "sound, in doubt" "$T/doubt.out" &&
+        grep -q "warning: correction 'wild' is in doubt (cg_not_converged" "$T/doubt.err" &&
+        ! grep -q "'sound'" "$T/doubt.err" &&
+        grep -q '^\*\*In doubt:\*\* correction `wild` (cg_not_converged' "$T/doubt/report.md" &&
+        grep -q '"correct/wild/doubts": 1,' "$T/doubt/summary.json" &&
+        grep -q '"correct/sound/doubts": 0,' "$T/doubt/summary.json"; then
+        echo "ok: a doubtful correction in a scene: marked in the summary line, warned, in report.md"
+    else
+        fail "doubtful correction not marked: $(cat "$T/doubt.out" "$T/doubt.err"; grep -n 'doubt' "$T/doubt/report.md")"
+    fi
+else
+    fail "doubt scene run: $(cat "$T/doubt.err")"
 fi
 
 if [ $fails -ne 0 ]; then

@@ -20,10 +20,6 @@ enum {
 
 static const char *const on_off[] = {"off", "on", NULL};
 
-static const char *const doubt_names[] = {"cg_not_converged", "balance_at_bound",
-                                          "iterations_at_cap", "implausible_values",
-                                          "regularised_away", "light_lost"};
-
 /* correct's --operator-tol default: the field error of a correction is dominated by the
  * deconvolution's own (iterations, noise), not by an operator error of 1e-2; measured on the
  * smooth-map benchmark (docs/performance.md, space-variant correction) the field error is within
@@ -537,12 +533,8 @@ static void correct_report(cli_run *run, const struct correct_args *a, struct co
     }
     cli_result_num(run, "spread_ratio", summary->spread_ratio);
     cli_result_int(run, "n_implausible", (long long)summary->n_implausible);
-    char list[256] = "";
-    size_t at_l = 0;
-    for (int b = 0; b < (int)(sizeof doubt_names / sizeof *doubt_names); b++)
-        if (summary->doubts & (1u << b) && at_l < sizeof list)
-            at_l += (size_t)snprintf(list + at_l, sizeof list - at_l, "%s%s", at_l ? "," : "",
-                                     doubt_names[b]);
+    char list[256];
+    cli_doubt_list(summary->doubts, list, sizeof list);
     cli_result_str(run, "doubts", list);
     if (summary->doubts)
         cli_warn(run,

@@ -51,8 +51,29 @@ static int on_stage(void *user, int index, int n_stages, const svp_scene_stage *
     return 0;
 }
 
+/* A warning for each correction in doubt (kept by the scene, its doubtful pixels at validity 0;
+ * docs/scenes.md). */
+static void warn_doubts(const cli_run *run, const svp_scene_result *result)
+{
+    for (int i = 0; i < svp_scene_result_n_values(result); i++) {
+        double d = 0;
+        const char *k = svp_scene_result_value_at(result, i, &d);
+        const size_t kl = strlen(k);
+        if (strncmp(k, "correct/", 8) != 0 || kl < 16 || strcmp(k + kl - 7, "/doubts") != 0 ||
+            !(d > 0))
+            continue;
+        char list[256];
+        cli_doubt_list((unsigned)d, list, sizeof list);
+        cli_warn(run,
+                 "correction '%.*s' is in doubt (%s): the scene keeps it, its doubtful pixels "
+                 "with validity 0 (summary.json: correct/%.*s/doubts)",
+                 (int)(kl - 15), k + 8, list, (int)(kl - 15), k + 8);
+    }
+}
+
 /* The most telling number of each correction: the median |relative error| of the first
- * reconstruction (else the first field component) over the first mask other than "view". */
+ * reconstruction (else the first field component) over the first mask other than "view"; a
+ * correction in doubt says so. */
 static void print_headline(const svp_scene_result *result)
 {
     const char *quantities[] = {"m_z", "J_bxy", "J_bz", "B_z", "B_x", "B_y", "B_nv"};
@@ -88,7 +109,14 @@ static void print_headline(const svp_scene_result *result)
             if (strncmp(k, prefix, pl) != 0) continue;
             const char *rest = k + pl, *slash = strchr(rest, '/');
             if (!slash || strcmp(slash, "/median_abs_rel_err_pct") != 0) continue;
-            printf(", %.3g %% corrected (%.*s)", x, (int)(slash - rest), rest);
+            const int nl = (int)(slash - rest);
+            char key_d[160], list[256] = "";
+            double d = 0;
+            snprintf(key_d, sizeof key_d, "correct/%.*s/doubts", nl, rest);
+            if (svp_scene_result_value(result, key_d, &d) && d > 0)
+                cli_doubt_list((unsigned)d, list, sizeof list);
+            printf(", %.3g %% corrected (%.*s%s%s)", x, nl, rest, list[0] ? ", in doubt: " : "",
+                   list);
         }
         printf("\n");
         return;
@@ -188,6 +216,7 @@ static int simulate_run_scene(cli_run *run, const svp_scene *scene, const char *
     printf("svpsf simulate: scene %s, %d stages in %.2f s (view %d x %d, canvas %d x %d)\n",
            svp_scene_name(scene), n, cli_now() - t0, vw, vh, cw, ch);
     print_headline(result);
+    warn_doubts(run, result);
     printf("  report:  %s/report.md\n", run->output);
     printf("  figures: %s/figures/\n", run->output);
     printf("  summary: %s/summary.json (plan, stage times, every metric)\n", run->output);
