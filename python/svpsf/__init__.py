@@ -597,7 +597,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
                                      imgs.array([imgs.view(f) for f in fl]), len(fl), opt,
                                      pl_oi, imgs.array([o[1] for o in outs]), val_i, n_missing))
     s = summary
-    summ = {"doubts": s.doubts, "n_implausible": s.n_implausible,
+    summ = {"doubts": s.doubts, "doubt_names": _doubt_names(s.doubts),
+            "n_implausible": s.n_implausible,
             "spread_ratio": s.spread_ratio, "pl_gain": s.pl_gain,
             "pl_gain_offset": s.pl_gain_offset, "shift": [s.shift[i] for i in range(min(16, len(fl)))],
             "rl_iterations": s.rl_iterations, "rl_stop": _STOPS.get(s.rl_stop, s.rl_stop),
@@ -607,6 +608,18 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     f_out = [o[0] for o in outs]
     return CorrectResult(pl_out, f_out[0] if single else f_out, val, int(n_missing[0]), summ,
                          [_report(reports[i]) for i in range(len(fl) + 1)])
+
+
+def _doubt_names(bits):
+    """The names of the doubt bits set in `bits` (svp_doubt_name), as summary.json lists them."""
+    names, b = [], 0
+    while True:
+        name = lib.svp_doubt_name(b)
+        if name == ffi.NULL:
+            return names
+        if bits & (1 << b):
+            names.append(ffi.string(name).decode())
+        b += 1
 
 
 def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=50,

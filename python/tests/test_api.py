@@ -91,6 +91,26 @@ def test_correct_equals_cli(cli, tmp_path, maps, args, kwargs):
     assert int(np.count_nonzero(r.validity < 1)) == results["n_flagged"]
     assert r.summary["side_by_side"] == results["side_by_side"]
     assert r.summary["tail_step"] == results["tail_step_px"]
+    assert r.summary["doubt_names"] == [d for d in results["doubts"].split(",") if d]
+
+
+def test_doubtful_correction_kept_and_named(cli, tmp_path, maps):
+    """Wiener at a vanishing balance blows up: refused (DoubtfulError) as the program exits 3, and
+    kept on request with its doubts named as the program's summary.json names them."""
+    pl, field = maps
+    pf = write(tmp_path, "psf.yaml", MOFFAT)
+    a = svpsf.forward(pl, field, pf)
+    noisy = a.fields + 0.05 * np.abs(a.fields).max() * np.random.default_rng(3).standard_normal(
+        a.fields.shape)
+    with pytest.raises(svpsf.DoubtfulError, match="result in doubt"):
+        svpsf.correct(a.pl, noisy, pf, method="w", balance=1e-12)
+    r = svpsf.correct(a.pl, noisy, pf, method="w", balance=1e-12, keep_doubtful=True)
+    cli("correct", "--pl", write(tmp_path, "pl.npy", a.pl), "--field",
+        write(tmp_path, "B.npy", noisy), "--psf", pf, "--method", "w", "--balance", "1e-12",
+        "--keep-doubtful", "-o", tmp_path / "out", *COMMON)
+    results = json.load(open(tmp_path / "out" / "summary.json"))["results"]
+    assert r.summary["doubts"] != 0 and r.summary["doubt_names"]
+    assert ",".join(r.summary["doubt_names"]) == results["doubts"]
 
 
 def test_correct_with_a_psf_map_and_missing_pixels_equals_cli(cli, tmp_path, maps):
