@@ -115,6 +115,13 @@ SVP_API svp_status svp_image_same_size(const svp_image *a, const svp_image *b, c
                                        const char *what_b);
 /* Counts the NaN and ±Inf pixels. */
 SVP_API size_t svp_image_count_nonfinite(const svp_image *image);
+/* The range of magnitudes the solvers take: an image whose largest finite |value| is not 0 and
+ * lies outside [SVP_VALUE_MIN, SVP_VALUE_MAX] is SVP_ERR_INVALID (`what` names it in the
+ * message). Wiener–Hunt's conjugate gradients and RL's fits square the data, so beyond this
+ * range their sums underflow or overflow (a PL of 1e-300 deconvolved to zeros). */
+#define SVP_VALUE_MIN 1e-150
+#define SVP_VALUE_MAX 1e150
+SVP_API svp_status svp_image_check_scale(const svp_image *image, const char *what);
 
 /* ---------------------------------------------------------------------------------------- */
 /* Image files                                                                               */

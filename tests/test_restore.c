@@ -885,6 +885,42 @@ static void test_rl_single_precision_margin(void **state)
     for (size_t k = 0; k < sizeof imgs / sizeof *imgs; k++) svp_image_free(imgs[k]);
 }
 
+/* The data's units: RL in single precision on y · 2^±140 (about 1e±42, beyond float's range)
+ * returns x · 2^±140 bit for bit (rl.c scales float runs to unit size; before, such data came
+ * back 0 or wild), as double precision does; data beyond [1e-150, 1e150] are refused by every
+ * method, the message naming the range. */
+static void test_deconv_scale(void **state)
+{
+    (void)state;
+    const int w = 40, h = 36;
+    const size_t n = (size_t)w * h;
+    svp_blur *op = gaussian_blur(2, 0, 0, w, h, SVP_BOUNDARY_ZERO);
+    svp_image *y = test_random_image(w, h, 7), *ys = test_image(w, h);
+    svp_image *x = test_image(w, h), *xs = test_image(w, h);
+    svp_deconv_options o;
+    svp_deconv_defaults(&o);
+    o.iterations = 20;
+    for (int single = 0; single <= 1; single++) {
+        o.single_precision = single;
+        ASSERT_OK(svp_deconv_rl(op, y, &o, x));
+        for (int e = -140; e <= 140; e += 280) {
+            for (size_t i = 0; i < n; i++) ys->data[i] = ldexp(y->data[i], e);
+            ASSERT_OK(svp_deconv_rl(op, ys, &o, xs));
+            for (size_t i = 0; i < n; i++) assert_true(xs->data[i] == ldexp(x->data[i], e));
+        }
+    }
+    for (size_t i = 0; i < n; i++) ys->data[i] = ldexp(y->data[i], 600);
+    assert_int_equal(svp_deconv_rl(op, ys, &o, xs), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "lies outside [1e-150, 1e+150]"));
+    assert_int_equal(svp_deconv_wiener(op, ys, NULL, xs), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "Wiener deconvolution: the data y: its largest"));
+    svp_blur_free(op);
+    svp_image_free(y);
+    svp_image_free(ys);
+    svp_image_free(x);
+    svp_image_free(xs);
+}
+
 /* ---- bad input, progress, threads -------------------------------------------------------- */
 
 static void test_bad_input(void **state)
@@ -1243,6 +1279,7 @@ int main(void)
         cmocka_unit_test(test_rl_single_precision),
         cmocka_unit_test(test_rl_single_precision_level),
         cmocka_unit_test(test_rl_single_precision_margin),
+        cmocka_unit_test(test_deconv_scale),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_progress_and_cancel),
         cmocka_unit_test(test_wiener_cg_cap_reported),

@@ -77,6 +77,23 @@ svp_status svp_image_same_size(const svp_image *a, const svp_image *b, const cha
     return SVP_OK;
 }
 
+svp_status svp_image_check_scale(const svp_image *image, const char *what)
+{
+    if (!image || !image->data) return svp_fail(SVP_ERR_INVALID, "%s is NULL", what);
+    const size_t n = (size_t)image->width * image->height;
+    double top = 0;
+    for (size_t i = 0; i < n; i++) {
+        const double a = fabs(image->data[i]);
+        if (isfinite(a) && a > top) top = a;
+    }
+    if (top == 0 || (top >= SVP_VALUE_MIN && top <= SVP_VALUE_MAX)) return SVP_OK;
+    return svp_fail(SVP_ERR_INVALID,
+                    "%s: its largest |value| %.3g lies outside [%g, %g], where the solvers' sums "
+                    "of squares %s; rescale it (other units)",
+                    what, top, SVP_VALUE_MIN, SVP_VALUE_MAX,
+                    top < SVP_VALUE_MIN ? "underflow" : "overflow");
+}
+
 size_t svp_image_count_nonfinite(const svp_image *image)
 {
     size_t n = (size_t)image->width * image->height, count = 0;

@@ -724,6 +724,20 @@ static svp_status rl_iterate(rl_run *r, svp_image *x, const double *alpha_in, do
     return st;
 }
 
+static svp_status rl_path_run(svp_blur *blur, const svp_image *y,
+                              const svp_deconv_options *options, svp_image *x,
+                              const double *alpha_in, double *alpha_out, svp_rl_levels **levels);
+
+/* Single precision: data whose largest value is outside [2^-FLOAT_SCALE_BITS, 2^FLOAT_SCALE_BITS]
+ * are scaled by a power of two to a largest value in [1, 2) for the run, and x back. */
+#define FLOAT_SCALE_BITS 60
+
+/* RL is equivariant under y → 2^k y (x → 2^k x, exactly in binary floating point while nothing
+ * underflows), but float transforms hold only magnitudes from about 1e-38 to 3e38: a PL in
+ * photons per second and square metre (1e20) or in watts (1e-12) times c max|B̃| came back 0 or
+ * implausible. So in single precision the data are scaled to unit size first (a copy, with the
+ * stopping rule's variance map), which leaves every result bit for bit 2^k times the unit-size
+ * one; double precision and data of ordinary size run as they are. */
 svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
                               const svp_deconv_options *options, svp_image *x,
                               const double *alpha_in, double *alpha_out,
@@ -735,6 +749,38 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
         options = &defaults;
     }
     SVP_CHECK(check_args(blur, y, options, x));
+    const int single = options->single_precision || (blur && blur->single);
+    const size_t n = (size_t)y->width * y->height;
+    double top = 0;
+    for (size_t i = 0; i < n && single; i++)
+        if (isfinite(y->data[i]) && fabs(y->data[i]) > top) top = fabs(y->data[i]);
+    const double lo = ldexp(1.0, -FLOAT_SCALE_BITS), hi = ldexp(1.0, FLOAT_SCALE_BITS);
+    if (!single || top == 0 || (top >= lo && top <= hi))
+        return rl_path_run(blur, y, options, x, alpha_in, alpha_out, levels);
+    const int k = -ilogb(top); /* 2^k top in [1, 2) */
+    svp_image *ys = NULL, *vs = NULL;
+    svp_status st = svp_image_new(y->width, y->height, &ys);
+    if (st == SVP_OK && options->variance)
+        st = svp_image_new(y->width, y->height, &vs);
+    if (st == SVP_OK) {
+        for (size_t i = 0; i < n; i++) ys->data[i] = ldexp(y->data[i], k);
+        if (vs)
+            for (size_t i = 0; i < n; i++) vs->data[i] = ldexp(options->variance->data[i], 2 * k);
+        svp_deconv_options o = *options;
+        if (vs) o.variance = vs;
+        st = rl_path_run(blur, ys, &o, x, alpha_in, alpha_out, levels);
+    }
+    if (st == SVP_OK)
+        for (size_t i = 0; i < n; i++) x->data[i] = ldexp(x->data[i], -k);
+    svp_image_free(ys);
+    svp_image_free(vs);
+    return st;
+}
+
+static svp_status rl_path_run(svp_blur *blur, const svp_image *y,
+                              const svp_deconv_options *options, svp_image *x,
+                              const double *alpha_in, double *alpha_out, svp_rl_levels **levels)
+{
     /* single precision: the operator's float transforms for this call only */
     const int was_single = blur->single;
     if (options->single_precision) SVP_CHECK(svp_blur_set_single(blur, 1));

@@ -1016,8 +1016,8 @@ const char *svp_doubt_name(int bit)
  * Wiener–Hunt its mean; only light explained by sources outside the view (a margin) leaves the
  * view's sum legitimately, and a view all of whose light comes from outside has nothing to
  * correct. Before rl.c's SEEN_SINGLE a float RL with a wide margin returned a PL of 0
- * everywhere, every pixel validity 0 and the field 0; a PL of about 1e-322 (or 1e306) underflows
- * (overflows) the same way; no other check saw either. */
+ * everywhere, every pixel validity 0 and the field 0, and before its power-of-two scaling a float
+ * RL of a PL of 1e40 did the same; no other check saw either. */
 #define LIGHT_KEPT_MIN 0.01
 
 /* The doubt checks (docs/model.md §3, "Results in doubt") on the view: fills sum, and either
@@ -1168,6 +1168,17 @@ static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl
     return SVP_OK;
 }
 
+/* The inputs' magnitudes (svp_image_check_scale), each named. */
+static svp_status check_input_scales(const svp_correct_options *o, const svp_image *pl,
+                                     const svp_image *const *fields, int n_fields)
+{
+    char buf[64];
+    SVP_CHECK(svp_image_check_scale(pl, pl_name(o)));
+    for (int c = 0; c < n_fields; c++)
+        SVP_CHECK(svp_image_check_scale(fields[c], field_name(o, c, buf, sizeof buf)));
+    return SVP_OK;
+}
+
 svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_apparent,
                                          const svp_image *const *field_apparent, int n_fields,
                                          const svp_correct_options *options, svp_image *pl_true,
@@ -1191,6 +1202,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
                         "a margin beyond the view needs the zero boundary (the mirror and periodic "
                         "boundaries already say what lies outside)");
     SVP_CHECK(svp_correct_check_margin(m, pl_apparent->width, pl_apparent->height));
+    SVP_CHECK(check_input_scales(&opt, pl_apparent, field_apparent, n_fields));
     if (opt.field_sigma)
         for (int c = 0; c < n_fields; c++)
             if (opt.field_sigma[c])

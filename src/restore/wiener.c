@@ -48,7 +48,9 @@ svp_status svp_deconv_check_images(const svp_blur *blur, const svp_image *y, con
                         what, blur->width, blur->height, x->width, x->height);
     if (x->data == y->data)
         return svp_fail(SVP_ERR_INVALID, "%s: the output x must not be the data y", what);
-    return SVP_OK;
+    char name[96];
+    snprintf(name, sizeof name, "%s: the data y", what);
+    return svp_image_check_scale(y, name);
 }
 
 /* 2 − 2 cos(2π k / n) = 4 sin²(π k / n): one axis of the Laplacian's transfer function,
