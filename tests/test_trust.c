@@ -582,8 +582,9 @@ static void test_margin_domain(void **state)
 /* Noisy data: Wiener at a vanishing balance amplifies the noise past any plausible field
  * (refused, then kept with those pixels' validity 0); a huge balance regularises the field away;
  * an automatic balance whose noise explains the data at every λ ends on the search's upper
- * bound. Each is SVP_ERR_DOUBTFUL with a message that says what to change. The PL's units do
- * not change the field. */
+ * bound; a PSF kernel with a negative ring makes RL lose the PL's light. Each is
+ * SVP_ERR_DOUBTFUL with a message that says what to change. The PL's units do not change the
+ * field. */
 static void test_doubt_checks(void **state)
 {
     (void)state;
@@ -657,6 +658,29 @@ static void test_doubt_checks(void **state)
         }
     }
     o.deconv.single_precision = 0;
+    /* a measured PSF whose background was over-subtracted (a negative ring, 10 % of a Gaussian
+     * 4 px wide under one of σ 1.5 px): RL's steps clip the PL to 0 and the field with it, which
+     * only the light-lost check sees (refused, or kept with every pixel's validity 0) */
+    memcpy(m.pl->data, pl_ref->data, n * sizeof(double));
+    {
+        svp_image *k = test_image(15, 15);
+        for (int j = 0; j < 15; j++)
+            for (int i = 0; i < 15; i++) {
+                const double r2 = (i - 7) * (i - 7) + (j - 7) * (j - 7);
+                k->data[j * 15 + i] = exp(-r2 / 4.5) - 0.1 * exp(-r2 / 32);
+            }
+        svp_blur *ring = NULL;
+        ASSERT_OK(svp_blur_new_kernel(k, 7, 7, 1, w, h, SVP_BOUNDARY_MIRROR, &ring));
+        o.keep_doubtful = 0;
+        assert_int_equal(correct(ring, &m, &o), SVP_ERR_DOUBTFUL);
+        assert_non_null(strstr(svp_last_error(), "holds 0 of the measured light on the view"));
+        o.keep_doubtful = 1;
+        ASSERT_OK(correct(ring, &m, &o));
+        assert_true(sum.doubts & SVP_DOUBT_LIGHT_LOST);
+        for (size_t i = 0; i < n; i++) assert_true(m.valid->data[i] == 0.0);
+        svp_blur_free(ring);
+        svp_image_free(k);
+    }
     for (size_t i = 0; i < n; i++) m.pl->data[i] = ldexp(pl_ref->data[i], -1070);
     assert_int_equal(correct(op, &m, &o), SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "pl_apparent: its largest |value| 1.19e-322 lies "

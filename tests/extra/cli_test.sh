@@ -686,6 +686,24 @@ expect_bad corr_tiny "pl_subnormal.txt|lies outside [1e-150, 1e+150]|rescale" co
     --field field_noisy.txt --pl pl_subnormal.txt --psf moffat_periodic.yaml -o corr_tiny $FAST
 expect_bad dec_tiny "pl_subnormal.txt|Wiener deconvolution: the data y|lies outside" deconvolve \
     pl_subnormal.txt --psf moffat_periodic.yaml -o dec_tiny.txt --method wiener $FAST
+# a measured PSF kernel whose background was over-subtracted (a negative ring): RL clips the PL
+# to 0 and the field with it; the light-lost check refuses it (exit 3, it used to exit 0), and
+# --keep-doubtful records light_lost
+awk 'BEGIN { for (y = -7; y <= 7; y++) { for (x = -7; x <= 7; x++) { r2 = x * x + y * y
+    printf "%s%.17g", (x > -7 ? " " : ""), exp(-r2 / 4.5) - 0.1 * exp(-r2 / 32) } print "" } }' \
+    >ring_kernel.txt
+run corr_lost correct --field field_noisy.txt --pl pl_noisy.txt --psf ring_kernel.txt \
+    -o corr_lost --format txt $FAST
+run corr_lost_keep correct --field field_noisy.txt --pl pl_noisy.txt --psf ring_kernel.txt \
+    -o corr_lost_keep --format txt --keep-doubtful $FAST
+if [ "$(cat rc.corr_lost)" = 3 ] && [ ! -e corr_lost ] &&
+    grep -q 'result in doubt: the corrected pl_noisy.txt holds 0 of the measured light' err.corr_lost &&
+    [ "$(cat rc.corr_lost_keep)" = 0 ] && grep -q '"doubts": "light_lost"' corr_lost_keep/summary.json &&
+    grep -q 'result in doubt (light_lost), kept by --keep-doubtful' err.corr_lost_keep; then
+    pass "a PSF kernel with a negative ring loses the light: exit 3, nothing written; --keep-doubtful records light_lost"
+else
+    fail "negative-ring kernel" "$(cat rc.corr_lost err.corr_lost rc.corr_lost_keep err.corr_lost_keep)"
+fi
 lam=$(jnum corr_auto/summary.json balance_pl)
 lam_f=$(jnum corr_auto/summary.json balance_field)
 sig=$(jnum corr_auto/summary.json noise_sigma_pl)
