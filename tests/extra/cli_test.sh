@@ -698,6 +698,7 @@ run corr_lost_keep correct --field field_noisy.txt --pl pl_noisy.txt --psf ring_
     -o corr_lost_keep --format txt --keep-doubtful $FAST
 if [ "$(cat rc.corr_lost)" = 3 ] && [ ! -e corr_lost ] &&
     grep -q 'result in doubt: the corrected pl_noisy.txt holds 0 of the measured light' err.corr_lost &&
+    grep -q 'warning: ring_kernel.txt: the PSF kernel has 188 negative pixels (down to -0.0419' err.corr_lost &&
     [ "$(cat rc.corr_lost_keep)" = 0 ] && grep -q '"doubts": "light_lost"' corr_lost_keep/summary.json &&
     grep -q 'result in doubt (light_lost), kept by --keep-doubtful' err.corr_lost_keep; then
     pass "a PSF kernel with a negative ring loses the light: exit 3, nothing written; --keep-doubtful records light_lost"

@@ -690,6 +690,20 @@ int cli_psf_load(cli_run *run, const char *path, cli_psf *psf)
                          "sum",
                          path, sum);
     psf->kernel_sum = sum;
+    size_t n_neg = 0;
+    double neg = 0, lowest = 0;
+    for (size_t i = 0; i < n; i++)
+        if (k->data[i] < 0) {
+            n_neg++;
+            neg -= k->data[i];
+            lowest = fmin(lowest, k->data[i]);
+        }
+    if (n_neg)
+        cli_warn(run,
+                 "%s: the PSF kernel has %zu negative pixels (down to %.3g; together %.3g of its "
+                 "sum): Richardson-Lucy assumes a non-negative PSF, and a negative ring can make "
+                 "it lose the light (docs/model.md §3); subtract less background or clip them",
+                 path, n_neg, lowest, neg / sum);
     if (k->width % 2 == 0 || k->height % 2 == 0)
         cli_warn(run,
                  "%s: the kernel is %d x %d: an even side has no middle pixel, so its centre is "
