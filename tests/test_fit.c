@@ -642,10 +642,31 @@ static void test_spot_border_saturation_empty(void **state)
     assert_true(r.flags & SVP_SPOT_SATURATED);
     o.saturation = 0;
 
-    /* an empty image: background only */
+    /* a centred spot in other units than photon counts (normalised: × 1e-4): at the default
+     * gain 1 its Poisson σ (1) swamps the spot, and the refusal says why and what to give; at
+     * gain 0 (unknown noise) it fits as in counts */
+    {
+        svp_image *c = spot_expected(31, 31, &truth, 15.2, 14.7, 5000.0, 100.0, 8);
+        poisson_draw(c, img, &s);
+        ASSERT_OK(svp_spot_fit(img, &o, &r, NULL, NULL));
+        const double fwhm_counts = r.fwhm;
+        for (size_t i = 0; i < 31 * 31; i++) img->data[i] *= 1e-4;
+        assert_int_equal(svp_spot_fit(img, &o, &r, NULL, NULL), SVP_ERR_INVALID);
+        assert_non_null(strstr(svp_last_error(), "holds no spot"));
+        assert_non_null(strstr(svp_last_error(), "if the data are not photon counts at gain 1, "
+                                                 "give their gain, or gain 0"));
+        o.noise.gain = 0;
+        ASSERT_OK(svp_spot_fit(img, &o, &r, NULL, NULL));
+        ASSERT_CLOSE(r.fwhm, fwhm_counts, 0.02 * fwhm_counts);
+        o.noise.gain = 1;
+        svp_image_free(c);
+    }
+
+    /* an empty image: background only (no gain hint: the model's σ is the scatter) */
     for (size_t i = 0; i < 31 * 31; i++) img->data[i] = test_poisson(&s, 100.0);
     assert_int_equal(svp_spot_fit(img, &o, &r, NULL, NULL), SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "holds no spot"));
+    assert_null(strstr(svp_last_error(), "give their gain"));
     for (size_t i = 0; i < 31 * 31; i++) img->data[i] = 0;
     assert_int_equal(svp_spot_fit(img, &o, &r, NULL, NULL), SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "holds no spot"));

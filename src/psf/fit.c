@@ -10,6 +10,10 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* "holds no spot": the message suggests the data's gain when the noise model's σ at the
+ * background and the background's MAD scatter differ by more than this factor */
+#define NOISE_MISMATCH 10.0
+
 /* ========================================================================================= */
 /* Spot fits                                                                                 */
 
@@ -517,11 +521,24 @@ static svp_status spot_find_peak(const spot_work *sw, const svp_spot_options *o,
         }
     const double bg0 = sw->bg0;
     double snr = (peak3 - bg0) / sqrt(sw->var_bg / 9.0);
-    if (px < 0 || !(peak3 - bg0 > 0) || !(snr >= o->min_snr))
+    if (px < 0 || !(peak3 - bg0 > 0) || !(snr >= o->min_snr)) {
+        /* a noise model whose σ is far from the background's own scatter: data that are not
+         * photon counts at the given gain (a spot image normalised to 1 has a Poisson σ of
+         * about 0.1 at gain 1, its scatter perhaps 1e-3) */
+        char hint[300] = "";
+        const double model_sigma = sqrt(sw->var_bg), mad = sw->sigma_mad;
+        if (sw->known_noise && mad > 0 && (model_sigma > NOISE_MISMATCH * mad ||
+                                           mad > NOISE_MISMATCH * model_sigma))
+            snprintf(hint, sizeof hint,
+                     "; the noise model's sigma there is %.3g but the background scatters by "
+                     "%.3g (MAD): if the data are not photon counts at gain %g, give their gain, "
+                     "or gain 0 for unknown noise (unit weights)",
+                     model_sigma, mad, o->noise.gain);
         return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d image holds no spot: its "
                         "brightest 3x3 mean stands %.2g sigma above the background %.6g (at "
-                        "least min_snr = %g needed)", w, h, isfinite(snr) ? snr : 0.0, bg0,
-                        o->min_snr);
+                        "least min_snr = %g needed)%s", w, h, isfinite(snr) ? snr : 0.0, bg0,
+                        o->min_snr, hint);
+    }
     *px_out = px;
     *py_out = py;
     return SVP_OK;
