@@ -1173,6 +1173,18 @@ static void test_fit_maps_lines(void **state)
     assert_int_equal(log.calls, 3);
     opt.progress = NULL;
 
+    /* the same cube in absurd units (× 2^-1000, about 1e-298): refused, the frame named (the
+     * fits' sums of squares underflow: a stack of 1e-300 gave fields wrong by 64 % of their
+     * range, exit 0) */
+    for (int f = 0; f < nf; f++)
+        for (size_t p = 0; p < n; p++)
+            cube->frame[f]->data[p] = ldexp(cube->frame[f]->data[p], -1000);
+    assert_int_equal(svp_odmr_fit_maps(&od, cube, &opt, &maps, NULL), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "ODMR fit: frame 0: its largest |value|"));
+    for (int f = 0; f < nf; f++)
+        for (size_t p = 0; p < n; p++)
+            cube->frame[f]->data[p] = ldexp(cube->frame[f]->data[p], 1000);
+
     /* PAIR about the nominal D on the same cube: it cannot follow the shift (a worse fit), and
      * field_lower is refused */
     opt.lines = SVP_ODMR_LINES_PAIR;

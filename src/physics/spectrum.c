@@ -1000,6 +1000,11 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
         options = &defaults;
     }
     SVP_CHECK(fit_check(cube, options, maps));
+    for (int f = 0; f < cube->n_freq; f++) { /* the fits square the data */
+        char what[48];
+        snprintf(what, sizeof what, "ODMR fit: frame %d", f);
+        SVP_CHECK(svp_image_check_scale(cube->frame[f], what));
+    }
     const int nf = cube->n_freq, np = options->lines == SVP_ODMR_LINES_TWO ? 5 : 4;
     const size_t n = (size_t)cube->width * cube->height;
     const double D = odmr->zero_field_hz, G0 = odmr->linewidth_hz;
