@@ -658,6 +658,11 @@ static void test_spot_border_saturation_empty(void **state)
         o.noise.gain = 0;
         ASSERT_OK(svp_spot_fit(img, &o, &r, NULL, NULL));
         ASSERT_CLOSE(r.fwhm, fwhm_counts, 0.02 * fwhm_counts);
+        /* beyond [1e-150, 1e150]: refused for its magnitude (at 1e160 it was written, flagged
+         * "poor fit" with infinite uncertainties) */
+        for (size_t i = 0; i < 31 * 31; i++) img->data[i] *= 1e164;
+        assert_int_equal(svp_spot_fit(img, &o, &r, NULL, NULL), SVP_ERR_INVALID);
+        assert_non_null(strstr(svp_last_error(), "spot fit: the spot image: its largest |value|"));
         o.noise.gain = 1;
         svp_image_free(c);
     }

@@ -867,6 +867,7 @@ static svp_status spot_fit_impl(const svp_image *spot, const svp_spot_options *o
     if (w < 5 || h < 5)
         return svp_fail(SVP_ERR_INVALID, "spot fit: the %d x %d spot image is too small (at "
                         "least 5 x 5 pixels)", w, h);
+    SVP_CHECK(svp_image_check_scale(spot, "spot fit: the spot image"));
     if (model_image) SVP_CHECK(svp_image_same_size(spot, model_image, "spot", "model image"));
     if (residual) SVP_CHECK(svp_image_same_size(spot, residual, "spot", "residual image"));
     memset(res, 0, sizeof *res);
