@@ -522,6 +522,13 @@ static void test_bad_input(void **state)
     assert_int_equal(svp_register(flat, mov, &o, &r), SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "flat.tif is constant"));
     o.reference_name = o.moving_name = NULL;
+    /* a textured image in absurd units (× 2^-1000, about 1e-301): refused for its magnitude,
+     * not called constant (its variance underflowed) */
+    svp_image *scaled = test_image(w, h);
+    for (int i = 0; i < w * h; i++) scaled->data[i] = ldexp(mov->data[i], -1000);
+    assert_int_equal(svp_register(ref, scaled, &o, &r), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "moving image: its largest |value|"));
+    svp_image_free(scaled);
 
     /* unrelated images: a result, flagged by its significance (measured 4.84, the more
      * significant of the peak and the trough (contrast AUTO), against 24.2 for

@@ -204,6 +204,7 @@ static svp_status fill_holes(double *restrict v, int w, int h, double fallback)
 static svp_status prepare(const svp_image *img, const char *what, int normalise, double *out,
                           double *out_nan, size_t *nonfinite)
 {
+    SVP_CHECK(svp_image_check_scale(img, what)); /* the texture test squares the data */
     const size_t n = (size_t)img->width * img->height;
     const double *restrict x = img->data;
     size_t count = 0;
