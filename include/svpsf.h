@@ -547,6 +547,8 @@ enum {
  * ("cg_not_converged", "balance_at_bound", "iterations_at_cap", "implausible_values",
  * "regularised_away", "light_lost"); NULL beyond the last. */
 SVP_API const char *svp_doubt_name(int bit);
+/* The names of the bits set in `doubts`, comma-separated, into buf (size bytes, truncated). */
+SVP_API void svp_doubt_list(unsigned doubts, char *buf, size_t size);
 
 /* What T⁻¹ did and what it doubts (svp_correct_options.summary). */
 typedef struct svp_correct_summary {

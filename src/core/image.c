@@ -80,12 +80,7 @@ svp_status svp_image_same_size(const svp_image *a, const svp_image *b, const cha
 svp_status svp_image_check_scale(const svp_image *image, const char *what)
 {
     if (!image || !image->data) return svp_fail(SVP_ERR_INVALID, "%s is NULL", what);
-    const size_t n = (size_t)image->width * image->height;
-    double top = 0;
-    for (size_t i = 0; i < n; i++) {
-        const double a = fabs(image->data[i]);
-        if (isfinite(a) && a > top) top = a;
-    }
+    const double top = svp_max_abs(image->data, (size_t)image->width * image->height);
     if (top == 0 || (top >= SVP_VALUE_MIN && top <= SVP_VALUE_MAX)) return SVP_OK;
     return svp_fail(SVP_ERR_INVALID,
                     "%s: its largest |value| %.3g lies outside [%g, %g], where the solvers' sums "
@@ -199,6 +194,14 @@ double svp_max(const double *restrict x, size_t n)
     double m = -INFINITY;
     for (size_t i = 0; i < n; i++)
         if (isfinite(x[i]) && x[i] > m) m = x[i];
+    return m;
+}
+
+double svp_max_abs(const double *restrict x, size_t n)
+{
+    double m = 0;
+    for (size_t i = 0; i < n; i++)
+        if (isfinite(x[i]) && fabs(x[i]) > m) m = fabs(x[i]);
     return m;
 }
 

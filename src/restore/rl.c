@@ -749,11 +749,9 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
         options = &defaults;
     }
     SVP_CHECK(check_args(blur, y, options, x));
-    const int single = options->single_precision || (blur && blur->single);
+    const int single = options->single_precision || blur->single;
     const size_t n = (size_t)y->width * y->height;
-    double top = 0;
-    for (size_t i = 0; i < n && single; i++)
-        if (isfinite(y->data[i]) && fabs(y->data[i]) > top) top = fabs(y->data[i]);
+    const double top = single ? svp_max_abs(y->data, n) : 0;
     const double lo = ldexp(1.0, -FLOAT_SCALE_BITS), hi = ldexp(1.0, FLOAT_SCALE_BITS);
     if (!single || top == 0 || (top >= lo && top <= hi))
         return rl_path_run(blur, y, options, x, alpha_in, alpha_out, levels);

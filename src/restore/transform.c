@@ -1010,6 +1010,15 @@ const char *svp_doubt_name(int bit)
     return bit >= 0 && bit < (int)(sizeof names / sizeof *names) ? names[bit] : NULL;
 }
 
+void svp_doubt_list(unsigned doubts, char *buf, size_t size)
+{
+    size_t at = 0;
+    if (size) buf[0] = '\0';
+    for (int b = 0; svp_doubt_name(b); b++)
+        if (doubts & (1u << b) && at < size)
+            at += (size_t)snprintf(buf + at, size - at, "%s%s", at ? "," : "", svp_doubt_name(b));
+}
+
 /* The doubt "light lost": no pixel of the view lit (validity 1) while the measured PL has light,
  * or the corrected PL's light (its positive part) over the view's measured pixels below this
  * fraction of the measured PL's. RL keeps the data's flux (Σ Hx = Σ y at convergence) and

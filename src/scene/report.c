@@ -156,13 +156,13 @@ static void report_doubts(svp_strbuf *b, const svp_scene_result *r)
         if (strncmp(k, "correct/", 8) || kl < 16 || strcmp(k + kl - 7, "/doubts") ||
             !(r->values[i] > 0))
             continue;
-        svp_strbuf_printf(b, "**In doubt:** correction `%.*s` (", (int)(kl - 15), k + 8);
-        const unsigned d = (unsigned)r->values[i];
-        for (int bit = 0, n = 0; svp_doubt_name(bit); bit++)
-            if (d & (1u << bit)) svp_strbuf_printf(b, "%s%s", n++ ? ", " : "", svp_doubt_name(bit));
-        svp_strbuf_puts(b, "): a result the program cannot vouch for, kept here for the "
-                           "comparison with its doubtful pixels at validity 0 (docs/model.md "
-                           "§3, \"Results in doubt\").\n\n");
+        char list[256];
+        svp_doubt_list((unsigned)r->values[i], list, sizeof list);
+        svp_strbuf_printf(b,
+                          "**In doubt:** correction `%.*s` (%s): a result the program cannot "
+                          "vouch for, kept here for the comparison with its doubtful pixels at "
+                          "validity 0 (docs/model.md §3, \"Results in doubt\").\n\n",
+                          (int)(kl - 15), k + 8, list);
     }
 }
 

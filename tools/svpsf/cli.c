@@ -373,15 +373,6 @@ const char *cli_boundary_name(svp_boundary b)
     return (unsigned)b < 3 ? boundary_names[b] : "unknown";
 }
 
-void cli_doubt_list(unsigned doubts, char *buf, size_t size)
-{
-    size_t at = 0;
-    if (size) buf[0] = '\0';
-    for (int b = 0; svp_doubt_name(b); b++)
-        if (doubts & (1u << b) && at < size)
-            at += (size_t)snprintf(buf + at, size - at, "%s%s", at ? "," : "", svp_doubt_name(b));
-}
-
 static void dir_of(const char *path, char *dir, size_t size);
 
 /* Applies --threads, --fft and --wisdom once all options are known. */

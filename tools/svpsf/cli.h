@@ -218,8 +218,6 @@ const char *cli_balance_bound_check(const cli_run *run, const char *what, double
 /* zero | mirror | periodic. */
 int cli_parse_boundary(const cli_run *run, const char *option, const char *text, svp_boundary *out);
 const char *cli_boundary_name(svp_boundary b);
-/* T⁻¹'s doubts (svp_correct_summary.doubts) as a comma-separated list of their names. */
-void cli_doubt_list(unsigned doubts, char *buf, size_t size);
 /* The file name without folders and without its last extension ("a/b/Bz.npy" → "Bz"). */
 void cli_path_stem(const char *path, char *stem, size_t size);
 /* path without its .yaml/.yml extension, followed by ext ("a/psf.yaml", ".summary.json" →

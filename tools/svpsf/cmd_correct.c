@@ -534,7 +534,7 @@ static void correct_report(cli_run *run, const struct correct_args *a, struct co
     cli_result_num(run, "spread_ratio", summary->spread_ratio);
     cli_result_int(run, "n_implausible", (long long)summary->n_implausible);
     char list[256];
-    cli_doubt_list(summary->doubts, list, sizeof list);
+    svp_doubt_list(summary->doubts, list, sizeof list);
     cli_result_str(run, "doubts", list);
     if (summary->doubts)
         cli_warn(run,

@@ -63,7 +63,7 @@ static void warn_doubts(const cli_run *run, const svp_scene_result *result)
             !(d > 0))
             continue;
         char list[256];
-        cli_doubt_list((unsigned)d, list, sizeof list);
+        svp_doubt_list((unsigned)d, list, sizeof list);
         cli_warn(run,
                  "correction '%.*s' is in doubt (%s): the scene keeps it, its doubtful pixels "
                  "with validity 0 (summary.json: correct/%.*s/doubts)",
@@ -114,7 +114,7 @@ static void print_headline(const svp_scene_result *result)
             double d = 0;
             snprintf(key_d, sizeof key_d, "correct/%.*s/doubts", nl, rest);
             if (svp_scene_result_value(result, key_d, &d) && d > 0)
-                cli_doubt_list((unsigned)d, list, sizeof list);
+                svp_doubt_list((unsigned)d, list, sizeof list);
             printf(", %.3g %% corrected (%.*s%s%s)", x, nl, rest, list[0] ? ", in doubt: " : "",
                    list);
         }
