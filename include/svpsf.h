@@ -1680,7 +1680,9 @@ SVP_API void svp_recon_defaults(svp_recon_options *options);
  * 0: the mean of m_z over the padded canvas is lost; by default (zero_border) the map is then
  * shifted to m_z = 0 on the image border. Measured (tests): 20 µm flake of 1 mA, h = 100 nm,
  * 100 nm pixels, 51.2 µm view: 0.980–0.984 mA inside (taper), 0.93–0.94 mA (mean padding),
- * 0.908–0.912 mA without the border shift. */
+ * 0.908–0.912 mA without the border shift. A filter that would pass nothing but the mean
+ * (k_c, or without the window e^(kh) > e^700, at the padded map's lowest frequency) and a B_z map
+ * smaller than 3 x 3 are SVP_ERR_INVALID, for the B_z-based reconstructions alike. */
 SVP_API svp_status svp_reconstruct_magnetisation(const svp_image *bz,
                                                  const svp_recon_options *options,
                                                  svp_image *mz);

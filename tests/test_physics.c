@@ -1341,6 +1341,35 @@ static void test_bad_input(void **state)
     svp_image *c = test_image(8, 8);
     assert_int_equal(svp_reconstruct_current_from_bz(a, &o, c, NULL), SVP_ERR_INVALID);
     assert_string_equal(svp_last_error(), "reconstruction input bz has NaN or Inf pixels");
+    /* a map with no interior, and filters that would pass nothing but the mean, are refused:
+     * they returned m_z = 0 (or ~1e-13 of the true value) */
+    svp_image *thin = test_image(8, 2), *thin_out = test_image(8, 2);
+    assert_int_equal(svp_reconstruct_magnetisation(thin, &o, thin_out), SVP_ERR_INVALID);
+    assert_string_equal(svp_last_error(), "reconstruction input bz is 8 x 2 pixels: the Fourier "
+                                          "reconstruction from B_z needs a map of at least 3 x 3");
+    assert_int_equal(svp_inplane_from_bz(thin, &o, thin_out, NULL), SVP_ERR_INVALID);
+    /* the in-plane relation is local: a 8 x 2 map of B_x gives J_y = s (2/μ0) W(0) B_x's mean */
+    ASSERT_OK(svp_reconstruct_current_from_bxy(thin, NULL, &o, NULL, thin_out));
+    svp_image_free(thin);
+    svp_image_free(thin_out);
+    a->data[3] = 1;
+    for (size_t p = 0; p < 64; p++) a->data[p] = 1e-6 * sin(0.7 * (double)p);
+    /* 8 x 8 px of 100 nm padded to 16 x 16: the lowest frequency 2π / 1.6 µm */
+    const double kmin = 2 * M_PI / (16 * 100e-9);
+    o.cutoff = 0.99 * kmin;
+    assert_int_equal(svp_reconstruct_magnetisation(a, &o, c), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "lies below the lowest frequency of the 16 x 16"));
+    o.cutoff = 1.01 * kmin; /* the lowest frequency passes (W ≈ 2.5e-4): a non-zero map */
+    ASSERT_OK(svp_reconstruct_magnetisation(a, &o, c));
+    double peak = 0;
+    for (size_t p = 0; p < 64; p++) peak = fmax(peak, fabs(c->data[p]));
+    assert_true(peak > 0);
+    svp_recon_defaults(&o);
+    o.window = 0;
+    o.sensor.standoff_m = 1e-2; /* e^(k h) at the lowest frequency: e^39000 */
+    assert_int_equal(svp_reconstruct_current_from_bz(a, &o, c, NULL), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "exceeds e^700"));
+    svp_recon_defaults(&o);
     const double axis[3] = {0, 0.5, 1};
     assert_int_equal(svp_field_project(NULL, NULL, c, axis, c), SVP_ERR_INVALID);
     svp_odmr od;

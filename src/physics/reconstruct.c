@@ -83,6 +83,29 @@ static double complex multiplier(const recon_filter *f, recon_kind kind, double 
     }
 }
 
+/* The lowest frequency of the padded map must pass the filter: else every component but the
+ * mean is removed and the result is 0 (or uniform) whatever the map holds. */
+static svp_status recon_check_passband(const recon_filter *f, const svp_canvas *c,
+                                       const char *in_name)
+{
+    const double kmin = fmin(c->nx > 1 ? c->dkx : INFINITY, c->ny > 1 ? c->dky : INFINITY);
+    if (!isfinite(kmin)) return SVP_OK;
+    if (f->window && kmin >= f->kc)
+        return svp_fail(SVP_ERR_INVALID,
+                        "reconstruction of %s: the window's cut-off k_c = %.3g rad/um lies below "
+                        "the lowest frequency of the %d x %d padded map (%.3g rad/um), so nothing "
+                        "but the mean would pass; raise k_c (by default 2 pi / standoff: is the "
+                        "standoff of %.4g nm right?) or give a larger view",
+                        in_name, f->kc * 1e-6, c->nx, c->ny, kmin * 1e-6, f->h * 1e9);
+    if (kmin * f->h > 700)
+        return svp_fail(SVP_ERR_INVALID,
+                        "reconstruction of %s: the gain e^(k h) at the lowest frequency of the "
+                        "map (%.3g rad/um, standoff %.4g nm) exceeds e^700, so nothing but the "
+                        "mean would pass; check the standoff and the pixel size",
+                        in_name, kmin * 1e-6, f->h * 1e9);
+    return SVP_OK;
+}
+
 /* Applies up to two filters to one input map. */
 static svp_status recon_run(const svp_image *in, const char *in_name,
                             const svp_recon_options *o, recon_kind kind_a, svp_image *out_a,
@@ -101,9 +124,20 @@ static svp_status recon_run(const svp_image *in, const char *in_name,
                       .s = o->sensor.side,
                       .kc = o->cutoff > 0 ? o->cutoff : 2 * M_PI / o->sensor.standoff_m,
                       .window = o->window};
+    const int local = kind_a == JY_FROM_BX || kind_a == JX_FROM_BY;
+    if (!local && (in->width < 3 || in->height < 3))
+        return svp_fail(SVP_ERR_INVALID,
+                        "reconstruction input %s is %d x %d pixels: the Fourier reconstruction "
+                        "from B_z needs a map of at least 3 x 3",
+                        in_name, in->width, in->height);
     svp_canvas c;
     int pad_factor = o->pad == SVP_PAD_NONE ? 1 : o->pad_factor;
     SVP_CHECK(svp_canvas_init(&c, in->width, in->height, pad_factor, o->sensor.pixel_m));
+    svp_status pass = recon_check_passband(&f, &c, in_name);
+    if (pass != SVP_OK) {
+        svp_canvas_release(&c);
+        return pass;
+    }
     svp_status st =
         svp_canvas_load(&c, in, o->pad == SVP_PAD_TAPER ? SVP_FILL_TAPER : SVP_FILL_MEAN);
     const recon_kind kinds[2] = {kind_a, kind_b};

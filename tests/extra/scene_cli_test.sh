@@ -116,6 +116,25 @@ case "$rc:$out" in
 *) fail "reconstruct of a map with a NaN pixel: exit $rc ($out)" ;;
 esac
 [ ! -e "$T/rec3" ] || fail "reconstruct of a map with a NaN pixel wrote $T/rec3"
+# maps and settings that would leave nothing but the mean (they gave m_z = 0 with exit 0): a map
+# without interior, and a stand-off whose window cut-off 2 pi / h lies below the map's lowest
+# frequency; exit 1, the file and the fault named, nothing written
+printf '1e-6 2e-6 1e-6 3e-6\n2e-6 1e-6 2e-6 1e-6\n' >"$T/thin.txt"
+out=$("$SVPSF" reconstruct --quantity magnetisation --bz "$T/thin.txt" --pixel-um 0.1 \
+    --standoff-nm 100 -o "$T/rec4" 2>&1)
+rc=$?
+case "$rc:$out" in
+1:*"thin.txt: reconstruction input bz is 4 x 2 pixels"*"at least 3 x 3"*) ;;
+*) fail "reconstruct of a 4 x 2 map: exit $rc ($out)" ;;
+esac
+out=$("$SVPSF" reconstruct --quantity current_from_bz --bz "$T/run/maps/B_z_true.tif" \
+    --pixel-um 0.1 --standoff-nm 1e9 -o "$T/rec5" 2>&1)
+rc=$?
+case "$rc:$out" in
+1:*"B_z_true.tif: reconstruction of bz: the window's cut-off"*"standoff of 1e+09 nm"*) ;;
+*) fail "reconstruct with a 1 m stand-off: exit $rc ($out)" ;;
+esac
+[ ! -e "$T/rec4" ] && [ ! -e "$T/rec5" ] || fail "a refused reconstruct wrote its folder"
 
 # every shipped scene of docs/scenes/ loads (keys, units, files) and compiles to its plan;
 # run-study.sh runs them in full

@@ -329,7 +329,9 @@ static int reconstruct_compute(cli_run *run, const struct reconstruct_args *a,
             st = svp_reconstruct_current_from_bxy(b[0], b[1], &job->o, b[1] ? out[0] : NULL,
                                                   b[0] ? out[1] : NULL);
     }
-    if (st != SVP_OK) return cli_fail(run, st, NULL);
+    if (st != SVP_OK) /* the library names the map's role (bz, bx, by); this, its file */
+        return cli_fail(run, st, a->paths[2] ? a->paths[2] : a->paths[0] ? a->paths[0]
+                                                                           : a->paths[1]);
     if (a->quantity > 0)
         for (size_t i = 0; i < (size_t)w * h; i++)
             out[2]->data[i] = hypot(out[0]->data[i], out[1]->data[i]);
