@@ -539,13 +539,22 @@ enum {
     SVP_DOUBT_RL_CAP = 4,        /* automatic RL iterations ended on the cap */
     SVP_DOUBT_IMPLAUSIBLE = 8,   /* |B_c| beyond plausible_factor · max|B̃_c| somewhere */
     SVP_DOUBT_SHRUNK = 16,       /* a field regularised away (spread below shrink_factor) */
-    SVP_DOUBT_LIGHT_LOST = 32    /* the corrected PL keeps under 1 % of the measured PL's light
+    SVP_DOUBT_LIGHT_LOST = 32,   /* the corrected PL keeps under 1 % of the measured PL's light
                                     on the view */
+    SVP_DOUBT_OPERATOR = 64      /* a space-variant operator chosen by its budget
+                                    (svp_variant_options.tolerance) missed it, with an estimated
+                                    error above SVP_OPERATOR_DOUBT_ERROR */
 };
+
+/* The estimated relative operator error (svp_variant_info.estimated_error) above which an
+ * automatically chosen representation that missed its budget puts T⁻¹ in doubt: a PSF is
+ * rarely known better than a few per cent, and an operator further from the map than that adds
+ * an error of its own. A budget above it is the caller accepting more. */
+#define SVP_OPERATOR_DOUBT_ERROR 0.05
 
 /* The name of doubt bit `bit` (SVP_DOUBT_* = 1 << bit) as summary.json writes it
  * ("cg_not_converged", "balance_at_bound", "iterations_at_cap", "implausible_values",
- * "regularised_away", "light_lost"); NULL beyond the last. */
+ * "regularised_away", "light_lost", "operator_error"); NULL beyond the last. */
 SVP_API const char *svp_doubt_name(int bit);
 /* The names of the bits set in `doubts`, comma-separated, into buf (size bytes, truncated). */
 SVP_API void svp_doubt_list(unsigned doubts, char *buf, size_t size);

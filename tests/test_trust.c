@@ -681,6 +681,48 @@ static void test_doubt_checks(void **state)
         svp_blur_free(ring);
         svp_image_free(k);
     }
+    /* a PSF map no representation follows: FWHM 0.5 px at the left node, 150 px at the right,
+     * bilinear in between. The automatic choice (budget 1e-2) misses by far (estimated 0.2):
+     * refused, or kept with every pixel's validity 0; a representation the caller chooses
+     * (a 2 x 1 tent) is the caller's and passes */
+    {
+        svp_psf nodes[2];
+        for (int k = 0; k < 2; k++) {
+            svp_psf_defaults(&nodes[k]);
+            nodes[k].model = SVP_PSF_MOFFAT;
+            nodes[k].beta = 1.1;
+            nodes[k].fwhm = k ? 150.0 : 0.5;
+        }
+        svp_psf_field *wild = NULL;
+        ASSERT_OK(svp_psf_field_new_grid(w, h, 2, 1, NULL, NULL, nodes, &wild));
+        svp_variant_options vo;
+        svp_variant_defaults(&vo);
+        vo.tolerance = 1e-2;
+        svp_blur *vop = NULL;
+        ASSERT_OK(svp_blur_new_field(wild, w, h, SVP_BOUNDARY_MIRROR, &vo, &vop));
+        svp_variant_info vi;
+        ASSERT_OK(svp_blur_variant_info(vop, &vi));
+        assert_false(vi.tolerance_met);
+        assert_true(vi.estimated_error > SVP_OPERATOR_DOUBT_ERROR);
+        o.keep_doubtful = 0;
+        assert_int_equal(correct(vop, &m, &o), SVP_ERR_DOUBTFUL);
+        assert_non_null(strstr(svp_last_error(), "the space-variant operator chosen for the PSF "
+                                                 "map has an estimated relative error of"));
+        o.keep_doubtful = 1;
+        ASSERT_OK(correct(vop, &m, &o));
+        assert_true(sum.doubts & SVP_DOUBT_OPERATOR);
+        for (size_t i = 0; i < n; i++) assert_true(m.valid->data[i] == 0.0);
+        svp_blur_free(vop);
+        vo.representation = SVP_VARIANT_TENT;
+        vo.grid_x = 2;
+        vo.grid_y = 1;
+        ASSERT_OK(svp_blur_new_field(wild, w, h, SVP_BOUNDARY_MIRROR, &vo, &vop));
+        o.keep_doubtful = 0;
+        ASSERT_OK(correct(vop, &m, &o));
+        assert_false(sum.doubts & SVP_DOUBT_OPERATOR);
+        svp_blur_free(vop);
+        svp_psf_field_free(wild);
+    }
     for (size_t i = 0; i < n; i++) m.pl->data[i] = ldexp(pl_ref->data[i], -1070);
     assert_int_equal(correct(op, &m, &o), SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "pl_apparent: its largest |value| 1.19e-322 lies "

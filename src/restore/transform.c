@@ -1006,7 +1006,8 @@ const char *svp_doubt_name(int bit)
 {
     static const char *const names[] = {"cg_not_converged",  "balance_at_bound",
                                         "iterations_at_cap", "implausible_values",
-                                        "regularised_away",  "light_lost"};
+                                        "regularised_away",  "light_lost",
+                                        "operator_error"};
     return bit >= 0 && bit < (int)(sizeof names / sizeof *names) ? names[bit] : NULL;
 }
 
@@ -1032,7 +1033,28 @@ void svp_doubt_list(unsigned doubts, char *buf, size_t size)
 /* The doubt checks (docs/model.md §3, "Results in doubt") on the view: fills sum, and either
  * sets validity 0 where the doubt applies (keep_doubtful) or returns SVP_ERR_DOUBTFUL with a
  * message that says what to change. */
-static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl_apparent,
+/* The operator's doubt: a space-variant representation chosen by its budget that missed it by
+ * far (SVP_DOUBT_OPERATOR and its message in msg, else 0). */
+static unsigned doubt_operator(const svp_blur *blur, char *msg, size_t size)
+{
+    svp_variant_info vi;
+    if (!svp_blur_is_variant(blur) || svp_blur_variant_info(blur, &vi) != SVP_OK ||
+        !(vi.tolerance > 0) || vi.tolerance_met ||
+        !(vi.estimated_error > fmax(vi.tolerance, SVP_OPERATOR_DOUBT_ERROR)))
+        return 0;
+    snprintf(msg, size,
+             "the space-variant operator chosen for the PSF map has an estimated relative "
+             "error of %.2g, %.3g times its budget %.2g and above %g: none of the %d "
+             "representations compared within the memory limit meets the budget, so the "
+             "correction does not follow the map; choose the representation (nodes, rank "
+             "or regions), allow more memory, or raise the operator tolerance to accept it",
+             vi.estimated_error, vi.estimated_error / vi.tolerance, vi.tolerance,
+             SVP_OPERATOR_DOUBT_ERROR, vi.candidates);
+    return SVP_DOUBT_OPERATOR;
+}
+
+static svp_status doubt_checks(const svp_blur *blur, const svp_correct_options *o,
+                               const svp_image *pl_apparent,
                                const svp_image *const *field_apparent, int n_fields,
                                const svp_image *pl_true, svp_image *const *field_true,
                                svp_image *validity, const svp_deconv_report *reports,
@@ -1042,7 +1064,7 @@ static svp_status doubt_checks(const svp_correct_options *o, const svp_image *pl
     const size_t n = (size_t)w * pl_apparent->height;
     const int rl_pl = uses_rl_for_pl(o->method);
     char msg[900] = "", name[64];
-    unsigned doubts = 0;
+    unsigned doubts = doubt_operator(blur, msg, sizeof msg);
     /* the solvers */
     for (int k = 0; k <= n_fields; k++) {
         const svp_deconv_report *r = &reports[k];
@@ -1312,7 +1334,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
             pl_view = pl_tmp;
         }
         if (st == SVP_OK)
-            st = doubt_checks(&opt, pl_view, field_apparent, n_fields, pl_true, field_true, vv,
+            st = doubt_checks(blur, &opt, pl_view, field_apparent, n_fields, pl_true, field_true, vv,
                               reports, sum);
         svp_image_free(pl_tmp);
     }

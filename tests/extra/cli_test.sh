@@ -566,6 +566,28 @@ if [ "$(cat rc.map_mem_env)" = 1 ] && grep -qF "needs" err.map_mem_env; then
 else
     fail "SVPSF_MAX_MEMORY" "exit $(cat rc.map_mem_env): $(cat err.map_mem_env)"
 fi
+# a map no representation follows (FWHM 0.5 px at the left node, 150 px at the right): the
+# automatic choice misses its budget by far, a result in doubt (exit 3, nothing written); kept on
+# request it is recorded; the caller's own representation passes
+{
+    printf 'pixel_um: 0.5\nimage: {width: 32, height: 32}\nmodel: moffat\nkind: grid\n'
+    printf 'nodes: {nx: 2, ny: 1}\nnode_psfs:\n'
+    printf '  - {fwhm_um: 0.25, beta: 1.1}\n  - {fwhm_um: 75, beta: 1.1}\n'
+} >map_wild.yaml
+run map_wild correct --field map_auto/field.txt --pl map_auto/pl.txt --psf map_wild.yaml -o map_wild --format txt $FAST
+if [ "$(cat rc.map_wild)" = 3 ] && [ ! -e map_wild ] &&
+    grep -qF "estimated relative error of" err.map_wild && grep -qF "operator tolerance" err.map_wild; then
+    pass "a PSF map whose automatic operator misses its budget by far: exit 3, nothing written"
+else
+    fail "map_wild" "exit $(cat rc.map_wild): $(cat err.map_wild)"
+fi
+expect_ok map_wild_kept correct --field map_auto/field.txt --pl map_auto/pl.txt --psf map_wild.yaml \
+    --keep-doubtful -o map_wild_k --format txt $FAST
+grep -q '"doubts": "operator_error"' map_wild_k/summary.json &&
+    pass "--keep-doubtful records operator_error" ||
+    fail "map_wild_kept" "$(grep doubts map_wild_k/summary.json)"
+expect_ok map_wild_nodes correct --field map_auto/field.txt --pl map_auto/pl.txt --psf map_wild.yaml \
+    --nodes 8x1 -o map_wild_n --format txt $FAST
 # a point source keeps its flux through the region map
 awk 'BEGIN { for (y = 0; y < 32; y++) { l = ""; for (x = 0; x < 32; x++) l = l (x ? " " : "") (x == 15 && y == 16); print l } }' >map_point.txt
 expect_ok map_fwd_point forward --field Bz.txt --pl map_point.txt --psf map_regions.yaml --boundary periodic -o map_pt --format txt $FAST
