@@ -161,6 +161,42 @@ static void test_field_kinds(void **state)
     const double expect[6] = {1, -1, 1, 1, -1, 1};
     for (int t = 0; t < 6; t++) ASSERT_CLOSE(basis[t], expect[t], 1e-15);
     assert_int_equal(svp_psf_field_poly_terms(3), 10);
+    /* the range check: these surfaces stay in range (FWHM >= 1.5 px) */
+    svp_psf_field_range rr;
+    ASSERT_OK(svp_psf_field_check_range(pf, &rr));
+    assert_int_equal(rr.sampled, 21 * 11);
+    assert_int_equal(rr.clamped, 0);
+    svp_psf_field_free(pf);
+    /* FWHM = 0.5 + 2u px leaves its range (< 0.05 px) on the columns i <= 7 (u = (i − 10) / 10),
+     * the halo 0.5 + 0.6 v on the first row (−0.1 < 0) and the last (1.1 > 0.999): 88 + 42 − 16
+     * = 114 of 231 pixels, the furthest at (0, 0) (FWHM −1.5 px) and (0, 10) (halo 1.1, 0.101
+     * beyond its bound against 0.1 on the first row) */
+    double c1[SVP_FIELD_NPARAM * 3] = {0};
+    c1[0] = 0.5;
+    c1[1] = 2;
+    c1[SVP_FIELD_BETA * 3] = 2;
+    c1[SVP_FIELD_HALO * 3] = 0.5;
+    c1[SVP_FIELD_HALO * 3 + 2] = 0.6;
+    ASSERT_OK(svp_psf_field_new_poly(&base, 21, 11, 1, c1, &pf));
+    ASSERT_OK(svp_psf_field_check_range(pf, &rr));
+    assert_int_equal(rr.clamped, 114);
+    assert_int_equal(rr.count[SVP_FIELD_FWHM], 88);
+    assert_int_equal(rr.count[SVP_FIELD_HALO], 42);
+    assert_int_equal(rr.count[SVP_FIELD_BETA] + rr.count[SVP_FIELD_E1], 0);
+    ASSERT_CLOSE(rr.value[SVP_FIELD_FWHM], -1.5, 1e-14);
+    ASSERT_CLOSE(rr.bound[SVP_FIELD_FWHM], 0.05, 0);
+    assert_true(rr.x[SVP_FIELD_FWHM] == 0 && rr.y[SVP_FIELD_FWHM] == 0);
+    ASSERT_CLOSE(rr.value[SVP_FIELD_HALO], 1.1, 1e-14);
+    assert_true(rr.x[SVP_FIELD_HALO] == 0 && rr.y[SVP_FIELD_HALO] == 10);
+    /* params_at clamps what the check reports */
+    ASSERT_OK(svp_psf_field_params_at(pf, 0, 10, p));
+    ASSERT_CLOSE(p[SVP_FIELD_FWHM], 0.05, 0);
+    ASSERT_CLOSE(p[SVP_FIELD_HALO], 0.999, 0);
+    svp_psf_field_free(pf);
+    /* beyond 512 px per side every k-th pixel, the last column included: 1100 wide, k = 3 */
+    ASSERT_OK(svp_psf_field_new_poly(&base, 1100, 3, 1, c1, &pf));
+    ASSERT_OK(svp_psf_field_check_range(pf, &rr));
+    assert_int_equal(rr.sampled, 368 * 3);
     svp_psf_field_free(pf);
 
     /* regions: sharp, then blended; the blend weights sum to one so identical PSFs stay

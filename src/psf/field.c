@@ -463,12 +463,10 @@ void svp_psf_field_region_psf(const svp_psf_field *f, int label, svp_psf *out)
     svp_psf_from_params(&f->base, p, out);
 }
 
-svp_status svp_psf_field_params_at(const svp_psf_field *f, double x, double y,
-                                   double p[SVP_FIELD_NPARAM])
+/* The parameter vector at (x, y) before clamping. */
+static svp_status raw_params_at(const svp_psf_field *f, double x, double y,
+                                double p[SVP_FIELD_NPARAM])
 {
-    if (!f) return svp_fail(SVP_ERR_INVALID, "PSF field is NULL");
-    if (!isfinite(x) || !isfinite(y))
-        return svp_fail(SVP_ERR_INVALID, "PSF field position (%g, %g) is not finite", x, y);
     switch (f->kind) {
     case SVP_FIELD_UNIFORM: memcpy(p, f->uniform_p, sizeof f->uniform_p); return SVP_OK;
     case SVP_FIELD_GRID: {
@@ -516,7 +514,78 @@ svp_status svp_psf_field_params_at(const svp_psf_field *f, double x, double y,
     }
     default: return svp_fail(SVP_ERR_INTERNAL, "PSF field of unknown kind %d", (int)f->kind);
     }
+    return SVP_OK;
+}
+
+svp_status svp_psf_field_params_at(const svp_psf_field *f, double x, double y,
+                                   double p[SVP_FIELD_NPARAM])
+{
+    if (!f) return svp_fail(SVP_ERR_INVALID, "PSF field is NULL");
+    if (!isfinite(x) || !isfinite(y))
+        return svp_fail(SVP_ERR_INVALID, "PSF field position (%g, %g) is not finite", x, y);
+    SVP_CHECK(raw_params_at(f, x, y, p));
     clamp_params(p);
+    return SVP_OK;
+}
+
+/* How far p[q] lies beyond its valid range (0 inside); *bound = the bound it is clamped to.
+ * The ellipticity |e| is checked at SVP_FIELD_E1, E2 is not checked on its own. */
+static double excursion(const double p[SVP_FIELD_NPARAM], int q, svp_psf_model model,
+                        double *bound)
+{
+    switch (q) {
+    case SVP_FIELD_FWHM: *bound = FWHM_MIN; return p[q] < FWHM_MIN ? FWHM_MIN - p[q] : 0;
+    case SVP_FIELD_E1: {
+        const double e = hypot(p[SVP_FIELD_E1], p[SVP_FIELD_E2]);
+        *bound = ELLIPTICITY_MAX;
+        return e > ELLIPTICITY_MAX ? e - ELLIPTICITY_MAX : 0;
+    }
+    case SVP_FIELD_BETA:
+        *bound = BETA_MIN;
+        return model == SVP_PSF_MOFFAT && p[q] < BETA_MIN ? BETA_MIN - p[q] : 0;
+    case SVP_FIELD_HALO:
+        *bound = p[q] < 0 ? 0.0 : HALO_MAX;
+        return p[q] < 0 ? -p[q] : p[q] > HALO_MAX ? p[q] - HALO_MAX : 0;
+    default: *bound = 0; return 0;
+    }
+}
+
+svp_status svp_psf_field_check_range(const svp_psf_field *f, svp_psf_field_range *out)
+{
+    if (!f || !out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_check_range: NULL argument");
+    memset(out, 0, sizeof *out);
+    if (f->kind == SVP_FIELD_UNIFORM || f->width < 1 || f->height < 1) return SVP_OK;
+    /* every pixel up to 512 per side, else an even subset that keeps the borders */
+    const int sx = f->width > 512 ? (f->width + 511) / 512 : 1;
+    const int sy = f->height > 512 ? (f->height + 511) / 512 : 1;
+    double worst[SVP_FIELD_NPARAM] = {0};
+    const int nx = (f->width - 1 + sx - 1) / sx + 1, ny = (f->height - 1 + sy - 1) / sy + 1;
+    for (int jj = 0; jj < ny; jj++) {
+        const int j = jj * sy < f->height - 1 ? jj * sy : f->height - 1;
+        for (int ii = 0; ii < nx; ii++) {
+            const int i = ii * sx < f->width - 1 ? ii * sx : f->width - 1;
+            double p[SVP_FIELD_NPARAM];
+            SVP_CHECK(raw_params_at(f, i, j, p));
+            out->sampled++;
+            int any = 0;
+            for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
+                double bound = 0;
+                const double d = isfinite(p[q]) ? excursion(p, q, f->base.model, &bound) : 1;
+                if (!(d > 0)) continue;
+                any = 1;
+                out->count[q]++;
+                if (d > worst[q] || out->count[q] == 1) {
+                    worst[q] = d;
+                    out->value[q] = p[q];
+                    if (q == SVP_FIELD_E1) out->value[q] = hypot(p[q], p[SVP_FIELD_E2]);
+                    out->bound[q] = bound;
+                    out->x[q] = i;
+                    out->y[q] = j;
+                }
+            }
+            out->clamped += (size_t)any;
+        }
+    }
     return SVP_OK;
 }
 

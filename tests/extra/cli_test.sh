@@ -588,6 +588,20 @@ grep -q '"doubts": "operator_error"' map_wild_k/summary.json &&
     fail "map_wild_kept" "$(grep doubts map_wild_k/summary.json)"
 expect_ok map_wild_nodes correct --field map_auto/field.txt --pl map_auto/pl.txt --psf map_wild.yaml \
     --nodes 8x1 -o map_wild_n --format txt $FAST
+# a polynomial map extrapolated out of range (FWHM 1 + 1.5 u um < 0.025 um on columns 0-5): clamped
+# there, with a warning that says where and how far
+{
+    printf 'pixel_um: 0.5\nimage: {width: 32, height: 32}\nmodel: moffat\nkind: poly\n'
+    printf 'degree: 1\ncoefficients: {fwhm_um: [1.0, 1.5, 0.0], beta: [2.5, 0, 0]}\n'
+} >map_poly_neg.yaml
+run map_poly_neg forward --field Bz.txt --pl pl.txt --psf map_poly_neg.yaml --nodes 4 -o map_pn --format txt $FAST
+if [ "$(cat rc.map_poly_neg)" = 0 ] &&
+    grep -qF "map_poly_neg.yaml: the PSF map's parameters leave their valid range on 18.8 % of its pixels" err.map_poly_neg &&
+    grep -qF "the FWHM down to -0.5 um at pixel (0, 0)" err.map_poly_neg; then
+    pass "a polynomial map out of range: a warning with the share, the worst pixel and its value"
+else
+    fail "map_poly_neg" "exit $(cat rc.map_poly_neg): $(cat err.map_poly_neg)"
+fi
 # a point source keeps its flux through the region map
 awk 'BEGIN { for (y = 0; y < 32; y++) { l = ""; for (x = 0; x < 32; x++) l = l (x ? " " : "") (x == 15 && y == 16); print l } }' >map_point.txt
 expect_ok map_fwd_point forward --field Bz.txt --pl map_point.txt --psf map_regions.yaml --boundary periodic -o map_pt --format txt $FAST

@@ -1019,6 +1019,37 @@ int cli_psf_check(const cli_run *run, const cli_psf *psf, int width, int height)
     return 0;
 }
 
+void cli_psf_map_range_warning(const cli_run *run, const char *path, const svp_psf_field *field,
+                               double pixel_um)
+{
+    svp_psf_field_range r;
+    if (svp_psf_field_check_range(field, &r) != SVP_OK || !r.clamped) return;
+    static const char *const names[SVP_FIELD_NPARAM] = {"the FWHM", "the ellipticity", "",
+                                                        "beta", "the halo"};
+    char what[700] = "";
+    size_t at = 0;
+    for (int q = 0; q < SVP_FIELD_NPARAM && at < sizeof what; q++) {
+        if (!r.count[q]) continue;
+        const char *dir = r.value[q] < r.bound[q] ? "down" : "up";
+        if (q == SVP_FIELD_FWHM)
+            at += (size_t)snprintf(what + at, sizeof what - at,
+                                   "%s%s %s to %.3g um at pixel (%d, %d), clamped to %.3g um",
+                                   at ? "; " : "", names[q], dir, r.value[q] * pixel_um, r.x[q],
+                                   r.y[q], r.bound[q] * pixel_um);
+        else
+            at += (size_t)snprintf(what + at, sizeof what - at,
+                                   "%s%s %s to %.3g at pixel (%d, %d), clamped to %.3g",
+                                   at ? "; " : "", names[q], dir, r.value[q], r.x[q], r.y[q],
+                                   r.bound[q]);
+    }
+    cli_warn(run,
+             "%s: the PSF map's parameters leave their valid range on %.3g %% of its pixels and "
+             "are clamped there (%s): a polynomial extrapolated beyond the spots it was fitted "
+             "to? The PSF there is not the file's; map with spots that cover the view, a lower "
+             "degree, or a grid map",
+             path, 100.0 * (double)r.clamped / (double)r.sampled, what);
+}
+
 int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
                      cli_psf *psf)
 {
@@ -1036,6 +1067,7 @@ int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *
     svp_status st = svp_psf_field_read(path, &field, &psf->pixel_um);
     if (st != SVP_OK) return cli_fail(run, st, path);
     cli_record_input(run, "psf", path, svp_psf_field_width(field), svp_psf_field_height(field));
+    cli_psf_map_range_warning(run, path, field, psf->pixel_um);
     /* one PSF everywhere: the invariant operator */
     if (svp_psf_field_get_kind(field) == SVP_FIELD_UNIFORM)
         return uniform_map_psf(run, path, field, psf);

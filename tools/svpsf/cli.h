@@ -305,6 +305,10 @@ void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size);
 int cli_correct_applications(const svp_correct_options *o, int n_fields);
 int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
                      cli_psf *psf);
+/* A warning when the map's parameters leave their valid range inside its image
+ * (svp_psf_field_check_range): where, how far, and what to do. */
+void cli_psf_map_range_warning(const cli_run *run, const char *path, const svp_psf_field *field,
+                               double pixel_um);
 /* Before any output is written: a PSF map fits a width x height image and its options are
  * valid (0, or CLI_EXIT_USAGE after a message naming the file). No-op for a single PSF. */
 int cli_psf_check(const cli_run *run, const cli_psf *psf, int width, int height);

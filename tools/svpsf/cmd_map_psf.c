@@ -597,7 +597,10 @@ static int map_psf_map(cli_run *run, const struct map_psf_args *a, struct map_ps
         st = svp_psf_map_poly(job->samples, job->n_samples, job->width, job->height, &mo,
                               &job->field, &job->rep);
     }
-    if (st == SVP_OK) return 0;
+    if (st == SVP_OK) { /* the surfaces beyond the spots: in range over the whole image? */
+        cli_psf_map_range_warning(run, run->output, job->field, job->pixel_um);
+        return 0;
+    }
     for (int k = 0; k < job->n_spots; k++)
         if (job->sample_of[k] < 0)
             fprintf(stderr, "svpsf map-psf: spot %d (%s): fit failed: %s\n", k, job->spots[k].path,

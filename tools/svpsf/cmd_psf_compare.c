@@ -45,6 +45,7 @@ static int load(cli_run *run, const char *path, svp_psf_field **f, double *um)
     svp_status st = svp_psf_field_read(path, f, um);
     if (st != SVP_OK) return cli_fail(run, st, path);
     cli_record_input(run, "psf map", path, svp_psf_field_width(*f), svp_psf_field_height(*f));
+    cli_psf_map_range_warning(run, path, *f, *um);
     return 0;
 }
 
