@@ -228,6 +228,23 @@ static void test_field_kinds(void **state)
     ASSERT_OK(svp_psf_field_params_at(rf, 0, 0, p));
     ASSERT_CLOSE(p[SVP_FIELD_FWHM], 2, 1e-9);
     svp_psf_field_free(rf);
+    /* extreme widths: below 10⁻³ px the map stays sharp (1e-300 gave NaN weights, every
+     * parameter clamped); a blend far wider than the image is its mean, the same from σ = 2 w
+     * up to 1e300 px (the taps fold onto one mirror period: 1e10 gave an int overflow and a
+     * sharp map, 1e4 seconds of work); just below 2 w the folded sum is within 1e-6 of it */
+    const double tr[5] = {1e-300, 1e-5, 2.0 * 30 * 2.5631, 1e300, 1.9 * 30 * 2.5631};
+    for (int k = 0; k < 5; k++) {
+        ASSERT_OK(svp_psf_field_new_regions(w, h, labels, 2, rp, tr[k], &rf));
+        for (int x = 0; x < w; x += 7) {
+            ASSERT_OK(svp_psf_field_params_at(rf, x, 3, p));
+            const double sharp = x < 15 ? 2 : 6;
+            if (k < 2)
+                assert_true(p[SVP_FIELD_FWHM] == sharp);
+            else
+                ASSERT_CLOSE(p[SVP_FIELD_FWHM], 4, k < 4 ? 1e-7 : 1e-6);
+        }
+        svp_psf_field_free(rf);
+    }
 
     /* bad input: exact status and a message naming the fault */
     labels[37] = 2;

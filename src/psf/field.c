@@ -232,26 +232,59 @@ static int reflect_index(int t, int size)
     return t < size ? t : period - 1 - t;
 }
 
+/* The taps of a Gaussian of `sigma` pixels along an axis of `size` pixels with the mirror
+ * boundary, offsets −*r .. *r (g[d + *r]), unit sum. The mirrored axis repeats every 2 size
+ * pixels, so a kernel wider than the axis folds onto one period (2 size taps): that bounds the
+ * work at any width, and from sigma >= 2 size on the blend is the axis mean (the periodic
+ * Gaussian's first Fourier coefficient is exp(−2π²) ≈ 3·10⁻⁹ there). */
+static double *axis_taps(double sigma, int size, int *r)
+{
+    const double reach = ceil(4.0 * sigma);
+    const int fold = reach >= size;
+    *r = fold ? size : (int)reach;
+    if (*r < 1) *r = 1;
+    double *g = calloc((size_t)(2 * *r + 1), sizeof(double));
+    if (!g) return NULL;
+    double sum = 0;
+    for (int d = -*r; d <= *r; d++) {
+        double v = 0;
+        if (fold && d == *r) continue; /* −size and +size are the same pixel: counted once */
+        if (!fold)
+            v = exp(-0.5 * d * d / (sigma * sigma));
+        else if (sigma >= 2.0 * size)
+            v = 1.0;
+        else
+            for (int k = -5; k <= 5; k++) {
+                const double t = (d + 2.0 * size * k) / sigma;
+                v += exp(-0.5 * t * t);
+            }
+        sum += g[d + *r] = v;
+    }
+    for (int d = 0; d <= 2 * *r; d++) g[d] /= sum;
+    return g;
+}
+
+/* Blends a region's one-hot map by a Gaussian of sigma pixels (mirror boundary). Below 10⁻³ px
+ * the map stays sharp (the taps beside the centre are below e^(−5·10⁵)), as it would be
+ * bit for bit, without the 0/0 of sigma² underflowing. */
 static svp_status smooth_map(double *map, int width, int height, double sigma)
 {
-    int r = (int)ceil(4.0 * sigma);
-    if (r < 1) r = 1;
-    double *g = malloc((size_t)(2 * r + 1) * sizeof(double));
+    if (!(sigma >= 1e-3)) return SVP_OK;
+    int rx, ry;
+    double *gx = axis_taps(sigma, width, &rx), *gy = axis_taps(sigma, height, &ry);
     double *tmp = svp_alloc((size_t)width * height * sizeof(double));
-    if (!g || !tmp) {
-        free(g);
+    if (!gx || !gy || !tmp) {
+        free(gx);
+        free(gy);
         svp_free(tmp);
         return svp_fail(SVP_ERR_NOMEM, "out of memory smoothing a region map");
     }
-    double sum = 0;
-    for (int d = -r; d <= r; d++) sum += g[d + r] = exp(-0.5 * d * d / (sigma * sigma));
-    for (int d = 0; d <= 2 * r; d++) g[d] /= sum;
 #pragma omp parallel for schedule(static) if ((size_t)width * height > SVP_PARALLEL_MIN)
     for (int y = 0; y < height; y++) {
         const double *row = map + (size_t)y * width;
         for (int x = 0; x < width; x++) {
             double acc = 0;
-            for (int d = -r; d <= r; d++) acc += g[d + r] * row[reflect_index(x + d, width)];
+            for (int d = -rx; d <= rx; d++) acc += gx[d + rx] * row[reflect_index(x + d, width)];
             tmp[(size_t)y * width + x] = acc;
         }
     }
@@ -259,12 +292,13 @@ static svp_status smooth_map(double *map, int width, int height, double sigma)
     for (int y = 0; y < height; y++) {
         for (int x = 0; x < width; x++) {
             double acc = 0;
-            for (int d = -r; d <= r; d++)
-                acc += g[d + r] * tmp[(size_t)reflect_index(y + d, height) * width + x];
+            for (int d = -ry; d <= ry; d++)
+                acc += gy[d + ry] * tmp[(size_t)reflect_index(y + d, height) * width + x];
             map[(size_t)y * width + x] = acc;
         }
     }
-    free(g);
+    free(gx);
+    free(gy);
     svp_free(tmp);
     return SVP_OK;
 }
