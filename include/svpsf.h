@@ -732,15 +732,17 @@ SVP_API svp_status svp_psf_field_params_at(const svp_psf_field *field, double x,
  * to, into a corner). Sampled at the image's pixel centres: every pixel up to 512 per side,
  * else every k-th (the last row and column included). Per parameter q (SVP_FIELD_E1 stands for
  * the ellipticity |e|, SVP_FIELD_E2 is unused): how many samples leave the range, and at the
- * one furthest beyond it its position, unclamped value and the bound it is clamped to. A
- * uniform field, or one without an image size, reports nothing. */
+ * one furthest beyond it its position, unclamped value and the bound it is clamped to. box:
+ * NULL for the whole image, else {x0, y0, x1, y1} (inclusive, clipped to the image), e.g. the
+ * extent of the spots a map was fitted to. A uniform field, or one without an image size,
+ * reports nothing. */
 typedef struct svp_psf_field_range {
     size_t sampled, clamped;          /* samples; those with any parameter out of range */
     size_t count[SVP_FIELD_NPARAM];
     int x[SVP_FIELD_NPARAM], y[SVP_FIELD_NPARAM];
     double value[SVP_FIELD_NPARAM], bound[SVP_FIELD_NPARAM];
 } svp_psf_field_range;
-SVP_API svp_status svp_psf_field_check_range(const svp_psf_field *field,
+SVP_API svp_status svp_psf_field_check_range(const svp_psf_field *field, const int *box,
                                              svp_psf_field_range *out);
 
 /* PSF-map files (YAML; docs/cli.md §PSF maps). Lengths in µm in the file, pixels in memory:

@@ -163,7 +163,7 @@ static void test_field_kinds(void **state)
     assert_int_equal(svp_psf_field_poly_terms(3), 10);
     /* the range check: these surfaces stay in range (FWHM >= 1.5 px) */
     svp_psf_field_range rr;
-    ASSERT_OK(svp_psf_field_check_range(pf, &rr));
+    ASSERT_OK(svp_psf_field_check_range(pf, NULL, &rr));
     assert_int_equal(rr.sampled, 21 * 11);
     assert_int_equal(rr.clamped, 0);
     svp_psf_field_free(pf);
@@ -178,7 +178,7 @@ static void test_field_kinds(void **state)
     c1[SVP_FIELD_HALO * 3] = 0.5;
     c1[SVP_FIELD_HALO * 3 + 2] = 0.6;
     ASSERT_OK(svp_psf_field_new_poly(&base, 21, 11, 1, c1, &pf));
-    ASSERT_OK(svp_psf_field_check_range(pf, &rr));
+    ASSERT_OK(svp_psf_field_check_range(pf, NULL, &rr));
     assert_int_equal(rr.clamped, 114);
     assert_int_equal(rr.count[SVP_FIELD_FWHM], 88);
     assert_int_equal(rr.count[SVP_FIELD_HALO], 42);
@@ -188,6 +188,13 @@ static void test_field_kinds(void **state)
     assert_true(rr.x[SVP_FIELD_FWHM] == 0 && rr.y[SVP_FIELD_FWHM] == 0);
     ASSERT_CLOSE(rr.value[SVP_FIELD_HALO], 1.1, 1e-14);
     assert_true(rr.x[SVP_FIELD_HALO] == 0 && rr.y[SVP_FIELD_HALO] == 10);
+    /* within a box: columns 10..20 keep the FWHM in range, the halo leaves it on rows 0, 10 */
+    const int box[4] = {10, 0, 20, 10};
+    ASSERT_OK(svp_psf_field_check_range(pf, box, &rr));
+    assert_int_equal(rr.sampled, 11 * 11);
+    assert_int_equal(rr.count[SVP_FIELD_FWHM], 0);
+    assert_int_equal(rr.count[SVP_FIELD_HALO], 22);
+    assert_true(rr.x[SVP_FIELD_HALO] == 10 && rr.y[SVP_FIELD_HALO] == 10);
     /* params_at clamps what the check reports */
     ASSERT_OK(svp_psf_field_params_at(pf, 0, 10, p));
     ASSERT_CLOSE(p[SVP_FIELD_FWHM], 0.05, 0);
@@ -195,7 +202,7 @@ static void test_field_kinds(void **state)
     svp_psf_field_free(pf);
     /* beyond 512 px per side every k-th pixel, the last column included: 1100 wide, k = 3 */
     ASSERT_OK(svp_psf_field_new_poly(&base, 1100, 3, 1, c1, &pf));
-    ASSERT_OK(svp_psf_field_check_range(pf, &rr));
+    ASSERT_OK(svp_psf_field_check_range(pf, NULL, &rr));
     assert_int_equal(rr.sampled, 368 * 3);
     svp_psf_field_free(pf);
 

@@ -584,20 +584,30 @@ static double excursion(const double p[SVP_FIELD_NPARAM], int q, svp_psf_model m
     }
 }
 
-svp_status svp_psf_field_check_range(const svp_psf_field *f, svp_psf_field_range *out)
+svp_status svp_psf_field_check_range(const svp_psf_field *f, const int *box,
+                                     svp_psf_field_range *out)
 {
     if (!f || !out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_check_range: NULL argument");
     memset(out, 0, sizeof *out);
     if (f->kind == SVP_FIELD_UNIFORM || f->width < 1 || f->height < 1) return SVP_OK;
+    int x0 = 0, y0 = 0, x1 = f->width - 1, y1 = f->height - 1;
+    if (box) {
+        x0 = box[0] > 0 ? box[0] : 0;
+        y0 = box[1] > 0 ? box[1] : 0;
+        x1 = box[2] < x1 ? box[2] : x1;
+        y1 = box[3] < y1 ? box[3] : y1;
+        if (x1 < x0 || y1 < y0) return SVP_OK;
+    }
+    const int bw = x1 - x0 + 1, bh = y1 - y0 + 1;
     /* every pixel up to 512 per side, else an even subset that keeps the borders */
-    const int sx = f->width > 512 ? (f->width + 511) / 512 : 1;
-    const int sy = f->height > 512 ? (f->height + 511) / 512 : 1;
+    const int sx = bw > 512 ? (bw + 511) / 512 : 1;
+    const int sy = bh > 512 ? (bh + 511) / 512 : 1;
     double worst[SVP_FIELD_NPARAM] = {0};
-    const int nx = (f->width - 1 + sx - 1) / sx + 1, ny = (f->height - 1 + sy - 1) / sy + 1;
+    const int nx = (bw - 1 + sx - 1) / sx + 1, ny = (bh - 1 + sy - 1) / sy + 1;
     for (int jj = 0; jj < ny; jj++) {
-        const int j = jj * sy < f->height - 1 ? jj * sy : f->height - 1;
+        const int j = y0 + (jj * sy < bh - 1 ? jj * sy : bh - 1);
         for (int ii = 0; ii < nx; ii++) {
-            const int i = ii * sx < f->width - 1 ? ii * sx : f->width - 1;
+            const int i = x0 + (ii * sx < bw - 1 ? ii * sx : bw - 1);
             double p[SVP_FIELD_NPARAM];
             SVP_CHECK(raw_params_at(f, i, j, p));
             out->sampled++;

@@ -236,7 +236,9 @@ typedef struct poly_data {
     double *A, *b;  /* scratch: n × MAX_TERMS, max(n, MAX_TERMS) */
 } poly_data;
 
-/* Weighted LS on the points whose mask (over the idx list) is nonzero: nt terms. */
+/* Weighted LS on the points whose mask (over the idx list) is nonzero: nt terms. −1 when the
+ * points cannot determine them (fewer than nt, or a design of lower rank). */
+#define RANK_TOL 1e-8
 static int wls_fit(const poly_data *d, const unsigned char *mask, int nt, double *coef)
 {
     int m = 0;
@@ -254,6 +256,17 @@ static int wls_fit(const poly_data *d, const unsigned char *mask, int nt, double
     }
     lapack_int info = LAPACKE_dgels(LAPACK_COL_MAJOR, 'N', m, nt, 1, d->A, lda, d->b, ldb);
     if (info != 0) return -1;
+    /* the spots must determine every term: a diagonal of R below 1e-8 of its largest means a
+     * term that is (nearly) a combination of the others on these positions (e.g. u⁴ on four
+     * distinct u), whose coefficient is then round-off amplified (FWHM surfaces of −0.3 µm
+     * between spots at 0.3 µm were the result) */
+    double rmax = 0, rmin = INFINITY;
+    for (int t = 0; t < nt; t++) {
+        const double r = fabs(d->A[(size_t)t * lda + t]);
+        rmax = fmax(rmax, r);
+        rmin = fmin(rmin, r);
+    }
+    if (!(rmin > RANK_TOL * rmax)) return -1;
     memcpy(coef, d->b, (size_t)nt * sizeof(double));
     return 0;
 }
@@ -357,11 +370,17 @@ static svp_status poly_fit_param(const svp_psf_sample *samples, int n, const svp
             deg = choose_degree(&d, &o, rep->cv_score[q], mask);
             if (deg < 0) deg = 0;
         }
-        int nt = svp_psf_field_poly_terms(deg);
         memset(mask, 1, (size_t)d.n);
-        if (wls_fit(&d, mask, nt, coeffs) != 0)
-            return svp_fail(SVP_ERR_NUMERIC, "PSF map: the least-squares surface of degree %d "
-                            "for %s failed (%d spots)", deg, param_names[q], d.n);
+        /* a degree the spots' positions cannot determine falls to the highest that they can
+         * (the report's degree says so) */
+        int nt;
+        for (;; deg--) {
+            nt = svp_psf_field_poly_terms(deg);
+            if (wls_fit(&d, mask, nt, coeffs) == 0) break;
+            if (deg == 0)
+                return svp_fail(SVP_ERR_NUMERIC, "PSF map: the least-squares surface of degree "
+                                "0 for %s failed (%d spots)", param_names[q], d.n);
+        }
         if (o.clip_kappa <= 0 || round == o.clip_iterations || d.n <= nt + 1) break;
         /* outliers: z beyond κ times the robust scale (never below 1 σ) */
         for (int k = 0; k < d.n; k++) {

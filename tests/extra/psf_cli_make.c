@@ -235,6 +235,23 @@ static int make(const char *dir)
         svp_image_free(field);
         svp_image_free(cut);
     }
+    /* 16 spots on a 4 x 4 grid (200 x 200, FWHM 5 + x / 100 px, beta 2.5): four distinct
+     * positions per axis cannot determine a degree-4 surface, whose u⁴ term then follows the
+     * noise of the fitted centres (FWHM surfaces below 0 between the spots) */
+    {
+        svp_image *grid = NULL;
+        svp_image_new(200, 200, &grid);
+        for (int j = 0; j < 4; j++)
+            for (int i = 0; i < 4; i++) {
+                const double cx = 25 + 50 * i, cy = 25 + 50 * j;
+                svp_psf p = moffat(5 + cx / 100, 5 + cx / 100, 0, 2.5);
+                add_spot(grid, &p, cx, cy, 3000);
+            }
+        noisy(grid, 10);
+        rc |= save(dir, "grid16.npy", grid);
+        rc |= write_text(dir, "grid16.yaml", "pixel_um: 0.05\nimage: grid16.npy\n");
+        svp_image_free(grid);
+    }
     return rc;
 }
 

@@ -114,6 +114,17 @@ cmp -s map/t1.yaml map/t2.yaml && cmp -s map/t1.spots.csv map/t2.spots.csv \
     && ok "map-psf identical with 1 and 2 threads" || bad "map-psf differs between 1 and 2 threads"
 "$S" map-psf field.yaml --degree 2 -o map/d2.yaml >/dev/null 2>&1 && grep -q "degree: 2" map/d2.yaml \
     && ok "map-psf --degree 2" || bad "map-psf --degree 2"
+# a degree more spots would need: the highest the 25 spots determine (5), with a warning
+"$S" map-psf field.yaml --degree 8 -o map/d8.yaml >/dev/null 2>"$T/d8.txt" && grep -q "degree: 5" map/d8.yaml \
+    && grep -q "fwhm: degree 8 asked for, 5 fitted" "$T/d8.txt" \
+    && ok "map-psf --degree 8 on 25 spots: 5, with a warning" || bad "map-psf --degree 8: $(cat "$T/d8.txt")"
+# 16 spots at four positions per axis cannot determine degree 4: its surfaces leave the valid
+# range between the spots (FWHM < 0), a result in doubt; degree 3 is sound
+expect_fail "map: degree 4 on a 4 x 4 grid" 3 "leave their valid range inside the spots' extent" \
+    "$S" map-psf grid16.yaml --degree 4 -o map/g4.yaml
+[ -e map/g4.yaml ] && bad "a map in doubt was written" || ok "a map in doubt writes nothing"
+"$S" map-psf grid16.yaml --degree 3 -o map/g3.yaml >/dev/null 2>&1 && ok "map-psf --degree 3 on a 4 x 4 grid" \
+    || bad "map-psf --degree 3 on a 4 x 4 grid"
 # a small map (72 x 72 field, 9 spots at given centres) that `svpsf correct --psf` uses
 printf 'pixel_um: 0.05\nfield: {width: 72, height: 72}\nspots:\n' >small.yaml
 k=0
@@ -164,6 +175,16 @@ awk '/relative rms difference/ {v=$9; sub(",", "", v); exit !(v > 0.01)}' "$T/c1
 "$S" psf-compare fit/spot.yaml fit/spot.yaml --size 32x32 --scene-size 64 >"$T/c2.txt" 2>"$T/c2e.txt" \
     && grep -q "scene-size 64 is larger than the 32 x 32 field: the scene is 32 x 32" "$T/c2e.txt" \
     && ok "psf-compare --scene-size 64 on a 32 x 32 field: noted" || bad "psf-compare scene-size note: $(cat "$T/c2e.txt")"
+# correcting a Gaussian's blur with a long-tailed Moffat blows up: that is the comparison's
+# finding (exit 0, the doubt printed and recorded), not a failure of psf-compare (it exited 3
+# with advice about options it does not have)
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >cmp_g.yaml
+printf 'pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.6, beta: 1.1}\n' >cmp_m.yaml
+"$S" psf-compare cmp_g.yaml cmp_m.yaml --size 64x64 -o cmp_gm >"$T/c3.txt" 2>&1 \
+    && grep -q "the correction with B is in doubt (implausible_values" "$T/c3.txt" \
+    && grep -q '"scene_doubts_b": "implausible_values"' cmp_gm/summary.json \
+    && grep -q '"scene_doubts_a": ""' cmp_gm/summary.json \
+    && ok "psf-compare: a correction with B in doubt is reported" || bad "psf-compare doubt: $(cat "$T/c3.txt")"
 expect_fail "compare: one map" 1 "two PSF maps" "$S" psf-compare map/cut.yaml
 expect_fail "compare: missing" 1 "nothere.yaml" "$S" psf-compare map/cut.yaml nothere.yaml
 printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >other_px.yaml

@@ -1019,29 +1019,35 @@ int cli_psf_check(const cli_run *run, const cli_psf *psf, int width, int height)
     return 0;
 }
 
+void cli_psf_range_text(const svp_psf_field_range *r, double pixel_um, char *what, size_t size)
+{
+    static const char *const names[SVP_FIELD_NPARAM] = {"the FWHM", "the ellipticity", "",
+                                                        "beta", "the halo"};
+    size_t at = 0;
+    what[0] = '\0';
+    for (int q = 0; q < SVP_FIELD_NPARAM && at < size; q++) {
+        if (!r->count[q]) continue;
+        const char *dir = r->value[q] < r->bound[q] ? "down" : "up";
+        if (q == SVP_FIELD_FWHM)
+            at += (size_t)snprintf(what + at, size - at,
+                                   "%s%s %s to %.3g um at pixel (%d, %d), clamped to %.3g um",
+                                   at ? "; " : "", names[q], dir, r->value[q] * pixel_um, r->x[q],
+                                   r->y[q], r->bound[q] * pixel_um);
+        else
+            at += (size_t)snprintf(what + at, size - at,
+                                   "%s%s %s to %.3g at pixel (%d, %d), clamped to %.3g",
+                                   at ? "; " : "", names[q], dir, r->value[q], r->x[q], r->y[q],
+                                   r->bound[q]);
+    }
+}
+
 void cli_psf_map_range_warning(const cli_run *run, const char *path, const svp_psf_field *field,
                                double pixel_um)
 {
     svp_psf_field_range r;
-    if (svp_psf_field_check_range(field, &r) != SVP_OK || !r.clamped) return;
-    static const char *const names[SVP_FIELD_NPARAM] = {"the FWHM", "the ellipticity", "",
-                                                        "beta", "the halo"};
-    char what[700] = "";
-    size_t at = 0;
-    for (int q = 0; q < SVP_FIELD_NPARAM && at < sizeof what; q++) {
-        if (!r.count[q]) continue;
-        const char *dir = r.value[q] < r.bound[q] ? "down" : "up";
-        if (q == SVP_FIELD_FWHM)
-            at += (size_t)snprintf(what + at, sizeof what - at,
-                                   "%s%s %s to %.3g um at pixel (%d, %d), clamped to %.3g um",
-                                   at ? "; " : "", names[q], dir, r.value[q] * pixel_um, r.x[q],
-                                   r.y[q], r.bound[q] * pixel_um);
-        else
-            at += (size_t)snprintf(what + at, sizeof what - at,
-                                   "%s%s %s to %.3g at pixel (%d, %d), clamped to %.3g",
-                                   at ? "; " : "", names[q], dir, r.value[q], r.x[q], r.y[q],
-                                   r.bound[q]);
-    }
+    if (svp_psf_field_check_range(field, NULL, &r) != SVP_OK || !r.clamped) return;
+    char what[700];
+    cli_psf_range_text(&r, pixel_um, what, sizeof what);
     cli_warn(run,
              "%s: the PSF map's parameters leave their valid range on %.3g %% of its pixels and "
              "are clamped there (%s): a polynomial extrapolated beyond the spots it was fitted "

@@ -305,6 +305,9 @@ void cli_variant_sentence(const svp_blur *blur, char *buf, size_t size);
 int cli_correct_applications(const svp_correct_options *o, int n_fields);
 int cli_psf_load_map(cli_run *run, const char *path, const svp_variant_options *variant,
                      cli_psf *psf);
+/* The parameters out of range in r, each with its worst value, pixel and bound, "; "-separated
+ * (FWHMs in um). */
+void cli_psf_range_text(const svp_psf_field_range *r, double pixel_um, char *what, size_t size);
 /* A warning when the map's parameters leave their valid range inside its image
  * (svp_psf_field_check_range): where, how far, and what to do. */
 void cli_psf_map_range_warning(const cli_run *run, const char *path, const svp_psf_field *field,

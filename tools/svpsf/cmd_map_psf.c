@@ -597,6 +597,30 @@ static int map_psf_map(cli_run *run, const struct map_psf_args *a, struct map_ps
         st = svp_psf_map_poly(job->samples, job->n_samples, job->width, job->height, &mo,
                               &job->field, &job->rep);
     }
+    if (st == SVP_OK && !job->labels) { /* surfaces out of range where the spots are */
+        int box[4] = {job->width, job->height, -1, -1};
+        for (int i = 0; i < job->n_samples; i++) {
+            const svp_psf_sample *sp = &job->samples[i];
+            box[0] = (int)fmin(box[0], floor(sp->x));
+            box[1] = (int)fmin(box[1], floor(sp->y));
+            box[2] = (int)fmax(box[2], ceil(sp->x));
+            box[3] = (int)fmax(box[3], ceil(sp->y));
+        }
+        svp_psf_field_range r;
+        st = svp_psf_field_check_range(job->field, box, &r);
+        if (st == SVP_OK && r.clamped) {
+            char what[700];
+            cli_psf_range_text(&r, job->pixel_um, what, sizeof what);
+            cli_error(run,
+                      "%s: the fitted surfaces leave their valid range inside the spots' extent "
+                      "(x %d..%d, y %d..%d) on %.3g %% of it (%s): the spots cannot determine "
+                      "them at this degree; use a lower --degree, or --degree auto "
+                      "(cross-validation); nothing written",
+                      a->spots_path, box[0], box[2], box[1], box[3],
+                      100.0 * (double)r.clamped / (double)r.sampled, what);
+            return CLI_EXIT_DOUBTFUL;
+        }
+    }
     if (st == SVP_OK) { /* the surfaces beyond the spots: in range over the whole image? */
         cli_psf_map_range_warning(run, run->output, job->field, job->pixel_um);
         return 0;
@@ -664,8 +688,10 @@ static int map_psf_spot_lines(cli_run *run, struct map_psf_job *job)
     return 0;
 }
 
-/* The polynomial surfaces: degree, spots used, residual per parameter. */
-static void map_psf_report_poly(cli_run *run, const struct map_psf_job *job)
+/* The polynomial surfaces: degree, spots used, residual per parameter; a note when a given
+ * degree fell (too few spots, or positions that cannot determine its terms). */
+static void map_psf_report_poly(cli_run *run, const struct map_psf_args *a,
+                                const struct map_psf_job *job)
 {
     static const char *const pnames[SVP_FIELD_NPARAM] = {"fwhm", "e1", "e2", "beta", "halo"};
     const svp_map_report *rep = job->rep;
@@ -676,6 +702,12 @@ static void map_psf_report_poly(cli_run *run, const struct map_psf_job *job)
         printf("  %-5s degree %d, %d spots, rms residual %.4g%s, chi2_red %.3f\n", pnames[q],
                rep->degree[q], rep->n_used[q], rep->rms[q] * scale,
                q == SVP_FIELD_FWHM ? " um" : "", rep->chi2_red[q]);
+        if (a->mo.degree >= 0 && rep->degree[q] < a->mo.degree)
+            cli_warn(run,
+                     "%s: degree %d asked for, %d fitted: the %d spots' positions determine no "
+                     "more terms (degree d needs (d + 1)(d + 2) / 2 spots, at d + 1 distinct "
+                     "positions along each axis)",
+                     pnames[q], a->mo.degree, rep->degree[q], rep->n_used[q]);
         snprintf(key, sizeof key, "%s_degree", pnames[q]);
         cli_result_int(run, key, rep->degree[q]);
         snprintf(key, sizeof key, "%s_rms", pnames[q]);
@@ -756,7 +788,7 @@ static int run_map_psf(cli_run *run, const struct map_psf_args *a)
         if (job.labels)
             map_psf_report_regions(run, a, &job);
         else
-            map_psf_report_poly(run, &job);
+            map_psf_report_poly(run, a, &job);
         code = map_psf_write(run, a, &job);
     }
     if (job.spots)

@@ -78,6 +78,7 @@ struct psf_compare_job {
     svp_image *dfw, *dbe, *btrue, *pltrue, *plapp, *bapp, *plc, *bc_a, *bc_b;
     svp_blur *ha, *hb;
     double max_df, max_db; /* the largest |dFWHM| (um) and |dbeta|, for the figures' scales */
+    svp_correct_summary sum_a, sum_b; /* the two corrections' doubts */
     const char *out_dfw, *out_dbe, *png_dfw, *png_dbe, *out_ca, *out_cb, *out_sum;
 };
 
@@ -264,7 +265,12 @@ static int psf_compare_transforms(cli_run *run, struct psf_compare_job *job)
     /* the two corrections are the long part: each reports half of the stage's progress */
     svp_progress_share half_a = {cli_progress, run, 0.0, 0.5},
                        half_b = {cli_progress, run, 0.5, 0.5};
+    /* a correction in doubt is part of the comparison (correcting A's blur with B can blow
+     * up): kept, and reported with the numbers */
+    co.keep_doubtful = 1;
     cb = co;
+    co.summary = &job->sum_a;
+    cb.summary = &job->sum_b;
     co.deconv.progress = cb.deconv.progress = svp_progress_share_fn;
     co.deconv.progress_user = &half_a;
     cb.deconv.progress_user = &half_b;
@@ -319,6 +325,17 @@ static int psf_compare_scene(cli_run *run, struct psf_compare_job *job)
            "the field's peak\n",
            rel, m_ab / m_t);
     printf("  relative rms error to the truth: corrected with A %.4f, with B %.4f\n", rel_a, rel_b);
+    const svp_correct_summary *sums[2] = {&job->sum_a, &job->sum_b};
+    for (int k = 0; k < 2; k++) {
+        char list[256];
+        svp_doubt_list(sums[k]->doubts, list, sizeof list);
+        if (sums[k]->doubts)
+            printf("  the correction with %c is in doubt (%s; %zu implausible pixels): %s\n",
+                   'A' + k, list, sums[k]->n_implausible,
+                   k ? "correcting A's blur with B's PSF is what blows up or loses the signal"
+                     : "the reference correction itself");
+        cli_result_str(run, k ? "scene_doubts_b" : "scene_doubts_a", list);
+    }
     cli_result_num(run, "scene_rel_rms_difference", rel);
     cli_result_num(run, "scene_max_difference_of_peak", m_ab / m_t);
     cli_result_num(run, "scene_rel_rms_error_a", rel_a);
