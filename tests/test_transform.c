@@ -1036,6 +1036,46 @@ static void test_dynamic_range(void **state)
     free_images(b, 1);
 }
 
+/* The maps' units do not matter: PL and field times 2^±520 (double) or 2^±100 (single
+ * precision, beyond float's range) give the same apparent maps times the same powers, bit for
+ * bit, and finite (a PL and a field of 1e160, or of 1e20 in single precision, gave NaN fields
+ * of validity 1; a PL of 1e36 in single precision a PL of 0) */
+static void test_forward_scale(void **state)
+{
+    (void)state;
+    const int w = 48, h = 40;
+    const size_t n = (size_t)w * h;
+    svp_image *pl = pl_spot_chessboard(w, h, 8, 7), *b[1] = {test_image(w, h)};
+    for (size_t i = 0; i < n; i++) b[0]->data[i] = sin(0.37 * (double)i) - 0.2;
+    svp_image *ps = test_image(w, h), *bs[1] = {test_image(w, h)};
+    for (int single = 0; single <= 1; single++) {
+        svp_blur *op = blur_model(SVP_PSF_MOFFAT, 3.0, 1.5, 0.0, w, h, SVP_BOUNDARY_ZERO);
+        ASSERT_OK(svp_blur_set_precision(op, single));
+        apparent ref = forward_run(op, pl, b, 1);
+        const int e = single ? 100 : 520; /* 2^1040: B I overflows double */
+        for (int ei = -e; ei <= e; ei += e)
+            for (int eb = -e; eb <= e; eb += 2 * e) {
+                for (size_t i = 0; i < n; i++) {
+                    ps->data[i] = ldexp(pl->data[i], ei);
+                    bs[0]->data[i] = ldexp(b[0]->data[i], eb);
+                }
+                apparent a = forward_run(op, ps, bs, 1);
+                for (size_t i = 0; i < n; i++) {
+                    assert_true(a.pl->data[i] == ldexp(ref.pl->data[i], ei));
+                    assert_true(a.field[0]->data[i] == ldexp(ref.field[0]->data[i], eb));
+                    assert_true(a.valid->data[i] == ref.valid->data[i]);
+                }
+                apparent_free(&a, 1);
+            }
+        apparent_free(&ref, 1);
+        svp_blur_free(op);
+    }
+    svp_image_free(ps);
+    free_images(bs, 1);
+    svp_image_free(pl);
+    free_images(b, 1);
+}
+
 /* ---- bad input ---------------------------------------------------------------------------- */
 
 static void expect_error(svp_status got, svp_status want, const char *needle)
@@ -1675,6 +1715,7 @@ int main(void)
         cmocka_unit_test(test_constant_images),
         cmocka_unit_test(test_missing_pixels),
         cmocka_unit_test(test_dynamic_range),
+        cmocka_unit_test(test_forward_scale),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_threads),
         cmocka_unit_test(test_margin_view_frame), cmocka_unit_test(test_tail_transform),

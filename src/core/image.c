@@ -205,6 +205,13 @@ double svp_max_abs(const double *restrict x, size_t n)
     return m;
 }
 
+int svp_unit_exponent(const double *restrict x, size_t n, int bits)
+{
+    const double top = svp_max_abs(x, n);
+    if (top == 0 || (top >= ldexp(1.0, -bits) && top <= ldexp(1.0, bits))) return 0;
+    return -ilogb(top);
+}
+
 double svp_min(const double *restrict x, size_t n)
 {
     double m = INFINITY;

@@ -54,6 +54,10 @@ double svp_dot(const double *a, const double *b, double *restrict prod, size_t n
 void svp_dots(const double *const *a, const double *const *b, int m, size_t n, double *out);
 double svp_max(const double *restrict x, size_t n); /* of finite values; -inf when none */
 double svp_max_abs(const double *restrict x, size_t n); /* largest finite |value|; 0 when none */
+/* k with 2^k · max|x| in [1, 2) when the largest finite |value| lies outside [2^-bits, 2^bits],
+ * else 0 (also for none): the power of two that brings data of extreme magnitude to unit size
+ * and back exactly (linear steps commute with it bit for bit, barring overflow). */
+int svp_unit_exponent(const double *restrict x, size_t n, int bits);
 /* Median of v[0..n), n >= 1 (sorts v in place; the mean of the middle two for even n). */
 double svp_median(double *v, size_t n);
 /* The k-th smallest of a[0..n) (0-based, n > 0, k < n) by quickselect; reorders a. */

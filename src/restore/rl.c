@@ -751,11 +751,8 @@ svp_status svp_deconv_rl_path(svp_blur *blur, const svp_image *y,
     SVP_CHECK(check_args(blur, y, options, x));
     const int single = options->single_precision || blur->single;
     const size_t n = (size_t)y->width * y->height;
-    const double top = single ? svp_max_abs(y->data, n) : 0;
-    const double lo = ldexp(1.0, -FLOAT_SCALE_BITS), hi = ldexp(1.0, FLOAT_SCALE_BITS);
-    if (!single || top == 0 || (top >= lo && top <= hi))
-        return rl_path_run(blur, y, options, x, alpha_in, alpha_out, levels);
-    const int k = -ilogb(top); /* 2^k top in [1, 2) */
+    const int k = single ? svp_unit_exponent(y->data, n, FLOAT_SCALE_BITS) : 0;
+    if (k == 0) return rl_path_run(blur, y, options, x, alpha_in, alpha_out, levels);
     svp_image *ys = NULL, *vs = NULL;
     svp_status st = svp_image_new(y->width, y->height, &ys);
     if (st == SVP_OK && options->variance)

@@ -18,6 +18,9 @@
 #define FORWARD_PL_TINY 1e-10
 /* The same for an operator in single precision, whose round-off is ~1e-7 · max Ĩ. */
 #define FORWARD_PL_TINY_SINGLE 1e-5
+/* Maps whose largest |value| lies beyond 2^±FORWARD_SCALE_BITS are scaled to unit size (and
+ * back) by a power of two: B I and a float FFT's sums stay finite (float's range is 2^±126). */
+#define FORWARD_SCALE_BITS 60
 /* Halo correction: denominators Ĩ − α<Ĩ> at or below HALO_DEN_TINY · max|Ĩ| carry no light
  * (the subtraction itself leaves round-off of ~1e-16 · max|Ĩ|). */
 #define HALO_DEN_TINY 1e-10
@@ -216,12 +219,24 @@ svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
                             "pl_true is negative (%g) at pixel (%zu, %zu): PL is an intensity",
                             pl_true->data[i], i % (size_t)w, i / (size_t)w);
 
-    svp_image *product = NULL;
+    svp_image *product = NULL, *pl_unit = NULL;
     svp_status st = svp_image_new(w, h, &product);
     if (st != SVP_OK) return st;
 
+    /* Maps of extreme magnitude (beyond 2^±60) are brought to unit size by powers of two and
+     * back: exact, so ordinary maps give the same bits, and neither B I nor a float FFT
+     * overflows (a PL and a field of 1e160 each, or 1e20 in single precision, gave NaN fields
+     * of validity 1; a PL of 1e36 in single precision a PL of 0) */
+    const int ki = svp_unit_exponent(pl_true->data, n, FORWARD_SCALE_BITS);
+    const svp_image *pl_in = pl_true;
+    if (ki) {
+        if ((st = svp_image_new(w, h, &pl_unit)) != SVP_OK) goto cleanup;
+        for (size_t i = 0; i < n; i++) pl_unit->data[i] = ldexp(pl_true->data[i], ki);
+        pl_in = pl_unit;
+    }
+
     /* Ĩ = H I (eq. 3b). Ĩ of a non-negative I is non-negative: negative values are round-off. */
-    st = svp_blur_apply(blur, pl_true, pl_apparent);
+    st = svp_blur_apply(blur, pl_in, pl_apparent);
     if (st != SVP_OK) goto cleanup;
     double *restrict pl_app = pl_apparent->data;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
@@ -234,23 +249,30 @@ svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
     /* B̃_c Ĩ = H(B_c I) (eq. 3a), one application per component. */
     for (int c = 0; c < n_fields; c++) {
         const double *restrict b_true = field_true[c]->data;
-        const double *restrict i_true = pl_true->data;
+        const double *restrict i_true = pl_in->data;
         double *restrict prod = product->data;
+        const int kb = svp_unit_exponent(b_true, n, FORWARD_SCALE_BITS);
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) prod[i] = b_true[i] * i_true[i];
+        for (size_t i = 0; i < n; i++) prod[i] = (kb ? ldexp(b_true[i], kb) : b_true[i]) * i_true[i];
         st = svp_blur_apply(blur, product, field_apparent[c]);
         if (st != SVP_OK) goto cleanup;
         double *restrict b_app = field_apparent[c]->data;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) b_app[i] = pl_app[i] > dark ? b_app[i] / pl_app[i] : 0.0;
+        for (size_t i = 0; i < n; i++) {
+            const double v = pl_app[i] > dark ? b_app[i] / pl_app[i] : 0.0;
+            b_app[i] = kb ? ldexp(v, -kb) : v;
+        }
     }
     if (validity) {
         double *restrict v = validity->data;
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
         for (size_t i = 0; i < n; i++) v[i] = pl_app[i] > dark ? 1.0 : 0.0;
     }
+    if (ki)
+        for (size_t i = 0; i < n; i++) pl_app[i] = ldexp(pl_app[i], -ki);
 cleanup:
     svp_image_free(product);
+    svp_image_free(pl_unit);
     return st;
 }
 
