@@ -122,6 +122,8 @@ svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
                 mask->data[p] = in;
             }
         svp_image_free(file);
+        size_t n_region = 0, n_eroded = 0, n_lit = 0;
+        for (size_t p = 0; p < n; p++) n_region += mask->data[p] != 0;
         if (mk->erode_um > 0) {
             double *dist = malloc(n * sizeof *dist);
             if (!dist) return svp_fail(SVP_ERR_NOMEM, "out of memory");
@@ -134,9 +136,19 @@ svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
             free(dist);
             SVP_CHECK(st);
         }
+        for (size_t p = 0; p < n; p++) n_eroded += mask->data[p] != 0;
         if (mk->lit_above > 0)
             for (size_t p = 0; p < n; p++)
                 if (!(pl->data[p] >= mk->lit_above * pl_max)) mask->data[p] = 0;
+        for (size_t p = 0; p < n; p++) n_lit += mask->data[p] != 0;
+        /* an empty mask has no statistics: every metric over it would be NaN */
+        if (n_lit == 0)
+            return svp_fail(SVP_ERR_INVALID,
+                            "%s: mask '%s' holds no pixel of the %d x %d view (its region %zu, "
+                            "after erode_um %g: %zu, after lit_above %g: 0): its statistics "
+                            "would be NaN; widen it, erode less, or drop it",
+                            mk->where, mk->name, w, h, n_region, mk->erode_um, n_eroded,
+                            mk->lit_above);
     }
     return SVP_OK;
 }

@@ -503,7 +503,8 @@ static svp_status stage_crop(run_ctx *c)
     SVP_CHECK(crop_map(c, "canvas_cover_flakes", "cover_flakes"));
     SVP_CHECK(crop_map(c, "canvas_cover_strips", "cover_strips"));
     if (s->spectrum && s->n_contrast_pattern) SVP_CHECK(crop_map(c, "canvas_contrast", "contrast"));
-    return SVP_OK;
+    /* the masks as soon as their maps exist: an empty one stops the run before the corrections */
+    return scene_make_masks(s, c->r);
 }
 
 /* ---- noise on the closed-form maps --------------------------------------------------------- */

@@ -49,6 +49,12 @@ expect_bad missing_file 6:27 "missing.npy: no such file"
 printf '%s\npsf: {file: no_psf.yaml}\n' "$head" >"$T/missing_psf.yaml"
 expect_bad missing_psf 5:13 "no_psf.yaml"
 
+# a mask with no pixel (eroded away): its statistics would be NaN, so the run stops (exit 1,
+# the mask's line named) instead of reporting "median |relative error| nan %" with exit 0
+printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\nmetrics:\n  masks:\n    - {name: gone, inside: flakes, erode_um: 100}\n' \
+    "$head" >"$T/empty_mask.yaml"
+expect_bad empty_mask 8:7 "mask 'gone' holds no pixel of the 48 x 48 view"
+
 # a good scene
 printf '%s
 emission: [{gaussian: {fwhm_um: 4}}, {chessboard: {square_um: 0.6, levels: [0.2, 1], seed: 3}}]
