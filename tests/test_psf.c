@@ -602,6 +602,19 @@ static void test_validation(void **state)
     svp_image *k = NULL;
     assert_int_equal(svp_psf_render(&d, -1, 3, &k), SVP_ERR_INVALID);
     assert_null(k);
+    /* axes 10^6 apart are a line, not a spot (a minor axis of 1e-300 gave "no flux", exit 2) */
+    p = make_psf(SVP_PSF_GAUSSIAN, 1.0, 0);
+    p.fwhm_minor = 1e-300;
+    expect_invalid(&p, "differ by more than 10^6");
+    /* a PSF far narrower than a pixel renders as its limit, all light in the centre pixel, in
+     * every model, also where its width squared underflows (FWHM 1e-200 px: 0/0 before) */
+    for (int model = 0; model < 3; model++)
+        for (double fw = 1e-6; fw > 1e-250; fw *= 1e-97) {
+            p = make_psf((svp_psf_model)model, fw, 1.5);
+            ASSERT_OK(svp_psf_render(&p, 2, 1, &k));
+            for (int i = 0; i < 15; i++) ASSERT_CLOSE(k->data[i], i == 7 ? 1.0 : 0.0, 1e-6);
+            svp_image_free(k);
+        }
 }
 
 int main(void)

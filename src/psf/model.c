@@ -40,6 +40,12 @@ svp_status svp_psf_validate(const svp_psf *psf)
     if (psf->fwhm_minor < 0 || !isfinite(psf->fwhm_minor))
         return svp_fail(SVP_ERR_INVALID, "PSF minor-axis FWHM must be >= 0, got %g",
                         psf->fwhm_minor);
+    if (psf->fwhm_minor > 0 && (psf->fwhm_minor < 1e-6 * psf->fwhm ||
+                                psf->fwhm < 1e-6 * psf->fwhm_minor))
+        return svp_fail(SVP_ERR_INVALID,
+                        "PSF axes %g px and %g px differ by more than 10^6: a line, not a spot (a "
+                        "minor-axis FWHM of 0 means a circular PSF)",
+                        psf->fwhm, psf->fwhm_minor);
     if (psf->model == SVP_PSF_MOFFAT && (!(psf->beta >= SVP_PSF_BETA_MIN) || !isfinite(psf->beta)))
         return svp_fail(SVP_ERR_INVALID, "Moffat beta must be >= %g and finite, got %g",
                         SVP_PSF_BETA_MIN, psf->beta);
@@ -405,6 +411,12 @@ svp_status svp_psf_render(const svp_psf *psf, int rx, int ry, svp_image **kernel
     for (int y = 0; y < k->height; y++) render_row(psf, &e, rx, ry, y, k->data + (size_t)y * w);
     size_t n = (size_t)k->width * k->height;
     double sum = svp_sum(k->data, n);
+    if (!(sum > 0 && isfinite(sum)) && fmax(psf->fwhm, psf->fwhm_minor) < 1e-3) {
+        /* a PSF far narrower than a pixel: its width squared underflows (FWHM ~1e-155 px),
+         * and the limit it tends to is all of the light in the centre pixel */
+        memset(k->data, 0, n * sizeof(double));
+        k->data[(size_t)ry * w + rx] = sum = 1.0;
+    }
     if (!(sum > 0) || !isfinite(sum)) {
         svp_image_free(k);
         return svp_fail(SVP_ERR_NUMERIC, "PSF kernel has no flux on its %d x %d support",
