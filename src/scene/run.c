@@ -532,7 +532,9 @@ static svp_status stage_noise(run_ctx *c)
         double sigma_b = sigma_b0 / sqrt(fmax(photons, 1));
         for (int k = 0; k < nf; k++)
             fields[k]->data[i] += sigma_b * scene_gauss(seed, 1 + (uint64_t)k, i);
-        pd[i] += sqrt(photons) / scale * scene_gauss(seed, 0, i);
+        /* Gaussian shot noise, clipped at 0 as a count is: below ~30 photons its tail went
+         * negative, which the RL-based corrections rightly refuse in a measured PL */
+        pd[i] = fmax(pd[i] + sqrt(photons) / scale * scene_gauss(seed, 0, i), 0.0);
     }
     SVP_CHECK(value(c, s->photons, "noise/photons_per_pixel"));
     SVP_CHECK(value(c, sigma_b0 / sqrt(s->photons), "noise/sigma_B_at_brightest_T"));
@@ -796,7 +798,8 @@ static svp_status stage_cube(run_ctx *c)
 #pragma omp parallel for schedule(static)
                 for (size_t p = 0; p < nview; p++) {
                     double photons = fmax(d[p] * scale, 0);
-                    d[p] += sqrt(photons) / scale * scene_gauss(seed, stream, p);
+                    d[p] = fmax(d[p] + sqrt(photons) / scale * scene_gauss(seed, stream, p),
+                                0.0); /* a count: clipped at 0, as on the closed-form path */
                 }
                 c->noise_seconds += now_s() - t;
             }

@@ -55,6 +55,14 @@ printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\nmetrics:\n  masks:\n    - {nam
     "$head" >"$T/empty_mask.yaml"
 expect_bad empty_mask 8:7 "mask 'gone' holds no pixel of the 48 x 48 view"
 
+# shot noise of 2 photons at the brightest pixel: the Gaussian's tail would make the PL negative
+# in ~8 % of the pixels, which R&W's RL refuses in a measured PL (exit 1 before); counts are
+# clipped at 0, and the run goes through
+printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\neffects: {noise: {photons_per_pixel: 2}}\ncorrect: {method: rw, iterations: 5}\n' \
+    "$head" >"$T/few_photons.yaml"
+out=$("$SVPSF" simulate "$T/few_photons.yaml" -o "$T/few" --quiet 2>&1) ||
+    fail "2 photons per pixel: exit $? ($out)"
+
 # a good scene
 printf '%s
 emission: [{gaussian: {fwhm_um: 4}}, {chessboard: {square_um: 0.6, levels: [0.2, 1], seed: 3}}]
