@@ -1517,6 +1517,11 @@ SVP_API const char *svp_scene_name(const svp_scene *scene);
 /* Geometry: pixel size (µm), view and canvas sizes (pixels). Any pointer may be NULL. */
 SVP_API void svp_scene_geometry(const svp_scene *scene, double *pixel_um, int *view_w,
                                 int *view_h, int *canvas_w, int *canvas_h);
+/* The estimated peak memory of a run, bytes (from measured runs: about 100 MB + 450 B per canvas
+ * pixel + 40 B per canvas pixel and correction + a cube's frames three times). svp_scene_run
+ * refuses a scene above the memory budget (SVPSF_MAX_MEMORY, else the memory available;
+ * SVP_ERR_INVALID naming the file) before it writes or allocates anything. */
+SVP_API double svp_scene_memory(const svp_scene *scene);
 /* The files a run writes, relative to the output folder (index 0 .. n − 1; NULL beyond). */
 SVP_API int svp_scene_n_outputs(const svp_scene *scene);
 SVP_API const char *svp_scene_output(const svp_scene *scene, int index);

@@ -1501,6 +1501,8 @@ svp_status svp_scene_load_string(const char *name, const char *text, size_t len,
 
 const char *svp_scene_name(const svp_scene *s) { return s ? s->name : NULL; }
 
+double svp_scene_memory(const svp_scene *s) { return s ? scene_memory_estimate(s) : 0; }
+
 void svp_scene_geometry(const svp_scene *s, double *pixel_um, int *view_w, int *view_h,
                         int *canvas_w, int *canvas_h)
 {

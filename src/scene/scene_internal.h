@@ -208,6 +208,10 @@ static inline const char *scene_stage_name(scene_stage stage)
     return "?";
 }
 
+/* The estimated peak memory of a run in bytes (run.c; checked against the budget before it
+ * starts, shown by the dry run). */
+double scene_memory_estimate(const svp_scene *s);
+
 typedef struct scene_stage_entry {
     scene_stage stage;
     int index;     /* correct, reconstruct: which correction / reconstruction of the scene */

@@ -63,6 +63,18 @@ printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\neffects: {noise: {photons_per_
 out=$("$SVPSF" simulate "$T/few_photons.yaml" -o "$T/few" --quiet 2>&1) ||
     fail "2 photons per pixel: exit $? ($out)"
 
+# a scene above the memory budget is refused before anything is written or allocated; the dry
+# run shows the estimate
+out=$(SVPSF_MAX_MEMORY=64M "$SVPSF" simulate "$T/few_photons.yaml" -o "$T/mem" 2>&1)
+rc=$?
+case "$rc:$out" in
+1:*"few_photons.yaml: the scene's run (48 x 48 canvas, 1 correction) needs"*"more than the 64.0 MiB allowed (SVPSF_MAX_MEMORY=64M"*) ;;
+*) fail "scene over SVPSF_MAX_MEMORY: exit $rc ($out)" ;;
+esac
+[ ! -e "$T/mem" ] || fail "a scene over the memory budget created its folder"
+"$SVPSF" simulate "$T/few_photons.yaml" --dry-run | grep -q "canvas 48 x 48, memory about 0.1 GB" ||
+    fail "the dry run does not show the memory estimate"
+
 # a good scene
 printf '%s
 emission: [{gaussian: {fwhm_um: 4}}, {chessboard: {square_um: 0.6, levels: [0.2, 1], seed: 3}}]

@@ -161,8 +161,8 @@ static void simulate_dry_run(const cli_run *run, const svp_scene *scene, const c
     double pixel_um = 0;
     int vw = 0, vh = 0, cw = 0, ch = 0;
     svp_scene_geometry(scene, &pixel_um, &vw, &vh, &cw, &ch);
-    printf("scene %s (%s): view %d x %d px of %g um, canvas %d x %d\n", svp_scene_name(scene), path,
-           vw, vh, pixel_um, cw, ch);
+    printf("scene %s (%s): view %d x %d px of %g um, canvas %d x %d, memory about %.2g GB\n",
+           svp_scene_name(scene), path, vw, vh, pixel_um, cw, ch, svp_scene_memory(scene) / 1e9);
     printf("plan (%d stages):\n", n);
     for (int i = 0; i < n; i++)
         printf("  %2d. %-12s %s\n", i + 1, stages[i].name, stages[i].detail);
