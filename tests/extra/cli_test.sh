@@ -378,6 +378,13 @@ expect_bad garbage_npy "garbage.npy" correct --field garbage.npy --pl fwd_p/pl.n
 printf 'II*\0garbage after a TIFF magic' >garbage.tif
 expect_bad garbage_tiff "garbage.tif" forward --field Bz.txt --pl garbage.tif --psf moffat.yaml -o bad $FAST
 expect_bad missing_pl "nope_pl.tif|no such file" correct --field Bz.txt --pl nope_pl.tif --psf moffat.yaml -o bad $FAST
+# forward's checks of the true maps name the file, not the library's role (pl_true, field_true[0])
+awk 'NR == 3 { $2 = -1 } { print }' pl.txt >pl_negative.txt
+expect_bad forward_negative_pl "pl_negative.txt: pl_true is negative (-1) at pixel (1, 2)" \
+    forward --field Bz.txt --pl pl_negative.txt --psf moffat.yaml -o bad $FAST
+awk 'NR == 2 { $5 = "nan" } { print }' Bz.txt >Bz_nan.txt
+expect_bad forward_nan_field "Bz_nan.txt: field_true[0] has 1 NaN/Inf pixels" \
+    forward --field Bz_nan.txt --pl pl.txt --psf moffat.yaml -o bad $FAST
 expect_bad missing_psf "nope.yaml" forward --field Bz.txt --pl pl.txt --psf nope.yaml -o bad $FAST
 if [ "$(id -u)" != 0 ]; then # root reads anything: the permission case means nothing there
     cp fwd_p/field.npy unreadable.npy && chmod 000 unreadable.npy

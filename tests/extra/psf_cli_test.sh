@@ -148,6 +148,8 @@ expect_fail "map: unknown key" 1 "bad2.yaml:2" sh -c "printf 'pixel_um: 0.05\nim
 expect_fail "map: no field size" 1 "bad3.yaml" sh -c "printf 'pixel_um: 0.05\nspots:\n  - {file: cut_00.npy, origin: [0, 0]}\n' > bad3.yaml; \"$S\" map-psf bad3.yaml -o map/b3.yaml"
 expect_fail "map: labels size" 1 "spot.npy" "$S" map-psf field.yaml --labels spot.npy -o map/b4.yaml
 expect_fail "map: bad degree" 1 "--degree" "$S" map-psf field.yaml --degree 11 -o map/b5.yaml
+expect_fail "map: halo beyond what a map holds" 1 "--halo 0.9999999: must be in .0, 0.999." \
+    "$S" map-psf field.yaml --halo 0.9999999 -o map/b7.yaml
 expect_fail "map: no overwrite" 1 "map/cut.yaml exists" "$S" map-psf spots.yaml -o map/cut.yaml
 printf 'pixel_um: 0.05\nfield: {width: 72, height: 72}\nspots:\n  - {file: empty72.npy, x: 12, y: 12}\n  - {file: empty72.npy, x: 36, y: 36}\n' >allbad.yaml
 expect_fail "map: every spot fails" 1 "allbad.yaml: all 2 spots failed their fits" "$S" map-psf allbad.yaml -o nm1/map.yaml
@@ -186,6 +188,8 @@ printf 'pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.6, beta: 1.1}\n' >cmp_m.y
     && grep -q '"scene_doubts_a": ""' cmp_gm/summary.json \
     && ok "psf-compare: a correction with B in doubt is reported" || bad "psf-compare doubt: $(cat "$T/c3.txt")"
 expect_fail "compare: one map" 1 "two PSF maps" "$S" psf-compare map/cut.yaml
+expect_fail "compare: --size against a map's own size" 1 "applies only when both maps are uniform" \
+    "$S" psf-compare map/cut.yaml map/cut.yaml --size 32x32
 expect_fail "compare: missing" 1 "nothere.yaml" "$S" psf-compare map/cut.yaml nothere.yaml
 printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.3}\n' >other_px.yaml
 expect_fail "compare: pixel size" 1 "other_px.yaml" "$S" psf-compare map/cut.yaml other_px.yaml

@@ -100,7 +100,16 @@ static int forward_compute(cli_run *run, const struct forward_args *a, struct fo
         st = svp_forward_transform(job->blur, maps->pl, (const svp_image *const *)maps->fields,
                                    maps->n_fields, job->pl_apparent, job->field_apparent,
                                    job->validity);
-    if (st != SVP_OK) return cli_fail(run, st, NULL);
+    if (st != SVP_OK) { /* the library names the map's role (pl_true, field_true[k]): its file */
+        const char *msg = svp_last_error(), *file = NULL;
+        char role[32];
+        if (msg && strstr(msg, "pl_true")) file = maps->pl_path;
+        for (int i = 0; i < maps->n_fields && !file && msg; i++) {
+            snprintf(role, sizeof role, "field_true[%d]", i);
+            if (strstr(msg, role)) file = maps->field_paths[i];
+        }
+        return cli_fail(run, st, file);
+    }
     const size_t n = (size_t)w * h;
     *n_dark = 0;
     for (size_t i = 0; i < n; i++) *n_dark += job->validity->data[i] < 1;

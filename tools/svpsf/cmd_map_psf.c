@@ -58,7 +58,8 @@ static void print_help(const cli_run *run, FILE *out)
     cli_print_spot_help(out);
     fputs("  --circular            round spot fits (no ellipticity)\n"
           "  --gain G              photons per data unit (default 1)\n"
-          "  --halo A              background-halo fraction alpha_b written into the map\n"
+          "  --halo A              background-halo fraction alpha_b in [0, 0.999] written\n"
+          "                        into the map\n"
           "                        (spots do not measure it; default 0)\n"
           "  --transition-um T     regions: blend width across region boundaries (default 0)\n"
           "  --alpha A             regions: significance level for keeping regions apart\n"
@@ -248,7 +249,8 @@ static int map_psf_option(cli_run *run, struct map_psf_args *a, int c)
         }
         return cli_parse_int(run, "--degree", optarg, 0, 8, &mo->degree);
     case OPT_MAX_DEGREE: return cli_parse_int(run, "--max-degree", optarg, 0, 8, &mo->max_degree);
-    case OPT_HALO: return cli_parse_double_in(run, "--halo", optarg, 0, 1, 1, 0, &mo->halo);
+    /* a PSF map holds halos up to 0.999 (svp_psf_field clamps beyond): refused, not clamped */
+    case OPT_HALO: return cli_parse_double_in(run, "--halo", optarg, 0, 1, 0.999, 1, &mo->halo);
     case OPT_TRANSITION:
         return cli_parse_double_in(run, "--transition-um", optarg, 0, 1, INFINITY, 0,
                                    &a->transition_um);

@@ -138,6 +138,11 @@ static int psf_compare_read(cli_run *run, const struct psf_compare_args *a,
         return cli_error(run, "size mismatch: %s maps a %d x %d field but %s a %d x %d one", pa, aw,
                          ah, pb, bw, bh);
     int w = a->w, h = a->h;
+    if (w && (aw || bw) && (w != (aw ? aw : bw) || h != (aw ? ah : bh)))
+        return cli_error(run,
+                         "--size %dx%d: %s maps a %d x %d field; --size applies only when both "
+                         "maps are uniform (drop it)",
+                         w, h, aw ? pa : pb, aw ? aw : bw, aw ? ah : bh);
     if (aw)
         w = aw, h = ah;
     else if (bw)

@@ -218,7 +218,10 @@ static int simulate_run_scene(cli_run *run, const svp_scene *scene, const char *
     print_headline(result);
     warn_doubts(run, result);
     printf("  report:  %s/report.md\n", run->output);
-    printf("  figures: %s/figures/\n", run->output);
+    int has_figures = 0; /* outputs: {figures: false} writes none */
+    for (int i = 0; i < svp_scene_n_outputs(scene) && !has_figures; i++)
+        has_figures = strncmp(svp_scene_output(scene, i), "figures/", 8) == 0;
+    if (has_figures) printf("  figures: %s/figures/\n", run->output);
     printf("  summary: %s/summary.json (plan, stage times, every metric)\n", run->output);
     svp_scene_result_free(result);
     return 0;
