@@ -886,8 +886,9 @@ static int ref_odmr_model(void *user, const double *th, int n_params, int n_poin
 }
 
 /* Spectra of noise alone (no dip): a fit may converge to a "line" far outside the sweep (B of
- * 10⁹ T was seen); such a fit is failed: every pixel whose fitted line (the field map keeps
- * the last parameters) lies outside the swept range has converged 0 and is counted. */
+ * 10⁹ T was seen), to a single sample or to a dip of a few σ; every such fit is failed: every
+ * pixel whose fitted line (the field map keeps the last parameters) lies outside the swept
+ * range has converged 0 and is counted, and no fit of noise passes. */
 static void test_fit_noise_only(void **state)
 {
     (void)state;
@@ -922,6 +923,18 @@ static void test_fit_noise_only(void **state)
     assert_int_equal(outside_converged, 0);
     assert_int_equal(failed, not_converged);
     assert_true(outside > 0); /* the case arises: without the rule these were "converged" */
+    /* and no fit to noise passes: inside the sweep they were single samples (widths of kHz at
+     * a 7.4 MHz step) or dips of 3 σ at most; 201 of 256 passed before those rules */
+    assert_int_equal(failed, (size_t)w * h);
+    /* a pixel without light (a masked one: all frames 0) has no dip: it converged to a made-up
+     * field of 2.5 mT before */
+    for (int f = 0; f < nf; f++) cube->frame[f]->data[5] = 0;
+    ASSERT_OK(svp_odmr_fit_maps(&od, cube, NULL, &maps, &failed));
+    assert_true(converged->data[5] == 0);
+    /* frequencies must be positive: an ODMR line lies at D ± γB > 0 */
+    for (int f = 0; f < nf; f++) cube->freq[f] = -2.94e9 + 0.14e9 * f / (nf - 1);
+    assert_int_equal(svp_odmr_fit_maps(&od, cube, NULL, &maps, &failed), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "frequencies must be > 0 Hz"));
     svp_image_free(fit);
     svp_image_free(converged);
     svp_cube_free(cube);

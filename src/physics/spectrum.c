@@ -914,13 +914,20 @@ static void fit_put_missing(const svp_odmr_maps *maps, size_t p)
     put(maps->converged, p, 0.0);
 }
 
-/* Whether fit θ describes a dip the sweep has seen: its line inside the swept range (PAIR: one
- * of D ± γB at least; ONE: f₀; TWO: f₋ and f₊) and its width at most the range. A fit to a
- * spectrum without a dip (noise alone) can converge to a line far outside, B of 10⁹ T. */
+/* Whether fit θ describes a dip the sweep has seen: its line inside the swept range by more
+ * than one step (PAIR: one of D ± γB at least; ONE: f₀; TWO: f₋ and f₊; a line at the end of
+ * the sweep cannot be told from one beyond it), its width at most the range and at least half
+ * a step (narrower, at most one sample lies in it: noise; noisy fits of a dip one step wide
+ * scatter down to 0.98 step), and a positive baseline (no light, no dip). Fits to spectra without a dip (noise alone) converged to lines far outside (B of
+ * 10⁹ T), to single samples (widths of kHz at a 2.4 MHz step) and to the sweep's ends; an
+ * all-zero pixel (a masked one) converged to a made-up field. */
 static int fit_in_sweep(const fit_shared *c, const double th[GEN_MAX])
 {
-    const double lo = c->sweep_lo, hi = c->sweep_hi;
-#define IN_SWEEP(f) ((f) >= lo && (f) <= hi)
+    const double step = (c->sweep_hi - c->sweep_lo) / (c->nf - 1);
+    const double lo = c->sweep_lo + step, hi = c->sweep_hi - step;
+    const double width = th[c->np - 1];
+    if (!(th[0] > 0) || !(width >= 0.5 * step) || !(width <= c->sweep_hi - c->sweep_lo)) return 0;
+#define IN_SWEEP(f) ((f) > lo && (f) < hi)
     int ok;
     if (c->lines == SVP_ODMR_LINES_PAIR) {
         const double s = c->gamma * fabs(th[2]);
@@ -931,12 +938,33 @@ static int fit_in_sweep(const fit_shared *c, const double th[GEN_MAX])
         ok = IN_SWEEP(th[2]) && IN_SWEEP(th[3]);
     }
 #undef IN_SWEEP
-    return ok && th[c->np - 1] <= hi - lo;
+    return ok;
+}
+
+/* A fitted dip must be this many of its own σ deep (C / σ_C) or this many of its σ in area
+ * (C Γ, with the fit's covariance of C and Γ): a dip about one step wide determines C Γ but not
+ * C and Γ apart (real dips with C / σ_C down to 1.4 and fields within a few σ), one wide against
+ * a short sweep C but not C Γ (C / σ_C 10, area about 4). Fits to noise alone (400 pixels of
+ * 1000 counts ± 30, no dip) stay below both (C / σ_C at most 3.2), and below both fits latched
+ * onto noise (a field 3 mT off with a σ of 20 µT). */
+#define FIT_MIN_SIGNIFICANCE 5.0
+
+static int fit_significant(const fit_shared *c, const double th[GEN_MAX],
+                           double cov[GEN_MAX][GEN_MAX])
+{
+    const int w = c->np - 1;
+    const double area = th[1] * th[w];
+    const double var = th[w] * th[w] * cov[1][1] + th[1] * th[1] * cov[w][w] +
+                       2 * th[1] * th[w] * cov[1][w];
+    const int area_ok = isfinite(var) && area >= FIT_MIN_SIGNIFICANCE * sqrt(fmax(var, 0.0));
+    const int depth_ok = isfinite(cov[1][1]) && th[1] >= FIT_MIN_SIGNIFICANCE * sqrt(cov[1][1]);
+    return area_ok || depth_ok;
 }
 
 /* Pixel p of spectrum y: its start, fit and maps. Returns 0 when it converged, 1 when its fit
- * failed (*st the status; SVP_ERR_NUMERIC for a fit that converged outside the sweep, which is
- * counted like one that did not converge) and 2 for a missing pixel. */
+ * failed (*st the status; SVP_ERR_NUMERIC for a fit that converged to no dip the sweep shows —
+ * outside it, too narrow, without light, or not significant — which is counted like one that
+ * did not converge) and 2 for a missing pixel. */
 static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
 {
     const int nf = c->nf, nb = c->nb;
@@ -960,7 +988,7 @@ static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, sv
     double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], chi2 = NAN;
     int fail = c->lines == SVP_ODMR_LINES_PAIR ? fit_pair(c, t, y, &s, th, cov, &chi2, st)
                                                : fit_lines(c, t, y, &s, th, cov, &chi2, st);
-    if (!fail && !fit_in_sweep(c, th)) {
+    if (!fail && (!fit_in_sweep(c, th) || !fit_significant(c, th, cov))) {
         fail = 1;
         *st = SVP_ERR_NUMERIC;
     }
@@ -1000,6 +1028,11 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
         options = &defaults;
     }
     SVP_CHECK(fit_check(cube, options, maps));
+    if (!(cube->freq[0] > 0))
+        return svp_fail(SVP_ERR_INVALID,
+                        "ODMR fit: the frequencies must be > 0 Hz (the lowest is %g): an ODMR "
+                        "line lies at D ± γB > 0",
+                        cube->freq[0]);
     for (int f = 0; f < cube->n_freq; f++) { /* the fits square the data */
         char what[48];
         snprintf(what, sizeof what, "ODMR fit: frame %d", f);

@@ -68,6 +68,18 @@ run 0 fit-odmr stack.tif --frequencies 2750:2990:100 --frequency-unit MHz --zero
 expect_in out "fits converged"
 echo "fit-odmr --lines pair (uT):"
 "$make" compare fit_pair/field.npy truth.npy 1e6 10e-6 50e-6 fit_pair/field_sigma.npy || fail "fit-odmr pair: field off"
+# a stack without dips (pages of a smooth pattern): no pixel finds one, a result in doubt (exit
+# 3, nothing written; it exited 0 with maps of NaN); the numbers in MHz without their unit are
+# refused (14 pixels "converged" to ~100 T with them), and so are negative frequencies (every
+# fit "converged" to 0.2 T with them)
+"$make" pages nodip.tif 20 || fail "cannot write nodip.tif"
+run 3 fit-odmr nodip.tif --frequencies 2.8e9:2.94e9:20 -o fit_none --format npy
+expect_in err "none of the 48 pixel fits found a dip in the sweep"
+[ -e fit_none ] && fail "fit_none was written by a run in doubt"
+run 1 fit-odmr stack.tif --frequencies 2750:2990:100 -o fit_unit --format npy
+expect_in err "below 1 MHz where no NV line lies: give their unit with --frequency-unit"
+run 1 fit-odmr stack.tif --frequencies -2.99e9:-2.75e9:100 -o fit_neg --format npy
+expect_in err "frequencies must be > 0 Hz"
 [ -e fit_pair/field_lower.npy ] && fail "field_lower written without --lines two"
 
 # 3. its outputs feed correct, --field-sigma included

@@ -377,6 +377,15 @@ static int fit_odmr_frequencies(cli_run *run, const struct fit_odmr_args *a,
                              "--frequencies %s: not monotonic: frame %d at %.9g Hz after "
                              "%.9g Hz",
                              a->freq_arg, decreasing ? nf - f : f + 1, freq[f], freq[f - 1]);
+    /* NV lines lie at D ± γB: tens of MHz and up (the lower one reaches 0 only at 102 mT) */
+    if (!(freq[0] > 0))
+        return cli_error(run, "--frequencies %s: the frequencies must be > 0 Hz (the lowest is "
+                         "%.6g Hz): an ODMR line lies at D ± γB > 0", a->freq_arg, freq[0]);
+    if (!(freq[nf - 1] >= 1e6))
+        return cli_error(run,
+                         "--frequencies %s: the sweep ends at %.6g Hz, below 1 MHz where no NV "
+                         "line lies: give their unit with --frequency-unit (kHz, MHz, GHz)",
+                         a->freq_arg, freq[nf - 1]);
     return 0;
 }
 
@@ -627,7 +636,17 @@ static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_
     svp_status st = svp_odmr_fit_maps(&a->od, &cube, &opt, &maps, &job->n_failed);
     job->fit_seconds = cli_now() - t_fit;
     cli_progress_done(run);
-    return st == SVP_OK ? 0 : cli_fail(run, st, a->stack_path);
+    if (st != SVP_OK) return cli_fail(run, st, a->stack_path);
+    const size_t n = (size_t)job->w * job->h;
+    if (job->n_failed == n) { /* maps of NaN only: nothing to vouch for */
+        cli_error(run,
+                  "%s: none of the %zu pixel fits found a dip in the sweep (%.6g to %.6g GHz): "
+                  "no light, no dip above the noise, lines outside the sweep, or frequencies in "
+                  "another unit than Hz; nothing written",
+                  a->stack_path, n, job->freq[0] * 1e-9, job->freq[job->nf - 1] * 1e-9);
+        return CLI_EXIT_DOUBTFUL;
+    }
+    return 0;
 }
 
 /* Units and failed pixels; statistics over the converged pixels. */
