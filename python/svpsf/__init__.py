@@ -502,6 +502,27 @@ _ACCELERATIONS = {"none": 0, "biggs-andrews": 1}
 _STOPS = {0: "count", 1: "discrepancy", 2: "stalled", 3: "cap"}
 
 
+# What `svpsf deconvolve` and `correct` accept (docs/cli.md): counts beyond would run for hours
+# in the C loop, where Ctrl-C does not reach.
+_MAX_COUNT = 100000
+# SVP_CG_DOUBT_RESIDUAL of svpsf.h (a float #define, which cffi does not carry): a Wiener CG
+# stopped at its cap above this relative residual is not converged, a result in doubt.
+_CG_DOUBT_RESIDUAL = 1e-4
+
+
+def _count(value, name, lo=1, hi=_MAX_COUNT):
+    """An integer argument in [lo, hi]: the int itself, else ValueError naming it (2.5, True and
+    "x" are refused, not truncated)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        if isinstance(value, (float, np.floating)) and float(value).is_integer():
+            value = int(value)
+        else:
+            raise ValueError("%s %r: an integer in %d..%d is needed" % (name, value, lo, hi))
+    if not lo <= int(value) <= hi:
+        raise ValueError("%s %d: must be in %d..%d" % (name, int(value), lo, hi))
+    return int(value)
+
+
 def _report(r):
     return {"wiener": bool(r.wiener), "balance": r.balance, "noise_sigma": r.noise_sigma,
             "cg_steps": r.cg_steps, "cg_residual": r.cg_residual, "cg_capped": bool(r.cg_capped),
@@ -546,7 +567,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     if iterations == "auto":
         opt.auto_iterations = 1
     elif iterations is not None:
-        opt.deconv.iterations = int(iterations)
+        opt.deconv.iterations = _count(iterations, "iterations")
     if balance == "auto":
         opt.balance_auto = 1
     elif balance is not None:
@@ -624,18 +645,21 @@ def _doubt_names(bits):
 
 def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=50,
                precision="double", cg_max_steps=400, boundary=None, nodes=None, rank=None,
-               regions=False):
+               regions=False, keep_doubtful=False):
     """One image ⊘ one PSF: Wiener–Hunt ('wiener'; balance λ or 'auto' by the discrepancy
     principle, noise σ or 0 = estimated) or Richardson–Lucy ('rl'); `svpsf deconvolve`.
-    Returns (x, report): the deconvolved image and a dict of what was done."""
+    Returns (x, report): the deconvolved image and a dict of what was done. A result the
+    program would refuse (exit 3: an automatic balance on an end of its search, a Wiener CG
+    stopped at its cap above a relative residual of 1e-4) raises DoubtfulError unless
+    keep_doubtful; report["doubts"] lists them either way."""
     y = _input(image, "image")
     if method not in ("wiener", "rl"):
         raise ValueError("method %r: wiener or rl" % (method,))
     blur = _blur_for(psf, y.shape, boundary, nodes, rank, regions=regions)
     opt = ffi.new("svp_deconv_options *")
     lib.svp_deconv_defaults(opt)
-    opt.iterations = int(iterations)
-    opt.cg_max_steps = int(cg_max_steps)
+    opt.iterations = _count(iterations, "iterations")
+    opt.cg_max_steps = _count(cg_max_steps, "cg_max_steps")
     opt.single_precision = int(precision == "single")
     report = ffi.new("svp_deconv_report *")
     opt.report = report
@@ -663,6 +687,22 @@ def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=
             # bisection ends within a factor 1.002 of a crossing; 1.01 tells an end from it)
             rep["balance_at_bound"] = -1 if opt.balance <= 1.01e-12 else (
                 1 if opt.balance >= 1e2 / 1.01 else 0)
+    doubts = {}  # name as summary.json's: why, in the program's words
+    if rep.get("balance_at_bound"):
+        low = rep["balance_at_bound"] < 0
+        doubts["balance_at_bound"] = (
+            "balance auto ended on the %s end of its search (%g): the noise sigma %g %s; give "
+            "balance or noise" % ("lower" if low else "upper", opt.balance, rep["noise_sigma"],
+                                  "is below what any balance leaves (noiseless data?)" if low
+                                  else "explains the data at every balance"))
+    if method == "wiener" and rep["cg_capped"] and rep["cg_residual"] > _CG_DOUBT_RESIDUAL:
+        doubts["cg_not_converged"] = (
+            "the Wiener solve did not converge (relative residual %.3g after %d steps); raise "
+            "cg_max_steps or balance" % (rep["cg_residual"], rep["cg_steps"]))
+    rep["doubts"] = list(doubts)
+    if doubts and not keep_doubtful:
+        first = next(iter(doubts.values()))
+        raise DoubtfulError(lib.SVP_ERR_DOUBTFUL, "result in doubt: " + first)
     return x, rep
 
 
@@ -1000,7 +1040,7 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         _check(lib.svp_blur_set_tail(blur._ptr, float(tail_tol)))
         dopt = ffi.new("svp_deconv_options *")
         lib.svp_deconv_defaults(dopt)
-        dopt.iterations = int(iterations)
+        dopt.iterations = _count(iterations, "iterations")
         negative = ffi.new("size_t *")
         try:
             _check(lib.svp_cube_deconvolve(blur._ptr, cube, int(margin), dopt, negative,
