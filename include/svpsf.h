@@ -277,7 +277,8 @@ typedef struct svp_blur svp_blur;
 SVP_API svp_status svp_blur_new(const svp_psf *psf, int width, int height,
                                 svp_boundary boundary, svp_blur **out);
 /* The space-invariant operator for a sampled kernel whose centre is pixel (cx, cy) of the
- * kernel image (pass -1, -1 for (kw / 2, kh / 2)). normalise != 0 scales it to unit sum. */
+ * kernel image (pass -1, -1 for (kw / 2, kh / 2)). normalise != 0 scales it to unit sum (a
+ * kernel whose sum is not positive is then SVP_ERR_INVALID). */
 SVP_API svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int normalise,
                                        int width, int height, svp_boundary boundary,
                                        svp_blur **out);

@@ -200,6 +200,18 @@ static void test_bad_arguments(void **state)
     assert_int_equal(svp_blur_apply(op, x, y), SVP_ERR_SIZE);
     assert_int_equal(svp_blur_apply(op, x, x), SVP_ERR_INVALID);
     svp_blur_free(op);
+    /* a kernel summing to -0.5 cannot be normalised (it was, by -2: a PSF of flipped sign that
+     * made fields 8 times the input's largest); unnormalised it is the caller's */
+    svp_image *k = test_image(3, 3);
+    for (int i = 0; i < 9; i++) k->data[i] = i == 4 ? 7.5 : -1.0;
+    op = NULL;
+    assert_int_equal(svp_blur_new_kernel(k, -1, -1, 1, 8, 8, SVP_BOUNDARY_ZERO, &op),
+                     SVP_ERR_INVALID);
+    assert_null(op);
+    assert_non_null(strstr(svp_last_error(), "kernel sums to -0.5: it cannot be normalised"));
+    ASSERT_OK(svp_blur_new_kernel(k, -1, -1, 0, 8, 8, SVP_BOUNDARY_ZERO, &op));
+    svp_blur_free(op);
+    svp_image_free(k);
     svp_image_free(x);
     svp_image_free(y);
 }

@@ -228,6 +228,11 @@ def test_deconvolve_doubts_as_cli(cli, tmp_path, maps):
     _, report = svpsf.deconvolve(pl, pf, cg_max_steps=1, keep_doubtful=True)
     assert report["doubts"] == ["cg_not_converged"]
     assert svpsf.deconvolve(pl, pf)[1]["doubts"] == []
+    # a kernel summing to -0.5 is refused as the program refuses it (it was normalised by -2)
+    k = -np.ones((3, 3))
+    k[1, 1] = 7.5
+    with pytest.raises(svpsf.Error, match="kernel sums to -0.5: it cannot be normalised"):
+        svpsf.Blur(k, pl.shape)
     for bad in (0, 100001, 2.5, True, "x"):
         with pytest.raises(ValueError, match="iterations"):
             svpsf.deconvolve(pl, pf, method="rl", iterations=bad)

@@ -468,8 +468,11 @@ svp_status svp_blur_new_kernel(const svp_image *kernel, int cx, int cy, int norm
     if (svp_image_count_nonfinite(kernel))
         return svp_fail(SVP_ERR_INVALID, "kernel has NaN or Inf values");
     double sum = svp_sum(kernel->data, n);
-    if (normalise && !(fabs(sum) > 0))
-        return svp_fail(SVP_ERR_INVALID, "kernel sums to zero: it cannot be normalised");
+    if (normalise && !(sum > 0)) /* dividing by a negative sum would flip the PSF's sign */
+        return svp_fail(SVP_ERR_INVALID,
+                        "kernel sums to %g: it cannot be normalised to unit flux (a PSF's light "
+                        "sums to a positive total)",
+                        sum);
     svp_blur *b = calloc(1, sizeof *b);
     if (!b) return svp_fail(SVP_ERR_NOMEM, "out of memory for a blur operator");
     b->kind = SVP_BLUR_INVARIANT;
