@@ -39,7 +39,7 @@ import numpy as np
 
 IMAGE_EXTENSIONS = (".tif", ".tiff", ".npy", ".txt", ".csv", ".dat", ".png")
 SUMMARY_COLUMNS = ("dataset", "status", "message", "n_fields", "width", "height", "n_missing",
-                   "n_flagged", "n_invalid", "seconds", "worker", "path")
+                   "n_flagged", "n_invalid", "doubts", "seconds", "worker", "path")
 
 
 def _image_files(folder, stem_prefix):
@@ -155,9 +155,12 @@ def correct_dataset(folder, out_root, psf=None, options=None, threads=1, fft="es
             svpsf.write_image(os.path.join(tmp, n), f)
         svpsf.write_image(os.path.join(tmp, "validity.npy"), res.validity)
         valid = res.validity
+        # a result kept in doubt (keep_doubtful) says so in its row, not only in its folder
+        doubts = ",".join(res.summary.get("doubt_names", []))
         row.update(status="ok", n_fields=len(fields), width=pl.shape[1], height=pl.shape[0],
                    n_missing=res.n_missing, n_flagged=int(np.count_nonzero(valid < 1)),
-                   n_invalid=int(np.count_nonzero(valid <= 0)))
+                   n_invalid=int(np.count_nonzero(valid <= 0)), doubts=doubts,
+                   message="kept in doubt: " + doubts if doubts else "")
         summary = {"dataset": name, "inputs": {"pl": pl_files[0], "fields": field_files,
                                                "psf": psf_path},
                    "options": opts, "threads": threads, "fft": fft,
@@ -177,7 +180,13 @@ def correct_dataset(folder, out_root, psf=None, options=None, threads=1, fft="es
         tmp = None
     except Exception as e:  # the dataset fails alone, with its message
         msg = getattr(e, "message", None) or str(e)
-        row.update(status="failed", message="%s: %s" % (type(e).__name__, msg))
+        row.update(status="failed", message="%s: %s" % (type(e).__name__, msg), path="")
+        final = os.path.join(out_root, name)
+        if overwrite and os.path.isdir(final) and not isinstance(e, FileExistsError):
+            # --force replaces this batch's outputs: an earlier run's results must not stand
+            # beside a row that says this one failed
+            shutil.rmtree(final, ignore_errors=True)
+            row["message"] += " (the earlier outputs in %s were removed: --force)" % final
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -93,3 +93,22 @@ def test_command_line_and_no_overwrite(tmp_path, capsys):
                        str(root / "psf.yaml"), "--iterations", "20"]) == 1  # d2 fails
     assert batch.main([str(tmp_path / "nothere"), "-o", str(tmp_path / "o3")]) == 1
     assert "no such dataset" in capsys.readouterr().err
+    # --force over a dataset that now fails: its earlier outputs go, and its row says so (they
+    # stood beside a 'failed' row before); a failed row names no output folder
+    np.save(root / "d1" / "field_x.npy", np.full((40, 48), np.nan))
+    assert batch.main(args + ["--force"]) == 1
+    rows = read_summary(out)
+    assert rows["d1"]["status"] == "failed" and "earlier outputs" in rows["d1"]["message"]
+    assert rows["d1"]["path"] == "" and not (out / "d1").exists()
+    assert rows["d0"]["status"] == "ok" and rows["d0"]["doubts"] == ""
+
+
+def test_kept_doubt_is_in_the_row(tmp_path):
+    # a result kept in doubt is an 'ok' row that names its doubts (before: only its folder's
+    # summary.json did)
+    root = make_datasets(tmp_path / "data")
+    rows = batch.run([root / "d0"], tmp_path / "out", psf=root / "psf.yaml",
+                     options={"iterations": "auto", "keep_doubtful": True})
+    assert rows[0]["status"] == "ok" and rows[0]["doubts"], rows[0]
+    assert rows[0]["message"].startswith("kept in doubt: ")
+    assert read_summary(tmp_path / "out")["d0"]["doubts"] == rows[0]["doubts"]
