@@ -9,6 +9,7 @@ a result the library cannot vouch for) carrying the library's own message (svp_l
 The calls release the GIL. The tutorial is docs/python.md.
 """
 import os
+import warnings
 from collections import namedtuple
 
 import numpy as np
@@ -344,6 +345,10 @@ class Blur:
         boundary = boundary or "zero"
         h, w = (int(shape[0]), int(shape[1]))
         out = ffi.new("svp_blur **")
+        if not isinstance(psf, PSFMap) and (nodes is not None or rank is not None or regions):
+            # as `svpsf forward / correct` note it: ignored for a single PSF
+            warnings.warn("nodes, rank and regions apply to a PSF map (PSFMap); ignored for a "
+                          "single PSF", stacklevel=3)
         if isinstance(psf, PSF):
             _check(lib.svp_blur_new(psf._c, w, h, _boundary(boundary), out))
         elif isinstance(psf, PSFMap):
@@ -430,6 +435,11 @@ class Blur:
 def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None,
               regions=False):
     if isinstance(psf, Blur):
+        given = [k for k, v in (("boundary", boundary), ("nodes", nodes), ("rank", rank),
+                                ("regions", regions)) if v not in (None, False)]
+        if given:
+            raise ValueError("%s: a Blur has its own boundary and representation (drop them, "
+                             "or give the PSF instead)" % ", ".join(given))
         if psf.shape != tuple(shape):
             raise ValueError("the Blur is for images of shape %s, the inputs are %s"
                              % (psf.shape, tuple(shape)))
@@ -564,6 +574,17 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     lib.svp_correct_defaults(opt)
     if method is not None:
         opt.method = _METHODS[method]
+    # what `svpsf correct` refuses as options that would be ignored (docs/reliability.md)
+    wiener = opt.method in (lib.SVP_METHOD_RW, lib.SVP_METHOD_W)
+    if balance is not None and not wiener:
+        raise ValueError("balance is used only by the methods with a Wiener deconvolution "
+                         "(rw, w), not %s" % (method,))
+    if noise is not None and balance != "auto":
+        raise ValueError("noise is only used with balance='auto'")
+    if opt.method == lib.SVP_METHOD_W and (iterations == "auto" or acceleration not in
+                                           (None, "none") or precision == "single"):
+        raise ValueError("iterations='auto', acceleration and precision='single' apply to "
+                         "Richardson-Lucy: not with method w")
     if iterations == "auto":
         opt.auto_iterations = 1
     elif iterations is not None:
@@ -578,7 +599,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
         if value is not None:
             setattr(opt, name, float(value))
     if cg_max_steps is not None:
-        opt.deconv.cg_max_steps = int(cg_max_steps)
+        opt.deconv.cg_max_steps = _count(cg_max_steps, "cg_max_steps")
     opt.deconv.single_precision = int(precision == "single")
     opt.side_by_side = int(bool(side_by_side))
     if tail_tol is not None:
@@ -586,7 +607,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     if acceleration is not None:
         opt.deconv.acceleration = _ACCELERATIONS[acceleration]
     if margin is not None:
-        opt.margin = int(margin)
+        opt.margin = _count(margin, "margin", 0)
     opt.keep_doubtful = int(bool(keep_doubtful))
     imgs = _Images()
     if field_sigma is not None:

@@ -240,6 +240,31 @@ def test_deconvolve_doubts_as_cli(cli, tmp_path, maps):
             svpsf.correct(pl, pl, pf, iterations=bad)
 
 
+def test_options_the_program_refuses(tmp_path, maps):
+    # options `svpsf correct` refuses (ignored, or out of their range) are refused here too;
+    # before, each ran with no effect or with a misleading doubt
+    pl, field = maps
+    pf = write(tmp_path, "psf.yaml", MOFFAT)
+    with pytest.raises(ValueError, match="balance is used only"):
+        svpsf.correct(pl, field, pf, method="r", balance=1e-3)
+    with pytest.raises(ValueError, match="noise is only used with balance='auto'"):
+        svpsf.correct(pl, field, pf, method="rw", noise=1e-3)
+    with pytest.raises(ValueError, match="not with method w"):
+        svpsf.correct(pl, field, pf, method="w", precision="single")
+    with pytest.raises(svpsf.Error, match="noise_sigma must be >= 0"):
+        svpsf.correct(pl, field, pf, method="rw", balance="auto", noise=-1)
+    with pytest.raises(svpsf.Error, match=r"tail_tol must be in \[0, 1\)"):
+        svpsf.correct(pl, field, pf, tail_tol=-1)
+    with pytest.raises(svpsf.Error, match="field_sigma.0. is negative"):
+        svpsf.correct(pl, field, pf, field_sigma=-np.ones_like(field))
+    with pytest.raises(ValueError, match="margin 2.5"):
+        svpsf.correct(pl, field, pf, margin=2.5)
+    with pytest.raises(ValueError, match="a Blur has its own boundary"):
+        svpsf.correct(pl, field, svpsf.Blur(pf, pl.shape), boundary="mirror")
+    with pytest.warns(UserWarning, match="ignored for a single PSF"):
+        svpsf.Blur(pf, pl.shape, nodes=2)
+
+
 def spot_image(psf, shape=(48, 52), centre=(25.3, 22.8), amplitude=4000.0, background=20.0,
                seed=0):
     h, w = shape

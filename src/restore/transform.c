@@ -343,8 +343,12 @@ static svp_status check_correct_options(const svp_correct_options *o)
     if (o->method != SVP_METHOD_W && o->deconv.iterations < 1)
         return svp_fail(SVP_ERR_INVALID, "Richardson-Lucy iterations must be >= 1, got %d",
                         o->deconv.iterations);
-    if (!isfinite(o->noise_sigma))
-        return svp_fail(SVP_ERR_INVALID, "noise_sigma must be finite, got %g", o->noise_sigma);
+    if (!(o->noise_sigma >= 0) || !isfinite(o->noise_sigma))
+        return svp_fail(SVP_ERR_INVALID,
+                        "noise_sigma must be >= 0 and finite (0: estimated), got %g",
+                        o->noise_sigma);
+    if (!(o->tail_tol >= 0 && o->tail_tol < 1))
+        return svp_fail(SVP_ERR_INVALID, "tail_tol must be in [0, 1), got %g", o->tail_tol);
     if (o->margin < 0)
         return svp_fail(SVP_ERR_INVALID, "margin must be >= 0 pixels, got %d", o->margin);
     if (!(o->pl_gain >= 0) || !isfinite(o->pl_gain))
@@ -1232,6 +1236,25 @@ static svp_status check_input_scales(const svp_correct_options *o, const svp_ima
     return SVP_OK;
 }
 
+/* The optional σ maps: the PL's size, and no negative σ. */
+static svp_status check_field_sigma(const svp_correct_options *o, const svp_image *pl_apparent,
+                                    int n_fields)
+{
+    for (int c = 0; o->field_sigma && c < n_fields; c++) {
+        const svp_image *sg = o->field_sigma[c];
+        if (!sg) continue;
+        SVP_CHECK(check_same(sg, "field_sigma", c, pl_apparent, "pl_apparent"));
+        const size_t np = (size_t)sg->width * sg->height;
+        for (size_t i = 0; i < np; i++)
+            if (sg->data[i] < 0)
+                return svp_fail(SVP_ERR_INVALID,
+                                "field_sigma[%d] is negative (%g) at pixel (%zu, %zu): an "
+                                "uncertainty is >= 0",
+                                c, sg->data[i], i % (size_t)sg->width, i / (size_t)sg->width);
+    }
+    return SVP_OK;
+}
+
 svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_apparent,
                                          const svp_image *const *field_apparent, int n_fields,
                                          const svp_correct_options *options, svp_image *pl_true,
@@ -1256,11 +1279,7 @@ svp_status svp_inverse_transform_counted(svp_blur *blur, const svp_image *pl_app
                         "boundaries already say what lies outside)");
     SVP_CHECK(svp_correct_check_margin(m, pl_apparent->width, pl_apparent->height));
     SVP_CHECK(check_input_scales(&opt, pl_apparent, field_apparent, n_fields));
-    if (opt.field_sigma)
-        for (int c = 0; c < n_fields; c++)
-            if (opt.field_sigma[c])
-                SVP_CHECK(check_same(opt.field_sigma[c], "field_sigma", c, pl_apparent,
-                                     "pl_apparent"));
+    SVP_CHECK(check_field_sigma(&opt, pl_apparent, n_fields));
     const int w = pl_apparent->width, h = pl_apparent->height;
     const size_t n = (size_t)w * h;
     svp_correct_summary local_sum, *sum = opt.summary ? opt.summary : &local_sum;
