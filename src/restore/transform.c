@@ -537,6 +537,14 @@ static svp_status mark_missing(inverse_run *r, double *pl_max)
                             "needs non-negative PL (clip the background or use method W)",
                             pl_name(&r->opt), pl[i], i % (size_t)r->w, i / (size_t)r->w);
     }
+    /* no light anywhere (a PL of zeros, or an offset above every value): every pixel would
+     * come back with validity 0 and a field of 0 */
+    if (!(top > 0))
+        return svp_fail(SVP_ERR_INVALID,
+                        "%s holds no light: its largest measured value is %g%s: nothing to "
+                        "restore",
+                        pl_name(&r->opt), top,
+                        r->opt.pl_offset != 0 ? " after the offset is subtracted (check it)" : "");
     *pl_max = top;
     return SVP_OK;
 }

@@ -382,6 +382,10 @@ expect_bad missing_pl "nope_pl.tif|no such file" correct --field Bz.txt --pl nop
 awk 'NR == 3 { $2 = -1 } { print }' pl.txt >pl_negative.txt
 expect_bad forward_negative_pl "pl_negative.txt: pl_true is negative (-1) at pixel (1, 2)" \
     forward --field Bz.txt --pl pl_negative.txt --psf moffat.yaml -o bad $FAST
+# a PL without light (an offset above every value) has nothing to restore: exit 1, not a field of
+# 0 with validity 0 everywhere
+expect_bad correct_no_light "pl.txt holds no light|after the offset is subtracted" \
+    correct --field Bz.txt --pl pl.txt --psf moffat.yaml --offset 1e9 -o bad $FAST
 awk 'NR == 2 { $5 = "nan" } { print }' Bz.txt >Bz_nan.txt
 expect_bad forward_nan_field "Bz_nan.txt: field_true[0] has 1 NaN/Inf pixels" \
     forward --field Bz_nan.txt --pl pl.txt --psf moffat.yaml -o bad $FAST
