@@ -101,6 +101,9 @@ def wisdom_save(path):
 
 def _input(array, name):
     """A C-contiguous float64 2-D array: the array itself when it already is one."""
+    if np.iscomplexobj(array):
+        raise ValueError("%s: a complex array; the maps are real (pass .real or abs() on "
+                         "purpose)" % name)
     a = np.asarray(array, dtype=np.float64)
     if a.ndim != 2:
         raise ValueError("%s: a 2-D image is needed, got an array of shape %s" % (name, a.shape))
@@ -160,6 +163,13 @@ def write_image(path, image, format="auto", overwrite=False):
     the extension), 'tif' (float32), 'npy' (float64), 'txt' (%.17g), 'png' (16-bit figure)."""
     if format not in _FORMATS:
         raise ValueError("format %r: one of %s" % (format, ", ".join(_FORMATS)))
+    ext = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    same = {"tif": ("tif", "tiff"), "tiff": ("tif", "tiff"), "npy": ("npy",),
+            "txt": ("txt", "csv", "dat"),
+            "png": ("png",)}
+    if format != "auto" and ext not in same.get(format, (format,)):
+        raise ValueError("format %r for %s: the extension says otherwise (a file is read by its "
+                         "extension)" % (format, os.fspath(path)))
     imgs = _Images()
     img = imgs.view(_input(image, "image"))
     _check(lib.svp_image_write(_path(path), img, _FORMATS[format], int(bool(overwrite))))
@@ -207,8 +217,16 @@ class PSF:
 
     def __getattr__(self, name):
         if name in PSF._FIELDS:
+            if name == "beta" and self._c.model == _MODELS["lorentzian"]:
+                return 1.0  # what the library uses, whatever was given
             return getattr(self._c, name)
         raise AttributeError(name)
+
+    def __setattr__(self, name, value):
+        if name != "_c":  # a changed attribute would show in repr but not be used
+            raise AttributeError("PSF is immutable: make a new one, e.g. PSF(%r, fwhm=...)"
+                                 % (self.model,))
+        object.__setattr__(self, name, value)
 
     def __repr__(self):
         parts = ["model=%r" % self.model, "fwhm=%g" % self.fwhm]
@@ -467,6 +485,9 @@ def _fields(fields, name):
     """A single 2-D map or a sequence of them -> (list of arrays, was a single map)."""
     if isinstance(fields, np.ndarray) and fields.ndim == 2:
         return [_input(fields, name)], True
+    if (isinstance(fields, (list, tuple)) and fields and isinstance(fields[0], (list, tuple))
+            and fields[0] and np.isscalar(fields[0][0])):
+        return [_input(fields, name)], True  # a nested list of numbers is one map
     out = [_input(f, "%s[%d]" % (name, i)) for i, f in enumerate(fields)]
     if not out:
         raise ValueError("%s: at least one field map is needed" % name)

@@ -263,6 +263,18 @@ def test_options_the_program_refuses(tmp_path, maps):
         svpsf.correct(pl, field, svpsf.Blur(pf, pl.shape), boundary="mirror")
     with pytest.warns(UserWarning, match="ignored for a single PSF"):
         svpsf.Blur(pf, pl.shape, nodes=2)
+    # arrays and objects that were taken silently the wrong way
+    with pytest.raises(ValueError, match="complex array"):
+        svpsf.correct(pl + 0j, field, pf)
+    q = svpsf.PSF("gaussian", fwhm=2)
+    with pytest.raises(AttributeError, match="immutable"):
+        q.fwhm = 6  # it showed in repr, and every computation used 2
+    assert svpsf.PSF("lorentzian", fwhm=2, beta=2.5).beta == 1.0  # what it renders with
+    with pytest.raises(ValueError, match="the extension says otherwise"):
+        svpsf.write_image(tmp_path / "y.npy", pl, format="tif")
+    r = svpsf.correct(pl.tolist(), field.tolist(), pf, method="r", iterations=5)
+    assert np.array_equal(r.fields, svpsf.correct(pl, field, pf, method="r",
+                                                  iterations=5).fields)
 
 
 def spot_image(psf, shape=(48, 52), centre=(25.3, 22.8), amplitude=4000.0, background=20.0,
