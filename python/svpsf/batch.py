@@ -214,6 +214,10 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
     process), 'local:N' or a scheduler address; or pass a dask.distributed Client. Returns the
     summary rows in the order of the datasets; writes out/summary.csv and out/summary.json."""
     folders = find_datasets(datasets)
+    if not folders:  # an empty or comment-only list: nothing was asked, nothing done
+        raise ValueError("no dataset in %s" % ", ".join(map(str, datasets)))
+    if psf is not None and not os.path.exists(psf):  # once, not per dataset
+        raise ValueError("--psf %s: no such file" % psf)
     os.makedirs(out, exist_ok=True)
     if not overwrite:
         existing = [os.path.join(out, os.path.basename(os.path.normpath(d))) for d in folders]
@@ -282,14 +286,25 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
     return rows
 
 
+def _number(text, option, kind):
+    """An option's number, or ValueError naming the option (not int()'s own message)."""
+    try:
+        return kind(text)
+    except ValueError:
+        raise ValueError("%s %s: %s" % (option, text, "an integer or auto" if kind is int
+                                        else "a number or auto")) from None
+
+
 def _options_from_args(a):
     opts = {}
     if a.method:
         opts["method"] = a.method
     if a.iterations is not None:
-        opts["iterations"] = a.iterations if a.iterations == "auto" else int(a.iterations)
+        opts["iterations"] = a.iterations if a.iterations == "auto" else _number(
+            a.iterations, "--iterations", int)
     if a.balance is not None:
-        opts["balance"] = a.balance if a.balance == "auto" else float(a.balance)
+        opts["balance"] = a.balance if a.balance == "auto" else _number(
+            a.balance, "--balance", float)
     if a.boundary:
         opts["boundary"] = a.boundary
     if a.pl_floor is not None:

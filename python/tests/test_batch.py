@@ -93,6 +93,17 @@ def test_command_line_and_no_overwrite(tmp_path, capsys):
                        str(root / "psf.yaml"), "--iterations", "20"]) == 1  # d2 fails
     assert batch.main([str(tmp_path / "nothere"), "-o", str(tmp_path / "o3")]) == 1
     assert "no such dataset" in capsys.readouterr().err
+    # refused up front, once: an empty list (exit 0 with 0 datasets before), a PSF file that
+    # does not exist (each dataset failed on it), a count that is not one (int()'s message)
+    empty = tmp_path / "empty.txt"
+    empty.write_text("# nothing yet\n")
+    assert batch.main([str(empty), "-o", str(tmp_path / "o4")]) == 1
+    assert "no dataset in" in capsys.readouterr().err
+    assert batch.main([str(root / "d0"), "-o", str(tmp_path / "o5"), "--psf", "nope.yaml"]) == 1
+    assert "--psf nope.yaml: no such file" in capsys.readouterr().err
+    assert batch.main(args[:-1] + ["2.5", "-o", str(tmp_path / "o6")]) == 1
+    assert "--iterations 2.5: an integer or auto" in capsys.readouterr().err
+    assert not (tmp_path / "o4").exists() and not (tmp_path / "o5").exists()
     # --force over a dataset that now fails: its earlier outputs go, and its row says so (they
     # stood beside a 'failed' row before); a failed row names no output folder
     np.save(root / "d1" / "field_x.npy", np.full((40, 48), np.nan))
