@@ -349,6 +349,20 @@ static void test_stacks(void **state)
              bad);
     assert_error(svp_mat_read_stack(bad, NULL, &s, NULL), SVP_ERR_FORMAT, want);
     assert_null(s);
+    /* the raw layout without its sizes: refused naming what is missing (it was read as one
+     * frame of 5 x 12, and fit-odmr said "1 frame") */
+    const char *nosize = tpath("run_nosize.mat");
+    mat = create(nosize);
+    add_scalar(mat, "imgNumRows", 3);
+    add_var(mat, "imgStack1", MAT_C_DOUBLE, 2, 5, 12, 1, 0, 0, MAT_COMPRESSION_NONE);
+    Mat_Close(mat);
+    snprintf(want, sizeof want,
+             "%s: variable imgStack1 (5 x 12) is QDMlab's raw stack, one frame per row, but the "
+             "file holds no imgNumCols: the frames' size is unknown (add imgNumRows and "
+             "imgNumCols, or save the stack as a 3-D array)",
+             nosize);
+    assert_error(svp_mat_read_stack(nosize, "imgStack1", &s, NULL), SVP_ERR_FORMAT, want);
+    assert_null(s);
 }
 
 /* svpsf's own output: read back with libmatio (column-major, name, step in metres) and with

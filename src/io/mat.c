@@ -845,6 +845,18 @@ svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_ima
     long long rows = (long long)v->dims[0], cols = (long long)v->dims[1], nf = 1;
     int is_raw = 0;
     if ((st = raw_layout(&f, v, &rows, &cols, &is_raw)) != SVP_OK) goto done;
+    if (stack && !is_raw && v->rank == 2 && strncmp(v->name, "imgStack", 8) == 0) {
+        /* QDMlab's raw layout without its sizes: read as one frame, the error said "1 frame" */
+        st = svp_fail(SVP_ERR_FORMAT,
+                      "%s: variable %s (%zu x %zu) is QDMlab's raw stack, one frame per row, but "
+                      "the file holds no %s: the frames' size is unknown (add imgNumRows and "
+                      "imgNumCols, or save the stack as a 3-D array)",
+                      file, v->name, v->dims[0], v->dims[1],
+                      find_var(&f, "imgNumRows") ? "imgNumCols" : find_var(&f, "imgNumCols")
+                                                                      ? "imgNumRows"
+                                                                      : "imgNumRows / imgNumCols");
+        goto done;
+    }
     if (is_raw)
         nf = (long long)v->dims[0];
     else if (v->rank == 3)
