@@ -61,6 +61,11 @@ static svp_status read_psf(const svp_yaml_doc *doc, svp_psf *psf, double *pixel_
     svp_psf_defaults(&p);
     p.model = (svp_psf_model)model;
     p.fwhm = fwhm_um / pixel_um;
+    if (!(p.fwhm > 0) || !isfinite(p.fwhm)) /* the ratio under- or overflows */
+        return svp_yaml_fail(node, SVP_ERR_INVALID,
+                             "fwhm_um %g over pixel_um %g is %g pixels: out of the range a PSF "
+                             "can be rendered in (check both lengths' units)",
+                             fwhm_um, pixel_um, p.fwhm);
 
     const svp_yaml_node *beta_node = svp_yaml_get(psf_node, "beta");
     if (beta_node) {

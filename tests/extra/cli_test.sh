@@ -397,6 +397,11 @@ if [ "$(id -u)" != 0 ]; then # root reads anything: the permission case means no
 fi
 expect_bad size_mismatch "size mismatch|Bz.txt|pl33.txt|32 x 33" forward --field Bz.txt --pl pl33.txt --psf moffat.yaml -o bad $FAST
 expect_bad negative_fwhm "neg_fwhm.yaml|fwhm|-2" forward --field Bz.txt --pl pl.txt --psf neg_fwhm.yaml -o bad $FAST
+# lengths whose ratio underflows (FWHM 1e-300 um on pixels of 1e300 um): named as such, not
+# as "FWHM must be positive, got 0"
+printf 'pixel_um: 1e300\npsf: {model: gaussian, fwhm_um: 1e-300}\n' >ratio_fwhm.yaml
+expect_bad ratio_fwhm "ratio_fwhm.yaml:2:33|fwhm_um 1e-300 over pixel_um 1e+300 is 0 pixels" \
+    psf ratio_fwhm.yaml -o bad.tif
 expect_bad zero_fwhm "zero_fwhm.yaml|fwhm" forward --field Bz.txt --pl pl.txt --psf zero_fwhm.yaml -o bad $FAST
 expect_bad beta_zero "beta0.yaml|beta" correct --field Bz.txt --pl pl.txt --psf beta0.yaml -o bad $FAST
 expect_bad beta_negative "beta_neg.yaml|beta" psf beta_neg.yaml -o bad.tif
