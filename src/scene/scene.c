@@ -946,8 +946,10 @@ static svp_status parse_effects(struct svp_scene *s, const svp_yaml_node *root)
         const char *w = "effects.noise";
         s->noise = 1;
         SVP_CHECK(check_keys(nz, w, nkeys));
-        SVP_CHECK(
-            get_num(nz, w, "photons_per_pixel", 0, INFINITY, SVP_YAML_OPEN_LO, &s->photons, 1));
+        /* at least one photon at the brightest pixel, a dip of at least 1 ppm and a line
+         * narrower than 10 GHz: beyond those the noise amplitudes overflowed the correction,
+         * whose line was then blamed (a noise of 1e-300 photons gave a PL of 3e150) */
+        SVP_CHECK(get_num(nz, w, "photons_per_pixel", 1, INFINITY, 0, &s->photons, 1));
         long long seed = 1;
         const svp_yaml_node *sn = svp_yaml_get(nz, "seed");
         if (sn) SVP_CHECK(svp_yaml_int(sn, "effects.noise.seed", 0, INT64_MAX, &seed));
@@ -964,9 +966,9 @@ static svp_status parse_effects(struct svp_scene *s, const svp_yaml_node *root)
         }
         if (!s->spectrum) {
             double mhz = 1;
-            SVP_CHECK(get_num(nz, w, "linewidth_MHz", 0, INFINITY, SVP_YAML_OPEN_LO, &mhz, 0));
+            SVP_CHECK(get_num(nz, w, "linewidth_MHz", 0, 1e4, SVP_YAML_OPEN_LO, &mhz, 0));
             s->noise_linewidth_hz = mhz * 1e6;
-            SVP_CHECK(get_num(nz, w, "contrast", 0, 0.5, SVP_YAML_OPEN_LO, &s->noise_contrast, 0));
+            SVP_CHECK(get_num(nz, w, "contrast", 1e-6, 0.5, 0, &s->noise_contrast, 0));
         }
     }
 

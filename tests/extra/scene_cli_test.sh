@@ -75,6 +75,12 @@ esac
 "$SVPSF" simulate "$T/few_photons.yaml" --dry-run | grep -q "canvas 48 x 48, memory about 0.1 GB" ||
     fail "the dry run does not show the memory estimate"
 
+# noise keys beyond physical sense are refused at their line (1e-300 photons made a PL of
+# 3e150, which the correction refused, blaming its own line)
+printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\neffects: {noise: {photons_per_pixel: 1e-300}}\n' \
+    "$head" >"$T/no_photons.yaml"
+expect_bad no_photons 6:38 "photons_per_pixel must be >= 1"
+
 # a good scene
 printf '%s
 emission: [{gaussian: {fwhm_um: 4}}, {chessboard: {square_um: 0.6, levels: [0.2, 1], seed: 3}}]
