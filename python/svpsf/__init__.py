@@ -613,7 +613,10 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     if balance == "auto":
         opt.balance_auto = 1
     elif balance is not None:
-        opt.deconv.balance = float(balance)
+        try:
+            opt.deconv.balance = float(balance)
+        except (TypeError, ValueError):
+            raise ValueError("balance %r: a number >= 0 or 'auto'" % (balance,)) from None
     for name, value in (("noise_sigma", noise), ("pl_floor", pl_floor), ("shift", shift),
                         ("pl_gain", gain), ("pl_offset", offset),
                         ("plausible_factor", plausible_factor)):
@@ -1035,6 +1038,9 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         if not fr[f] > fr[f - 1]:
             raise ValueError("frequencies: not monotonic: frame %d at %.9g Hz after %.9g Hz"
                              % (nf - f if decreasing else f + 1, fr[f], fr[f - 1]))
+    if nf and fr[0] > 0 and not fr[-1] >= 1e6:  # as `svpsf fit-odmr` (<= 0: the library's)
+        raise ValueError("frequencies: the sweep ends at %.6g Hz, below 1 MHz where no NV line "
+                         "lies: give them in Hz" % fr[-1])
     if register and not (isinstance(drift_degree, (int, np.integer)) and -1 <= drift_degree <= 5):
         raise ValueError("drift_degree %r: an integer in -1 .. 5" % (drift_degree,))
     if register and not (align_to == "mean" or (isinstance(align_to, (int, np.integer))
@@ -1097,9 +1103,9 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     lib.svp_odmr_fit_defaults(opt)
     opt.lines = getattr(lib, _LINES[lines])
     opt.line_sign = _LINE_SIGN[line or "upper"]
-    opt.baseline_frames = int(baseline_frames)
+    opt.baseline_frames = _count(baseline_frames, "baseline_frames", 1, 1000000)
     if max_iterations is not None:
-        opt.lm.max_iterations = int(max_iterations)
+        opt.lm.max_iterations = _count(max_iterations, "max_iterations")
     maps = ffi.new("svp_odmr_maps *")
     result = OdmrFit()
     for name, member in _ODMR_MAPS:
@@ -1118,6 +1124,12 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             if name in result:
                 result[name][bad] = np.nan
     result.n_failed = int(n_failed[0])
+    if nf and result.n_failed == w * h:  # maps of NaN only: `svpsf fit-odmr` exits 3
+        raise DoubtfulError(lib.SVP_ERR_DOUBTFUL,
+                            "none of the %d pixel fits found a dip in the sweep (%.6g to %.6g "
+                            "GHz): no light, no dip above the noise, lines outside the sweep, "
+                            "or frequencies in another unit than Hz" % (w * h, fr[0] * 1e-9,
+                                                                        fr[-1] * 1e-9))
     if psf is not None:
         result.negative_values = int(negative[0])
     if register:

@@ -277,6 +277,23 @@ def test_options_the_program_refuses(tmp_path, maps):
                                                   iterations=5).fields)
 
 
+def test_fit_odmr_refusals():
+    # as `svpsf fit-odmr`: a stack without dips has no map to give (NaN maps were returned),
+    # frequencies below 1 MHz are not in Hz, counts are counts
+    rng = np.random.default_rng(4)
+    stack = 1000 + 3 * rng.standard_normal((20, 8, 8))
+    freq = np.linspace(2.80e9, 2.94e9, 20)
+    with pytest.raises(svpsf.DoubtfulError, match="none of the 64 pixel fits found a dip"):
+        svpsf.fit_odmr(stack, freq)
+    with pytest.raises(ValueError, match="below 1 MHz where no NV line lies"):
+        svpsf.fit_odmr(stack, freq / 1e6)
+    with pytest.raises(ValueError, match="max_iterations 2.5"):
+        svpsf.fit_odmr(stack, freq, max_iterations=2.5)
+    with pytest.raises(ValueError, match="balance 'x'"):
+        svpsf.correct(stack[0], stack[1], svpsf.PSF("gaussian", fwhm=2), method="rw",
+                      balance="x")
+
+
 def spot_image(psf, shape=(48, 52), centre=(25.3, 22.8), amplitude=4000.0, background=20.0,
                seed=0):
     h, w = shape
