@@ -450,6 +450,12 @@ static void test_tiff_round_trip(void **state)
     ASSERT_OK(svp_image_read(tmp_path("UPPER.TIFF"), &back));
     assert_int_equal(back->width, 33);
     svp_image_free(back);
+    /* beyond float32's range a value would be written as Inf: refused, nothing written */
+    img->data[3] = 1e300;
+    assert_int_equal(svp_image_write(tmp_path("big.tif"), img, SVP_FORMAT_AUTO, 0),
+                     SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "values up to 1e+300 exceed a float32 TIFF"));
+    assert_int_equal(access(tmp_path("big.tif"), F_OK), -1);
     svp_image_free(img);
     assert_no_temporaries();
 }

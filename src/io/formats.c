@@ -9,6 +9,7 @@
 #include <errno.h>
 #include <fcntl.h>
 #include <limits.h>
+#include <float.h>
 #include <math.h>
 #include <signal.h>
 #include <stdint.h>
@@ -1188,6 +1189,14 @@ svp_status svp_image_write(const char *path, const svp_image *image, svp_file_fo
         case KIND_MAT: format = SVP_FORMAT_MAT; break;
         case KIND_UNKNOWN: return unknown_extension(path, ext);
         }
+    }
+    if (format == SVP_FORMAT_TIFF) { /* float32: beyond its range a value would become Inf */
+        const double top = svp_max_abs(image->data, (size_t)image->width * image->height);
+        if (top > FLT_MAX)
+            return svp_fail(SVP_ERR_INVALID,
+                            "%s: values up to %g exceed a float32 TIFF's range (3.4e38): they "
+                            "would be written as Inf; write .npy (float64) or rescale",
+                            path, top);
     }
     switch (format) {
     case SVP_FORMAT_TIFF: return svp_io_write_tiff(path, image, overwrite);
