@@ -71,8 +71,9 @@ def fftw_version():
 
 
 def set_threads(n):
-    """Threads of the library's FFTs and loops (default: all cores OpenMP reports)."""
-    lib.svp_set_threads(int(n))
+    """Threads of the library's FFTs and loops (default: all cores OpenMP reports); 1..4096, as
+    `--threads` (0 and -1 became 1 silently)."""
+    lib.svp_set_threads(_count(n, "threads", 1, 4096))
 
 
 def get_threads():

@@ -218,6 +218,8 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
         raise ValueError("no dataset in %s" % ", ".join(map(str, datasets)))
     if psf is not None and not os.path.exists(psf):  # once, not per dataset
         raise ValueError("--psf %s: no such file" % psf)
+    if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= 4096:
+        raise ValueError("--threads-per-task %r: 1 .. 4096" % (threads,))
     os.makedirs(out, exist_ok=True)
     if not overwrite:
         existing = [os.path.join(out, os.path.basename(os.path.normpath(d))) for d in folders]

@@ -289,6 +289,9 @@ def test_fit_odmr_refusals():
         svpsf.fit_odmr(stack, freq / 1e6)
     with pytest.raises(ValueError, match="max_iterations 2.5"):
         svpsf.fit_odmr(stack, freq, max_iterations=2.5)
+    for bad in (0, -1, 10**12):
+        with pytest.raises(ValueError, match="threads"):
+            svpsf.set_threads(bad)
     with pytest.raises(ValueError, match="balance 'x'"):
         svpsf.correct(stack[0], stack[1], svpsf.PSF("gaussian", fwhm=2), method="rw",
                       balance="x")

@@ -103,6 +103,8 @@ def test_command_line_and_no_overwrite(tmp_path, capsys):
     assert "--psf nope.yaml: no such file" in capsys.readouterr().err
     assert batch.main(args[:-1] + ["2.5", "-o", str(tmp_path / "o6")]) == 1
     assert "--iterations 2.5: an integer or auto" in capsys.readouterr().err
+    assert batch.main(args[:-2] + ["--threads-per-task", "-3", "-o", str(tmp_path / "o7")]) == 1
+    assert "--threads-per-task -3: 1 .. 4096" in capsys.readouterr().err
     assert not (tmp_path / "o4").exists() and not (tmp_path / "o5").exists()
     # --force over a dataset that now fails: its earlier outputs go, and its row says so (they
     # stood beside a 'failed' row before); a failed row names no output folder
