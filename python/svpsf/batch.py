@@ -240,6 +240,7 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
     elif client is not None:
         mode = "dask client"
     rows = [None] * len(folders)
+    interrupted = False
     try:
         if client is None:  # in this process: its library thread count is restored after
             import svpsf
@@ -268,10 +269,17 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
                     row.update(dataset=os.path.basename(os.path.normpath(folders[i])),
                                status="failed", message="%s: %s" % (type(e).__name__, e))
                     rows[i] = row
+    except KeyboardInterrupt:  # Ctrl-C: the datasets done so far keep their rows
+        interrupted = True
     finally:
         if own is not None:
             client.close()
             own.close()
+    for i, r in enumerate(rows):
+        if r is None:
+            rows[i] = dict.fromkeys(SUMMARY_COLUMNS, "")
+            rows[i].update(dataset=os.path.basename(os.path.normpath(folders[i])),
+                           status="interrupted", message="not run: the batch was interrupted")
     elapsed = time.perf_counter() - t0
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=SUMMARY_COLUMNS, lineterminator="\n")
@@ -285,6 +293,9 @@ def run(datasets, out, psf=None, options=None, dask=None, client=None, threads=1
                "n_failed": sum(r["status"] != "ok" for r in rows), "datasets": rows}
     _atomic_write_text(os.path.join(out, "summary.json"),
                        json.dumps(summary, indent=1, default=str) + "\n")
+    if interrupted:
+        raise KeyboardInterrupt("%d of %d datasets done; summary written" % (
+            sum(r["status"] != "interrupted" for r in rows), len(rows)))
     return rows
 
 
@@ -351,6 +362,9 @@ def main(argv=None):
     except (ValueError, FileExistsError, OSError) as e:
         print("svpsf batch: %s" % e, file=sys.stderr)
         return 1
+    except KeyboardInterrupt as e:  # no traceback: what was done is in the summary
+        print("svpsf batch: interrupted%s" % (": %s" % e if str(e) else ""), file=sys.stderr)
+        return 130
     failed = [r for r in rows if r["status"] != "ok"]
     for r in rows:
         print("%-24s %-6s %8ss  %s" % (r["dataset"], r["status"], r["seconds"], r["message"]))

@@ -125,3 +125,26 @@ def test_kept_doubt_is_in_the_row(tmp_path):
     assert rows[0]["status"] == "ok" and rows[0]["doubts"], rows[0]
     assert rows[0]["message"].startswith("kept in doubt: ")
     assert read_summary(tmp_path / "out")["d0"]["doubts"] == rows[0]["doubts"]
+
+
+def test_interrupt_keeps_what_was_done(tmp_path, monkeypatch, capsys):
+    # Ctrl-C: the datasets done keep their rows, the others are 'interrupted', the summary is
+    # written and no traceback is printed (exit 130; before: a traceback and no summary)
+    root = make_datasets(tmp_path / "data")
+    real, calls = batch.correct_dataset, []
+
+    def interrupted_third(folder, *args, **kwargs):
+        calls.append(folder)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(folder, *args, **kwargs)
+
+    monkeypatch.setattr(batch, "correct_dataset", interrupted_third)
+    out = tmp_path / "out"
+    assert batch.main([str(root), "-o", str(out), "--psf", str(root / "psf.yaml"),
+                       "--iterations", "5"]) == 130
+    rows = read_summary(out)
+    assert [rows[k]["status"] for k in sorted(rows)] == ["ok", "ok"] + ["interrupted"] * 3
+    err = capsys.readouterr().err
+    assert "interrupted: 2 of 5 datasets done; summary written" in err and "Traceback" not in err
+    assert (out / "d1" / "field_x.npy").exists() and not (out / "d2").exists()
