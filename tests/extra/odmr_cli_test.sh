@@ -80,6 +80,8 @@ run 1 fit-odmr stack.tif --frequencies 2750:2990:100 -o fit_unit --format npy
 expect_in err "below 1 MHz where no NV line lies: give their unit with --frequency-unit"
 run 1 fit-odmr stack.tif --frequencies -2.99e9:-2.75e9:100 -o fit_neg --format npy
 expect_in err "frequencies must be > 0 Hz"
+run 1 fit-odmr stack.tif --frequencies 2.75e9:2.99e9:100.5 -o fit_range --format npy
+expect_in err "neither a file nor START:STOP:N"
 [ -e fit_pair/field_lower.npy ] && fail "field_lower written without --lines two"
 
 # 3. its outputs feed correct, --field-sigma included

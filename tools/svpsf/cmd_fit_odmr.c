@@ -1,6 +1,7 @@
 /* svpsf fit-odmr: per-pixel Lorentzian fits of a measured ODMR stack (svp_odmr_fit_maps) into
  * the maps `svpsf correct` takes: field (+ its σ for --field-sigma) and the PL. */
 #include "cli.h"
+#include "io/mat.h"
 
 #include <errno.h>
 #include <math.h>
@@ -165,6 +166,14 @@ static int read_frequencies(cli_run *run, const char *arg, double unit, int n_fr
             freq[f] = unit * (start + (stop - start) * f / (double)(n_frames - 1));
         return 0;
     }
+    char mfile[4096], mvar[64];
+    int mbad = 0;
+    if (stat(arg, &sb) != 0 && strchr(arg, ':') &&
+        !svp_io_mat_path(arg, mfile, sizeof mfile, mvar, sizeof mvar, &mbad))
+        return cli_error(run,
+                         "--frequencies %s: neither a file nor START:STOP:N (two numbers and a "
+                         "whole count of frames, e.g. 2.8e9:2.94e9:60)",
+                         arg);
     svp_image *values = NULL;
     int code = cli_read_image(run, "frequencies", arg, &values);
     if (code) return code;
