@@ -362,7 +362,9 @@ class Blur:
             if boundary is None:
                 boundary = f.boundary
         boundary = boundary or "zero"
-        h, w = (int(shape[0]), int(shape[1]))
+        if len(shape) != 2:
+            raise ValueError("shape %r: (height, width) of the images" % (tuple(shape),))
+        h, w = (_count(shape[0], "shape[0]", 1, 1 << 20), _count(shape[1], "shape[1]", 1, 1 << 20))
         out = ffi.new("svp_blur **")
         if not isinstance(psf, PSFMap) and (nodes is not None or rank is not None or regions):
             # as `svpsf forward / correct` note it: ignored for a single PSF
@@ -1063,6 +1065,16 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             margin = (lib.svp_psf_auto_margin(psf._c, w, h) if isinstance(psf, PSF) else 0)
         if not (isinstance(margin, (int, np.integer)) and margin >= 0):
             raise ValueError("margin %r: 'auto' or an integer >= 0" % (margin,))
+        _check(lib.svp_correct_check_margin(int(margin), w, h))  # as `--margin`
+        if not 0 <= float(tail_tol) < 1:
+            raise ValueError("tail_tol %r: in [0, 1)" % (tail_tol,))
+    else:  # what only --psf uses, given without it: refused as the program refuses it
+        given = [k for k, v, d in (("iterations", iterations, 75), ("margin", margin, "auto"),
+                                   ("tail_tol", tail_tol, 1e-3)) if v != d]
+        if given:
+            raise ValueError("%s: used only with psf" % ", ".join(given))
+    if not register and (drift_degree != 1 or align_to != "mean"):
+        raise ValueError("drift_degree, align_to: used only with register=True")
     drift = info = None
     if register:
         ao = ffi.new("svp_align_options *")

@@ -292,6 +292,17 @@ def test_fit_odmr_refusals():
     for bad in (0, -1, 10**12):
         with pytest.raises(ValueError, match="threads"):
             svpsf.set_threads(bad)
+    # what only psf= or register=True use, given without them (it was ignored), a margin wider
+    # than the view (it ran), shapes that are not two whole sizes (4.7 became 4; 2**31 an
+    # OverflowError)
+    for kwargs in (dict(iterations=30), dict(margin=4), dict(drift_degree=2), dict(align_to=0)):
+        with pytest.raises(ValueError, match="used only with"):
+            svpsf.fit_odmr(stack, freq, **kwargs)
+    with pytest.raises(svpsf.Error, match="margin"):
+        svpsf.fit_odmr(stack, freq, psf=svpsf.PSF("gaussian", fwhm=2), margin=100)
+    for shape in ((4.7, 5.2), (4, 5, 6), (2**31, 5)):
+        with pytest.raises(ValueError, match="shape"):
+            svpsf.Blur(svpsf.PSF("gaussian", fwhm=2), shape)
     with pytest.raises(ValueError, match="balance 'x'"):
         svpsf.correct(stack[0], stack[1], svpsf.PSF("gaussian", fwhm=2), method="rw",
                       balance="x")
