@@ -386,11 +386,9 @@ static int fit_odmr_frequencies(cli_run *run, const struct fit_odmr_args *a,
                              "--frequencies %s: not monotonic: frame %d at %.9g Hz after "
                              "%.9g Hz",
                              a->freq_arg, decreasing ? nf - f : f + 1, freq[f], freq[f - 1]);
-    /* NV lines lie at D ± γB: tens of MHz and up (the lower one reaches 0 only at 102 mT) */
-    if (!(freq[0] > 0))
-        return cli_error(run, "--frequencies %s: the frequencies must be > 0 Hz (the lowest is "
-                         "%.6g Hz): an ODMR line lies at D ± γB > 0", a->freq_arg, freq[0]);
-    if (!(freq[nf - 1] >= 1e6))
+    /* NV lines lie at D ± γB: tens of MHz and up (the lower one reaches 0 only at 102 mT);
+     * frequencies <= 0 are the library's to refuse */
+    if (freq[0] > 0 && !(freq[nf - 1] >= 1e6))
         return cli_error(run,
                          "--frequencies %s: the sweep ends at %.6g Hz, below 1 MHz where no NV "
                          "line lies: give their unit with --frequency-unit (kHz, MHz, GHz)",
