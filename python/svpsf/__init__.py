@@ -603,7 +603,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     if balance is not None and not wiener:
         raise ValueError("balance is used only by the methods with a Wiener deconvolution "
                          "(rw, w), not %s" % (method,))
-    if noise is not None and balance != "auto":
+    if noise is not None and noise != 0 and balance != "auto":  # as --noise (0: estimated)
         raise ValueError("noise is only used with balance='auto'")
     if opt.method == lib.SVP_METHOD_W and (iterations == "auto" or acceleration not in
                                            (None, "none") or precision == "single"):
