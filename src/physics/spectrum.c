@@ -918,9 +918,10 @@ static void fit_put_missing(const svp_odmr_maps *maps, size_t p)
  * than one step (PAIR: one of D ± γB at least; ONE: f₀; TWO: f₋ and f₊; a line at the end of
  * the sweep cannot be told from one beyond it), its width at most the range and at least half
  * a step (narrower, at most one sample lies in it: noise; noisy fits of a dip one step wide
- * scatter down to 0.98 step), and a positive baseline (no light, no dip). Fits to spectra without a dip (noise alone) converged to lines far outside (B of
- * 10⁹ T), to single samples (widths of kHz at a 2.4 MHz step) and to the sweep's ends; an
- * all-zero pixel (a masked one) converged to a made-up field. */
+ * scatter down to 0.98 step), and a positive baseline (no light, no dip). Fits to spectra
+ * without a dip (noise alone) converged to lines far outside (B of 10⁹ T), to single samples
+ * (widths of kHz at a 2.4 MHz step) and to the sweep's ends; an all-zero pixel (a masked one)
+ * converged to a made-up field. */
 static int fit_in_sweep(const fit_shared *c, const double th[GEN_MAX])
 {
     const double step = (c->sweep_hi - c->sweep_lo) / (c->nf - 1);

@@ -253,7 +253,8 @@ svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
         double *restrict prod = product->data;
         const int kb = svp_unit_exponent(b_true, n, FORWARD_SCALE_BITS);
 #pragma omp parallel for schedule(static) if (n > PAR_MIN)
-        for (size_t i = 0; i < n; i++) prod[i] = (kb ? ldexp(b_true[i], kb) : b_true[i]) * i_true[i];
+        for (size_t i = 0; i < n; i++)
+            prod[i] = (kb ? ldexp(b_true[i], kb) : b_true[i]) * i_true[i];
         st = svp_blur_apply(blur, product, field_apparent[c]);
         if (st != SVP_OK) goto cleanup;
         double *restrict b_app = field_apparent[c]->data;
