@@ -562,26 +562,21 @@ svp_status svp_psf_field_params_at(const svp_psf_field *f, double x, double y,
     return SVP_OK;
 }
 
-/* How far p[q] lies beyond its valid range (0 inside); *bound = the bound it is clamped to.
- * The ellipticity |e| is checked at SVP_FIELD_E1, E2 is not checked on its own. */
-static double excursion(const double p[SVP_FIELD_NPARAM], int q, svp_psf_model model,
-                        double *bound)
+/* How far p[q] lies beyond its valid range (0 inside), from c = p after clamp_params (the one
+ * place the ranges are set): *bound the value it is clamped to, *value the one it had. The
+ * ellipticity |e| is checked at SVP_FIELD_E1, E2 is not checked on its own; β only for Moffat. */
+static double excursion(const double p[SVP_FIELD_NPARAM], const double c[SVP_FIELD_NPARAM], int q,
+                        svp_psf_model model, double *bound, double *value)
 {
-    switch (q) {
-    case SVP_FIELD_FWHM: *bound = FWHM_MIN; return p[q] < FWHM_MIN ? FWHM_MIN - p[q] : 0;
-    case SVP_FIELD_E1: {
-        const double e = hypot(p[SVP_FIELD_E1], p[SVP_FIELD_E2]);
-        *bound = ELLIPTICITY_MAX;
-        return e > ELLIPTICITY_MAX ? e - ELLIPTICITY_MAX : 0;
+    if (q == SVP_FIELD_E2 || (q == SVP_FIELD_BETA && model != SVP_PSF_MOFFAT)) return 0;
+    if (q == SVP_FIELD_E1) {
+        *value = hypot(p[SVP_FIELD_E1], p[SVP_FIELD_E2]);
+        *bound = hypot(c[SVP_FIELD_E1], c[SVP_FIELD_E2]);
+        return isfinite(*value) ? *value - *bound : 1;
     }
-    case SVP_FIELD_BETA:
-        *bound = BETA_MIN;
-        return model == SVP_PSF_MOFFAT && p[q] < BETA_MIN ? BETA_MIN - p[q] : 0;
-    case SVP_FIELD_HALO:
-        *bound = p[q] < 0 ? 0.0 : HALO_MAX;
-        return p[q] < 0 ? -p[q] : p[q] > HALO_MAX ? p[q] - HALO_MAX : 0;
-    default: *bound = 0; return 0;
-    }
+    *value = p[q];
+    *bound = c[q];
+    return isfinite(p[q]) ? fabs(c[q] - p[q]) : 1;
 }
 
 svp_status svp_psf_field_check_range(const svp_psf_field *f, const int *box,
@@ -608,20 +603,21 @@ svp_status svp_psf_field_check_range(const svp_psf_field *f, const int *box,
         const int j = y0 + (jj * sy < bh - 1 ? jj * sy : bh - 1);
         for (int ii = 0; ii < nx; ii++) {
             const int i = x0 + (ii * sx < bw - 1 ? ii * sx : bw - 1);
-            double p[SVP_FIELD_NPARAM];
+            double p[SVP_FIELD_NPARAM], c[SVP_FIELD_NPARAM];
             SVP_CHECK(raw_params_at(f, i, j, p));
+            memcpy(c, p, sizeof c);
+            clamp_params(c);
             out->sampled++;
             int any = 0;
             for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
-                double bound = 0;
-                const double d = isfinite(p[q]) ? excursion(p, q, f->base.model, &bound) : 1;
+                double bound = 0, value = 0;
+                const double d = excursion(p, c, q, f->base.model, &bound, &value);
                 if (!(d > 0)) continue;
                 any = 1;
                 out->count[q]++;
                 if (d > worst[q] || out->count[q] == 1) {
                     worst[q] = d;
-                    out->value[q] = p[q];
-                    if (q == SVP_FIELD_E1) out->value[q] = hypot(p[q], p[SVP_FIELD_E2]);
+                    out->value[q] = value;
                     out->bound[q] = bound;
                     out->x[q] = i;
                     out->y[q] = j;

@@ -79,6 +79,15 @@ static svp_status distance_to_outside(const svp_image *inside, double *dist)
     return SVP_OK;
 }
 
+/* The pixels a mask holds. */
+static size_t mask_count(const svp_image *mask)
+{
+    const size_t n = (size_t)mask->width * mask->height;
+    size_t k = 0;
+    for (size_t p = 0; p < n; p++) k += mask->data[p] != 0;
+    return k;
+}
+
 svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
 {
     const int w = s->view_w, h = s->view_h;
@@ -122,8 +131,7 @@ svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
                 mask->data[p] = in;
             }
         svp_image_free(file);
-        size_t n_region = 0, n_eroded = 0, n_lit = 0;
-        for (size_t p = 0; p < n; p++) n_region += mask->data[p] != 0;
+        const size_t n_region = mask_count(mask);
         if (mk->erode_um > 0) {
             double *dist = malloc(n * sizeof *dist);
             if (!dist) return svp_fail(SVP_ERR_NOMEM, "out of memory");
@@ -136,13 +144,12 @@ svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
             free(dist);
             SVP_CHECK(st);
         }
-        for (size_t p = 0; p < n; p++) n_eroded += mask->data[p] != 0;
+        const size_t n_eroded = mask_count(mask);
         if (mk->lit_above > 0)
             for (size_t p = 0; p < n; p++)
                 if (!(pl->data[p] >= mk->lit_above * pl_max)) mask->data[p] = 0;
-        for (size_t p = 0; p < n; p++) n_lit += mask->data[p] != 0;
         /* an empty mask has no statistics: every metric over it would be NaN */
-        if (n_lit == 0)
+        if (mask_count(mask) == 0)
             return svp_fail(SVP_ERR_INVALID,
                             "%s: mask '%s' holds no pixel of the %d x %d view (its region %zu, "
                             "after erode_um %g: %zu, after lit_above %g: 0): its statistics "
