@@ -745,6 +745,21 @@ typedef struct svp_psf_field_range {
 } svp_psf_field_range;
 SVP_API svp_status svp_psf_field_check_range(const svp_psf_field *field, const int *box,
                                              svp_psf_field_range *out);
+/* The field on its image plus `margin` pixels on every side, for an operator on the grid of
+ * svp_correct_options.margin (light from outside the view, docs/model.md §3 and §9): at
+ * (x, y) of the larger image, the PSF of the original image's pixel nearest to
+ * (x − margin, y − margin) — the map's edge values carried outward (grid and poly fields clamp
+ * the position to the image; region fields replicate the edge labels outward and blend them as
+ * usual, so a blended map's parameters within a transition of the edge may differ by the
+ * blend's boundary). margin 0, a uniform field or one without a size: a copy (a sized uniform
+ * field gets the larger size). margin in 0 .. 100000; a padded field cannot be written as a
+ * PSF-map file (svp_psf_field_write: SVP_ERR_UNSUPPORTED), being for one operator's grid. */
+SVP_API svp_status svp_psf_field_pad(const svp_psf_field *field, int margin, svp_psf_field **out);
+/* `--margin auto` for a PSF map over a width x height view: the largest svp_psf_auto_margin of
+ * the field's PSFs (sampled on at most 128 x 128 positions of the view, and every node, region
+ * or label PSF in use), at most a quarter of the larger side; 0 when any sampled PSF has a halo
+ * (as for one PSF). */
+SVP_API int svp_psf_field_auto_margin(const svp_psf_field *field, int width, int height);
 
 /* PSF-map files (YAML; docs/cli.md §PSF maps). Lengths in µm in the file, pixels in memory:
  *   version: 1                             # optional

@@ -2009,6 +2009,167 @@ static void test_bad_arguments(void **state)
     svp_psf_field_free(f);
 }
 
+/* svp_psf_field_pad: at every pixel of the padded image the parameters of the original's
+ * nearest pixel (the view itself unchanged, the margin its edge carried outward), for grid,
+ * poly (a polynomial that leaves the valid range beyond the view is not extrapolated) and
+ * region fields; sizes; refusals; svp_psf_field_auto_margin against svp_psf_auto_margin of the
+ * widest PSF; and T⁻¹ with a margin on a padded map of one PSF equal to the single PSF's. */
+static void expect_padded(const svp_psf_field *f, const svp_psf_field *p, int m)
+{
+    const int w = svp_psf_field_width(f), h = svp_psf_field_height(f);
+    assert_int_equal(svp_psf_field_width(p), w + 2 * m);
+    assert_int_equal(svp_psf_field_height(p), h + 2 * m);
+    for (int y = 0; y < h + 2 * m; y++)
+        for (int x = 0; x < w + 2 * m; x++) {
+            const int sx = x - m < 0 ? 0 : x - m >= w ? w - 1 : x - m;
+            const int sy = y - m < 0 ? 0 : y - m >= h ? h - 1 : y - m;
+            double a[SVP_FIELD_NPARAM], b[SVP_FIELD_NPARAM];
+            ASSERT_OK(svp_psf_field_params_at(p, x, y, a));
+            ASSERT_OK(svp_psf_field_params_at(f, sx, sy, b));
+            for (int q = 0; q < SVP_FIELD_NPARAM; q++) assert_true(fabs(a[q] - b[q]) <= 1e-12);
+        }
+}
+
+static void test_field_pad(void **state)
+{
+    (void)state;
+    enum { W = 40, H = 30, M = 7 };
+    svp_psf_field *f = NULL, *p = NULL;
+    /* grid: nodes at cell centres, two PSFs */
+    svp_psf nodes[4] = {moffat(3, 2, 0), moffat(5, 1.5, 0), moffat(4, 2.5, 0), moffat(6, 1.2, 0)};
+    ASSERT_OK(svp_psf_field_new_grid(W, H, 2, 2, NULL, NULL, nodes, &f));
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    expect_padded(f, p, M);
+    /* the widest PSF (FWHM 6, β 1.2) sits at the view's corner beyond the last node */
+    assert_int_equal(svp_psf_field_auto_margin(f, W, H),
+                     svp_psf_auto_margin(&nodes[3], W, H));
+    /* padding twice adds up; a padded grid or poly map is for one operator, not a file */
+    svp_psf_field *pp = NULL;
+    ASSERT_OK(svp_psf_field_pad(p, 3, &pp));
+    expect_padded(f, pp, M + 3);
+    assert_int_equal(svp_psf_field_write("/nonexistent/padded.yaml", p, 0.1, NULL, 0),
+                     SVP_ERR_UNSUPPORTED);
+    svp_psf_field_free(pp);
+    svp_psf_field_free(p);
+    assert_int_equal(svp_psf_field_pad(f, -1, &p), SVP_ERR_INVALID);
+    assert_null(p);
+    assert_int_equal(svp_psf_field_pad(f, 100001, &p), SVP_ERR_INVALID);
+    ASSERT_OK(svp_psf_field_pad(f, 0, &p)); /* a copy */
+    expect_padded(f, p, 0);
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+    /* poly: strength 4 takes β below its minimum beyond the view; the margin holds the edge */
+    f = poly_field(W, H, 0, 4.0, 0);
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    expect_padded(f, p, M);
+    svp_psf_field_range r;
+    ASSERT_OK(svp_psf_field_check_range(f, NULL, &r));
+    svp_psf_field_range rp;
+    ASSERT_OK(svp_psf_field_check_range(p, NULL, &rp));
+    assert_true(rp.clamped >= r.clamped); /* the margin repeats the edge, clamped or not */
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+    /* regions: a sharp stripe and a blended one; a 1-pixel column of a wide PSF that the
+     * auto margin's samples would miss on a wide view still sets it */
+    svp_psf oxide = moffat(2.5, 3, 0), metal = moffat(4, 1.5, 0);
+    f = stripe_field(oxide, metal, 0);
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    expect_padded(f, p, M);
+    assert_int_equal(svp_psf_field_get_kind(p), SVP_FIELD_REGIONS);
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+    f = stripe_field(oxide, metal, 3.0);
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    for (int y = 6; y < RT_H - 6; y++) /* away from the view's edge the blend is the same */
+        for (int x = 6; x < RT_W - 6; x++) {
+            double a[SVP_FIELD_NPARAM], b[SVP_FIELD_NPARAM];
+            ASSERT_OK(svp_psf_field_params_at(p, x + M, y + M, a));
+            ASSERT_OK(svp_psf_field_params_at(f, x, y, b));
+            assert_true(fabs(a[SVP_FIELD_FWHM] - b[SVP_FIELD_FWHM]) <= 1e-9);
+        }
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+    enum { WW = 1000, WH = 20 };
+    int *labels = calloc((size_t)WW * WH, sizeof(int));
+    for (int y = 0; y < WH; y++) labels[y * WW + 501] = 1; /* between the samples 499 and 507 */
+    svp_psf two[2] = {oxide, moffat(12, 1.1, 0)};
+    ASSERT_OK(svp_psf_field_new_regions(WW, WH, labels, 2, two, 0, &f));
+    free(labels);
+    assert_int_equal(svp_psf_field_auto_margin(f, WW, WH), svp_psf_auto_margin(&two[1], WW, WH));
+    assert_true(svp_psf_field_auto_margin(f, WW, WH) > svp_psf_auto_margin(&oxide, WW, WH));
+    svp_psf_field_free(f);
+    /* a halo anywhere: no margin, as for one PSF; uniform fields keep "any size" */
+    f = poly_field(W, H, 0, 1.0, 1);
+    assert_int_equal(svp_psf_field_auto_margin(f, W, H), 0);
+    svp_psf_field_free(f);
+    svp_psf one = moffat(4, 1.3, 0);
+    ASSERT_OK(svp_psf_field_new_uniform(&one, 0, 0, &f));
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    assert_int_equal(svp_psf_field_width(p), 0);
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+    ASSERT_OK(svp_psf_field_new_uniform(&one, W, H, &f));
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    assert_int_equal(svp_psf_field_width(p), W + 2 * M);
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+}
+
+/* T⁻¹ with a margin: a grid map whose nodes hold one PSF, padded, against that PSF's own
+ * operator on the same grid (tent operators of one PSF are that PSF's operator). */
+static void test_field_pad_correct(void **state)
+{
+    (void)state;
+    enum { M = 9 };
+    svp_psf one = moffat(4, 1.3, 0), nodes[4] = {one, one, one, one};
+    svp_psf_field *f = NULL, *p = NULL;
+    ASSERT_OK(svp_psf_field_new_grid(RT_W, RT_H, 2, 2, NULL, NULL, nodes, &f));
+    ASSERT_OK(svp_psf_field_pad(f, M, &p));
+    svp_blur *op = NULL, *single = NULL;
+    svp_variant_options vo = tent_options(2);
+    ASSERT_OK(svp_blur_new_field(p, RT_W + 2 * M, RT_H + 2 * M, SVP_BOUNDARY_ZERO, &vo, &op));
+    ASSERT_OK(svp_blur_new(&one, RT_W + 2 * M, RT_H + 2 * M, SVP_BOUNDARY_ZERO, &single));
+    svp_image *pl = NULL, *b = NULL, *pla = NULL, *ba = NULL;
+    ASSERT_OK(svp_image_new(RT_W, RT_H, &pl));
+    ASSERT_OK(svp_image_new(RT_W, RT_H, &b));
+    stripe_scene(pl, b, 0.2);
+    svp_image *out_pl[2] = {NULL, NULL}, *out_b[2] = {NULL, NULL}, *val = NULL;
+    ASSERT_OK(svp_image_new(RT_W, RT_H, &val));
+    svp_correct_options co;
+    svp_correct_defaults(&co);
+    co.method = SVP_METHOD_R;
+    co.deconv.iterations = 40;
+    co.margin = M;
+    co.tail_tol = 0;
+    svp_blur *ops[2] = {op, single};
+    for (int k = 0; k < 2; k++) {
+        ASSERT_OK(svp_image_new(RT_W, RT_H, &out_pl[k]));
+        ASSERT_OK(svp_image_new(RT_W, RT_H, &out_b[k]));
+        const svp_image *in[1] = {b};
+        svp_image *o[1] = {out_b[k]};
+        ASSERT_OK(svp_inverse_transform(ops[k], pl, in, 1, &co, out_pl[k], o, val, NULL));
+    }
+    double peak = 0, diff = 0;
+    for (size_t i = 0; i < (size_t)RT_W * RT_H; i++) {
+        peak = fmax(peak, fabs(out_b[1]->data[i]));
+        diff = fmax(diff, fabs(out_b[0]->data[i] - out_b[1]->data[i]));
+    }
+    assert_true(diff <= 1e-9 * peak);
+    for (int k = 0; k < 2; k++) {
+        svp_image_free(out_pl[k]);
+        svp_image_free(out_b[k]);
+    }
+    svp_image_free(val);
+    svp_image_free(pl);
+    svp_image_free(b);
+    svp_image_free(pla);
+    svp_image_free(ba);
+    svp_blur_free(op);
+    svp_blur_free(single);
+    svp_psf_field_free(p);
+    svp_psf_field_free(f);
+}
+
 int main(void)
 {
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -2037,6 +2198,8 @@ int main(void)
         cmocka_unit_test(test_threads_deterministic),
         cmocka_unit_test(test_single_map_accelerated),
         cmocka_unit_test(test_psf_map_files),
+        cmocka_unit_test(test_field_pad),
+        cmocka_unit_test(test_field_pad_correct),
         cmocka_unit_test(test_bad_arguments),
     };
     int rc = cmocka_run_group_tests_name("variant", tests, NULL, NULL);

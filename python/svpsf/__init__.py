@@ -252,6 +252,12 @@ class PSF:
     def encircled_energy(self, r, R=0.0):
         return lib.svp_psf_encircled_energy(self._c, r, R)
 
+    def auto_margin(self, shape):
+        """`--margin auto` over images of shape (height, width): the reach at 1 % of the peak,
+        at most a quarter of the larger side, 0 with a halo (svp_psf_auto_margin)."""
+        h, w = shape
+        return lib.svp_psf_auto_margin(self._c, int(w), int(h))
+
     def encircled_radius(self, fraction, R=0.0):
         out = ffi.new("double *")
         _check(lib.svp_psf_encircled_radius(self._c, fraction, R, out))
@@ -293,6 +299,20 @@ class PSFMap:
         p = ffi.new("double[5]")
         _check(lib.svp_psf_field_params_at(self._ptr, x, y, p))
         return tuple(p)
+
+    def pad(self, margin):
+        """The map on its image plus `margin` pixels per side, its edge PSFs carried outward
+        (svp_psf_field_pad): for a Blur on the grid of correct(margin=...)."""
+        out = ffi.new("svp_psf_field **")
+        _check(lib.svp_psf_field_pad(self._ptr, _count(margin, "margin", 0, 100000), out))
+        return PSFMap(out[0])
+
+    def auto_margin(self, shape):
+        """`--margin auto` for this map over images of shape (height, width): its widest PSF's
+        reach at 1 % of the peak, at most a quarter of the larger side, 0 with a halo
+        (svp_psf_field_auto_margin)."""
+        h, w = shape
+        return lib.svp_psf_field_auto_margin(self._ptr, int(w), int(h))
 
     def write(self, path, pixel_um, provenance=None, overwrite=False):
         """Writes the map file (atomically; svp_psf_field_write)."""
@@ -469,6 +489,23 @@ def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol
                 operator_tol=operator_tol, applications=applications, regions=regions)
 
 
+def _auto_margin(psf, h, w):
+    """`--margin auto` (cli_auto_margin): a PSF's reach, a map's widest, a kernel image's
+    half-width, each at most a quarter of the larger side."""
+    if isinstance(psf, (PSF, PSFMap)):
+        return psf.auto_margin((h, w))
+    if isinstance(psf, Blur):
+        raise ValueError("margin 'auto' needs a PSF, a PSFMap or a kernel (a Blur is built for "
+                         "one margin: give it in pixels)")
+    k = np.shape(psf)
+    return min(int(np.ceil(0.5 * max(k))), max(h, w) // 4) if len(k) == 2 else 0
+
+
+def _padded(psf, margin):
+    """A PSF map carried `margin` pixels beyond the view (PSFMap.pad); anything else as is."""
+    return psf.pad(margin) if isinstance(psf, PSFMap) and margin > 0 else psf
+
+
 def _correct_applications(opt, n_fields):
     """The H + Hᵀ pairs a correction runs, as `svpsf correct` counts them (docs/cli.md): RL
     iterations per Richardson-Lucy deconvolution, about 40 CG steps per Wiener one of a
@@ -574,8 +611,9 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
     'double' | 'single' (default double, where `svpsf correct` takes single for r and
-    rl-signed with one PSF from 1024² pixels); acceleration 'none' | 'biggs-andrews'; margin pixels per side (one
-    PSF, zero boundary; default 0, where `svpsf correct` takes auto for r: give it to match);
+    rl-signed with one PSF from 1024² pixels); acceleration 'none' | 'biggs-andrews'; margin pixels per side or
+    'auto' (zero boundary; a PSFMap carries its edge PSFs onto it, PSFMap.pad; default 0,
+    where `svpsf correct` takes auto for r with one PSF: give it to match);
     gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
     operator error budget (default 1e-2, as `svpsf correct`); regions=True one kernel per region
     of a map of kind regions (`--regions`); side_by_side=False keeps the deconvolutions in
@@ -633,7 +671,13 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
         opt.tail_tol = float(tail_tol)
     if acceleration is not None:
         opt.deconv.acceleration = _ACCELERATIONS[acceleration]
-    if margin is not None:
+    h, w = pl.shape
+    if isinstance(psf, (str, bytes, os.PathLike)):  # as Blur reads it, its boundary included
+        f = read_psf(psf)
+        psf, boundary = f.psf, boundary if boundary is not None else f.boundary
+    if margin == "auto":  # as `--margin auto`: the PSF's (a map's widest) reach
+        opt.margin = _auto_margin(psf, h, w) if (boundary or "zero") == "zero" else 0
+    elif margin is not None:
         opt.margin = _count(margin, "margin", 0)
     opt.keep_doubtful = int(bool(keep_doubtful))
     imgs = _Images()
@@ -654,8 +698,9 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     reports = ffi.new("svp_deconv_report[]", len(fl) + 1)
     opt.summary = summary
     opt.reports = reports
-    h, w = pl.shape
-    blur = _blur_for(psf, (h + 2 * opt.margin, w + 2 * opt.margin), boundary, nodes, rank,
+    _check(lib.svp_correct_check_margin(opt.margin, w, h))  # as `--margin`
+    blur = _blur_for(_padded(psf, opt.margin), (h + 2 * opt.margin, w + 2 * opt.margin), boundary,
+                     nodes, rank,
                      applications=_correct_applications(opt, len(fl)),
                      operator_tol=operator_tol, regions=regions)
     pl_out, pl_oi = imgs.out(pl.shape)
@@ -1061,8 +1106,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     if psf is not None:
         if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
             raise ValueError("iterations %r: an integer >= 1" % (iterations,))
-        if margin == "auto":
-            margin = (lib.svp_psf_auto_margin(psf._c, w, h) if isinstance(psf, PSF) else 0)
+        if margin == "auto":  # a map: 0 unless given, as `fit-odmr --psf MAP`
+            margin = lib.svp_psf_auto_margin(psf._c, w, h) if isinstance(psf, PSF) else 0
         if not (isinstance(margin, (int, np.integer)) and margin >= 0):
             raise ValueError("margin %r: 'auto' or an integer >= 0" % (margin,))
         _check(lib.svp_correct_check_margin(int(margin), w, h))  # as `--margin`
@@ -1096,7 +1141,8 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
         if decreasing:
             drift = drift[::-1].copy()
     if psf is not None:
-        blur = _blur_for(psf, (h + 2 * margin, w + 2 * margin), "zero", None, None)
+        blur = _blur_for(_padded(psf, margin), (h + 2 * margin, w + 2 * margin), "zero", None,
+                         None)
         tol_before = lib.svp_blur_tail_tol(blur._ptr)  # a caller's Blur gets it back
         _check(lib.svp_blur_set_tail(blur._ptr, float(tail_tol)))
         dopt = ffi.new("svp_deconv_options *")

@@ -128,6 +128,35 @@ def test_correct_with_a_psf_map_and_missing_pixels_equals_cli(cli, tmp_path, map
     assert np.all(np.isfinite(r.fields))
 
 
+def test_correct_with_a_map_and_a_margin_equals_cli(cli, tmp_path, maps):
+    """A margin with a PSF map (its edge PSFs carried outward, PSFMap.pad): margin='auto' and
+    a number give the program's --margin auto / N bit for bit; the map's auto margin is its
+    widest PSF's; a halo anywhere gives none."""
+    pl, field = maps
+    pf = write(tmp_path, "map.yaml", GRID.replace(", halo: 0.1", ""))
+    fmap = svpsf.read_psf(pf).psf
+    widest = svpsf.PSF("moffat", fwhm=10.0, beta=1.2)
+    assert fmap.auto_margin(pl.shape) == widest.auto_margin(pl.shape) > 0
+    assert svpsf.read_psf(write(tmp_path, "halo.yaml", GRID)).psf.auto_margin(pl.shape) == 0
+    padded = fmap.pad(5)
+    assert padded.shape == (96 + 10, 80 + 10)
+    assert padded.params_at(0, 0) == fmap.params_at(0, 0)
+    assert padded.params_at(5 + 30, 5 + 40) == fmap.params_at(30, 40)
+    with pytest.raises(svpsf.Error, match="padded"):
+        padded.write(tmp_path / "padded.yaml", 0.1)
+    a = svpsf.forward(pl, field, pf, nodes=2)
+    pln, fln = write(tmp_path, "pl.npy", a.pl), write(tmp_path, "B.npy", a.fields)
+    for margin in ("auto", "5"):
+        out = tmp_path / ("out" + margin)
+        cli("correct", "--pl", pln, "--field", fln, "--psf", pf, "--nodes", "2", "--iterations",
+            "10", "--margin", margin, "-o", out, *COMMON)
+        r = svpsf.correct(a.pl, a.fields, pf, nodes=2, iterations=10,
+                          margin=margin if margin == "auto" else int(margin))
+        assert np.array_equal(r.fields, np.load(out / "field.npy"))
+        settings = json.load(open(out / "summary.json"))["settings"]
+        assert settings["margin"] == (fmap.auto_margin(pl.shape) if margin == "auto" else 5)
+
+
 def test_automatic_representation_equals_cli(cli, tmp_path, maps):
     """Without nodes / rank both choose the representation by operator_tol with the same cost
     model (the H + Hᵀ pairs the command runs: 1 for forward, 2 x 10 for r at 10 iterations)."""

@@ -562,6 +562,11 @@ svp_status svp_psf_field_write(const char *path, const svp_psf_field *field, dou
     if (!(pixel_um > 0) || !isfinite(pixel_um))
         return svp_fail(SVP_ERR_INVALID, "%s: pixel size must be > 0 micrometres, got %g", path,
                         pixel_um);
+    if (field->margin > 0)
+        return svp_fail(SVP_ERR_UNSUPPORTED,
+                        "%s: a PSF map padded for an operator's margin (svp_psf_field_pad) is not "
+                        "written: write the map it was padded from",
+                        path);
     svp_status st = SVP_OK;
     svp_yaml_writer *w = NULL;
     char *labels_path = NULL;

@@ -7,6 +7,7 @@
  * position into a parameter vector; svp_psf_from_params makes the local PSF. */
 #include "field_internal.h"
 
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -405,12 +406,15 @@ svp_status svp_psf_field_copy(const svp_psf_field *src, svp_psf_field **out)
         memcpy(f->node_x, src->node_x, (size_t)f->nx * sizeof(double));
         memcpy(f->node_y, src->node_y, (size_t)f->ny * sizeof(double));
         memcpy(f->node_p, src->node_p, nk * SVP_FIELD_NPARAM * sizeof(double));
+        f->margin = src->margin;
         *out = f;
         return SVP_OK;
     }
     case SVP_FIELD_POLY:
-        return svp_psf_field_new_poly(&src->base, src->width, src->height, src->degree, src->coeffs,
-                                      out);
+        SVP_CHECK(svp_psf_field_new_poly(&src->base, src->width, src->height, src->degree,
+                                         src->coeffs, out));
+        (*out)->margin = src->margin;
+        return SVP_OK;
     case SVP_FIELD_REGIONS:
         return svp_psf_field_new_regions(src->width, src->height, src->labels, src->n_labels,
                                          src->region_psfs, src->transition, out);
@@ -501,6 +505,12 @@ void svp_psf_field_region_psf(const svp_psf_field *f, int label, svp_psf *out)
 static svp_status raw_params_at(const svp_psf_field *f, double x, double y,
                                 double p[SVP_FIELD_NPARAM])
 {
+    /* a padded grid or poly field: the nearest position of the map's own image */
+    const int m = f->margin, iw = f->width - 2 * m, ih = f->height - 2 * m;
+    if (m > 0) {
+        x = clamp(x - m, 0, iw - 1);
+        y = clamp(y - m, 0, ih - 1);
+    }
     switch (f->kind) {
     case SVP_FIELD_UNIFORM: memcpy(p, f->uniform_p, sizeof f->uniform_p); return SVP_OK;
     case SVP_FIELD_GRID: {
@@ -521,7 +531,7 @@ static svp_status raw_params_at(const svp_psf_field *f, double x, double y,
     case SVP_FIELD_POLY: {
         double basis[(SVP_FIELD_POLY_MAX_DEGREE + 1) * (SVP_FIELD_POLY_MAX_DEGREE + 2) / 2];
         const int nt = svp_psf_field_poly_terms(f->degree);
-        svp_psf_field_poly_basis(f->degree, f->width, f->height, x, y, basis);
+        svp_psf_field_poly_basis(f->degree, iw, ih, x, y, basis);
         for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
             double acc = 0;
             for (int t = 0; t < nt; t++) acc += f->coeffs[q * nt + t] * basis[t];
@@ -645,3 +655,99 @@ svp_status svp_psf_field_at(const svp_psf_field *f, double x, double y, svp_psf 
 }
 
 const svp_psf *svp_psf_field_base(const svp_psf_field *f) { return &f->base; }
+
+/* ---- margins (light from outside the view) ------------------------------------------------ */
+
+#define PAD_MAX 100000
+
+/* A region field's labels carried outward: pixel (x, y) of the padded image takes the label of
+ * the original's nearest pixel. */
+static svp_status pad_regions(const svp_psf_field *f, int margin, svp_psf_field **out)
+{
+    const int w = f->width + 2 * margin, h = f->height + 2 * margin;
+    int *labels = svp_alloc((size_t)w * h * sizeof(int));
+    if (!labels)
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d padded label image", w, h);
+    for (int y = 0; y < h; y++) {
+        const int sy = (int)clamp(y - margin, 0, f->height - 1);
+        for (int x = 0; x < w; x++) {
+            const int sx = (int)clamp(x - margin, 0, f->width - 1);
+            labels[(size_t)y * w + x] = f->labels[(size_t)sy * f->width + sx];
+        }
+    }
+    svp_status st = svp_psf_field_new_regions(w, h, labels, f->n_labels, f->region_psfs,
+                                              f->transition, out);
+    svp_free(labels);
+    return st;
+}
+
+svp_status svp_psf_field_pad(const svp_psf_field *f, int margin, svp_psf_field **out)
+{
+    if (!out) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_pad: out is NULL");
+    *out = NULL;
+    if (!f) return svp_fail(SVP_ERR_INVALID, "svp_psf_field_pad: field is NULL");
+    if (margin < 0 || margin > PAD_MAX)
+        return svp_fail(SVP_ERR_INVALID, "a margin of %d pixels: must be in 0..%d", margin,
+                        PAD_MAX);
+    if (f->width == 0 || margin == 0) return svp_psf_field_copy(f, out);
+    if ((long long)f->width + 2LL * margin > INT_MAX / 4 ||
+        (long long)f->height + 2LL * margin > INT_MAX / 4)
+        return svp_fail(SVP_ERR_INVALID, "a %d x %d PSF map with a margin of %d pixels is too large",
+                        f->width, f->height, margin);
+    if (f->kind == SVP_FIELD_UNIFORM)
+        return svp_psf_field_new_uniform(&f->uniform, f->width + 2 * margin,
+                                         f->height + 2 * margin, out);
+    if (f->kind == SVP_FIELD_REGIONS) return pad_regions(f, margin, out);
+    SVP_CHECK(svp_psf_field_copy(f, out));
+    (*out)->width += 2 * margin;
+    (*out)->height += 2 * margin;
+    (*out)->margin += margin;
+    return SVP_OK;
+}
+
+/* The running maximum of svp_psf_auto_margin; -1 once a PSF has a halo. */
+static void margin_of(const svp_psf *psf, int width, int height, int *best)
+{
+    if (*best < 0) return;
+    if (psf->halo > 0) {
+        *best = -1;
+        return;
+    }
+    const int m = svp_psf_auto_margin(psf, width, height);
+    if (m > *best) *best = m;
+}
+
+#define AUTO_MARGIN_SAMPLES 128
+
+int svp_psf_field_auto_margin(const svp_psf_field *f, int width, int height)
+{
+    if (!f || width < 1 || height < 1) return 0;
+    if (f->kind == SVP_FIELD_UNIFORM) return svp_psf_auto_margin(&f->uniform, width, height);
+    int best = 0;
+    const int fw = f->width > 0 ? f->width : width, fh = f->height > 0 ? f->height : height;
+    const int nx = fw < AUTO_MARGIN_SAMPLES ? fw : AUTO_MARGIN_SAMPLES;
+    const int ny = fh < AUTO_MARGIN_SAMPLES ? fh : AUTO_MARGIN_SAMPLES;
+    for (int j = 0; j < ny && best >= 0; j++)
+        for (int i = 0; i < nx && best >= 0; i++) {
+            const double x = nx > 1 ? (double)i * (fw - 1) / (nx - 1) : 0;
+            const double y = ny > 1 ? (double)j * (fh - 1) / (ny - 1) : 0;
+            svp_psf psf;
+            if (svp_psf_field_at(f, x, y, &psf) == SVP_OK) margin_of(&psf, width, height, &best);
+        }
+    if (f->kind == SVP_FIELD_REGIONS && best >= 0) {
+        /* a thin region the samples miss: every label in use */
+        char *used = calloc((size_t)f->n_labels, 1);
+        if (used) {
+            const size_t n = (size_t)f->width * f->height;
+            for (size_t i = 0; i < n; i++) used[f->labels[i]] = 1;
+            for (int l = 0; l < f->n_labels; l++) {
+                if (!used[l]) continue;
+                svp_psf psf;
+                svp_psf_field_region_psf(f, l, &psf);
+                margin_of(&psf, width, height, &best);
+            }
+            free(used);
+        }
+    }
+    return best > 0 ? best : 0;
+}

@@ -26,6 +26,9 @@ struct svp_psf_field {
     double *region_p;
     double transition;
     double *pmap;
+    /* grid, poly: the map's own image lies `margin` pixels inside width x height
+     * (svp_psf_field_pad): positions are clamped to it, the polynomial's u, v are its own */
+    int margin;
 };
 
 /* The field's common model / support / subsample. */

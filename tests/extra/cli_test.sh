@@ -499,6 +499,20 @@ if awk -v r="$r" 'BEGIN { split(r, x, " "); exit !(x[1] > 0.05 * x[2]) }'; then
 else
     fail "single PSF vs map" "max error / peak = $r, expected > 5 %"
 fi
+# a margin with a map (docs/model.md §9 "Light from outside the view"): the map's edge PSFs
+# carried outward; 0 by default for a map, auto = its widest PSF's reach, a number as given
+expect_ok map_corr_m0 correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --nodes 4x4 \
+    --iterations 20 -o map_m0 --format txt $FAST
+expect_ok map_corr_mauto correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --nodes 4x4 \
+    --iterations 20 --margin auto -o map_mauto --format txt $FAST
+expect_ok map_corr_m5 correct --field map_g/field.npy --pl map_g/pl.npy --psf map_grid.yaml --nodes 4x4 \
+    --iterations 20 --margin 5 -o map_m5 --format txt $FAST
+if grep -q '"margin": 0' map_m0/summary.json && grep -q '"margin": [1-9]' map_mauto/summary.json &&
+    grep -q '"margin": 5' map_m5/summary.json; then
+    pass "correct with a PSF map: margin 0 by default, $(sed -n 's/.*"margin": \([0-9]*\).*/\1/p' map_mauto/summary.json | head -1) px for auto, 5 as given"
+else
+    fail "map margin" "$(grep -h '"margin"' map_m0/summary.json map_mauto/summary.json map_m5/summary.json)"
+fi
 expect_ok map_fwd_regions forward --field Bz.txt --pl pl.txt --psf map_regions.yaml --rank 4 --nodes 6 -o map_r --format txt $FAST
 if grep -q '"psf_map_kind": "regions"' map_r/summary.json && grep -q '"psf_rank": 4' map_r/summary.json &&
     grep -q '"psf_samples": "6 x 6"' map_r/summary.json; then
@@ -811,7 +825,7 @@ if grep -q '"margin": 6' corr_margin/summary.json && grep -q '"margin": [1-9]' c
 else
     fail "--margin" "$(grep margin corr_margin/summary.json corr_margin_auto/summary.json)"
 fi
-expect_bad corr_margin_mirror "--margin needs one PSF and the zero boundary" correct --field Bz.txt \
+expect_bad corr_margin_mirror "--margin needs the zero boundary" correct --field Bz.txt \
     --pl pl.txt --psf moffat.yaml --boundary mirror --margin 4 -o bad
 # automatic iterations: why RL stopped is recorded; not for W
 expect_ok corr_auto_it correct --field field_noisy.txt --pl pl_noisy.txt --psf moffat_periodic.yaml \

@@ -163,7 +163,7 @@ run 0 correct --pl bfit/pl.npy --field bfit/field.npy --psf gauss.yaml -o bcor -
 echo "correct on the fitted maps (expected outside the tolerance):"
 "$make" compare bcor/field.npy btruth.npy 1 3e-6 60e-6 && fail "T^-1 on the fitted maps is as good as --psf: the test shows nothing"
 # a PSF map whose four nodes hold that Gaussian: the single PSF's field with --margin 0
-# (measured 5e-17 T apart; a map gets no margin)
+# (measured 5e-17 T apart; a map gets no margin unless given)
 printf 'pixel_um: 1\nimage: {width: 64, height: 56}\nmodel: gaussian\nkind: grid\nnodes: {nx: 2, ny: 2}\nnode_psfs:\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n  - {fwhm_um: 4.003}\n' >gmap.yaml
 run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml -o bmap --format npy --quiet
 run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gauss.yaml --margin 0 --tail-tol 0 -o bdec0 --format npy --quiet
@@ -176,8 +176,13 @@ grep -q '"deconvolve_tail_step_px": [1-9]' bdect/summary.json || fail "fit-odmr 
 grep -q '"tail_step_px"\|"deconvolve_tail_step_px": 0' bdec0/summary.json || fail "fit-odmr --tail-tol 0: a tail was taken"
 echo "fit-odmr --psf with the tail on a coarse grid against the plain frame:"
 "$make" compare bdect/field.npy bdec0/field.npy 1 1e-10 1e-10 || fail "fit-odmr --psf: the tail on a coarse grid changed the field"
-run 1 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml --margin 5 -o bad16
-expect_in err "--margin needs one PSF (gmap.yaml is a space-variant PSF map)"
+# with a margin the map's edge PSFs are carried outward (svp_psf_field_pad): the single PSF's
+# field with the same margin
+run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gmap.yaml --margin 5 -o bmap5 --format npy --quiet
+run 0 fit-odmr blur.tif --frequencies bfreq.txt --psf gauss.yaml --margin 5 --tail-tol 0 -o bdec5 --format npy --quiet
+echo "fit-odmr --psf MAP --margin 5 against the single PSF:"
+"$make" compare bmap5/field.npy bdec5/field.npy 1 1e-12 1e-12 || fail "fit-odmr --psf MAP --margin 5 differs from its single PSF"
+grep -q '"margin": 5' bmap5/summary.json || fail "fit-odmr --psf MAP --margin 5: margin not recorded"
 run 1 fit-odmr blur.tif --frequencies bfreq.txt --iterations 10 -o bad14
 expect_in err "--iterations needs --psf"
 run 1 fit-odmr blur.tif --frequencies bfreq.txt --psf nosuch.yaml -o bad15

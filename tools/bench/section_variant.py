@@ -285,7 +285,8 @@ CORR_ROWS = [("centre PSF only", None), ("auto, default (1e-2)", []),
              ("tent 8x8 (--nodes 8x8)", ["--nodes", "8x8"]),
              ("low rank 4 (--rank 4, 8x8 samples)", ["--nodes", "8x8", "--rank", "4"]),
              ("regions (--regions)", ["--regions"]),
-             ("tent 1x1 (--nodes 1x1)", ["--nodes", "1x1"])]
+             ("tent 1x1 (--nodes 1x1)", ["--nodes", "1x1"]),
+             ("auto, default, --margin auto", ["--margin", "auto"])]
 # bench_variant ops representations matching the rows
 CORR_OPS = {"auto, default (1e-2)": "auto:1e-2", "auto, --operator-tol 1e-3": "auto:1e-3",
             "auto, --operator-tol 1e-4": "auto:1e-4", "tent 8x8 (--nodes 8x8)": "t8",
@@ -295,6 +296,10 @@ CORR_OPS = {"auto, default (1e-2)": "auto:1e-2", "auto, --operator-tol 1e-3": "a
 # choice took on them before the region operator existed (issue 17)
 REGIONS_ROW = "regions (--regions)"
 TENT1_ROW = "tent 1x1 (--nodes 1x1)"
+# the margin with a map (docs/model.md §9 "Light from outside the view"; not the default for
+# maps): what it costs on the smooth and the sharp region map, whose data have no light from
+# outside (tests/extra/foreign_cases.py case 11 has)
+MARGIN_ROW = "auto, default, --margin auto"
 
 
 def corr_plan(n, quick):
@@ -305,23 +310,23 @@ def corr_plan(n, quick):
     spectra, 2.2 GB, minutes an application) nor 1e-4, the sharp region map with the centre
     PSF, the default, tent 1 x 1 and `--regions`; at 2048² the smooth map's centre PSF and
     default."""
-    labels = [r[0] for r in CORR_ROWS if r[0] not in (REGIONS_ROW, TENT1_ROW)]
+    labels = [r[0] for r in CORR_ROWS if r[0] not in (REGIONS_ROW, TENT1_ROW, MARGIN_ROW)]
     oxide = ("smooth, oxide scene", labels[:2])
     array = ("smooth, array scene", labels[:2])
     region_rows = [labels[0], labels[1], TENT1_ROW, REGIONS_ROW]
     if n >= 2048:
         return [("smooth", labels[:2])]
     if n >= 1024 and not quick:
-        return [("smooth", labels[:3] + labels[5:]), oxide, array,
+        return [("smooth", labels[:3] + labels[5:] + [MARGIN_ROW]), oxide, array,
                 ("regions, sharp", region_rows)]
     few = labels[:3]
     if quick:
-        return [("smooth", labels[:3] + labels[5:]), oxide, array,
-                ("regions, sharp", region_rows)]
+        return [("smooth", labels[:3] + labels[5:] + [MARGIN_ROW]), oxide, array,
+                ("regions, sharp", region_rows + [MARGIN_ROW])]
     smooth = labels if n <= 512 else [l for l in labels if not l.startswith("tent")]
     few_regions = few + [TENT1_ROW, REGIONS_ROW]
-    plan = [("smooth", smooth), ("smooth, oxide scene", few), array,
-            ("regions, sharp", few_regions)]
+    plan = [("smooth", smooth + [MARGIN_ROW]), ("smooth, oxide scene", few), array,
+            ("regions, sharp", few_regions + [MARGIN_ROW])]
     if n <= 512:
         plan.append(("regions, blended", few_regions))
     return plan
@@ -563,7 +568,10 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
         "binned in 12 levels); no noise. **Field error**: relative rms of the corrected field "
         "against the truth over the lit and dark significant pixels (as docs/accuracy.md). "
         "*centre PSF only*: the invariant correction with the map's PSF at the view's centre "
-        "(with its default margin). **Operator error** (docs/model.md §9's relative Frobenius "
+        "(with its default margin). *auto, default, --margin auto*: the map's default with "
+        "a margin (the map's edge PSFs carried outward, docs/model.md §9 \"Light from outside "
+        "the view\"; a map's default is none): what it costs where the data hold no light from "
+        "outside. **Operator error** (docs/model.md §9's relative Frobenius "
         "error), three ways: *probes* = ‖H e_s − k_s‖ over the whole frame against the exact "
         "column at sources on a jittered grid (12 at 512², 8 at 1024², 4 for tent 8 × 8; few, "
         "so noisy where the PSF changes in a small region; none at 2048², where the table "
@@ -624,6 +632,8 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
                 name = "invariant" if inv else chosen_name(r)
                 if r.get("operator_tolerance_met") == 0:
                     name += " (budget not met: the cheapest near the smallest error)"
+                if r.get("margin"):
+                    name += f", margin {r['margin']} px"
                 apply = "–" if not o.get("apply_s") else \
                     f"{o['apply_s'] * 1e3:.3g} ({o['adjoint_s'] * 1e3:.3g})"
                 itcell = "–" if not it else \

@@ -1000,6 +1000,17 @@ void cli_print_variant_help(FILE *out, double default_tol)
           out);
 }
 
+int cli_psf_pad(cli_run *run, cli_psf *psf, int margin)
+{
+    if (!psf->field || margin <= 0) return 0;
+    svp_psf_field *padded = NULL;
+    svp_status st = svp_psf_field_pad(psf->field, margin, &padded);
+    if (st != SVP_OK) return cli_fail(run, st, psf->path);
+    svp_psf_field_free(psf->field);
+    psf->field = padded;
+    return 0;
+}
+
 int cli_psf_check(const cli_run *run, const cli_psf *psf, int width, int height)
 {
     if (!psf->field) return 0;
@@ -1872,6 +1883,7 @@ int cli_parsed_status(int code) { return code == CLI_OPTION_HELP ? 0 : code; }
  * whose margin unknowns can take up halo flux (docs/model.md §3). */
 int cli_auto_margin(const cli_psf *psf, int w, int h)
 {
+    if (psf->field) return svp_psf_field_auto_margin(psf->field, w, h);
     if (psf->is_model) return svp_psf_auto_margin(&psf->model, w, h);
     if (!psf->kernel_raw) return 0;
     const int cap = (w > h ? w : h) / 4;

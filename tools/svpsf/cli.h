@@ -268,9 +268,14 @@ void cli_psf_release(cli_psf *psf);
 /* Records the PSF's description in the summary settings (model, FWHM, beta, ...). */
 void cli_psf_describe(cli_run *run, const cli_psf *psf);
 /* --margin auto (correct, fit-odmr --psf): the PSF's significant reach (svp_psf_reach: the
- * radius where the profile falls to 1 % of its peak; a kernel image: its half-width), at most a
- * quarter of the view's larger side; 0 for a PSF with a halo (docs/model.md §3). */
+ * radius where the profile falls to 1 % of its peak; a kernel image: its half-width; a PSF
+ * map: its widest PSF's, svp_psf_field_auto_margin), at most a quarter of the view's larger
+ * side; 0 for a PSF with a halo (docs/model.md §3). */
 int cli_auto_margin(const cli_psf *psf, int w, int h);
+/* A PSF map's field carried `margin` pixels beyond the view on every side
+ * (svp_psf_field_pad), for an operator on the view plus the margin; no-op for a single PSF
+ * or margin 0. 0, or the exit status after a message naming the file. */
+int cli_psf_pad(cli_run *run, cli_psf *psf, int margin);
 
 /* PSF maps (forward, correct): --psf may also be a PSF-map file (svp_psf_field_read; a map of
  * kind uniform or a plain PSF file is the single-PSF case above). A command adds

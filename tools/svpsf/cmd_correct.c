@@ -88,10 +88,11 @@ static void print_help(const cli_run *run, FILE *out)
             "                        fewer iterations (docs/accuracy.md)\n"
             "  --margin auto|PX      estimate the object on the view plus PX pixels per side, the\n"
             "                        data term over the view only: light from outside the view\n"
-            "                        (zero boundary, one PSF; default auto for r and rl-signed,\n"
-            "                        0 for rw and w; auto: where the PSF falls to 1 %% of its\n"
-            "                        peak, at most a quarter of the view, 0 where it does not\n"
-            "                        apply; --margin 0 turns it off)\n"
+            "                        (zero boundary; a PSF map carries its edge's PSFs onto the\n"
+            "                        margin; default auto for r and rl-signed with one PSF, 0\n"
+            "                        for rw, w and maps; auto: where the PSF (a map's widest)\n"
+            "                        falls to 1 %% of its peak, at most a quarter of the view, 0\n"
+            "                        where it does not apply; --margin 0 turns it off)\n"
             "  --gain G              camera gain of the PL (counts per detected photon): the PL's\n"
             "                        shot noise var = G (PL - offset) for the automatic choices;\n"
             "                        default: estimated from the PL and reported\n"
@@ -331,22 +332,24 @@ static int correct_read(cli_run *run, struct correct_args *a, struct correct_job
         job->psf.variant.single_precision = opt->method != SVP_METHOD_RW;
     if ((code = correct_read_sigma(run, a, job))) return code;
     const int w = maps->pl->width, h = maps->pl->height;
-    /* default: auto for the RL methods (measured: docs/accuracy.md), 0 for the Wiener ones */
+    /* default: auto for the RL methods with one PSF (measured: docs/accuracy.md), 0 for the
+     * Wiener ones and for PSF maps (on maps the margin doubled the time for no gain on the
+     * measured data: docs/model.md §9, "Light from outside the view") */
     int margin_auto = a->margin_auto;
     if (margin_auto < 0)
-        margin_auto = opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED;
-    if ((margin_auto || opt->margin > 0) &&
-        (job->psf.field || maps->boundary != SVP_BOUNDARY_ZERO)) {
-        if (!margin_auto)
-            return cli_error(run, "--margin needs one PSF and the zero boundary%s",
-                             job->psf.field ? " (this is a space-variant PSF map)" : "");
+        margin_auto = !job->psf.field &&
+                      (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED);
+    if ((margin_auto || opt->margin > 0) && maps->boundary != SVP_BOUNDARY_ZERO) {
+        if (!margin_auto) return cli_error(run, "--margin needs the zero boundary");
         opt->margin = 0; /* auto: only where it applies */
     } else if (margin_auto) {
         opt->margin = cli_auto_margin(&job->psf, w, h);
     }
-    /* the library's margin rule, before the operator for that grid is built */
+    /* the library's margin rule, before the operator for that grid is built; a map is carried
+     * onto the margin from its edge (svp_psf_field_pad) */
     svp_status st = svp_correct_check_margin(opt->margin, w, h);
     if (st != SVP_OK) return cli_fail(run, st, maps->pl_path);
+    if ((code = cli_psf_pad(run, &job->psf, opt->margin))) return code;
     opt->summary = &job->summary;
     /* the library's messages name the field maps by their files */
     opt->field_names = maps->field_paths;

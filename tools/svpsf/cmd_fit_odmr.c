@@ -102,8 +102,9 @@ static void print_help(const cli_run *run, FILE *out)
           "                        (`correct`) assumes the PL-weighted mean field, which a fit\n"
           "                        of mixed dips is not\n"
           "  --iterations N        Richardson-Lucy iterations per frame (default 75)\n"
-          "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo\n"
-          "                        or a PSF map)\n"
+          "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo;\n"
+          "                        0 for a PSF map, whose edge PSFs a margin carries outward;\n"
+          "                        auto there: the map's widest PSF's reach)\n"
           "  --tail-tol TOL        one PSF: its far tail on a coarser grid when cheaper and\n"
           "                        within TOL (default 1e-3; 0: never; as `correct`)\n",
           out);
@@ -465,17 +466,15 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
         if (a->variant_given && !job->psf.field)
             cli_note(run, "--nodes / --rank / --regions ignored: %s is a single PSF, not a "
                      "space-variant map", a->psf_path);
-        if (job->psf.field && !a->margin_auto && a->margin > 0)
-            return cli_error(run, "--margin needs one PSF (%s is a space-variant PSF map)",
-                             a->psf_path);
-        if (job->psf.field) job->margin = 0; /* a map is for the view: no margin */
+        /* default: auto with one PSF, 0 for a map (as correct's) */
+        if (job->psf.field && !a->margin_given) job->margin = 0;
         else if (a->margin_auto) job->margin = cli_auto_margin(&job->psf, job->w, job->h);
         else job->margin = a->margin;
-        if ((code = cli_psf_check(run, &job->psf, job->w + 2 * job->margin,
-                                  job->h + 2 * job->margin)))
-            return code;
+        if ((code = cli_psf_check(run, &job->psf, job->w, job->h))) return code;
         svp_status ms = svp_correct_check_margin(job->margin, job->w, job->h);
         if (ms != SVP_OK) return cli_fail(run, ms, a->psf_path);
+        /* a map carried onto the margin from its edge (svp_psf_field_pad) */
+        if ((code = cli_psf_pad(run, &job->psf, job->margin))) return code;
     }
     if ((code = cli_outputs_check(run))) return code;
     svp_status st = SVP_OK;
