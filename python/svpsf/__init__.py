@@ -55,7 +55,12 @@ def _text(p):
 
 
 def _path(p):
-    return os.fsencode(os.fspath(p))
+    """A path for the library: bytes without NUL (C would stop there and write another file,
+    as open() refuses it)."""
+    b = os.fsencode(os.fspath(p))
+    if b"\0" in b:
+        raise ValueError("path %r: embedded null byte" % (os.fspath(p),))
+    return b
 
 
 # ---- versions, threads, FFT planning ----------------------------------------------------------
@@ -474,7 +479,7 @@ class Blur:
 
 
 def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None,
-              regions=False):
+              regions=False, margin=0):
     if isinstance(psf, Blur):
         given = [k for k, v in (("boundary", boundary), ("nodes", nodes), ("rank", rank),
                                 ("regions", regions)) if v not in (None, False)]
@@ -482,6 +487,11 @@ def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol
             raise ValueError("%s: a Blur has its own boundary and representation (drop them, "
                              "or give the PSF instead)" % ", ".join(given))
         if psf.shape != tuple(shape):
+            if margin:
+                raise ValueError("the Blur is for images of shape %s; with a margin of %d the "
+                                 "correction needs one for %s (the maps' shape %s plus the "
+                                 "margin on every side)" % (psf.shape, margin, tuple(shape),
+                                 (shape[0] - 2 * margin, shape[1] - 2 * margin)))
             raise ValueError("the Blur is for images of shape %s, the inputs are %s"
                              % (psf.shape, tuple(shape)))
         return psf
@@ -702,7 +712,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     blur = _blur_for(_padded(psf, opt.margin), (h + 2 * opt.margin, w + 2 * opt.margin), boundary,
                      nodes, rank,
                      applications=_correct_applications(opt, len(fl)),
-                     operator_tol=operator_tol, regions=regions)
+                     operator_tol=operator_tol, regions=regions, margin=opt.margin)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
     val, val_i = imgs.out(pl.shape)
@@ -1074,7 +1084,10 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
     frames = _stack_frames(stack)
     nf = len(frames)
     fr = np.array(frequencies, dtype=np.float64)
-    if fr.ndim != 1 or fr.size != nf:
+    if fr.ndim != 1:
+        raise ValueError("frequencies: one value per frame (a 1-D sequence), got an array of "
+                         "shape %s" % (fr.shape,))
+    if fr.size != nf:
         raise ValueError("frequencies: %d values for a stack of %d frames" % (fr.size, nf))
     for f in range(nf):
         if not np.isfinite(fr[f]):
@@ -1142,7 +1155,7 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             drift = drift[::-1].copy()
     if psf is not None:
         blur = _blur_for(_padded(psf, margin), (h + 2 * margin, w + 2 * margin), "zero", None,
-                         None)
+                         None, margin=margin)
         tol_before = lib.svp_blur_tail_tol(blur._ptr)  # a caller's Blur gets it back
         _check(lib.svp_blur_set_tail(blur._ptr, float(tail_tol)))
         dopt = ffi.new("svp_deconv_options *")

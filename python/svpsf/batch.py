@@ -130,6 +130,15 @@ def correct_dataset(folder, out_root, psf=None, options=None, threads=1, fft="es
         field_files = _image_files(folder, "field")
         if not field_files:
             raise ValueError("%s: no field map (field.* or field_<name>.*)" % folder)
+        seen = {}
+        for f in field_files:  # field_x.npy and field_x.txt would write one field_x.npy
+            stem = os.path.splitext(os.path.basename(f))[0]
+            if stem in seen:
+                raise ValueError("%s: %s and %s are two field maps of one name (their corrected "
+                                 "maps would be one file, %s.npy): keep one"
+                                 % (folder, os.path.basename(seen[stem]), os.path.basename(f),
+                                    stem))
+            seen[stem] = f
         own_psf = [os.path.join(folder, n) for n in ("psf.yaml", "psf.yml")
                    if os.path.isfile(os.path.join(folder, n))]
         psf_path = own_psf[0] if own_psf else psf

@@ -654,6 +654,9 @@ def test_fit_odmr_errors(cli, tmp_path):
     # arguments the wrapper checks before the library, as the program does
     with pytest.raises(ValueError, match="frequencies: 39 values for a stack of 40 frames"):
         svpsf.fit_odmr(stack, freq[:-1])
+    with pytest.raises(ValueError, match=r"one value per frame \(a 1-D sequence\), got an "
+                       r"array of shape \(1, 40\)"):
+        svpsf.fit_odmr(stack, freq[None, :])
     bad = freq.copy()
     bad[20] = bad[5]
     with pytest.raises(ValueError, match="not monotonic: frame 21"):
@@ -691,6 +694,18 @@ def test_errors_carry_the_library_message(cli, tmp_path, maps):
 
     with pytest.raises(ValueError, match="size mismatch"):
         svpsf.correct(pl, field[:, :-1], svpsf.PSF())
+
+    # a Blur for the maps while a margin needs the maps plus the margin: said so
+    with pytest.raises(ValueError, match=r"with a margin of 4 the correction needs one for "
+                       r"\(%d, %d\)" % (pl.shape[0] + 8, pl.shape[1] + 8)):
+        svpsf.correct(pl, field, svpsf.Blur(svpsf.PSF(), pl.shape), margin=4)
+
+    # a NUL in a path: C would stop there and write "cut" instead (as open() refuses it)
+    with pytest.raises(ValueError, match="embedded null byte"):
+        svpsf.write_image(str(tmp_path / "cut\0.npy"), pl)
+    assert not (tmp_path / "cut").exists()
+    with pytest.raises(ValueError, match="embedded null byte"):
+        svpsf.read_psf(str(tmp_path / "typo.yaml\0x.yaml"))
 
 
 def test_inputs_are_not_copied(maps):

@@ -148,3 +148,14 @@ def test_interrupt_keeps_what_was_done(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "interrupted: 2 of 5 datasets done; summary written" in err and "Traceback" not in err
     assert (out / "d1" / "field_x.npy").exists() and not (out / "d2").exists()
+
+
+def test_two_field_files_of_one_name_fail_the_dataset(tmp_path):
+    # field_x.npy and field_x.txt would both write field_x.npy: the second overwrote the first
+    # and the row said ok with 3 fields; now the dataset fails, naming both files
+    root = make_datasets(tmp_path / "data", n=3)
+    np.savetxt(root / "d0" / "field_x.txt", np.load(root / "d0" / "field_x.npy"))
+    rows = batch.run([root / "d0"], tmp_path / "out", psf=root / "psf.yaml", options=OPTIONS)
+    assert rows[0]["status"] == "failed", rows[0]
+    assert "field_x.npy and field_x.txt are two field maps of one name" in rows[0]["message"]
+    assert not (tmp_path / "out" / "d0").exists()
