@@ -456,6 +456,15 @@ static void test_tiff_round_trip(void **state)
                      SVP_ERR_INVALID);
     assert_non_null(strstr(svp_last_error(), "values up to 1e+300 exceed a float32 TIFF"));
     assert_int_equal(access(tmp_path("big.tif"), F_OK), -1);
+    /* below its normal range the whole map would lose its digits or become 0: refused too;
+     * tiny values beside normal ones keep the map's relative precision and are written */
+    for (int i = 0; i < 33 * 17; i++) img->data[i] = 1e-42 * (i + 1);
+    assert_int_equal(svp_image_write(tmp_path("tiny.tif"), img, SVP_FORMAT_AUTO, 0),
+                     SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "below a float32 TIFF's normal range"));
+    assert_int_equal(access(tmp_path("tiny.tif"), F_OK), -1);
+    img->data[0] = 1.0;
+    ASSERT_OK(svp_image_write(tmp_path("mixed.tif"), img, SVP_FORMAT_AUTO, 0));
     svp_image_free(img);
     assert_no_temporaries();
 }

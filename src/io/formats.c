@@ -1197,6 +1197,13 @@ svp_status svp_image_write(const char *path, const svp_image *image, svp_file_fo
                             "%s: values up to %g exceed a float32 TIFF's range (3.4e38): they "
                             "would be written as Inf; write .npy (float64) or rescale",
                             path, top);
+        /* below float32's normal range the whole map would lose its digits or become 0 */
+        if (top > 0 && top < FLT_MIN)
+            return svp_fail(SVP_ERR_INVALID,
+                            "%s: values of at most %g are below a float32 TIFF's normal range "
+                            "(1.2e-38): they would be written with fewer digits or as 0; write "
+                            ".npy (float64) or rescale",
+                            path, top);
     }
     switch (format) {
     case SVP_FORMAT_TIFF: return svp_io_write_tiff(path, image, overwrite);
