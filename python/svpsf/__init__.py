@@ -161,18 +161,19 @@ def read_image(path):
     return _owned_array(out[0])
 
 
-_FORMATS = {"auto": 0, "tif": 1, "tiff": 1, "npy": 2, "txt": 3, "png": 4}
+_FORMATS = {"auto": 0, "tif": 1, "tiff": 1, "npy": 2, "txt": 3, "png": 4, "mat": 5}
 
 
 def write_image(path, image, format="auto", overwrite=False):
     """Writes atomically; an existing file is an error unless overwrite. format: 'auto' (from
-    the extension), 'tif' (float32), 'npy' (float64), 'txt' (%.17g), 'png' (16-bit figure)."""
+    the extension), 'tif' (float32), 'npy' (float64), 'txt' (%.17g), 'png' (16-bit figure),
+    'mat' (MATLAB v7, one double variable named after the file, as `--format mat`)."""
     if format not in _FORMATS:
         raise ValueError("format %r: one of %s" % (format, ", ".join(_FORMATS)))
     ext = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
     same = {"tif": ("tif", "tiff"), "tiff": ("tif", "tiff"), "npy": ("npy",),
             "txt": ("txt", "csv", "dat"),
-            "png": ("png",)}
+            "png": ("png",), "mat": ("mat",)}
     if format != "auto" and ext not in same.get(format, (format,)):
         raise ValueError("format %r for %s: the extension says otherwise (a file is read by its "
                          "extension)" % (format, os.fspath(path)))

@@ -740,6 +740,16 @@ def test_read_image_is_the_librarys_buffer(tmp_path, maps):
     with pytest.raises(svpsf.Error) as e:
         svpsf.write_image(tmp_path / "back.npy", a)
     assert e.value.reason == "output exists"
+    # MATLAB files as `--format mat`: read back by the library and by scipy when it is there
+    svpsf.write_image(tmp_path / "back.mat", a, format="mat")
+    assert np.array_equal(svpsf.read_image(tmp_path / "back.mat"), pl)
+    try:
+        import scipy.io
+        assert np.array_equal(scipy.io.loadmat(tmp_path / "back.mat")["back"], pl)
+    except ImportError:
+        print("scipy is not installed (Debian python3-scipy): .mat checked by svpsf only")
+    with pytest.raises(ValueError, match="the extension says otherwise"):
+        svpsf.write_image(tmp_path / "back.tif", a, format="mat")
 
 
 def test_blur_adjoint_and_out(maps):
