@@ -756,9 +756,9 @@ SVP_API svp_status svp_psf_field_check_range(const svp_psf_field *field, const i
  * PSF-map file (svp_psf_field_write: SVP_ERR_UNSUPPORTED), being for one operator's grid. */
 SVP_API svp_status svp_psf_field_pad(const svp_psf_field *field, int margin, svp_psf_field **out);
 /* `--margin auto` for a PSF map over a width x height view: the largest svp_psf_auto_margin of
- * the field's PSFs (sampled on at most 128 x 128 positions of the view, and every node, region
- * or label PSF in use), at most a quarter of the larger side; 0 when any sampled PSF has a halo
- * (as for one PSF). */
+ * the field's PSFs (sampled on at most 128 x 128 positions of the view, edges included, and for
+ * a region map every label's PSF in use), at most a quarter of the larger side; 0 when any of
+ * them has a halo (as for one PSF). */
 SVP_API int svp_psf_field_auto_margin(const svp_psf_field *field, int width, int height);
 
 /* PSF-map files (YAML; docs/cli.md §PSF maps). Lengths in µm in the file, pixels in memory:
