@@ -430,6 +430,93 @@ static void test_correct_margin(void **state)
     svp_scene_free(s);
 }
 
+/* A margin with region PSFs (the scene's map carried onto the margin from its edge,
+ * svp_psf_field_pad): `auto` is the map's widest PSF's reach (svp_psf_field_auto_margin), and
+ * the correction equals svp_inverse_transform on the padded map's tent operator; with the
+ * mirror boundary an explicit margin is refused. */
+static void test_correct_margin_regions(void **state)
+{
+    (void)state;
+    static const char *const scene_text =
+        "grid: {pixel_um: 0.1, size_um: [6.4, 6.4], margin_um: 1}\n"
+        "sources:\n"
+        "  - flake: {shape: rectangle, size_um: [3.2, 3.2], magnetisation_A_per_m: 1.0e6,\n"
+        "            thickness_nm: 1, standoff_nm: 100}\n"
+        "emission: [{gaussian: {fwhm_um: 6}}]\n"
+        "psf: {model: moffat, fwhm_um: 0.3, beta: 2, nodes: 4,\n"
+        "      regions: [{under: flakes, fwhm_um: 0.5, beta: 1.5}]}\n"
+        "correct:\n"
+        "  - {method: r, iterations: 20, margin: auto, name: auto}\n";
+    svp_scene *s = load("margin_regions.yaml", scene_text);
+    svp_scene_result *r = run_nowrite(s);
+    const svp_image *pla = map(r, "pl_apparent");
+    const int w = pla->width, h = pla->height; /* 64 x 64: the flake covers pixels 16..47 */
+    svp_psf base, flake;
+    svp_psf_defaults(&base);
+    base.model = SVP_PSF_MOFFAT;
+    base.fwhm = 3;
+    base.beta = 2;
+    flake = base;
+    flake.fwhm = 5;
+    flake.beta = 1.5;
+    int *labels = malloc((size_t)w * h * sizeof(int));
+    for (int y = 0; y < h; y++)
+        for (int x = 0; x < w; x++)
+            labels[y * w + x] = x >= 16 && x < 48 && y >= 16 && y < 48;
+    svp_psf psfs[2] = {base, flake};
+    svp_psf_field *field = NULL, *padded = NULL;
+    ASSERT_OK(svp_psf_field_new_regions(w, h, labels, 2, psfs, 0, &field));
+    free(labels);
+    const int m = svp_psf_field_auto_margin(field, w, h);
+    assert_int_equal(m, svp_psf_auto_margin(&flake, w, h)); /* the wider PSF's */
+    assert_true(m > svp_psf_auto_margin(&base, w, h));
+    assert_int_equal((int)value(r, "correct/auto/margin_px"), m);
+    ASSERT_OK(svp_psf_field_pad(field, m, &padded));
+    svp_variant_options vo;
+    svp_variant_defaults(&vo);
+    vo.representation = SVP_VARIANT_TENT;
+    vo.grid_x = vo.grid_y = 4;
+    svp_blur *blur = NULL;
+    ASSERT_OK(svp_blur_new_field(padded, w + 2 * m, h + 2 * m, SVP_BOUNDARY_ZERO, &vo, &blur));
+    svp_correct_options o;
+    svp_correct_defaults(&o);
+    o.method = SVP_METHOD_R;
+    o.deconv.iterations = 20;
+    o.margin = m;
+    o.keep_doubtful = 1;
+    svp_image *plc = test_image(w, h), *bzc = test_image(w, h), *val = test_image(w, h);
+    const svp_image *fa[1] = {map(r, "B_z_apparent")};
+    svp_image *fc[1] = {bzc};
+    ASSERT_OK(svp_inverse_transform(blur, pla, fa, 1, &o, plc, fc, val, NULL));
+    const double e = test_max_abs_diff(bzc, map(r, "B_z_corrected_auto"));
+    if (e > 1e-12 * test_max_abs(bzc)) fail_msg("the scene's correction differs by %.3g T", e);
+    svp_blur_free(blur);
+    svp_image_free(plc);
+    svp_image_free(bzc);
+    svp_image_free(val);
+    svp_psf_field_free(padded);
+    svp_psf_field_free(field);
+    svp_scene_result_free(r);
+    svp_scene_free(s);
+    /* the mirror boundary has no outside: an explicit margin is refused, auto gives none */
+    s = load("margin_mirror.yaml",
+             "grid: {pixel_um: 0.1, size_um: [6.4, 6.4]}\n"
+             "sources:\n"
+             "  - flake: {shape: rectangle, size_um: [3.2, 3.2], magnetisation_A_per_m: 1.0e6,\n"
+             "            thickness_nm: 1, standoff_nm: 100}\n"
+             "psf: {model: moffat, fwhm_um: 0.3, beta: 2, boundary: mirror,\n"
+             "      regions: [{under: flakes, fwhm_um: 0.5, beta: 1.5}]}\n"
+             "correct: [{method: r, iterations: 5, margin: 0.5}]\n");
+    svp_scene_options so;
+    svp_scene_defaults(&so);
+    so.write = 0;
+    r = NULL;
+    assert_int_equal(svp_scene_run(s, NULL, &so, &r), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "a margin needs the zero boundary"));
+    svp_scene_result_free(r);
+    svp_scene_free(s);
+}
+
 /* The strip through a scene: current density from B_x in the middle of the strip. */
 static void test_strip_reconstruction(void **state)
 {
@@ -838,6 +925,7 @@ int main(void)
         cmocka_unit_test(test_bad_scenes),
         cmocka_unit_test(test_end_to_end_matches_transforms),
         cmocka_unit_test(test_correct_margin),
+        cmocka_unit_test(test_correct_margin_regions),
         cmocka_unit_test(test_strip_reconstruction),
         cmocka_unit_test(test_noise),
         cmocka_unit_test(test_determinism),

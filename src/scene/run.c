@@ -391,8 +391,8 @@ static svp_status stage_emission(run_ctx *c)
 /* ---- operator ------------------------------------------------------------------------------ */
 
 /* Region-dependent PSF (psf.regions): labels from the shapes' coverage on the canvas or in the
- * view (w x h tells which), a regions field, a tent operator on the scene's node grid. */
-static svp_status make_region_blur(run_ctx *c, const scene_psf *p, int w, int h, svp_blur **out)
+ * view (w x h tells which), a regions field. */
+static svp_status region_field(run_ctx *c, const scene_psf *p, int w, int h, svp_psf_field **out)
 {
     const svp_scene *s = c->s;
     const int canvas = w == s->canvas_w && h == s->canvas_h;
@@ -415,46 +415,64 @@ static svp_status make_region_blur(run_ctx *c, const scene_psf *p, int w, int h,
             if (cov >= 0.5) labels[i] = k + 1;
         }
     }
-    svp_psf_field *field = NULL;
     svp_status st =
-        svp_psf_field_new_regions(w, h, labels, p->n_regions + 1, psfs, p->transition_px, &field);
+        svp_psf_field_new_regions(w, h, labels, p->n_regions + 1, psfs, p->transition_px, out);
     free(labels);
-    if (st == SVP_OK) {
+    return st;
+}
+
+/* The PSF map of `p` for a w x h image (the canvas or the view): its regions, or a map file
+ * with an image size; for one PSF (the model, or a map file of kind uniform) *out = NULL and
+ * *one that PSF. */
+static svp_status scene_field(run_ctx *c, const scene_psf *p, int w, int h, svp_psf_field **out,
+                              svp_psf *one)
+{
+    *out = NULL;
+    *one = p->psf;
+    if (p->n_regions > 0) return region_field(c, p, w, h, out);
+    if (!p->from_file) return SVP_OK;
+    svp_status st = svp_psf_field_read(p->path, out, NULL);
+    if (st == SVP_OK && svp_psf_field_width(*out) == 0) {
+        st = svp_psf_field_at(*out, 0, 0, one);
+        svp_psf_field_free(*out);
+        *out = NULL;
+    }
+    return st;
+}
+
+/* The operator of `p` for a w x h image plus `margin` pixels per side (a map carried onto the
+ * margin from its edge, svp_psf_field_pad): region PSFs as a tent operator on the scene's node
+ * grid, a map file with the library's choice, one PSF invariant. */
+static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, int margin,
+                            svp_blur **out)
+{
+    svp_psf_field *field = NULL, *padded = NULL;
+    svp_psf one;
+    svp_status st = scene_field(c, p, w, h, &field, &one);
+    if (st == SVP_OK && !field) {
+        st = svp_blur_new(&one, w + 2 * margin, h + 2 * margin, p->boundary, out);
+    } else if (st == SVP_OK) {
+        st = svp_psf_field_pad(field, margin, &padded);
         svp_variant_options o;
         svp_variant_defaults(&o);
-        o.representation = SVP_VARIANT_TENT; /* the scene's node grid, as before */
-        o.grid_x = p->nodes_x;
-        o.grid_y = p->nodes_y;
-        st = svp_blur_new_field(field, w, h, p->boundary, &o, out);
+        if (p->n_regions > 0) {
+            o.representation = SVP_VARIANT_TENT; /* the scene's node grid, as before */
+            o.grid_x = p->nodes_x;
+            o.grid_y = p->nodes_y;
+        }
+        if (st == SVP_OK)
+            st = svp_blur_new_field(padded, w + 2 * margin, h + 2 * margin, p->boundary,
+                                    p->n_regions > 0 ? &o : NULL, out);
     }
     svp_psf_field_free(field);
+    svp_psf_field_free(padded);
     if (st != SVP_OK) return svp_fail_context(st, "%s", p->where);
     return SVP_OK;
 }
 
-static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, svp_blur **out)
-{
-    const svp_scene *s = c->s;
-    if (p->n_regions > 0) return make_region_blur(c, p, w, h, out);
-    if (!p->from_file) return svp_blur_new(&p->psf, w, h, p->boundary, out);
-    svp_psf_field *field = NULL;
-    svp_status st = svp_psf_field_read(p->path, &field, NULL);
-    if (st != SVP_OK) return svp_fail_context(st, "%s", p->where);
-    if (svp_psf_field_width(field) == 0) {
-        svp_psf psf;
-        st = svp_psf_field_at(field, 0, 0, &psf);
-        if (st == SVP_OK) st = svp_blur_new(&psf, w, h, p->boundary, out);
-    } else {
-        st = svp_blur_new_field(field, w, h, p->boundary, NULL, out);
-    }
-    svp_psf_field_free(field);
-    (void)s;
-    return st;
-}
-
 static svp_status stage_operator(run_ctx *c)
 {
-    SVP_CHECK(make_blur(c, &c->s->psf, c->s->canvas_w, c->s->canvas_h, &c->blur));
+    SVP_CHECK(make_blur(c, &c->s->psf, c->s->canvas_w, c->s->canvas_h, 0, &c->blur));
     return value(c, svp_blur_is_variant(c->blur), "operator/variant");
 }
 
@@ -631,9 +649,10 @@ static void cube_baseline(const svp_cube *cube, svp_image *baseline)
     }
 }
 
-static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, int w, int h,
-                                 int *m);
-static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, svp_blur **out);
+static svp_status correct_margin(run_ctx *c, const scene_correct *cr, const scene_psf *psf,
+                                 int w, int h, int *m);
+static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, int margin,
+                            svp_blur **out);
 
 /* Correction j of method cube, component k: a copy of the view's cube deconvolved frame by
  * frame (svp_cube_deconvolve, RL with the correction's iterations, on the view plus its
@@ -651,7 +670,7 @@ static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
     const char *cn = scene_component_name(s->field_comp[k]);
     const double t0 = now_s();
     int m = 0;
-    SVP_CHECK(correct_margin(cr, psf, w, h, &m));
+    SVP_CHECK(correct_margin(c, cr, psf, w, h, &m));
     c->cube_margin[j] = m;
     svp_cube *copy = NULL;
     svp_blur *op = NULL;
@@ -659,7 +678,7 @@ static svp_status cube_correct(run_ctx *c, int j, int k, const svp_odmr *odmr,
     svp_status st = svp_cube_new(w, h, nf, view_cube->freq, &copy);
     for (int f = 0; f < nf && st == SVP_OK; f++)
         memcpy(copy->frame[f]->data, view_cube->frame[f]->data, n * sizeof(double));
-    if (st == SVP_OK) st = make_blur(c, psf, w + 2 * m, h + 2 * m, &op);
+    if (st == SVP_OK) st = make_blur(c, psf, w, h, m, &op);
     /* as `fit-odmr --psf`: one PSF's far tail on a coarse grid when cheaper */
     if (st == SVP_OK) st = svp_blur_set_tail(op, cr->tail_tol);
     svp_deconv_options o;
@@ -935,20 +954,24 @@ static svp_status stage_compare(run_ctx *c)
 
 /* The margin of correction `cr` in pixels: its own, or for `auto` the PSF's significant reach
  * (svp_psf_reach at 1 % of the peak, at most a quarter of the view's larger side, as `svpsf
- * correct --margin auto`) where it applies — one model PSF without a halo and the zero
- * boundary — else 0. */
-static svp_status correct_margin(const scene_correct *cr, const scene_psf *psf, int w, int h,
-                                 int *m)
+ * correct --margin auto`; a PSF map's widest, svp_psf_field_auto_margin) with the zero
+ * boundary, else 0; a map is carried onto the margin from its edge (make_blur). */
+static svp_status correct_margin(run_ctx *c, const scene_correct *cr, const scene_psf *psf,
+                                 int w, int h, int *m)
 {
-    const int one_psf = psf->n_regions == 0 && !psf->from_file;
     if (cr->margin_px >= 0) {
-        if (cr->margin_px > 0 && (!one_psf || psf->boundary != SVP_BOUNDARY_ZERO))
-            return svp_fail(SVP_ERR_INVALID,
-                            "%s: a margin needs one model PSF and the zero boundary", cr->where);
+        if (cr->margin_px > 0 && psf->boundary != SVP_BOUNDARY_ZERO)
+            return svp_fail(SVP_ERR_INVALID, "%s: a margin needs the zero boundary", cr->where);
         *m = cr->margin_px;
         return SVP_OK;
     }
-    *m = one_psf && psf->boundary == SVP_BOUNDARY_ZERO ? svp_psf_auto_margin(&psf->psf, w, h) : 0;
+    *m = 0;
+    if (psf->boundary != SVP_BOUNDARY_ZERO) return SVP_OK;
+    svp_psf_field *field = NULL;
+    svp_psf one;
+    SVP_CHECK(scene_field(c, psf, w, h, &field, &one));
+    *m = field ? svp_psf_field_auto_margin(field, w, h) : svp_psf_auto_margin(&one, w, h);
+    svp_psf_field_free(field);
     return SVP_OK;
 }
 
@@ -965,14 +988,14 @@ static svp_status stage_correct(run_ctx *c)
         return value(c, c->cube_seconds[k], "correct/%s/seconds", cr->name);
     }
     int m = 0;
-    SVP_CHECK(correct_margin(cr, psf, w, h, &m));
+    SVP_CHECK(correct_margin(c, cr, psf, w, h, &m));
     const double t0 = now_s(); /* the correction's time, its operator's build included */
     svp_blur *own = NULL, *blur = NULL;
     if (cr->has_psf || m > 0) {
-        SVP_CHECK(make_blur(c, psf, w + 2 * m, h + 2 * m, &own));
+        SVP_CHECK(make_blur(c, psf, w, h, m, &own));
         blur = own;
     } else {
-        if (!c->blur_view) SVP_CHECK(make_blur(c, &s->psf, w, h, &c->blur_view));
+        if (!c->blur_view) SVP_CHECK(make_blur(c, &s->psf, w, h, 0, &c->blur_view));
         blur = c->blur_view;
     }
     svp_correct_options o;
