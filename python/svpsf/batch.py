@@ -8,7 +8,9 @@ A DATASET is a folder holding the measured PL map `pl.EXT` and one or more field
 file `psf.yaml` (else --psf). A folder without `pl.*` stands for the dataset folders inside it;
 a `.txt` file lists dataset folders, one per line (relative to the list's folder, `#`
 comments). Each dataset is corrected with svpsf.correct (T⁻¹, eq. 4 of docs/model.md) — the
-same numbers as `svpsf correct` with the same options — into OUT/<name>/ (pl.npy, field*.npy,
+same numbers as `svpsf correct` with the same options, and with its defaults where none is given
+(the margin auto and, from 1024², single precision for r and rl-signed with one PSF, where the
+library's default is neither) — into OUT/<name>/ (pl.npy, field*.npy,
 validity.npy, summary.json), written into a temporary folder and renamed into place, so a
 dataset's folder is complete or absent. OUT/summary.csv and OUT/summary.json (one row per
 dataset: status, message, counts, seconds, worker) are written atomically at the end; a dataset
@@ -151,7 +153,7 @@ def correct_dataset(folder, out_root, psf=None, options=None, threads=1, fft="es
                 raise ValueError("size mismatch: field %s is %d x %d (width x height) but PL %s "
                                  "is %d x %d" % (f, a.shape[1], a.shape[0], pl_files[0],
                                                  pl.shape[1], pl.shape[0]))
-        opts = dict(options or {})
+        opts = _program_defaults(dict(options or {}), psf_path, pl.shape)
         res = svpsf.correct(pl, fields, psf_path, field_names=field_files, **opts)
         final = os.path.join(out_root, name)
         if os.path.exists(final) and not overwrite:
@@ -317,6 +319,27 @@ def _number(text, option, kind):
                                         else "a number or auto")) from None
 
 
+# `svpsf correct` takes single precision for r and rl-signed with one PSF from this many pixels
+SINGLE_FROM_PIXELS = 1024 * 1024
+
+
+def _program_defaults(opts, psf_path, shape):
+    """What `svpsf correct` takes where an option is not given and svpsf.correct's (the
+    library's) default differs (docs/cli.md): for r and rl-signed with one PSF (not a map) the
+    margin 'auto' (0 for a boundary other than zero) and, from 1024² pixels, single precision;
+    else margin 0 and double precision. So a batch gives `svpsf correct`'s numbers."""
+    import svpsf  # in the worker, as _correct_one
+
+    rl = opts.get("method") in (None, "r", "rl-signed")
+    one = not isinstance(svpsf.read_psf(psf_path).psf, svpsf.PSFMap)
+    if "margin" not in opts:
+        opts["margin"] = "auto" if rl and one else 0
+    if "precision" not in opts:
+        big = shape[0] * shape[1] >= SINGLE_FROM_PIXELS
+        opts["precision"] = "single" if rl and one and big else "double"
+    return opts
+
+
 def _options_from_args(a):
     opts = {}
     if a.method:
@@ -335,6 +358,8 @@ def _options_from_args(a):
         opts["keep_doubtful"] = True
     if a.precision:
         opts["precision"] = a.precision
+    if a.margin is not None:
+        opts["margin"] = a.margin if a.margin == "auto" else _number(a.margin, "--margin", int)
     return opts
 
 
@@ -353,7 +378,11 @@ def main(argv=None):
     p.add_argument("--iterations", help="Richardson-Lucy iterations or auto (default 75)")
     p.add_argument("--balance", help="Wiener-Hunt lambda or auto (default 0.001)")
     p.add_argument("--pl-floor", type=float)
-    p.add_argument("--precision", choices=("double", "single"))
+    p.add_argument("--precision", choices=("double", "single"),
+                   help="default as svpsf correct: single for r and rl-signed with one PSF "
+                   "from 1024x1024 pixels, else double")
+    p.add_argument("--margin", help="pixels per side or auto (default as svpsf correct: auto "
+                   "for r and rl-signed with one PSF, else 0)")
     p.add_argument("--boundary", choices=("zero", "mirror", "periodic"))
     p.add_argument("--keep-doubtful", action="store_true")
     p.add_argument("--dask", metavar="local:N|ADDRESS",

@@ -159,3 +159,34 @@ def test_two_field_files_of_one_name_fail_the_dataset(tmp_path):
     assert rows[0]["status"] == "failed", rows[0]
     assert "field_x.npy and field_x.txt are two field maps of one name" in rows[0]["message"]
     assert not (tmp_path / "out" / "d0").exists()
+
+
+def test_defaults_are_the_programs(cli, tmp_path):
+    # without options a dataset gets `svpsf correct`'s numbers: R with the margin auto (the
+    # library's default is none, which the batch took before), bit for bit with the same plans
+    # and thread count; --margin 0 gives the library's
+    root = tmp_path / "data"
+    d = root / "d0"
+    d.mkdir(parents=True)
+    pl, field = smooth_maps(48, 40, seed=3)
+    psf = svpsf.PSF("moffat", fwhm=5.0, beta=1.5)
+    a = svpsf.forward(pl, field, psf)
+    np.save(d / "pl.npy", a.pl)
+    np.save(d / "field.npy", a.fields)
+    (root / "psf.yaml").write_text("pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.5, "
+                                   "beta: 1.5}\n")
+    out = tmp_path / "out"
+    assert batch.main([str(d), "-o", str(out), "--psf", str(root / "psf.yaml")]) == 0
+    cli("correct", "--pl", d / "pl.npy", "--field", d / "field.npy", "--psf",
+        root / "psf.yaml", "-o", tmp_path / "prog", "--fft", "estimate", "--threads", "1",
+        "--format", "npy", "--quiet")
+    prog = json.load(open(tmp_path / "prog" / "summary.json"))["settings"]
+    assert prog["margin"] > 0
+    assert np.array_equal(np.load(out / "d0" / "field.npy"),
+                          np.load(tmp_path / "prog" / "field.npy"))
+    assert json.load(open(out / "d0" / "summary.json"))["options"]["margin"] == "auto"
+    assert batch.main([str(d), "-o", str(tmp_path / "out0"), "--psf", str(root / "psf.yaml"),
+                       "--margin", "0"]) == 0
+    ref = svpsf.correct(a.pl, a.fields, str(root / "psf.yaml"))  # the library's defaults
+    assert np.array_equal(np.load(tmp_path / "out0" / "d0" / "field.npy"), ref.fields)
+    assert not np.array_equal(ref.fields, np.load(out / "d0" / "field.npy"))
