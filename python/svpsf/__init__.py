@@ -622,9 +622,10 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
     'double' | 'single' (default double, where `svpsf correct` takes single for r and
-    rl-signed with one PSF from 1024² pixels); acceleration 'none' | 'biggs-andrews'; margin pixels per side or
-    'auto' (zero boundary; a PSFMap carries its edge PSFs onto it, PSFMap.pad; default 0,
-    where `svpsf correct` takes auto for r with one PSF: give it to match);
+    rl-signed with one PSF from 1024² pixels); acceleration 'none' | 'biggs-andrews'; margin
+    pixels per side or 'auto' (zero boundary; a PSFMap carries its edge PSFs onto it,
+    PSFMap.pad; default 0, where `svpsf correct` takes auto for r with one PSF: give it to
+    match);
     gain, offset of the PL's camera; field_sigma one σ map per field; operator_tol a PSF map's
     operator error budget (default 1e-2, as `svpsf correct`); regions=True one kernel per region
     of a map of kind regions (`--regions`); side_by_side=False keeps the deconvolutions in
@@ -710,9 +711,8 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     opt.summary = summary
     opt.reports = reports
     _check(lib.svp_correct_check_margin(opt.margin, w, h))  # as `--margin`
-    blur = _blur_for(_padded(psf, opt.margin), (h + 2 * opt.margin, w + 2 * opt.margin), boundary,
-                     nodes, rank,
-                     applications=_correct_applications(opt, len(fl)),
+    blur = _blur_for(_padded(psf, opt.margin), (h + 2 * opt.margin, w + 2 * opt.margin),
+                     boundary, nodes, rank, applications=_correct_applications(opt, len(fl)),
                      operator_tol=operator_tol, regions=regions, margin=opt.margin)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]

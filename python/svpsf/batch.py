@@ -328,7 +328,7 @@ def _program_defaults(opts, psf_path, shape):
     library's) default differs (docs/cli.md): for r and rl-signed with one PSF (not a map) the
     margin 'auto' (0 for a boundary other than zero) and, from 1024² pixels, single precision;
     else margin 0 and double precision. So a batch gives `svpsf correct`'s numbers."""
-    import svpsf  # in the worker, as _correct_one
+    import svpsf  # in the worker, as correct_dataset
 
     rl = opts.get("method") in (None, "r", "rl-signed")
     one = not isinstance(svpsf.read_psf(psf_path).psf, svpsf.PSFMap)
