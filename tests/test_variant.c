@@ -2129,7 +2129,7 @@ static void test_field_pad_correct(void **state)
     svp_variant_options vo = tent_options(2);
     ASSERT_OK(svp_blur_new_field(p, RT_W + 2 * M, RT_H + 2 * M, SVP_BOUNDARY_ZERO, &vo, &op));
     ASSERT_OK(svp_blur_new(&one, RT_W + 2 * M, RT_H + 2 * M, SVP_BOUNDARY_ZERO, &single));
-    svp_image *pl = NULL, *b = NULL, *pla = NULL, *ba = NULL;
+    svp_image *pl = NULL, *b = NULL;
     ASSERT_OK(svp_image_new(RT_W, RT_H, &pl));
     ASSERT_OK(svp_image_new(RT_W, RT_H, &b));
     stripe_scene(pl, b, 0.2);
@@ -2162,8 +2162,6 @@ static void test_field_pad_correct(void **state)
     svp_image_free(val);
     svp_image_free(pl);
     svp_image_free(b);
-    svp_image_free(pla);
-    svp_image_free(ba);
     svp_blur_free(op);
     svp_blur_free(single);
     svp_psf_field_free(p);

@@ -452,7 +452,8 @@ static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, int ma
     if (st == SVP_OK && !field) {
         st = svp_blur_new(&one, w + 2 * margin, h + 2 * margin, p->boundary, out);
     } else if (st == SVP_OK) {
-        st = svp_psf_field_pad(field, margin, &padded);
+        /* the view's map as it is without a margin (no copy, no second blend) */
+        if (margin > 0) st = svp_psf_field_pad(field, margin, &padded);
         svp_variant_options o;
         svp_variant_defaults(&o);
         if (p->n_regions > 0) {
@@ -461,8 +462,8 @@ static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, int ma
             o.grid_y = p->nodes_y;
         }
         if (st == SVP_OK)
-            st = svp_blur_new_field(padded, w + 2 * margin, h + 2 * margin, p->boundary,
-                                    p->n_regions > 0 ? &o : NULL, out);
+            st = svp_blur_new_field(padded ? padded : field, w + 2 * margin, h + 2 * margin,
+                                    p->boundary, p->n_regions > 0 ? &o : NULL, out);
     }
     svp_psf_field_free(field);
     svp_psf_field_free(padded);
@@ -651,9 +652,6 @@ static void cube_baseline(const svp_cube *cube, svp_image *baseline)
 
 static svp_status correct_margin(run_ctx *c, const scene_correct *cr, const scene_psf *psf,
                                  int w, int h, int *m);
-static svp_status make_blur(run_ctx *c, const scene_psf *p, int w, int h, int margin,
-                            svp_blur **out);
-
 /* Correction j of method cube, component k: a copy of the view's cube deconvolved frame by
  * frame (svp_cube_deconvolve, RL with the correction's iterations, on the view plus its
  * margin, the assumed PSF if it has one), then estimated as the apparent map was: the maps
