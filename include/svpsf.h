@@ -170,7 +170,10 @@ typedef struct svp_mat_info {
     char variable[64];  /* the variable read */
     int n_variables;    /* variables in the file */
     double pixel_um;    /* from the file's `step` (QDMlab: metres; a value >= 1e-3 is taken as
-                           micrometres), 0 when the file has none */
+                           micrometres): one number, or two equal ones ([dx dy] of square
+                           pixels); 0 when the file has none */
+    int step_elements;  /* elements of the file's `step` variable, 0 when it has none: with
+                           pixel_um 0 it says why the size was not taken (not 1 or 2 equal) */
     double standoff_um; /* from the file's `h` (metres), 0 when the file has none */
 } svp_mat_info;
 /* Reads one real numeric 2-D variable (double, single, any integer class, logical) as an image:

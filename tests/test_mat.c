@@ -222,7 +222,32 @@ static void test_bz_file(void **state)
     ASSERT_OK(svp_mat_read(um, NULL, &img, &info));
     assert_true(info.pixel_um == 4.68);
     assert_true(info.standoff_um == 0);
+    assert_int_equal(info.step_elements, 1);
     svp_image_free(img);
+
+    /* `step` as [dx dy]: square pixels give the size, others none, and step_elements says why;
+     * the map is read either way */
+    const double pairs[3][3] = {{4.7e-6, 4.7e-6, 1}, {4.7e-6, 5.2e-6, 2}, {4.7e-6, 4.7e-6, 3}};
+    for (int k = 0; k < 3; k++) {
+        const char *pp = tpath("Bz_step_pair.mat");
+        remove(pp);
+        mat = create(pp);
+        add_var(mat, "Bz", MAT_C_DOUBLE, 2, 3, 4, 1, 0, 0, MAT_COMPRESSION_NONE);
+        double values[3] = {pairs[k][0], pairs[k][1], pairs[k][1]};
+        size_t dims[2] = {1, k == 2 ? 3 : 2};
+        matvar_t *v = Mat_VarCreate("step", MAT_C_DOUBLE, MAT_T_DOUBLE, 2, dims, values, 0);
+        assert_int_equal(Mat_VarWrite(mat, v, MAT_COMPRESSION_NONE), 0);
+        Mat_VarFree(v);
+        Mat_Close(mat);
+        ASSERT_OK(svp_mat_read(pp, NULL, &img, &info));
+        assert_frame(img, 3, 4, 0, 0, 1);
+        assert_int_equal(info.step_elements, k == 2 ? 3 : 2);
+        if (k == 0)
+            ASSERT_CLOSE(info.pixel_um, 4.7, 1e-12);
+        else
+            assert_true(info.pixel_um == 0);
+        svp_image_free(img);
+    }
 }
 
 /* B111dataToPlot.mat as QDMlab's get_B111 saves it ('-struct': one variable per field). */

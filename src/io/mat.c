@@ -646,20 +646,26 @@ static const char *not_numeric(const var_info *v)
 static int is_numeric_real(const var_info *v) { return !not_numeric(v) && v->dims_ok; }
 
 /* Reads a numeric real scalar variable into *value. */
-static svp_status read_scalar(mat_file *f, const char *name, double *value)
+/* The first n elements of variable name (which holds at least n). */
+static svp_status read_elements(mat_file *f, const char *name, double *values, size_t n)
 {
     matio_begin();
     char why[300];
     matvar_t *m = Mat_VarRead(f->mat, name);
     if (!m || !m->data || m->isComplex || !class_bytes(m->class_type) ||
-        m->nbytes < class_bytes(m->class_type)) {
+        m->nbytes < n * class_bytes(m->class_type)) {
         if (m) Mat_VarFree(m);
         return svp_fail(SVP_ERR_FORMAT, "%s: variable %s cannot be read%s", f->path, name,
                         matio_reason(why, sizeof why));
     }
-    *value = element(m->data, m->class_type, 0);
+    for (size_t i = 0; i < n; i++) values[i] = element(m->data, m->class_type, i);
     Mat_VarFree(m);
     return SVP_OK;
+}
+
+static svp_status read_scalar(mat_file *f, const char *name, double *value)
+{
+    return read_elements(f, name, value, 1);
 }
 
 /* The optional scalar `name`: *present = 0 when absent or not a real numeric scalar. */
@@ -679,6 +685,17 @@ static svp_status read_geometry(mat_file *f, svp_mat_info *info)
     double value;
     int present;
     SVP_CHECK(optional_scalar(f, "step", &value, &present));
+    const var_info *step = find_var(f, "step");
+    if (step) info->step_elements = step->n > INT_MAX ? INT_MAX : (int)step->n;
+    if (!present && step && is_numeric_real(step) && step->n == 2) {
+        /* [dx dy]: square pixels are one pixel size, others none (svpsf's pixels are square) */
+        double pair[2];
+        SVP_CHECK(read_elements(f, "step", pair, 2));
+        if (pair[0] == pair[1]) {
+            value = pair[0];
+            present = 1;
+        }
+    }
     if (present) {
         if (!isfinite(value) || value <= 0)
             return svp_fail(SVP_ERR_FORMAT, "%s: step = %g is not a pixel size (expected > 0)",
@@ -838,7 +855,8 @@ svp_status svp_io_mat_read(const char *file, const char *var, int stack, svp_ima
         const var_info *want[5] = {v, NULL, NULL, NULL, NULL};
         for (int i = 0; i < 4; i++) {
             const var_info *x = find_var(&f, extras[i]);
-            if (x && x != v && is_numeric_real(x) && x->n == 1) want[1 + i] = x;
+            if (x && x != v && is_numeric_real(x) && (x->n == 1 || (i == 0 && x->n == 2)))
+                want[1 + i] = x; /* scalars, and `step` as [dx dy] */
         }
         if ((st = extract_vars(&f, want, 5)) != SVP_OK) goto done;
     }

@@ -56,6 +56,14 @@ static int qdm(const char *dir, int w, int h)
              put(mat, "corners", corners, 2, 2) ||
              put(mat, "newLED", led->data, (size_t)h, (size_t)w);
     Mat_Close(mat);
+    /* `step` as [dx dy] of pixels that are not square: no pixel size for svpsf */
+    snprintf(path, sizeof path, "%s/Bz_steps.mat", dir);
+    mat = Mat_CreateVer(path, NULL, MAT_FT_MAT5);
+    if (!mat) return 1;
+    double steps[2] = {4.7e-6, 5.1e-6};
+    rc = rc || put(mat, "Bz", bz->data, (size_t)h, (size_t)w) || put(mat, "h", &h_m, 1, 1) ||
+         put(mat, "step", steps, 1, 2);
+    Mat_Close(mat);
     snprintf(path, sizeof path, "%s/B111dataToPlot.mat", dir);
     mat = Mat_CreateVer(path, NULL, MAT_FT_MAT5);
     if (!mat) return 1;

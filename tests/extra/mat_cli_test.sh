@@ -104,6 +104,12 @@ run 0 reconstruct --quantity magnetisation --bz Bz.npy --pixel-um 4.7 --standoff
 same rec/m_z.npy recn/m_z.npy
 run 1 reconstruct --quantity magnetisation --bz B111dataToPlot.mat -o rec2
 expect_in err '--pixel-um is required (the map file holds no pixel size)'
+run 1 reconstruct --quantity magnetisation --bz Bz_steps.mat -o rec3
+expect_in err '--pixel-um is required: Bz_steps.mat holds `step` with 2 elements, not one pixel size (one number, or \[dx dy\] of square pixels)'
+[ -e rec3 ] && fail "rec3 was created by a refused run"
+run 0 reconstruct --quantity magnetisation --bz Bz_steps.mat --pixel-um 4.7 -o rec3 \
+    --format npy --quiet
+same rec/m_z.npy rec3/m_z.npy
 
 # 5. refusals: exit 1, the file and the fault named, nothing written
 run 1 correct --field Bz_uc0.mat:nope --pl led.npy $common -o bad1

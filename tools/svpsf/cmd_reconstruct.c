@@ -170,6 +170,8 @@ static int reconstruct_check_maps(const cli_run *run, const struct reconstruct_a
  * options are not given (docs/cli.md, MATLAB / QDMlab files). */
 static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a)
 {
+    const char *odd_step = NULL; /* a file whose `step` is not one pixel size */
+    int odd_n = 0;
     for (int k = 0; k < 3 && !(a->pixel_um > 0 && a->standoff_nm > 0); k++) {
         char mfile[PATH_MAX], mvar[64];
         int bad = 0;
@@ -182,8 +184,17 @@ static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a)
         svp_image_free(tmp);
         if (st != SVP_OK) return cli_fail(run, st, a->paths[k]);
         if (!(a->pixel_um > 0) && info.pixel_um > 0) a->pixel_um = info.pixel_um;
+        if (info.step_elements > 0 && !(info.pixel_um > 0) && !odd_step) {
+            odd_step = a->paths[k];
+            odd_n = info.step_elements;
+        }
         if (!(a->standoff_nm > 0) && info.standoff_um > 0) a->standoff_nm = info.standoff_um * 1e3;
     }
+    if (!(a->pixel_um > 0) && odd_step)
+        return cli_error(run,
+                         "--pixel-um is required: %s holds `step` with %d elements, not one "
+                         "pixel size (one number, or [dx dy] of square pixels)",
+                         odd_step, odd_n);
     return 0;
 }
 
