@@ -128,6 +128,7 @@ def one_run(svpsf, data, label, extra, threads, wisdom):
     masks = np.load(os.path.join(data, "masks.npz"))
     for key in ("dark", "lit", "edge", "interior"):
         res[key] = foreign.rel_rms(b, truth, masks[key])
+    res.update(dark_split(b, truth, masks))
     with open(os.path.join(out, "summary.json")) as f:
         s = json.load(f)
     r = s.get("results", {})
@@ -151,12 +152,40 @@ def make_dataset(data, scene, size, counts, fwhm_err, beta_err, extra=()):
     return data
 
 
+STRIP_BAND_PX = 2
+
+
+def strip_band(wire):
+    """The pixels within STRIP_BAND_PX of the current strip's edges (its first and last pixels
+    across it), where the field at 50 nm stand-off peaks within a pixel."""
+    edge = wire & ~(np.roll(wire, 1, axis=1) & np.roll(wire, -1, axis=1))
+    edge |= ~wire & (np.roll(wire, 1, axis=1) | np.roll(wire, -1, axis=1))
+    band = edge.copy()
+    for k in range(1, STRIP_BAND_PX + 1):
+        band |= np.roll(edge, k, axis=1) | np.roll(edge, -k, axis=1)
+    return band
+
+
+def dark_split(b, truth, masks):
+    """Where a field b's dark-region error is: the share of its squared error within the strip
+    band, the band's dark pixels, and the relative rms error over the dark pixels off it."""
+    dark = masks["dark"] & np.isfinite(b)
+    band = strip_band(masks["wire"])
+    e2 = (b - truth) ** 2
+    total = e2[dark].sum()
+    return {"dark_band_share": float(e2[dark & band].sum() / total) if total > 0 else 0.0,
+            "dark_band_px": int((dark & band).sum()), "dark_px": int(dark.sum()),
+            "dark_off_band": foreign.rel_rms(b, truth, masks["dark"] & ~band)}
+
+
 def uncorrected(data):
     b = np.load(os.path.join(data, "field.npy"))
     truth = np.load(os.path.join(data, "truth_field.npy"))
     masks = np.load(os.path.join(data, "masks.npz"))
-    return {key: foreign.rel_rms(b, truth, masks[key]) for key in ("dark", "lit", "edge",
-                                                                   "interior")}
+    res = {key: foreign.rel_rms(b, truth, masks[key]) for key in ("dark", "lit", "edge",
+                                                                  "interior")}
+    res.update(dark_split(b, truth, masks))
+    return res
 
 
 def fmt(x, spec=".3f"):
@@ -210,6 +239,7 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
         for r in runs:
             if r["label"] == "default":
                 r["label"] = name
+                r["is_default"] = True
     labels = []
     for r in runs:
         if r["label"] not in labels:
@@ -288,6 +318,24 @@ def render(runs, skipped, quick, commit, size, threads, camera=None, title=TITLE
              f"within {TIE} of the best), slower than the winner.\n"
              if any(is_default(c[0]) for c in near) else
              "`svpsf correct`'s defaults in the program measured are not.\n"))
+    split = [r for r in runs if (r.get("is_default") or r["label"] == "default") and r["exit"] == 0
+             and "dark_band_share" in r and "dark_band_share" in r["uncorrected"]]
+    if split:
+        w("## Where the default's dark error is\n")
+        w(f"The share of the default's squared dark-region error in the dark pixels within "
+          f"{STRIP_BAND_PX} px of the current strip's edges (where the field at 50 nm stand-off "
+          "peaks within a pixel, so a correction must restore it to the pixel), and the dark "
+          "ratio to uncorrected off that band.\n")
+        w("| dataset | dark ratio | band pixels / dark pixels | share of the error in the band, "
+          "default / uncorrected | dark ratio off the band |")
+        w("|---|---|---|---|---|")
+        for r in split:
+            u = r["uncorrected"]
+            w(f"| {r['scene']}, {r['counts']:g} photons, PSF "
+              f"{'off' if r['psf_err'] else 'right'} | {r['dark'] / u['dark']:.2f} | "
+              f"{r['dark_band_px']} / {r['dark_px']} | {r['dark_band_share']:.2f} / "
+              f"{u['dark_band_share']:.2f} | {r['dark_off_band'] / u['dark_off_band']:.2f} |")
+        w("")
     if sens:
         w("## Which PSF error matters: FWHM or β\n")
         w("The same scenes at 10⁴ photons with the PSF file wrong in one parameter at a time "
