@@ -645,7 +645,6 @@ static const char *not_numeric(const var_info *v)
 
 static int is_numeric_real(const var_info *v) { return !not_numeric(v) && v->dims_ok; }
 
-/* Reads a numeric real scalar variable into *value. */
 /* The first n elements of variable name (which holds at least n). */
 static svp_status read_elements(mat_file *f, const char *name, double *values, size_t n)
 {
@@ -663,6 +662,7 @@ static svp_status read_elements(mat_file *f, const char *name, double *values, s
     return SVP_OK;
 }
 
+/* Reads a numeric real scalar variable into *value. */
 static svp_status read_scalar(mat_file *f, const char *name, double *value)
 {
     return read_elements(f, name, value, 1);

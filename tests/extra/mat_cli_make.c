@@ -64,6 +64,19 @@ static int qdm(const char *dir, int w, int h)
     rc = rc || put(mat, "Bz", bz->data, (size_t)h, (size_t)w) || put(mat, "h", &h_m, 1, 1) ||
          put(mat, "step", steps, 1, 2);
     Mat_Close(mat);
+    /* `step` as text: no pixel size either */
+    snprintf(path, sizeof path, "%s/Bz_stepchar.mat", dir);
+    mat = Mat_CreateVer(path, NULL, MAT_FT_MAT5);
+    if (!mat) return 1;
+    rc = rc || put(mat, "Bz", bz->data, (size_t)h, (size_t)w);
+    {
+        char text[1] = {'x'};
+        size_t dims[2] = {1, 1};
+        matvar_t *v = Mat_VarCreate("step", MAT_C_CHAR, MAT_T_UINT8, 2, dims, text, 0);
+        rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_NONE) != 0;
+        if (v) Mat_VarFree(v);
+    }
+    Mat_Close(mat);
     snprintf(path, sizeof path, "%s/B111dataToPlot.mat", dir);
     mat = Mat_CreateVer(path, NULL, MAT_FT_MAT5);
     if (!mat) return 1;

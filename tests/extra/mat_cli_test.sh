@@ -110,6 +110,9 @@ expect_in err '--pixel-um is required: Bz_steps.mat holds `step` with 2 elements
 run 0 reconstruct --quantity magnetisation --bz Bz_steps.mat --pixel-um 4.7 -o rec3 \
     --format npy --quiet
 same rec/m_z.npy rec3/m_z.npy
+run 1 reconstruct --quantity magnetisation --bz Bz_stepchar.mat --standoff-nm 5000 -o rec4
+expect_in err '--pixel-um is required: Bz_stepchar.mat holds `step`, but not as a real number'
+[ -e rec4 ] && fail "rec4 was created by a refused run"
 
 # 5. refusals: exit 1, the file and the fault named, nothing written
 run 1 correct --field Bz_uc0.mat:nope --pl led.npy $common -o bad1

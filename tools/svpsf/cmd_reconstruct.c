@@ -190,6 +190,9 @@ static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a)
         }
         if (!(a->standoff_nm > 0) && info.standoff_um > 0) a->standoff_nm = info.standoff_um * 1e3;
     }
+    if (!(a->pixel_um > 0) && odd_step && odd_n == 1)
+        return cli_error(run, "--pixel-um is required: %s holds `step`, but not as a real number",
+                         odd_step);
     if (!(a->pixel_um > 0) && odd_step)
         return cli_error(run,
                          "--pixel-um is required: %s holds `step` with %d elements, not one "
