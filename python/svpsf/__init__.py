@@ -20,7 +20,7 @@ __all__ = [
     "Error", "DoubtfulError", "version", "fftw_version", "set_threads", "get_threads",
     "set_fft_effort", "wisdom_load", "wisdom_save", "read_image", "write_image", "PSF", "PSFMap",
     "read_psf", "Blur", "forward", "correct", "deconvolve", "fit_psf", "map_psf", "fit_odmr",
-    "read_stack", "OdmrFit",
+    "read_stack", "read_mat", "OdmrFit",
     "SpotFit", "LIBRARY", "HEADER",
 ]
 
@@ -159,6 +159,28 @@ def read_image(path):
     out = ffi.new("svp_image **")
     _check(lib.svp_image_read(_path(path), out))
     return _owned_array(out[0])
+
+
+def read_mat(path, variable=None):
+    """Reads one 2-D variable of a MATLAB v5/v7 .mat file as svpsf reads it (svp_mat_read;
+    docs/cli.md, MATLAB / QDMlab files): by default the first of Bz, B111ferro, B111para, else
+    the only 2-D numeric array. MATLAB's element (r, c) is the array's [r, c]. Returns (array,
+    info), info a dict: `variable` (the one read), `n_variables`, `pixel_um` (from the file's
+    `step`: one number or [dx dy] of square pixels, QDMlab's metres converted; 0 without one),
+    `step_elements` (how many values `step` holds, 0 without one) and `standoff_um` (from `h`,
+    0 without one)."""
+    out = ffi.new("svp_image **")
+    info = ffi.new("svp_mat_info *")
+    name = ffi.NULL
+    if variable is not None:
+        name = str(variable).encode("utf-8")
+        if b"\0" in name:
+            raise ValueError("variable %r: embedded null byte" % (variable,))
+    _check(lib.svp_mat_read(_path(path), name, out, info))
+    return _owned_array(out[0]), {
+        "variable": ffi.string(info.variable).decode("utf-8", "replace"),
+        "n_variables": int(info.n_variables), "pixel_um": float(info.pixel_um),
+        "step_elements": int(info.step_elements), "standoff_um": float(info.standoff_um)}
 
 
 _FORMATS = {"auto": 0, "tif": 1, "tiff": 1, "npy": 2, "txt": 3, "png": 4, "mat": 5}

@@ -752,6 +752,35 @@ def test_read_image_is_the_librarys_buffer(tmp_path, maps):
         svpsf.write_image(tmp_path / "back.tif", a, format="mat")
 
 
+def test_read_mat(tmp_path, maps):
+    """QDMlab-like files written by scipy: the default variable, a named one, the pixel size
+    from `step` (metres, a scalar or [dx dy] of square pixels), the stand-off from `h`."""
+    try:
+        import scipy.io
+    except ImportError:
+        print("scipy is not installed (Debian python3-scipy): read_mat not checked")
+        return
+    pl, field = maps
+    scipy.io.savemat(tmp_path / "Bz_uc0.mat", {"Bz": field, "newLED": pl, "h": 5e-6,
+                                                "step": 4.7e-6})
+    a, info = svpsf.read_mat(tmp_path / "Bz_uc0.mat")
+    assert np.array_equal(a, field) and np.array_equal(a, svpsf.read_image(tmp_path /
+                                                                           "Bz_uc0.mat"))
+    assert info == {"variable": "Bz", "n_variables": 4, "pixel_um": pytest.approx(4.7),
+                    "step_elements": 1, "standoff_um": pytest.approx(5.0)}
+    a, info = svpsf.read_mat(tmp_path / "Bz_uc0.mat", "newLED")
+    assert np.array_equal(a, pl) and info["variable"] == "newLED"
+    for step, want in (([4.7e-6, 4.7e-6], 4.7), ([4.7e-6, 5.2e-6], 0.0)):
+        scipy.io.savemat(tmp_path / "pair.mat", {"B111ferro": field, "step": np.array([step])})
+        a, info = svpsf.read_mat(tmp_path / "pair.mat")
+        assert info["variable"] == "B111ferro" and info["step_elements"] == 2
+        assert info["pixel_um"] == pytest.approx(want) and info["standoff_um"] == 0
+    with pytest.raises(svpsf.Error, match=r"no variable 'nope' \(the file holds: Bz"):
+        svpsf.read_mat(tmp_path / "Bz_uc0.mat", "nope")
+    with pytest.raises(ValueError, match="null byte"):
+        svpsf.read_mat(tmp_path / "Bz_uc0.mat", "B\0z")
+
+
 def test_blur_adjoint_and_out(maps):
     pl, field = maps
     for psf in (svpsf.PSF("moffat", fwhm=4.0, beta=1.2, halo=0.05),
