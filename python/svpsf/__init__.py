@@ -20,7 +20,7 @@ __all__ = [
     "Error", "DoubtfulError", "version", "fftw_version", "set_threads", "get_threads",
     "set_fft_effort", "wisdom_load", "wisdom_save", "read_image", "write_image", "PSF", "PSFMap",
     "read_psf", "Blur", "forward", "correct", "deconvolve", "fit_psf", "map_psf", "fit_odmr",
-    "read_stack", "read_mat", "OdmrFit",
+    "read_stack", "read_mat", "write_mat", "OdmrFit",
     "SpotFit", "LIBRARY", "HEADER",
 ]
 
@@ -181,6 +181,27 @@ def read_mat(path, variable=None):
         "variable": ffi.string(info.variable).decode("utf-8", "replace"),
         "n_variables": int(info.n_variables), "pixel_um": float(info.pixel_um),
         "step_elements": int(info.step_elements), "standoff_um": float(info.standoff_um)}
+
+
+def write_mat(path, maps, pixel_um=0.0, overwrite=False):
+    """Writes maps, a dict {MATLAB name: 2-D array}, as double variables of one MATLAB v7 .mat
+    file (svp_mat_write; the array's [r, c] is MATLAB's element (r, c)), with pixel_um > 0 also
+    the scalar `step` in metres as QDMlab writes it, so that read_mat and `svpsf reconstruct`
+    take the pixel size from the file. Atomic; an existing file is an error unless overwrite.
+    Names: a letter, then letters, digits or '_', at most 63, distinct (the library checks)."""
+    if not maps:
+        raise ValueError("write_mat: no maps to write")
+    imgs = _Images()
+    names, views = [], []
+    for name, image in maps.items():
+        b = str(name).encode("utf-8")
+        if b"\0" in b:
+            raise ValueError("variable %r: embedded null byte" % (name,))
+        names.append(ffi.new("char[]", b))
+        views.append(imgs.view(_input(image, str(name))))
+    c_names = ffi.new("const char *[]", names)
+    _check(lib.svp_mat_write(_path(path), len(names), c_names, imgs.array(views),
+                             float(pixel_um), int(bool(overwrite))))
 
 
 _FORMATS = {"auto": 0, "tif": 1, "tiff": 1, "npy": 2, "txt": 3, "png": 4, "mat": 5}

@@ -777,6 +777,24 @@ def test_read_mat(tmp_path, maps):
         assert info["pixel_um"] == pytest.approx(want) and info["standoff_um"] == 0
     with pytest.raises(svpsf.Error, match=r"no variable 'nope' \(the file holds: Bz"):
         svpsf.read_mat(tmp_path / "Bz_uc0.mat", "nope")
+    # write_mat: two maps and the pixel size, read back here and by scipy; no overwrite
+    svpsf.write_mat(tmp_path / "out.mat", {"Bz": field, "pl": pl[:, :5]}, pixel_um=4.7)
+    a, info = svpsf.read_mat(tmp_path / "out.mat")
+    assert np.array_equal(a, field) and info["pixel_um"] == pytest.approx(4.7)
+    assert info["n_variables"] == 3 and info["standoff_um"] == 0
+    assert np.array_equal(svpsf.read_mat(tmp_path / "out.mat", "pl")[0], pl[:, :5])
+    m = scipy.io.loadmat(tmp_path / "out.mat")
+    assert np.array_equal(m["Bz"], field) and m["step"][0, 0] == pytest.approx(4.7e-6)
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.write_mat(tmp_path / "out.mat", {"Bz": field})
+    assert e.value.reason == "output exists"
+    svpsf.write_mat(tmp_path / "out.mat", {"Bz": pl}, overwrite=True)
+    assert np.array_equal(svpsf.read_mat(tmp_path / "out.mat")[0], pl)
+    with pytest.raises(svpsf.Error, match="1x"):
+        svpsf.write_mat(tmp_path / "bad.mat", {"1x": pl})
+    with pytest.raises(ValueError, match="no maps"):
+        svpsf.write_mat(tmp_path / "bad.mat", {})
+    assert not (tmp_path / "bad.mat").exists()
     with pytest.raises(ValueError, match="null byte"):
         svpsf.read_mat(tmp_path / "Bz_uc0.mat", "B\0z")
 
