@@ -55,6 +55,17 @@ run 0 correct --field B111dataToPlot.mat:B111ferro --field B111dataToPlot.mat:B1
 [ -s outb/field_B111dataToPlot_B111ferro.npy ] && [ -s outb/field_B111dataToPlot_B111para.npy ] ||
     { fail "outb: field_<file>_<VAR> outputs missing"; ls outb; }
 
+# a file's `step` against the PSF file's pixel size: another scale is refused, naming both
+sed 's/pixel_um: 4.7/pixel_um: 0.47/' psf.yaml >psf_small.yaml
+run 1 correct --field Bz_uc0.mat --pl led.npy --psf psf_small.yaml -o outs --quiet
+expect_in err 'field Bz_uc0.mat holds `step` = 4.7 um (its pixel size), but the PSF file psf_small.yaml is for pixels of 0.47 um'
+[ -e outs ] && fail "outs was created by a refused run"
+run 1 deconvolve Bz_uc0.mat:newLED --psf psf_small.yaml --method rl -o outs.npy --quiet
+expect_in err 'image Bz_uc0.mat:newLED holds `step` = 4.7 um'
+[ -e outs.npy ] && fail "outs.npy was created by a refused run"
+sed 's/pixel_um: 4.7/pixel_um: 4.72/' psf.yaml >psf_near.yaml # within 1 %: taken
+run 0 correct --field Bz_uc0.mat --pl led.npy --psf psf_near.yaml -o outnear --quiet --format npy
+
 # 2. --format mat: one variable per file, named after it, the same values as the .npy run
 run 0 correct --field Bz_uc0.mat --pl Bz_uc0.mat:newLED $common -o outmat --format mat
 for m in field pl validity; do same "outmat/$m.mat" "outn/$m.npy"; done

@@ -38,6 +38,7 @@ struct cli_input {
     int width, height; /* 0 when not an image */
     long long bytes;   /* file size, -1 when unknown */
     long long n_nonfinite;
+    double pixel_um; /* a MATLAB file's `step`, 0 otherwise */
 };
 
 struct cli_output {
@@ -577,15 +578,38 @@ void cli_record_input(cli_run *run, const char *role, const char *path, int widt
     in->height = height;
     in->bytes = file_size(path);
     in->n_nonfinite = 0;
+    in->pixel_um = 0;
 }
 
 int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out)
 {
     *out = NULL;
-    svp_status st = svp_image_read(path, out);
+    /* a MATLAB file (FILE.mat[:VAR]) through svp_mat_read, which also says its pixel size */
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    svp_mat_info info;
+    memset(&info, 0, sizeof info);
+    const int mat = svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && !bad;
+    svp_status st = mat ? svp_mat_read(path, NULL, out, &info) : svp_image_read(path, out);
     if (st != SVP_OK) return cli_fail(run, st, path);
     cli_record_input(run, role, path, (*out)->width, (*out)->height);
     run->inputs[run->n_inputs - 1].n_nonfinite = (long long)svp_image_count_nonfinite(*out);
+    run->inputs[run->n_inputs - 1].pixel_um = info.pixel_um;
+    return 0;
+}
+
+int cli_check_input_pixels(cli_run *run, double psf_pixel_um, const char *psf_path)
+{
+    if (!(psf_pixel_um > 0)) return 0;
+    for (int i = 0; i < run->n_inputs; i++) {
+        const cli_input *in = &run->inputs[i];
+        if (in->pixel_um > 0 && fabs(in->pixel_um / psf_pixel_um - 1) > CLI_PIXEL_AGREE)
+            return cli_error(run,
+                             "%s %s holds `step` = %g um (its pixel size), but the PSF file %s "
+                             "is for pixels of %g um: the PSF would be applied at the wrong "
+                             "scale (give a PSF file for the map's pixels)",
+                             in->role, in->path, in->pixel_um, psf_path, psf_pixel_um);
+    }
     return 0;
 }
 
@@ -1745,6 +1769,7 @@ int cli_maps_open(cli_run *run, cli_maps *maps, cli_psf *psf)
         cli_note(run, "--nodes / --rank / --regions ignored: %s is a single PSF, not a space-variant map",
                  psf_path);
     if ((code = cli_maps_read(run, maps))) return code;
+    if ((code = cli_check_input_pixels(run, psf->pixel_um, psf_path))) return code;
     if (!maps->boundary_given && psf->has_boundary) maps->boundary = psf->boundary;
     if ((code = cli_maps_plan(run, maps))) return code;
     if ((code = cli_psf_check(run, psf, maps->pl->width, maps->pl->height))) return code;

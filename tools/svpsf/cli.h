@@ -236,6 +236,11 @@ extern const char *const cli_precision_names[];
 /* Reads an image (svp_image_read) and records it as an input with `role` ("pl", "field").
  * On failure prints the message (it names the file) and returns the exit code; 0 on success. */
 int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out);
+/* A MATLAB input whose `step` (its pixel size, recorded by cli_read_image) differs from the PSF
+ * file's pixel size by more than CLI_PIXEL_AGREE: an error naming both (the PSF would act at the
+ * wrong scale). Nothing to check without a PSF pixel size (a kernel image) or a `step`. */
+#define CLI_PIXEL_AGREE 0.01
+int cli_check_input_pixels(cli_run *run, double psf_pixel_um, const char *psf_path);
 /* Records a non-image input (a YAML file) for the summary. */
 void cli_record_input(cli_run *run, const char *role, const char *path, int width, int height);
 /* "size mismatch: ROLE_A PATH_A is W x H but ROLE_B PATH_B is W x H" → exit 1; 0 if equal. */

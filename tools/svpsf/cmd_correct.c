@@ -306,7 +306,7 @@ static int correct_read_sigma(cli_run *run, struct correct_args *a, struct corre
                                  s->data[k], k % (size_t)w, k / (size_t)w);
     }
     if (n_sigma) a->opt.field_sigma = (const svp_image *const *)job->field_sigma;
-    return 0;
+    return cli_check_input_pixels(run, job->psf.pixel_um, maps->psf_path);
 }
 
 /* The maps, the PSF and the field sigmas; --margin decided; the settings recorded. */

@@ -194,6 +194,7 @@ static int deconvolve_read(cli_run *run, const struct deconvolve_args *a,
     cli_stage_begin(run, "read");
     if ((code = cli_psf_load(run, a->psf_path, &job->psf))) return code;
     if ((code = cli_read_image(run, "image", a->in_path, &job->in))) return code;
+    if ((code = cli_check_input_pixels(run, job->psf.pixel_um, a->psf_path))) return code;
     job->boundary = a->boundary;
     if (!a->boundary_given && job->psf.has_boundary) job->boundary = job->psf.boundary;
     cli_output_file(run, "image", a->out_path);
