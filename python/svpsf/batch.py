@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-IMAGE_EXTENSIONS = (".tif", ".tiff", ".npy", ".txt", ".csv", ".dat", ".png")
+IMAGE_EXTENSIONS = (".tif", ".tiff", ".npy", ".txt", ".csv", ".dat", ".png", ".mat")
 SUMMARY_COLUMNS = ("dataset", "status", "message", "n_fields", "width", "height", "n_missing",
                    "n_flagged", "n_invalid", "doubts", "seconds", "worker", "path")
 
@@ -52,6 +52,25 @@ def _image_files(folder, stem_prefix):
                                                 stem.startswith(stem_prefix + "_")):
             out.append(os.path.join(folder, name))
     return out
+
+
+def _check_mat_pixels(files, psf_path):
+    """As `svpsf correct`: a MATLAB input whose `step` (its pixel size) differs from the PSF
+    file's pixel size by more than 1 % is refused, naming both (the PSF would act at the wrong
+    scale); nothing to compare for a kernel image."""
+    import svpsf  # as correct_dataset: imported where it runs (a Dask worker)
+    psf_pixel = svpsf.read_psf(psf_path).pixel_um
+    if not psf_pixel or not psf_pixel > 0:
+        return
+    for f in files:
+        if os.path.splitext(f)[1].lower() != ".mat":
+            continue
+        step = svpsf.read_mat(f)[1]["pixel_um"]
+        if step > 0 and abs(step / psf_pixel - 1) > 0.01:
+            raise ValueError("%s holds `step` = %g um (its pixel size), but the PSF file %s is "
+                             "for pixels of %g um: the PSF would be applied at the wrong scale "
+                             "(give a PSF file for the map's pixels)"
+                             % (f, step, psf_path, psf_pixel))
 
 
 def _is_dataset(folder):
@@ -153,6 +172,7 @@ def correct_dataset(folder, out_root, psf=None, options=None, threads=1, fft="es
                 raise ValueError("size mismatch: field %s is %d x %d (width x height) but PL %s "
                                  "is %d x %d" % (f, a.shape[1], a.shape[0], pl_files[0],
                                                  pl.shape[1], pl.shape[0]))
+        _check_mat_pixels([pl_files[0]] + field_files, psf_path)
         opts = _program_defaults(dict(options or {}), psf_path, pl.shape)
         res = svpsf.correct(pl, fields, psf_path, field_names=field_files, **opts)
         final = os.path.join(out_root, name)

@@ -161,6 +161,29 @@ def test_two_field_files_of_one_name_fail_the_dataset(tmp_path):
     assert not (tmp_path / "out" / "d0").exists()
 
 
+def test_mat_datasets(tmp_path):
+    # MATLAB files are datasets too: the same numbers as the .npy files, and a file whose
+    # `step` says other pixels than the PSF file fails the dataset, naming both
+    root = make_datasets(tmp_path / "data", n=3)
+    for k, px in (("m0", 0.1), ("m1", 0.3)):
+        d = root / k
+        d.mkdir()
+        svpsf.write_mat(d / "pl.mat", {"pl": np.load(root / "d0" / "pl.npy")}, pixel_um=px)
+        svpsf.write_mat(d / "field_x.mat", {"Bz": np.load(root / "d0" / "field_x.npy")},
+                        pixel_um=px)
+    out = tmp_path / "out"
+    rows = {r["dataset"]: r for r in batch.run([root / "d0", root / "m0", root / "m1"], out,
+                                               psf=root / "psf.yaml", options=OPTIONS)}
+    assert rows["m0"]["status"] == "ok", rows["m0"]
+    ref = svpsf.correct(np.load(root / "d0" / "pl.npy"), [np.load(root / "d0" / "field_x.npy")],
+                        str(root / "psf.yaml"), **OPTIONS)
+    assert np.array_equal(np.load(out / "m0" / "field.npy"), ref.fields[0])
+    assert rows["m1"]["status"] == "failed"
+    assert "holds `step` = 0.3 um (its pixel size), but the PSF file" in rows["m1"]["message"]
+    assert "is for pixels of 0.1 um" in rows["m1"]["message"]
+    assert not (out / "m1").exists()
+
+
 def test_defaults_are_the_programs(cli, tmp_path):
     # without options a dataset gets `svpsf correct`'s numbers: R with the margin auto (the
     # library's default is none, which the batch took before), bit for bit with the same plans
