@@ -173,6 +173,10 @@ static int odmr(const char *dir, int w, int h, int n)
     v = Mat_VarCreate("odmr", MAT_C_DOUBLE, MAT_T_DOUBLE, 3, d3, cube, 0);
     rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_ZLIB);
     Mat_VarFree(v);
+    double step_m = 4.7e-6; /* the pixel size, as QDMlab's Bz files hold it */
+    v = Mat_VarCreate("step", MAT_C_DOUBLE, MAT_T_DOUBLE, 2, one, &step_m, 0);
+    rc = rc || !v || Mat_VarWrite(mat, v, MAT_COMPRESSION_NONE);
+    Mat_VarFree(v);
     Mat_Close(mat);
     free(frames);
     free(raw);

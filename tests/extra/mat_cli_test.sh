@@ -152,6 +152,11 @@ for m in field pl contrast linewidth quality; do
     same "fit3/$m.npy" "fitn/$m.npy"
 done
 expect_in fitn/summary.json '"n_failed": 0'
+# with --psf the stack's `step` is compared with the PSF file's pixel size, as for correct
+run 1 fit-odmr stack3.mat:odmr $fit --psf psf_small.yaml -o fit3s
+expect_in err 'stack stack3.mat:odmr holds `step` = 4.7 um (its pixel size), but the PSF file psf_small.yaml'
+[ -e fit3s ] && fail "fit3s was created by a refused run"
+run 0 fit-odmr stack3.mat:odmr $fit --psf psf.yaml --iterations 5 -o fit3p
 # one image expected: the raw stack is refused naming its frame count
 run 1 deconvolve run_00000.mat:imgStack1 --method wiener $common -o bad6.npy
 expect_in err 'run_00000.mat: variable imgStack1 is a stack of 41 frames (QDMlab.s raw layout, 10 x 12 pixels): expected one image'

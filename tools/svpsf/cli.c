@@ -598,6 +598,21 @@ int cli_read_image(cli_run *run, const char *role, const char *path, svp_image *
     return 0;
 }
 
+int cli_read_stack(cli_run *run, const char *role, const char *path, svp_stack **out)
+{
+    *out = NULL;
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    svp_mat_info info;
+    memset(&info, 0, sizeof info);
+    const int mat = svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && !bad;
+    svp_status st = mat ? svp_mat_read_stack(path, NULL, out, &info) : svp_stack_read(path, out);
+    if (st != SVP_OK) return cli_fail(run, st, path);
+    cli_record_input(run, role, path, (*out)->width, (*out)->height);
+    run->inputs[run->n_inputs - 1].pixel_um = info.pixel_um;
+    return 0;
+}
+
 int cli_check_input_pixels(cli_run *run, double psf_pixel_um, const char *psf_path)
 {
     if (!(psf_pixel_um > 0)) return 0;

@@ -236,6 +236,9 @@ extern const char *const cli_precision_names[];
 /* Reads an image (svp_image_read) and records it as an input with `role` ("pl", "field").
  * On failure prints the message (it names the file) and returns the exit code; 0 on success. */
 int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out);
+/* Reads a stack (svp_stack_read; a .mat through svp_mat_read_stack, its `step` recorded as
+ * cli_read_image does) and records it as an input with `role`; the exit code, 0 on success. */
+int cli_read_stack(cli_run *run, const char *role, const char *path, svp_stack **out);
 /* A MATLAB input whose `step` (its pixel size, recorded by cli_read_image) differs from the PSF
  * file's pixel size by more than CLI_PIXEL_AGREE: an error naming both (the PSF would act at the
  * wrong scale). Nothing to check without a PSF pixel size (a kernel image) or a `step`. */

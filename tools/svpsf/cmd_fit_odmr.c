@@ -402,9 +402,8 @@ static int fit_odmr_read(cli_run *run, const struct fit_odmr_args *a, struct fit
 {
     const char *stack_path = a->stack_path;
     cli_stage_begin(run, "read");
-    svp_status st = svp_stack_read(stack_path, &job->stack);
-    if (st != SVP_OK) return cli_fail(run, st, stack_path);
-    cli_record_input(run, "stack", stack_path, job->stack->width, job->stack->height);
+    int code = cli_read_stack(run, "stack", stack_path, &job->stack);
+    if (code) return code;
     const int nf = job->nf = job->stack->n_frames;
     job->w = job->stack->width;
     job->h = job->stack->height;
@@ -461,6 +460,7 @@ static int fit_odmr_plan(cli_run *run, const struct fit_odmr_args *a, struct fit
     }
     if (a->psf_path) {
         if ((code = cli_psf_load_map(run, a->psf_path, &a->variant, &job->psf))) return code;
+        if ((code = cli_check_input_pixels(run, job->psf.pixel_um, a->psf_path))) return code;
         job->psf_loaded = 1;
         job->psf.boundary = SVP_BOUNDARY_ZERO;
         if (a->variant_given && !job->psf.field)
