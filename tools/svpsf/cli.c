@@ -581,35 +581,45 @@ void cli_record_input(cli_run *run, const char *role, const char *path, int widt
     in->pixel_um = 0;
 }
 
+/* Whether path names a MATLAB file (FILE.mat[:VAR]): read through svp_mat_read(_stack), which
+ * also say its pixel size (`step`). A malformed ":VAR" is left to the generic reader's message. */
+static int is_mat_input(const char *path)
+{
+    char file[PATH_MAX], var[64];
+    int bad = 0;
+    return svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && !bad;
+}
+
+/* A read input recorded with its size and a MATLAB file's pixel size; the new record. */
+static cli_input *record_read(cli_run *run, const char *role, const char *path, int width,
+                              int height, double pixel_um)
+{
+    cli_record_input(run, role, path, width, height);
+    cli_input *in = &run->inputs[run->n_inputs - 1];
+    in->pixel_um = pixel_um;
+    return in;
+}
+
 int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out)
 {
     *out = NULL;
-    /* a MATLAB file (FILE.mat[:VAR]) through svp_mat_read, which also says its pixel size */
-    char file[PATH_MAX], var[64];
-    int bad = 0;
-    svp_mat_info info;
-    memset(&info, 0, sizeof info);
-    const int mat = svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && !bad;
-    svp_status st = mat ? svp_mat_read(path, NULL, out, &info) : svp_image_read(path, out);
+    svp_mat_info info = {.pixel_um = 0};
+    svp_status st = is_mat_input(path) ? svp_mat_read(path, NULL, out, &info)
+                                       : svp_image_read(path, out);
     if (st != SVP_OK) return cli_fail(run, st, path);
-    cli_record_input(run, role, path, (*out)->width, (*out)->height);
-    run->inputs[run->n_inputs - 1].n_nonfinite = (long long)svp_image_count_nonfinite(*out);
-    run->inputs[run->n_inputs - 1].pixel_um = info.pixel_um;
+    record_read(run, role, path, (*out)->width, (*out)->height, info.pixel_um)->n_nonfinite =
+        (long long)svp_image_count_nonfinite(*out);
     return 0;
 }
 
 int cli_read_stack(cli_run *run, const char *role, const char *path, svp_stack **out)
 {
     *out = NULL;
-    char file[PATH_MAX], var[64];
-    int bad = 0;
-    svp_mat_info info;
-    memset(&info, 0, sizeof info);
-    const int mat = svp_io_mat_path(path, file, sizeof file, var, sizeof var, &bad) && !bad;
-    svp_status st = mat ? svp_mat_read_stack(path, NULL, out, &info) : svp_stack_read(path, out);
+    svp_mat_info info = {.pixel_um = 0};
+    svp_status st = is_mat_input(path) ? svp_mat_read_stack(path, NULL, out, &info)
+                                       : svp_stack_read(path, out);
     if (st != SVP_OK) return cli_fail(run, st, path);
-    cli_record_input(run, role, path, (*out)->width, (*out)->height);
-    run->inputs[run->n_inputs - 1].pixel_um = info.pixel_um;
+    record_read(run, role, path, (*out)->width, (*out)->height, info.pixel_um);
     return 0;
 }
 
