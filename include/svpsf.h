@@ -859,6 +859,11 @@ typedef struct svp_variant_options {
     int single_precision;  /* 1: the terms' spectra kept in float only (half the memory) and H,
                               Hᵀ transformed in float (fftw3f) on the same frames, always; the
                               build itself is double (docs/model.md §9). Default 0 */
+    double tail_tol;       /* low rank in double precision with the zero boundary: each term's
+                              far tail on a coarse grid (docs/model.md §9, "The far tail"), the
+                              cores on a frame for their radius, when that is cheaper and the
+                              estimated ℓ1 error per unit flux is at most this; 0 (default) =
+                              the plain frame. `correct` passes its --tail-tol (10⁻³) */
 } svp_variant_options;
 
 /* What svp_blur_new_field built (svp_blur_variant_info). estimated_error: the relative
@@ -877,6 +882,9 @@ typedef struct svp_variant_info {
     double build_seconds;            /* the operator's build */
     size_t memory_bytes;             /* svp_blur_memory after the build */
     size_t peak_bytes;               /* the estimate checked against max_memory */
+    int tail_step, tail_split;       /* low rank with tail_tol: node spacing and split radius of
+                                        the far tail on a coarse grid (0: the plain frame) */
+    double tail_error;               /* its estimated ℓ1 error per unit flux, all terms */
 } svp_variant_info;
 
 SVP_API svp_status svp_blur_variant_info(const svp_blur *blur, svp_variant_info *info);

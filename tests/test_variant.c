@@ -1310,6 +1310,127 @@ static void test_low_rank(void **state)
     svp_psf_field_free(f);
 }
 
+/* ---- the far tail on a coarse grid (low rank) -------------------------------------------- */
+
+/* A heavy-tailed polynomial Moffat map (whole-field support): FWHM 4 ± 1 px along x, β 1.1 to
+ * 1.4 along y, elliptic, with a halo when asked. */
+static svp_psf_field *tail_field(int w, int h, int halo)
+{
+    svp_psf base = moffat(4.0, 1.2, 0.0);
+    const int nt = svp_psf_field_poly_terms(2);
+    double c[SVP_FIELD_NPARAM * 6] = {0};
+    c[SVP_FIELD_FWHM * nt + 0] = 4.0;
+    c[SVP_FIELD_FWHM * nt + 1] = 1.0;
+    c[SVP_FIELD_E1 * nt + 1] = 0.08;
+    c[SVP_FIELD_BETA * nt + 0] = 1.25;
+    c[SVP_FIELD_BETA * nt + 2] = 0.15;
+    c[SVP_FIELD_BETA * nt + 3] = 0.05;
+    if (halo) c[SVP_FIELD_HALO * nt + 0] = 0.2, c[SVP_FIELD_HALO * nt + 1] = 0.1;
+    svp_psf_field *f = NULL;
+    ASSERT_OK(svp_psf_field_new_poly(&base, w, h, 2, c, &f));
+    return f;
+}
+
+/* svp_variant_options.tail_tol on a low-rank operator (docs/model.md §9, "The far tail"): each
+ * eigen-PSF's tail on a coarse grid, the cores on a smaller frame. 300 x 260, zero boundary,
+ * rank 4 from 6 x 6 samples, tolerance 3e-3, with and without a halo: the tail is taken and its
+ * frame is smaller than the plain one; every column (unit sources at every phase against the
+ * nodes, edges and corners) is within the estimate of the plain operator's in ℓ1 and differs
+ * from it; Hᵀ is H's adjoint to round-off; 1 and 2 threads and a copy (svp_blur_clone) give the
+ * same bits; single-precision transforms agree with double to 1e-5; tail_tol 0 is the plain
+ * operator. */
+static void test_lowrank_tail(void **state)
+{
+    (void)state;
+    const int w = 300, h = 260, threads = svp_get_threads();
+    svp_image *x = test_random_image(w, h, 81), *y = test_random_image(w, h, 82);
+    svp_image *hx = test_image(w, h), *hty = test_image(w, h), *ref = test_image(w, h);
+    svp_image *e = test_image(w, h), *a = test_image(w, h), *b = test_image(w, h);
+    for (int halo = 0; halo < 2; halo++) {
+        svp_psf_field *f = tail_field(w, h, halo);
+        svp_variant_options o = lowrank_options(6, 4, 1);
+        svp_blur *plain = NULL, *tail = NULL;
+        ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_ZERO, &o, &plain));
+        const double tol = 3e-3;
+        o.tail_tol = tol;
+        ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_ZERO, &o, &tail));
+        svp_variant_info info;
+        ASSERT_OK(svp_blur_variant_info(tail, &info));
+        int step = 0, split = 0;
+        double est = 0;
+        ASSERT_OK(svp_blur_tail_info(tail, &step, &split, &est));
+        if (info.tail_step == 0 || step != info.tail_step || est != info.tail_error)
+            fail_msg("halo %d: no tail taken (info %d, tail_info %d)", halo, info.tail_step, step);
+        assert_true(est > 0 && est <= tol);
+        assert_true((size_t)tail->frame.nx * tail->frame.ny <
+                    (size_t)plain->frame.nx * plain->frame.ny);
+        double worst = 0;
+        const int px[] = {0, 1, step / 2, step - 1, w / 2, w / 2 + 1, w - 1};
+        const int py[] = {0, h / 2 + step / 2, h / 3 + 1, h - 1};
+        for (size_t i = 0; i < sizeof px / sizeof *px; i++)
+            for (size_t j = 0; j < sizeof py / sizeof *py; j++) {
+                memset(e->data, 0, (size_t)w * h * sizeof(double));
+                e->data[(size_t)py[j] * w + px[i]] = 1;
+                ASSERT_OK(svp_blur_apply(plain, e, a));
+                ASSERT_OK(svp_blur_apply(tail, e, b));
+                double l1 = 0;
+                for (size_t q = 0; q < (size_t)w * h; q++) l1 += fabs(a->data[q] - b->data[q]);
+                worst = fmax(worst, l1);
+            }
+        if (!(worst <= est && worst > 0))
+            fail_msg("halo %d: column error %g against the estimate %g (s %d, r0 %d)", halo, worst,
+                     est, step, split);
+        print_message("low rank tail, halo %d: s %d r0 %d, frame %d x %d (plain %d x %d), "
+                      "largest column error %.3g, estimate %.3g\n",
+                      halo, step, split, tail->frame.nx, tail->frame.ny, plain->frame.nx,
+                      plain->frame.ny, worst, est);
+        ASSERT_OK(svp_blur_apply(tail, x, hx));
+        ASSERT_OK(svp_blur_adjoint(tail, y, hty));
+        const double lhs = test_dot(hx, y);
+        ASSERT_CLOSE(lhs, test_dot(x, hty), 1e-12 * fabs(lhs));
+        /* threads and a copy: the same bits */
+        svp_blur *copy = NULL;
+        ASSERT_OK(svp_blur_clone(tail, &copy));
+        for (int adjoint = 0; adjoint < 2; adjoint++) {
+            svp_image *want = adjoint ? hty : hx, *in = adjoint ? y : x;
+            svp_set_threads(1);
+            ASSERT_OK(adjoint ? svp_blur_adjoint(tail, in, ref) : svp_blur_apply(tail, in, ref));
+            if (memcmp(ref->data, want->data, (size_t)w * h * sizeof(double)))
+                fail_msg("halo %d: 1 and %d threads differ (%s)", halo, threads,
+                         adjoint ? "adjoint" : "apply");
+            ASSERT_OK(adjoint ? svp_blur_adjoint(copy, in, ref) : svp_blur_apply(copy, in, ref));
+            if (memcmp(ref->data, want->data, (size_t)w * h * sizeof(double)))
+                fail_msg("halo %d: the copy differs (%s)", halo, adjoint ? "adjoint" : "apply");
+            svp_set_threads(threads);
+            ASSERT_OK(svp_variant_set_single(tail, 1));
+            ASSERT_OK(adjoint ? svp_blur_adjoint(tail, in, ref) : svp_blur_apply(tail, in, ref));
+            ASSERT_OK(svp_variant_set_single(tail, 0));
+            ASSERT_CLOSE(test_max_abs_diff(ref, want) / test_max_abs(want), 0, 1e-5);
+        }
+        svp_blur_free(copy);
+        svp_blur_free(tail);
+        /* tolerance 0: the plain operator, bit for bit */
+        o.tail_tol = 0;
+        ASSERT_OK(svp_blur_new_field(f, w, h, SVP_BOUNDARY_ZERO, &o, &tail));
+        ASSERT_OK(svp_blur_tail_info(tail, &step, &split, &est));
+        assert_int_equal(step, 0);
+        ASSERT_OK(svp_blur_apply(tail, x, hx));
+        ASSERT_OK(svp_blur_apply(plain, x, ref));
+        assert_true(memcmp(hx->data, ref->data, (size_t)w * h * sizeof(double)) == 0);
+        svp_blur_free(tail);
+        svp_blur_free(plain);
+        svp_psf_field_free(f);
+    }
+    svp_image_free(x);
+    svp_image_free(y);
+    svp_image_free(hx);
+    svp_image_free(hty);
+    svp_image_free(ref);
+    svp_image_free(e);
+    svp_image_free(a);
+    svp_image_free(b);
+}
+
 /* ---- CG Tikhonov ------------------------------------------------------------------------- */
 
 /* Naive 2-D DFT (sign −1 forward), independent of FFTW. */
@@ -2184,6 +2305,7 @@ int main(void)
         cmocka_unit_test(test_memory_bound),
         cmocka_unit_test(test_second_order_convergence),
         cmocka_unit_test(test_low_rank),
+        cmocka_unit_test(test_lowrank_tail),
         cmocka_unit_test(test_lowrank_gram),
         cmocka_unit_test(test_lowrank_fold),
         cmocka_unit_test(test_operator_tolerance),

@@ -418,13 +418,15 @@ class Blur:
     `--nodes`/`--rank`; regions=True: one kernel per region of a map of kind regions, as
     `--regions`; none: the representation chosen by operator_tol, default 1e-3, as
     `--operator-tol`; applications: the H + Hᵀ pairs its cost model counts, default 50;
-    forward() and correct() pass what they run, as the program does). psf may also be a file
+    forward() and correct() pass what they run, as the program does; tail_tol: a low-rank
+    map's far tail on a coarse grid within this error, default 0 = never, correct() passes its
+    own for the RL methods as `--tail-tol`). psf may also be a file
     name (read_psf); boundary None = the file's,
     else 'zero'. Building it plans the FFTs once: reuse it for many images of one size. One
     Blur must not be used from two threads at once."""
 
     def __init__(self, psf, shape, boundary=None, nodes=None, rank=None, operator_tol=None,
-                 applications=None, regions=False):
+                 applications=None, regions=False, tail_tol=None):
         if isinstance(psf, (str, bytes, os.PathLike)):
             f = read_psf(psf)
             psf = f.psf
@@ -460,6 +462,8 @@ class Blur:
                 v.rank = int(rank)
             if regions:
                 v.representation = lib.SVP_VARIANT_REGIONS
+            if tail_tol is not None:
+                v.tail_tol = float(tail_tol)
             _check(lib.svp_blur_new_field(psf._ptr, w, h, _boundary(boundary), v, out))
         else:
             imgs = _Images()
@@ -479,8 +483,10 @@ class Blur:
     def variant(self):
         """A space-variant operator's representation (svp_blur_variant_info): a dict with
         representation ('tent', 'low rank' or 'regions'), nodes (tent nodes or low-rank samples
-        (x, y); regions (0, 0)), rank (low-rank terms or region kernels; tent 0) and
-        estimated_error (NaN when not estimated); None for other operators."""
+        (x, y); regions (0, 0)), rank (low-rank terms or region kernels; tent 0),
+        estimated_error (NaN when not estimated) and tail_step, tail_split, tail_error (a
+        low-rank map's far tail on a coarse grid, tail_tol; step 0: the plain frame); None for
+        other operators."""
         if not self.is_variant:
             return None
         info = ffi.new("svp_variant_info *")
@@ -488,7 +494,8 @@ class Blur:
             return None
         return {"representation": self._REPRESENTATIONS.get(info.representation),
                 "nodes": (info.grid_x, info.grid_y), "rank": info.rank,
-                "estimated_error": info.estimated_error}
+                "estimated_error": info.estimated_error, "tail_step": info.tail_step,
+                "tail_split": info.tail_split, "tail_error": info.tail_error}
 
     @property
     def is_variant(self):
@@ -523,7 +530,7 @@ class Blur:
 
 
 def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol=None,
-              regions=False, margin=0):
+              regions=False, margin=0, tail_tol=None):
     if isinstance(psf, Blur):
         given = [k for k, v in (("boundary", boundary), ("nodes", nodes), ("rank", rank),
                                 ("regions", regions)) if v not in (None, False)]
@@ -540,7 +547,8 @@ def _blur_for(psf, shape, boundary, nodes, rank, applications=None, operator_tol
                              % (psf.shape, tuple(shape)))
         return psf
     return Blur(psf, shape, boundary=boundary, nodes=nodes, rank=rank,
-                operator_tol=operator_tol, applications=applications, regions=regions)
+                operator_tol=operator_tol, applications=applications, regions=regions,
+                tail_tol=tail_tol if isinstance(psf, PSFMap) else None)
 
 
 def _auto_margin(psf, h, w):
@@ -756,7 +764,9 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     _check(lib.svp_correct_check_margin(opt.margin, w, h))  # as `--margin`
     blur = _blur_for(_padded(psf, opt.margin), (h + 2 * opt.margin, w + 2 * opt.margin),
                      boundary, nodes, rank, applications=_correct_applications(opt, len(fl)),
-                     operator_tol=operator_tol, regions=regions, margin=opt.margin)
+                     operator_tol=operator_tol, regions=regions, margin=opt.margin,
+                     tail_tol=opt.tail_tol if opt.method in (lib.SVP_METHOD_R,
+                                                             lib.SVP_METHOD_RL_SIGNED) else 0)
     pl_out, pl_oi = imgs.out(pl.shape)
     outs = [imgs.out(pl.shape) for _ in fl]
     val, val_i = imgs.out(pl.shape)
@@ -1199,7 +1209,7 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             drift = drift[::-1].copy()
     if psf is not None:
         blur = _blur_for(_padded(psf, margin), (h + 2 * margin, w + 2 * margin), "zero", None,
-                         None, margin=margin)
+                         None, margin=margin, tail_tol=float(tail_tol))
         tol_before = lib.svp_blur_tail_tol(blur._ptr)  # a caller's Blur gets it back
         _check(lib.svp_blur_set_tail(blur._ptr, float(tail_tol)))
         dopt = ffi.new("svp_deconv_options *")

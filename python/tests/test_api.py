@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import svpsf
+from conftest import smooth_maps
 from svpsf._lib import ffi
 
 MOFFAT = "pixel_um: 0.1\npsf: {model: moffat, fwhm_um: 0.61, beta: 1.5, halo: 0.02}\n"
@@ -176,6 +177,39 @@ def test_automatic_representation_equals_cli(cli, tmp_path, maps):
     settings = json.load(open(tmp_path / "out" / "summary.json"))["settings"]
     assert settings["operator_applications"] == 20
     assert settings["operator_apply_s"] > 0 and settings["operator_adjoint_s"] > 0
+
+
+def test_lowrank_map_tail_equals_cli(cli, tmp_path):
+    """A low-rank map's far tail on a coarse grid (tail_tol, docs/model.md §9): correct with
+    r equals `svpsf correct --rank 3` bit for bit and both take the tail; a Blur built with the
+    same tail_tol reports it in .variant, one without none, and the two apply within the
+    tail's estimated ℓ1 error per unit flux of each other."""
+    h, w = 200, 180
+    pl, field = smooth_maps(h, w)
+    pf = write(tmp_path, "map.yaml",
+               "pixel_um: 0.1\nimage: {width: %d, height: %d}\nmodel: moffat\nkind: grid\n"
+               "nodes: {nx: 2, ny: 2}\nnode_psfs:\n  - {fwhm_um: 0.35, beta: 1.1}\n"
+               "  - {fwhm_um: 0.45, beta: 1.2}\n  - {fwhm_um: 0.4, beta: 1.1}\n"
+               "  - {fwhm_um: 0.5, beta: 1.3}\n" % (w, h))
+    fmap = svpsf.read_psf(pf).psf
+    a = svpsf.forward(pl, field, pf, rank=3)
+    cli("correct", "--pl", write(tmp_path, "pl.npy", a.pl), "--field",
+        write(tmp_path, "B.npy", a.fields), "--psf", pf, "--rank", "3", "--method", "r",
+        "--iterations", "10", "--margin", "0", "-o", tmp_path / "out", *COMMON)
+    r = svpsf.correct(a.pl, a.fields, pf, rank=3, method="r", iterations=10)
+    assert np.array_equal(r.fields, np.load(tmp_path / "out" / "field.npy"))
+    results = json.load(open(tmp_path / "out" / "summary.json"))["results"]
+    assert results["tail_step_px"] > 0 and 0 < results["tail_error"] <= 1e-3
+    assert r.summary["tail_step"] == results["tail_step_px"]
+    tail = svpsf.Blur(fmap, (h, w), rank=3, tail_tol=1e-3)
+    plain = svpsf.Blur(fmap, (h, w), rank=3)
+    v = tail.variant
+    assert v["tail_step"] == results["tail_step_px"] and v["tail_split"] > 0
+    assert plain.variant["tail_step"] == 0
+    for y, x in ((0, 0), (h // 2, w // 3), (h - 1, w - 1)):
+        e = np.zeros((h, w))
+        e[y, x] = 1.0
+        assert 0 < np.abs(tail.apply(e) - plain.apply(e)).sum() <= v["tail_error"]
 
 
 def test_regions_equals_cli(cli, tmp_path, maps):

@@ -159,6 +159,21 @@ svp_status svp_tail_core(const svp_image *k, int cx, int cy, int r0, svp_image *
 /* The tail for (s, r0) (svp_tail_choose's), `error` its estimate (kept for svp_tail_error). */
 svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int height, int margin,
                         int s, int r0, double error, svp_tail **out);
+/* The splits r0 svp_tail_choose tries (svp_tail_n_splits of them, ascending), and per split the
+ * kernel's Σ |Δxx| + |Δyy| of its tail over the used offsets per unit of its ℓ1 norm (HUGE_VAL
+ * for a split it cannot hold): the estimate for spacing s is 0.25 s² times it. */
+int svp_tail_n_splits(void);
+svp_status svp_tail_split_sums(const svp_image *k, int cx, int cy, int width, int height,
+                               int margin, double *sums);
+/* The cheapest (s, r0) whose estimate 0.25 s² sums[r0's index] is within tol, when cheaper than
+ * 0.8 of the plain frame pnx x pny (k: the kernel whose reach sizes the nodes); *s 0: none. */
+svp_status svp_tail_pick(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                         const double *sums, double tol, int pnx, int pny, int *s_out, int *r0_out,
+                         double *error);
+/* The core's share 1 − w(r) of a kernel's value at offset (dx, dy) for split r0 (0 from 2 r0). */
+double svp_tail_core_weight(int dx, int dy, int r0);
+/* A copy with its own buffers and plans (another thread's), the same operator. */
+svp_status svp_tail_copy(const svp_tail *t, svp_tail **out);
 void svp_tail_free(svp_tail *t);
 size_t svp_tail_memory(const svp_tail *t);
 int svp_tail_step(const svp_tail *t);
@@ -253,6 +268,9 @@ svp_status svp_blur_clone(const svp_blur *b, svp_blur **out);
 int svp_blur_clonable(const svp_blur *b);
 svp_status svp_blur_clone_invariant(const svp_blur *b, svp_blur **out);
 svp_status svp_variant_clone(const svp_blur *b, svp_blur **out);
+/* A space-variant operator's far tail on a coarse grid (svp_variant_options.tail_tol): node
+ * spacing, split radius and estimated error; 0 when it has none. */
+svp_status svp_variant_tail_info(const svp_blur *b, int *step, int *split, double *error);
 /* The copies' common part: a zeroed operator with b's kind, operations, size, boundary, halo,
  * PSF and kernel (b's, borrowed); NULL when out of memory. */
 svp_blur *svp_blur_copy_header(const svp_blur *b);

@@ -819,7 +819,8 @@ svp_status svp_blur_tail_info(svp_blur *blur, int *step, int *split, double *err
     *step = 0;
     *split = 0;
     *error = 0;
-    if (blur->kind != SVP_BLUR_INVARIANT || !(blur->tail_tol > 0)) return SVP_OK;
+    if (blur->kind != SVP_BLUR_INVARIANT) return svp_variant_tail_info(blur, step, split, error);
+    if (!(blur->tail_tol > 0)) return SVP_OK;
     if (!blur->frame.plan) /* what svp_blur_ready would choose, without making the frame */
         return tail_choice(blur, step, split, error);
     if (blur->tail) {

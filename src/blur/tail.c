@@ -26,6 +26,8 @@ struct svp_tail {
     double *nodes; /* ch x cw */
     double *tmp;   /* h x cw: the fine rows gathered, or the nodes spread over the fine rows */
     double error;
+    svp_image *kc; /* the tail sampled every s pixels (centre rcx, rcy): what svp_tail_copy needs */
+    int rcx, rcy;
 };
 
 /* The step w(r): 0 up to r0, 1 from r1, 10t³ − 15t⁴ + 6t⁵ between (continuous slope and
@@ -36,6 +38,11 @@ static double step(double r, int r0, int r1)
     if (r >= r1) return 1.0;
     const double t = (r - r0) / (double)(r1 - r0);
     return t * t * t * (10.0 + t * (-15.0 + 6.0 * t));
+}
+
+double svp_tail_core_weight(int dx, int dy, int r0)
+{
+    return 1.0 - step(hypot(dx, dy), r0, 2 * r0);
 }
 
 /* The kernel at offset (dx, dy); beyond its rectangle the value at the nearest offset inside it
@@ -188,6 +195,7 @@ void svp_tail_free(svp_tail *t)
     svp_free(t->frame_c);
     svp_free(t->nodes);
     svp_free(t->tmp);
+    svp_image_free(t->kc);
     free(t);
 }
 
@@ -197,7 +205,8 @@ size_t svp_tail_memory(const svp_tail *t)
     const svp_frame *f = &t->frame;
     return sizeof *t + svp_frame_memory(f) + (size_t)f->ny * f->nx * sizeof(double) +
            (size_t)f->ny * f->ncx * sizeof(fftw_complex) +
-           ((size_t)t->ch + t->h) * t->cw * sizeof(double);
+           ((size_t)t->ch + t->h) * t->cw * sizeof(double) +
+           (t->kc ? (size_t)t->kc->width * t->kc->height * sizeof(double) : 0);
 }
 
 int svp_tail_step(const svp_tail *t) { return t->s; }
@@ -218,6 +227,27 @@ static void node_reach(const svp_image *k, int cx, int cy, int width, int height
     *rcy = (rky < uy ? rky : uy) / s + 2;
 }
 
+/* t's node frame with the OTF of t->kc, its plans and buffers. */
+static svp_status tail_setup(svp_tail *t)
+{
+    svp_status st = svp_frame_init(&t->frame, t->cw, t->ch, t->rcx, t->rcy, SVP_BOUNDARY_ZERO);
+    if (st == SVP_OK)
+        st = svp_frame_set_kernel(&t->frame, t->kc, t->rcx, t->rcy, SVP_BOUNDARY_ZERO);
+    if (st == SVP_OK && t->frame.ny > t->ch)
+        st = svp_fft_pruned_get(t->frame.ny, t->frame.nx, t->ch, &t->pruned);
+    if (st != SVP_OK) return st;
+    svp_frame_keep_real(&t->frame);
+    const svp_frame *f = &t->frame;
+    t->frame_r = svp_alloc((size_t)f->ny * f->nx * sizeof(double));
+    t->frame_c = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
+    t->nodes = svp_alloc((size_t)t->ch * t->cw * sizeof(double));
+    t->tmp = svp_alloc((size_t)t->h * t->cw * sizeof(double));
+    if (!t->frame_r || !t->frame_c || !t->nodes || !t->tmp)
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for the coarse tail's %d x %d nodes", t->cw,
+                        t->ch);
+    return SVP_OK;
+}
+
 svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int height, int margin,
                         int s, int r0, double error, svp_tail **out)
 {
@@ -232,31 +262,38 @@ svp_status svp_tail_new(const svp_image *k, int cx, int cy, int width, int heigh
     t->ch = (height - 1) / s + 2;
     t->error = error;
     const int extend = covers(k, cx, cy, width, height, margin);
-    int rcx, rcy;
-    node_reach(k, cx, cy, width, height, margin, s, &rcx, &rcy);
-    svp_image *kc = NULL;
-    svp_status st = svp_image_new(2 * rcx + 1, 2 * rcy + 1, &kc);
+    node_reach(k, cx, cy, width, height, margin, s, &t->rcx, &t->rcy);
+    const int rcx = t->rcx, rcy = t->rcy;
+    svp_status st = svp_image_new(2 * rcx + 1, 2 * rcy + 1, &t->kc);
     if (st == SVP_OK) {
+        svp_image *kc = t->kc;
         for (int j = -rcy; j <= rcy; j++)
             for (int i = -rcx; i <= rcx; i++)
                 kc->data[(size_t)(j + rcy) * kc->width + i + rcx] =
                     tail_at(k, cx, cy, i * s, j * s, r0, 2 * r0, extend);
-        st = svp_frame_init(&t->frame, t->cw, t->ch, rcx, rcy, SVP_BOUNDARY_ZERO);
+        st = tail_setup(t);
     }
-    if (st == SVP_OK) st = svp_frame_set_kernel(&t->frame, kc, rcx, rcy, SVP_BOUNDARY_ZERO);
-    svp_image_free(kc);
-    if (st == SVP_OK && t->frame.ny > t->ch)
-        st = svp_fft_pruned_get(t->frame.ny, t->frame.nx, t->ch, &t->pruned);
+    if (st != SVP_OK) {
+        svp_tail_free(t);
+        return st;
+    }
+    *out = t;
+    return SVP_OK;
+}
+
+svp_status svp_tail_copy(const svp_tail *src, svp_tail **out)
+{
+    *out = NULL;
+    svp_tail *t = calloc(1, sizeof *t);
+    if (!t) return svp_fail(SVP_ERR_NOMEM, "out of memory for the coarse tail");
+    t->s = src->s, t->r0 = src->r0, t->w = src->w, t->h = src->h;
+    t->cw = src->cw, t->ch = src->ch, t->error = src->error;
+    t->rcx = src->rcx, t->rcy = src->rcy;
+    svp_status st = svp_image_new(src->kc->width, src->kc->height, &t->kc);
     if (st == SVP_OK) {
-        svp_frame_keep_real(&t->frame);
-        const svp_frame *f = &t->frame;
-        t->frame_r = svp_alloc((size_t)f->ny * f->nx * sizeof(double));
-        t->frame_c = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
-        t->nodes = svp_alloc((size_t)t->ch * t->cw * sizeof(double));
-        t->tmp = svp_alloc((size_t)t->h * t->cw * sizeof(double));
-        if (!t->frame_r || !t->frame_c || !t->nodes || !t->tmp)
-            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the coarse tail's %d x %d nodes", t->cw,
-                          t->ch);
+        memcpy(t->kc->data, src->kc->data,
+               (size_t)src->kc->width * src->kc->height * sizeof(double));
+        st = tail_setup(t);
     }
     if (st != SVP_OK) {
         svp_tail_free(t);
@@ -374,39 +411,43 @@ static double fft_cost(int nx, int ny)
     return n * log2(n > 2 ? n : 2);
 }
 
-svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int height, int margin,
-                           double tol, int pnx, int pny, int *s_out, int *r0_out, double *error)
+static const int tail_steps[] = {2, 3, 4, 6, 8};
+static const int tail_splits[] = {4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256};
+#define N_TAIL_SPLITS ((int)(sizeof tail_splits / sizeof *tail_splits))
+
+int svp_tail_n_splits(void) { return N_TAIL_SPLITS; }
+
+svp_status svp_tail_split_sums(const svp_image *k, int cx, int cy, int width, int height,
+                               int margin, double *sums)
 {
-    *s_out = 0;
-    *r0_out = 0;
-    *error = 0;
     const int ux = width - margin - 1, uy = height - margin - 1;
     int rx = svp_kernel_reach(k->width, cx), ry = svp_kernel_reach(k->height, cy);
     if (rx > ux) rx = ux;
     if (ry > uy) ry = uy;
-    const double plain = fft_cost(pnx, pny);
-    static const int steps[] = {2, 3, 4, 6, 8};
-    static const int splits[] = {4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256};
-    const int n_splits = (int)(sizeof splits / sizeof *splits);
     profile p;
     svp_status st = profile_make(k, cx, cy, width, height, margin, &p);
-    if (st != SVP_OK) {
-        profile_free(&p);
-        return st;
-    }
-    double sums[sizeof splits / sizeof *splits];
-    for (int i = 0; i < n_splits && st == SVP_OK; i++) {
+    for (int i = 0; i < N_TAIL_SPLITS && st == SVP_OK; i++) {
         sums[i] = HUGE_VAL; /* a split the kernel cannot hold */
-        if (splits[i] >= 4 && 2 * splits[i] < (rx < ry ? rx : ry))
-            st = profile_sum(&p, splits[i], &sums[i]);
+        if (2 * tail_splits[i] < (rx < ry ? rx : ry))
+            st = profile_sum(&p, tail_splits[i], &sums[i]);
     }
     profile_free(&p);
-    if (st != SVP_OK) return st;
+    return st;
+}
+
+svp_status svp_tail_pick(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                         const double *sums, double tol, int pnx, int pny, int *s_out, int *r0_out,
+                         double *error)
+{
+    *s_out = 0;
+    *r0_out = 0;
+    *error = 0;
+    const double plain = fft_cost(pnx, pny);
     double best = 0.8 * plain; /* a tail must save at least a fifth */
-    for (size_t a = 0; a < sizeof steps / sizeof *steps; a++) {
-        const int s = steps[a];
-        for (int i = 0; i < n_splits; i++) {
-            const int r0 = splits[i], r1 = 2 * r0;
+    for (size_t a = 0; a < sizeof tail_steps / sizeof *tail_steps; a++) {
+        const int s = tail_steps[a];
+        for (int i = 0; i < N_TAIL_SPLITS; i++) {
+            const int r0 = tail_splits[i], r1 = 2 * r0;
             const double e = 0.25 * s * s * sums[i];
             if (r0 < 2 * s || !(e <= tol)) continue;
             /* the frames svp_blur_ready and svp_tail_new would make: the core's, the nodes' */
@@ -427,4 +468,16 @@ svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int he
         }
     }
     return SVP_OK;
+}
+
+svp_status svp_tail_choose(const svp_image *k, int cx, int cy, int width, int height, int margin,
+                           double tol, int pnx, int pny, int *s_out, int *r0_out, double *error)
+{
+    *s_out = 0;
+    *r0_out = 0;
+    *error = 0;
+    double sums[N_TAIL_SPLITS];
+    SVP_CHECK(svp_tail_split_sums(k, cx, cy, width, height, margin, sums));
+    return svp_tail_pick(k, cx, cy, width, height, margin, sums, tol, pnx, pny, s_out, r0_out,
+                         error);
 }

@@ -96,6 +96,15 @@ struct svp_variant_data {
     float *fr_f;
     fftwf_complex *spec_f, *acc_f;
     const svp_fftf_rows *rows_img, *rows_win;
+    /* The far tail on a coarse grid (svp_variant_options.tail_tol; low rank only): the frame
+     * holds each eigen-PSF's core (radius 2 tail_r0, tail.c's split), tails[r] its tail as
+     * P K_c Pᵀ on nodes every tail_s pixels (tail.c), tail_err the estimated ℓ1 error per unit
+     * flux of all of them; tail_in (w x h) a term's weighted input (apply) or its tail's output
+     * (adjoint). A copy makes its own (svp_tail_copy). tails NULL: the plain frame. */
+    svp_tail **tails;
+    int tail_s, tail_r0;
+    double tail_err;
+    double *tail_in;
 };
 
 void svp_variant_defaults(svp_variant_options *o)
@@ -572,6 +581,114 @@ static void single_product(const svp_variant_data *v, int k, const float *restri
     }
 }
 
+/* ---- the far tail on a coarse grid (low rank) --------------------------------------------- */
+
+/* Low-rank term r's coefficients along image row y at the sample columns (a[i], i < gx):
+ * blended between the sample rows as the weight tables are. */
+static void coef_samples_row(const svp_variant_data *v, int r, int y, double *restrict a)
+{
+    const int gx = v->gx, j = v->iy0[y];
+    const double t = v->fy[y], *c0 = v->coef + ((size_t)r * v->gy + j) * gx;
+    for (int i = 0; i < gx; i++) a[i] = (1.0 - t) * c0[i] + (t > 0 ? t * c0[i + gx] : 0.0);
+}
+
+/* The coefficient at column x from a row of coef_samples_row. */
+static inline double coef_at(const svp_variant_data *v, const double *a, int x)
+{
+    const int i = v->ix0[x];
+    const double t = v->fx[x];
+    return (1.0 - t) * a[i] + (t > 0 ? t * a[i + 1] : 0.0);
+}
+
+/* y += Σ_r P K_r Pᵀ (c_r ⊙ s ⊙ x): every term's tail, each on its own nodes. Rows are
+ * independent and each tail's passes sum in a fixed order: the same bits for any threads. */
+static void tails_apply(svp_blur *b, const double *restrict x, double *restrict y)
+{
+    svp_variant_data *v = b->variant;
+    const int w = b->width, h = b->height;
+    double *restrict in = v->tail_in;
+    for (int r = 0; r < v->n_terms; r++) {
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+        for (int yy = 0; yy < h; yy++) {
+            double a[64]; /* gx <= 64 (check_options) */
+            coef_samples_row(v, r, yy, a);
+            const size_t o = (size_t)yy * w;
+            for (int q = 0; q < w; q++)
+                in[o + q] = coef_at(v, a, q) * (v->scale ? v->scale[o + q] * x[o + q] : x[o + q]);
+        }
+        svp_tail_gather(v->tails[r], in, (size_t)w, 0);
+        svp_tail_spread(v->tails[r], y, (size_t)w);
+    }
+}
+
+/* x += s ⊙ Σ_r c_r ⊙ P K_rᵀ Pᵀ y: tails_apply's adjoint. */
+static void tails_adjoint(svp_blur *b, const double *restrict y, double *restrict x)
+{
+    svp_variant_data *v = b->variant;
+    const int w = b->width, h = b->height;
+    double *restrict out = v->tail_in;
+    for (int r = 0; r < v->n_terms; r++) {
+        svp_tail_gather(v->tails[r], y, (size_t)w, 1);
+        memset(out, 0, (size_t)w * h * sizeof(double));
+        svp_tail_spread(v->tails[r], out, (size_t)w);
+#pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
+        for (int yy = 0; yy < h; yy++) {
+            double a[64];
+            coef_samples_row(v, r, yy, a);
+            const size_t o = (size_t)yy * w;
+            for (int q = 0; q < w; q++) {
+                const double t = coef_at(v, a, q) * out[o + q];
+                x[o + q] += v->scale ? v->scale[o + q] * t : t;
+            }
+        }
+    }
+}
+
+static void tails_free(svp_variant_data *v)
+{
+    if (v->tails)
+        for (int r = 0; r < v->n_terms; r++) svp_tail_free(v->tails[r]);
+    free(v->tails);
+    v->tails = NULL;
+    svp_free(v->tail_in);
+    v->tail_in = NULL;
+}
+
+static size_t tails_memory(const svp_blur *b, const svp_variant_data *v)
+{
+    if (!v->tails) return 0;
+    size_t bytes = (size_t)b->width * b->height * sizeof(double);
+    for (int r = 0; r < v->n_terms; r++) bytes += svp_tail_memory(v->tails[r]);
+    return bytes;
+}
+
+/* A copy's own tails (svp_variant_clone): the same coarse kernels, new buffers and plans. */
+static svp_status tails_copy(const svp_blur *b, const svp_variant_data *v, svp_variant_data *u)
+{
+    u->tails = NULL;
+    u->tail_in = NULL;
+    if (!v->tails) return SVP_OK;
+    u->tails = calloc((size_t)v->n_terms, sizeof *u->tails);
+    u->tail_in = svp_alloc((size_t)b->width * b->height * sizeof(double));
+    if (!u->tails || !u->tail_in)
+        return svp_fail(SVP_ERR_NOMEM, "out of memory for a copy of the operator's tails");
+    for (int r = 0; r < v->n_terms; r++) SVP_CHECK(svp_tail_copy(v->tails[r], &u->tails[r]));
+    return SVP_OK;
+}
+
+svp_status svp_variant_tail_info(const svp_blur *b, int *step, int *split, double *error)
+{
+    const svp_variant_data *v = b->variant;
+    *step = *split = 0;
+    *error = 0;
+    if (v && v->tails) {
+        *step = v->tail_s;
+        *split = v->tail_r0;
+        *error = v->tail_err;
+    }
+    return SVP_OK;
+}
+
 static svp_status variant_apply_single(svp_blur *b, const double *restrict x, double *restrict y)
 {
     svp_variant_data *v = b->variant;
@@ -596,6 +713,7 @@ static svp_status variant_apply_single(svp_blur *b, const double *restrict x, do
         double *restrict out = y + (size_t)t * w;
         for (int q = 0; q < w; q++) out[q] = (double)in[q];
     }
+    if (v->tails) tails_apply(b, x, y);
     if (v->alpha) svp_halo_scatter(v->alpha, (size_t)w * h, x, y, b->work_r_image);
     return SVP_OK;
 }
@@ -669,6 +787,7 @@ static svp_status variant_adjoint_single(svp_blur *b, const double *restrict y,
         }
     }
     fold_scaled(b, v->ext, v->row_on, x);
+    if (v->tails) tails_adjoint(b, y, x);
     if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
     return SVP_OK;
 }
@@ -811,6 +930,7 @@ static svp_status variant_apply(svp_blur *b, const double *restrict x, double *r
             memcpy(y + (size_t)(t0 + t) * w, blk + (size_t)t * p->bx + f->off_x,
                    (size_t)w * sizeof(double));
     }
+    if (v->tails) tails_apply(b, x, y);
     if (v->alpha) svp_halo_scatter(v->alpha, (size_t)b->width * b->height, x, y, b->work_r_image);
     return SVP_OK;
 }
@@ -907,6 +1027,7 @@ static svp_status variant_adjoint(svp_blur *b, const double *restrict y, double 
         k += 1 + pair;
     }
     fold_scaled(b, v->ext, v->row_on, x);
+    if (v->tails) tails_adjoint(b, y, x);
     if (v->alpha) svp_halo_gather(v->alpha, (size_t)b->width * b->height, y, x);
     return SVP_OK;
 }
@@ -925,6 +1046,7 @@ static void release_buffers(svp_variant_data *v)
     svp_free(v->spec2);
     svp_free(v->blk);
     free(v->row_on);
+    tails_free(v);
 }
 
 static void variant_release(svp_blur *b)
@@ -996,7 +1118,7 @@ static size_t buffers_memory(const svp_blur *b, const svp_variant_data *v, size_
         bytes += (size_t)v->n_terms * (v->f_real ? spectrum / 4 : spectrum / 2);
     if (v->fr_f) /* float frame rows, a term's spectrum and the accumulator */
         bytes += (size_t)v->rows_max * f->nx * sizeof(float) + spectrum;
-    return bytes;
+    return bytes + tails_memory(b, v);
 }
 
 static size_t variant_memory(const svp_blur *b)
@@ -1107,6 +1229,8 @@ static svp_status check_options(const svp_variant_options *o)
     if (!(o->support >= 0) || !isfinite(o->support))
         return svp_fail(SVP_ERR_INVALID, "variant kernel support must be >= 0 pixels, got %g",
                         o->support);
+    if (!(o->tail_tol >= 0 && o->tail_tol < 1))
+        return svp_fail(SVP_ERR_INVALID, "tail tolerance must be in [0, 1), got %g", o->tail_tol);
     return SVP_OK;
 }
 
@@ -1681,6 +1805,7 @@ static void gram_accumulate(const double *const *a, int S, size_t n, double *res
  * columns, rsum: the rows' sums, placed: the frame gram_otf places a kernel on). */
 typedef struct gram_build {
     int S, Sp, R, Q, centred, rx, ry, kw, kh, hr, nblk, chunks, threads, sym;
+    int core_r0; /* > 0: gram_otf places only the cores of the far tail's split (tail.c) */
     size_t m, n, bp;
     size_t *rowoff;
     int *wx;
@@ -2039,9 +2164,14 @@ static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **ot
     const int zero = b->boundary == SVP_BOUNDARY_ZERO, rx = gb->rx, ry = gb->ry, kw = gb->kw;
     *otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
     if (!*otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d spectrum", f->nx, f->ny);
-    for (int x = 0; x < kw; x++) /* offsets beyond the image join no pixels (zero) */
-        gb->wx[x] = zero && abs(x - rx) > f->width - 1 ? -1 : wrap_index(x - rx, f->nx);
-    const int reach = zero && ry > f->height - 1 ? f->height - 1 : ry; /* rows placed: ±reach */
+    /* offsets beyond the image join no pixels (zero); with a tail, the core's reach only */
+    const int r1 = 2 * gb->core_r0;
+    for (int x = 0; x < kw; x++)
+        gb->wx[x] = (zero && abs(x - rx) > f->width - 1) || (r1 > 0 && abs(x - rx) > r1)
+                        ? -1
+                        : wrap_index(x - rx, f->nx);
+    int reach = zero && ry > f->height - 1 ? f->height - 1 : ry; /* rows placed: ±reach */
+    if (r1 > 0 && reach > r1) reach = r1;
     const double inv = 1.0 / ((double)f->nx * f->ny), *e = gb->eh + (size_t)r * gb->n;
     double *placed = gb->placed;
     memset(placed, 0, (size_t)f->ny * f->nx * sizeof(double));
@@ -2054,13 +2184,82 @@ static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **ot
         if (abs(y - ry) > reach) continue;
         double *row = placed + (size_t)wrap_index(y - ry, f->ny) * f->nx;
         for (int x = 0; x < kw; x++)
-            if (gb->wx[x] >= 0) row[gb->wx[x]] += inv * k[x];
+            if (gb->wx[x] >= 0)
+                row[gb->wx[x]] +=
+                    inv * k[x] * (r1 > 0 ? svp_tail_core_weight(x - rx, y - ry, gb->core_r0) : 1.0);
     }
     double total = 0;
     for (int y = 0; y < gb->kh; y++) total += gb->rsum[y];
     *flux = total;
     svp_fft_forward(f->plan, placed, *otf);
     return SVP_OK;
+}
+
+/* The operator's frame for kernel radii rx, ry, and the buffers sized by it. */
+static svp_status frame_buffers(svp_blur *b, int rx, int ry)
+{
+    svp_variant_data *v = b->variant;
+    SVP_CHECK(svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary));
+    const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
+    b->work_c = svp_alloc(ns * sizeof(fftw_complex));
+    v->acc = svp_alloc(ns * sizeof(fftw_complex));
+    if (!b->work_c || !v->acc) return svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    return SVP_OK;
+}
+
+/* Term r's whole kernel (kw x kh, centre rx, ry) from its fold; *l1 its ℓ1 norm, *cmax its
+ * largest |coefficient| over the samples. */
+static void term_kernel(const gram_build *gb, const svp_variant_data *v, int r, svp_image *k,
+                        double *l1, double *cmax)
+{
+    const double *e = gb->eh + (size_t)r * gb->n;
+#pragma omp parallel for schedule(static)
+    for (int y = 0; y < gb->kh; y++) kernel_row(gb, e, y, k->data + (size_t)y * gb->kw);
+    *l1 = 0;
+    *cmax = 0;
+    for (size_t i = 0; i < gb->m; i++) *l1 += fabs(k->data[i]);
+    for (int j = 0; j < gb->S; j++) *cmax = fmax(*cmax, fabs(v->coef[(size_t)r * gb->S + j]));
+}
+
+/* The far tail on a coarse grid (svp_variant_options.tail_tol): the split (s, r0) whose
+ * estimated error, summed over the terms, is within tol at the least cost (svp_tail_pick; a
+ * term's estimate per unit of its ℓ1 norm, times that norm and its largest |coefficient|: the
+ * light one pixel's source sends to the wrong place), each term's tail on nodes (svp_tail_new)
+ * and the frame for the cores (gram_otf places them); none cheaper within tol: the plain frame. */
+static svp_status gram_frame(svp_blur *b, gram_build *gb, double tol)
+{
+    svp_variant_data *v = b->variant;
+    const int R = gb->R, w = b->width, h = b->height, n = svp_tail_n_splits();
+    double *sums = calloc((size_t)2 * n, sizeof *sums), *one = sums + n, l1, cmax;
+    svp_image *k = NULL;
+    svp_status st = sums ? svp_image_new(gb->kw, gb->kh, &k)
+                         : svp_fail(SVP_ERR_NOMEM, "out of memory for the tail's estimate");
+    for (int r = 0; r < R && st == SVP_OK; r++) {
+        term_kernel(gb, v, r, k, &l1, &cmax);
+        st = svp_tail_split_sums(k, gb->rx, gb->ry, w, h, 0, one);
+        for (int i = 0; i < n; i++) sums[i] += one[i] * l1 * cmax;
+    }
+    int nx, ny, s = 0, r0 = 0;
+    if (st == SVP_OK) st = svp_frame_size(w, h, gb->rx, gb->ry, b->boundary, &nx, &ny);
+    if (st == SVP_OK)
+        st = svp_tail_pick(k, gb->rx, gb->ry, w, h, 0, sums, tol, nx, ny, &s, &r0, &v->tail_err);
+    if (st == SVP_OK && s > 0) {
+        v->tails = calloc((size_t)R, sizeof *v->tails);
+        v->tail_in = svp_alloc((size_t)w * h * sizeof(double));
+        if (!v->tails || !v->tail_in)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's tails");
+    }
+    for (int r = 0; r < R && st == SVP_OK && s > 0; r++) {
+        term_kernel(gb, v, r, k, &l1, &cmax);
+        st = svp_tail_new(k, gb->rx, gb->ry, w, h, 0, s, r0, v->tail_err, &v->tails[r]);
+    }
+    svp_image_free(k);
+    free(sums);
+    if (st != SVP_OK) return st;
+    v->tail_s = s;
+    v->tail_r0 = gb->core_r0 = r0;
+    const int r1 = 2 * r0;
+    return frame_buffers(b, s > 0 && r1 < gb->rx ? r1 : gb->rx, s > 0 && r1 < gb->ry ? r1 : gb->ry);
 }
 
 /* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
@@ -2094,6 +2293,7 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
     }
     if (st == SVP_OK) st = gram_terms(&gb, v);
     if (st == SVP_OK) gram_halves(&gb);
+    if (st == SVP_OK && !b->frame.plan) st = gram_frame(b, &gb, o->tail_tol);
     if (st == SVP_OK) {
         free(gb.blk); /* the row blocks are done with */
         gb.blk = NULL;
@@ -2233,17 +2433,12 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
         return st;
     }
     if (regions) b->ops = &svp_regions_ops;
-    st = svp_frame_init(&b->frame, width, height, rx, ry, boundary);
-    svp_variant_data *v = NULL;
-    if (st == SVP_OK) {
-        v = b->variant = calloc(1, sizeof *v);
-        b->work_c = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
-        if (!v || !b->work_c) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
-    }
-    if (st == SVP_OK) {
-        v->acc = svp_alloc((size_t)b->frame.ny * b->frame.ncx * sizeof(fftw_complex));
-        if (!v->acc) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
-    }
+    svp_variant_data *v = b->variant = calloc(1, sizeof *v);
+    if (!v) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    /* the frame now, or with the far tail on a coarse grid once the terms are known (gram_frame:
+     * it holds the cores only) */
+    const int tail = lowrank && build != 1 && o.tail_tol > 0 && boundary == SVP_BOUNDARY_ZERO;
+    if (st == SVP_OK && !tail) st = frame_buffers(b, rx, ry);
     if (st == SVP_OK) {
         /* no more nodes than pixels along an axis */
         v->gx = regions ? width : lowrank ? o.samples_x : o.grid_x;
@@ -2284,6 +2479,7 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     info.grid_x = regions ? 0 : v->gx;
     info.grid_y = regions ? 0 : v->gy;
     info.rank = lowrank ? o.rank : regions ? v->n_terms : 0;
+    svp_variant_tail_info(b, &info.tail_step, &info.tail_split, &info.tail_error);
     info.build_seconds = omp_get_wtime() - t_build;
     info.memory_bytes = svp_blur_memory(b);
     b->info = info;
@@ -2310,14 +2506,21 @@ svp_status svp_variant_clone(const svp_blur *b, svp_blur **out)
     u->row_on = NULL;
     u->otf_f = NULL, u->fr_f = NULL, u->spec_f = NULL, u->acc_f = NULL;
     u->rows_img = u->rows_win = NULL;
+    u->tails = NULL;
+    u->tail_in = NULL;
     c->variant = u;
     c->info = b->info;
     const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
     /* the frame's geometry and the plans anew, for this thread's plan thread count */
-    svp_status st = svp_frame_init(&c->frame, b->width, b->height, b->kcx, b->kcy, b->boundary);
+    /* the same frame: the whole kernel's, or with a far tail the cores' (radius 2 r0) */
+    const int r1 = 2 * v->tail_r0, tails = v->tails != NULL;
+    svp_status st =
+        svp_frame_init(&c->frame, b->width, b->height, tails && r1 < b->kcx ? r1 : b->kcx,
+                       tails && r1 < b->kcy ? r1 : b->kcy, b->boundary);
     if (st == SVP_OK) st = svp_psf_field_copy(b->field, &c->field);
     if (st == SVP_OK) st = svp_fft_block_get(c->frame.nx, &u->block);
     if (st == SVP_OK) st = svp_fft_pruned_get(c->frame.ny, c->frame.nx, 0, &u->cols);
+    if (st == SVP_OK) st = tails_copy(b, v, u);
     if (st == SVP_OK) {
         c->work_c = svp_alloc(ns * sizeof(fftw_complex));
         c->work_r_image = svp_alloc((size_t)b->width * b->height * sizeof(double));

@@ -442,8 +442,10 @@ def corr_run(svpsf, d, label, extra, wisdom, threads, truth, masks, iterations=N
     with open(os.path.join(out, "summary.json")) as f:
         s = json.load(f)
     st, tm = s.get("settings", {}), s.get("timings_s", {})
+    rs = s.get("results", {})
     res.update(plan_s=tm.get("plan"), transform_s=tm.get("transform"), total_s=tm.get("total"),
-               margin=st.get("margin"), iterations=s.get("results", {}).get("rl_iterations"))
+               margin=st.get("margin"), iterations=rs.get("rl_iterations"),
+               tail_step=rs.get("tail_step_px"), tail_split=rs.get("tail_split_px"))
     for k in ("psf_representation", "psf_rank", "psf_samples", "psf_nodes", "psf_region_kernels",
               "operator_estimated_error", "operator_build_s", "operator_estimate_s",
               "operator_apply_s", "operator_adjoint_s", "psf_operator_bytes",
@@ -471,7 +473,10 @@ def chosen_name(r):
     if r.get("psf_representation") == "regions":
         return f"regions ({r.get('psf_region_kernels')} kernels)"
     if r.get("psf_representation") == "low rank":
-        return f"low rank {r.get('psf_rank')} ({r.get('psf_samples', '').replace(' ', '')})"
+        tail = (f", tail s {r['tail_step']} / r0 {r.get('tail_split')}"
+                if r.get("tail_step") else "")
+        return (f"low rank {r.get('psf_rank')} ({r.get('psf_samples', '').replace(' ', '')})"
+                + tail)
     if r.get("psf_representation") == "tent":
         return f"tent {r.get('psf_nodes', '').replace(' ', '')}"
     return "invariant"
@@ -498,9 +503,11 @@ def correct_section(args, exe):
         for mname, rows in plan:
             d = os.path.join(work, map_dir(mname))
             truth_b, masks = info[mname].pop("truth"), info[mname].pop("masks")
-            # FFTW wisdom for both frames first (an untimed run of each with 1 iteration), as
-            # on a machine where svpsf has run at this size before
-            for extra in (None, ["--nodes", "1x1"]):
+            # FFTW wisdom for the frames first (an untimed run of each with 1 iteration: the
+            # centre PSF's, the whole-field frame of tent 1 x 1, the map's default's, whose
+            # cores and tails have frames of their own), as on a machine where svpsf has run
+            # at this size before
+            for extra in (None, ["--nodes", "1x1"], []):
                 corr_run(svpsf, d, "warm-up", extra, wisdom, threads, truth_b, masks, 1)
             runs = []
             for label in rows:
@@ -568,7 +575,11 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
         "binned in 12 levels); no noise. **Field error**: relative rms of the corrected field "
         "against the truth over the lit and dark significant pixels (as docs/accuracy.md). "
         "*centre PSF only*: the invariant correction with the map's PSF at the view's centre "
-        "(with its default margin). *auto, default, --margin auto*: the map's default with "
+        "(with its default margin and its far tail on a coarse grid, docs/model.md §5). A "
+        "low-rank map's operator in `correct` takes the far tail on a coarse grid too "
+        "(`--tail-tol` 10⁻³, docs/model.md §9 \"The far tail on a coarse grid\"; *tail s / "
+        "r0* after its name: nodes every s px, the cores to radius 2 r0); the *operator error*, "
+        "*apply* and *RL iteration* columns (`bench_variant ops`) are of the plain frame. *auto, default, --margin auto*: the map's default with "
         "a margin (the map's edge PSFs carried outward, docs/model.md §9 \"Light from outside "
         "the view\"; a map's default is none): what it costs where the data hold no light from "
         "outside. **Operator error** (docs/model.md §9's relative Frobenius "
