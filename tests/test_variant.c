@@ -53,6 +53,24 @@ static svp_psf_field *poly_field(int w, int h, double support, double strength, 
     return poly_field_e(w, h, support, strength, halo, 1);
 }
 
+/* A polynomial Moffat field of degree 2 (terms 1, u, v, u², uv, v²) from {parameter, term,
+ * coefficient} triples, every other coefficient 0, around a base PSF of FWHM 3 px. */
+typedef struct poly_coef {
+    int param, term;
+    double value;
+} poly_coef;
+
+static svp_psf_field *poly_map(int w, int h, const poly_coef *terms, int n)
+{
+    svp_psf base = moffat(3.0, 2.0, 0.0);
+    const int nt = svp_psf_field_poly_terms(2);
+    double c[SVP_FIELD_NPARAM * 6] = {0};
+    for (int i = 0; i < n; i++) c[terms[i].param * nt + terms[i].term] = terms[i].value;
+    svp_psf_field *f = NULL;
+    ASSERT_OK(svp_psf_field_new_poly(&base, w, h, 2, c, &f));
+    return f;
+}
+
 static svp_variant_options tent_options(int g)
 {
     svp_variant_options o;
@@ -839,16 +857,10 @@ static void test_lowrank_fold(void **state)
         if (c < 3)
             f = poly_field_e(w, h, support, 1.5, halo, 0);
         else { /* an ellipse along x everywhere (e1 > 0, e2 = 0: angle 0) */
-            svp_psf base = moffat(3.0, 2.0, 0.0);
-            const int nt = svp_psf_field_poly_terms(2);
-            double co[SVP_FIELD_NPARAM * 6] = {0};
-            co[SVP_FIELD_FWHM * nt + 0] = 3.6;
-            co[SVP_FIELD_FWHM * nt + 1] = 1.5;
-            co[SVP_FIELD_E1 * nt + 0] = 0.2;
-            co[SVP_FIELD_E1 * nt + 2] = 0.1;
-            co[SVP_FIELD_BETA * nt + 0] = 2.2;
-            co[SVP_FIELD_BETA * nt + 2] = 1.0;
-            ASSERT_OK(svp_psf_field_new_poly(&base, w, h, 2, co, &f));
+            const poly_coef ellipse[] = {{SVP_FIELD_FWHM, 0, 3.6}, {SVP_FIELD_FWHM, 1, 1.5},
+                                         {SVP_FIELD_E1, 0, 0.2},   {SVP_FIELD_E1, 2, 0.1},
+                                         {SVP_FIELD_BETA, 0, 2.2}, {SVP_FIELD_BETA, 2, 1.0}};
+            f = poly_map(w, h, ellipse, 6);
         }
         compare_builds(f, w, h, mode, samples, mean, 2, 41 + c, 1e-12, "fold vs half", c,
                        &worst_op, &worst_term);
@@ -1316,19 +1328,11 @@ static void test_low_rank(void **state)
  * 1.4 along y, elliptic, with a halo when asked. */
 static svp_psf_field *tail_field(int w, int h, int halo)
 {
-    svp_psf base = moffat(4.0, 1.2, 0.0);
-    const int nt = svp_psf_field_poly_terms(2);
-    double c[SVP_FIELD_NPARAM * 6] = {0};
-    c[SVP_FIELD_FWHM * nt + 0] = 4.0;
-    c[SVP_FIELD_FWHM * nt + 1] = 1.0;
-    c[SVP_FIELD_E1 * nt + 1] = 0.08;
-    c[SVP_FIELD_BETA * nt + 0] = 1.25;
-    c[SVP_FIELD_BETA * nt + 2] = 0.15;
-    c[SVP_FIELD_BETA * nt + 3] = 0.05;
-    if (halo) c[SVP_FIELD_HALO * nt + 0] = 0.2, c[SVP_FIELD_HALO * nt + 1] = 0.1;
-    svp_psf_field *f = NULL;
-    ASSERT_OK(svp_psf_field_new_poly(&base, w, h, 2, c, &f));
-    return f;
+    const poly_coef c[] = {{SVP_FIELD_FWHM, 0, 4.0},  {SVP_FIELD_FWHM, 1, 1.0},
+                           {SVP_FIELD_E1, 1, 0.08},   {SVP_FIELD_BETA, 0, 1.25},
+                           {SVP_FIELD_BETA, 2, 0.15}, {SVP_FIELD_BETA, 3, 0.05},
+                           {SVP_FIELD_HALO, 0, 0.2},  {SVP_FIELD_HALO, 1, 0.1}};
+    return poly_map(w, h, c, halo ? 8 : 6);
 }
 
 /* svp_variant_options.tail_tol on a low-rank operator (docs/model.md §9, "The far tail"): each
