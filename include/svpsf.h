@@ -859,8 +859,8 @@ typedef struct svp_variant_options {
     int single_precision;  /* 1: the terms' spectra kept in float only (half the memory) and H,
                               Hᵀ transformed in float (fftw3f) on the same frames, always; the
                               build itself is double (docs/model.md §9). Default 0 */
-    double tail_tol;       /* low rank in double precision with the zero boundary: each term's
-                              far tail on a coarse grid (docs/model.md §9, "The far tail"), the
+    double tail_tol;       /* low rank and regions with the zero boundary: each term's
+                              far tail on a coarse grid (docs/model.md §9, "The far tail on a coarse grid"), the
                               cores on a frame for their radius, when that is cheaper and the
                               estimated ℓ1 error per unit flux is at most this; 0 (default) =
                               the plain frame. `correct` passes its --tail-tol (10⁻³) */
@@ -882,7 +882,7 @@ typedef struct svp_variant_info {
     double build_seconds;            /* the operator's build */
     size_t memory_bytes;             /* svp_blur_memory after the build */
     size_t peak_bytes;               /* the estimate checked against max_memory */
-    int tail_step, tail_split;       /* low rank with tail_tol: node spacing and split radius of
+    int tail_step, tail_split;       /* low rank, regions with tail_tol: node spacing and split radius of
                                         the far tail on a coarse grid (0: the plain frame) */
     double tail_error;               /* its estimated ℓ1 error per unit flux, all terms */
 } svp_variant_info;

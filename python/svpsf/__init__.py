@@ -418,9 +418,9 @@ class Blur:
     `--nodes`/`--rank`; regions=True: one kernel per region of a map of kind regions, as
     `--regions`; none: the representation chosen by operator_tol, default 1e-3, as
     `--operator-tol`; applications: the H + Hᵀ pairs its cost model counts, default 50;
-    forward() and correct() pass what they run, as the program does; tail_tol: a low-rank
-    map's far tail on a coarse grid within this error, default 0 = never, correct() passes its
-    own for the RL methods as `--tail-tol`). psf may also be a file
+    forward() and correct() pass what they run, as the program does; tail_tol: a low-rank or
+    region map's far tail on a coarse grid within this error, default 0 = never, correct()
+    passes its own for the RL methods as `--tail-tol`). psf may also be a file
     name (read_psf); boundary None = the file's,
     else 'zero'. Building it plans the FFTs once: reuse it for many images of one size. One
     Blur must not be used from two threads at once."""
@@ -485,8 +485,8 @@ class Blur:
         representation ('tent', 'low rank' or 'regions'), nodes (tent nodes or low-rank samples
         (x, y); regions (0, 0)), rank (low-rank terms or region kernels; tent 0),
         estimated_error (NaN when not estimated) and tail_step, tail_split, tail_error (a
-        low-rank map's far tail on a coarse grid, tail_tol; step 0: the plain frame); None for
-        other operators."""
+        low-rank or region map's far tail on a coarse grid, tail_tol; step 0: the plain
+        frame); None for other operators."""
         if not self.is_variant:
             return None
         info = ffi.new("svp_variant_info *")

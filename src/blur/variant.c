@@ -105,6 +105,7 @@ struct svp_variant_data {
     int tail_s, tail_r0;
     double tail_err;
     double *tail_in;
+    int tail_pixel; /* regions: coef holds a weight per pixel (term r's at coef + r w h) */
 };
 
 void svp_variant_defaults(svp_variant_options *o)
@@ -600,6 +601,16 @@ static inline double coef_at(const svp_variant_data *v, const double *a, int x)
     return (1.0 - t) * a[i] + (t > 0 ? t * a[i + 1] : 0.0);
 }
 
+/* Term r's weights along image row y: low rank, its coefficients at the sample columns in a
+ * (coef_at interpolates them); regions, the row of its weight map (returned, a unused). */
+static const double *weight_row(const svp_blur *b, int r, int y, double *restrict a)
+{
+    const svp_variant_data *v = b->variant;
+    if (v->tail_pixel) return v->coef + ((size_t)r * b->height + y) * b->width;
+    coef_samples_row(v, r, y, a);
+    return NULL;
+}
+
 /* y += Σ_r P K_r Pᵀ (c_r ⊙ s ⊙ x): every term's tail, each on its own nodes. Rows are
  * independent and each tail's passes sum in a fixed order: the same bits for any threads. */
 static void tails_apply(svp_blur *b, const double *restrict x, double *restrict y)
@@ -610,11 +621,12 @@ static void tails_apply(svp_blur *b, const double *restrict x, double *restrict 
     for (int r = 0; r < v->n_terms; r++) {
 #pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
         for (int yy = 0; yy < h; yy++) {
-            double a[64]; /* gx <= 64 (check_options) */
-            coef_samples_row(v, r, yy, a);
+            double a[64]; /* low rank: gx <= 64 (check_options) */
+            const double *pix = weight_row(b, r, yy, a);
             const size_t o = (size_t)yy * w;
             for (int q = 0; q < w; q++)
-                in[o + q] = coef_at(v, a, q) * (v->scale ? v->scale[o + q] * x[o + q] : x[o + q]);
+                in[o + q] = (pix ? pix[q] : coef_at(v, a, q)) *
+                            (v->scale ? v->scale[o + q] * x[o + q] : x[o + q]);
         }
         svp_tail_gather(v->tails[r], in, (size_t)w, 0);
         svp_tail_spread(v->tails[r], y, (size_t)w);
@@ -634,10 +646,10 @@ static void tails_adjoint(svp_blur *b, const double *restrict y, double *restric
 #pragma omp parallel for schedule(static) if ((size_t)w * h > SVP_PARALLEL_MIN)
         for (int yy = 0; yy < h; yy++) {
             double a[64];
-            coef_samples_row(v, r, yy, a);
+            const double *pix = weight_row(b, r, yy, a);
             const size_t o = (size_t)yy * w;
             for (int q = 0; q < w; q++) {
-                const double t = coef_at(v, a, q) * out[o + q];
+                const double t = (pix ? pix[q] : coef_at(v, a, q)) * out[o + q];
                 x[o + q] += v->scale ? v->scale[o + q] * t : t;
             }
         }
@@ -1670,6 +1682,106 @@ cleanup:
     return st;
 }
 
+/* The operator's frame for kernel radii rx, ry, and the buffers sized by it. */
+static svp_status frame_buffers(svp_blur *b, int rx, int ry)
+{
+    svp_variant_data *v = b->variant;
+    SVP_CHECK(svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary));
+    const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
+    b->work_c = svp_alloc(ns * sizeof(fftw_complex));
+    v->acc = svp_alloc(ns * sizeof(fftw_complex));
+    if (!b->work_c || !v->acc) return svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
+    return SVP_OK;
+}
+
+/* Term r's whole kernel into k (kw x kh, centre rx, ry) and *scale, its ℓ1 norm times its
+ * largest |weight|: what one source's light through that term can weigh. */
+typedef svp_status (*term_kernel_fn)(void *ctx, int r, svp_image *k, double *scale);
+
+/* The far tail on a coarse grid (svp_variant_options.tail_tol) for the R terms `make` gives:
+ * the split (s, r0) whose estimated error, summed over the terms, is within tol at the least
+ * cost (svp_tail_pick; a term's estimate per unit of its ℓ1 norm, times its scale: the light
+ * one pixel's source sends to the wrong place), each term's tail on nodes (svp_tail_new) and
+ * the frame for the cores (radius 2 r0); none cheaper within tol: the plain frame. */
+static svp_status tails_frame(svp_blur *b, int R, int rx, int ry, double tol, term_kernel_fn make,
+                              void *ctx)
+{
+    svp_variant_data *v = b->variant;
+    const int w = b->width, h = b->height, n = svp_tail_n_splits();
+    double *sums = calloc((size_t)2 * n, sizeof *sums), *one = sums + n, scale;
+    svp_image *k = NULL;
+    svp_status st = sums ? svp_image_new(2 * rx + 1, 2 * ry + 1, &k)
+                         : svp_fail(SVP_ERR_NOMEM, "out of memory for the tail's estimate");
+    for (int r = 0; r < R && st == SVP_OK; r++) {
+        st = make(ctx, r, k, &scale);
+        if (st == SVP_OK) st = svp_tail_split_sums(k, rx, ry, w, h, 0, one);
+        for (int i = 0; i < n && st == SVP_OK; i++) sums[i] += one[i] * scale;
+    }
+    int nx, ny, s = 0, r0 = 0;
+    if (st == SVP_OK) st = svp_frame_size(w, h, rx, ry, b->boundary, &nx, &ny);
+    if (st == SVP_OK)
+        st = svp_tail_pick(k, rx, ry, w, h, 0, sums, tol, nx, ny, &s, &r0, &v->tail_err);
+    if (st == SVP_OK && s > 0) {
+        v->tails = calloc((size_t)R, sizeof *v->tails);
+        v->tail_in = svp_alloc((size_t)w * h * sizeof(double));
+        if (!v->tails || !v->tail_in)
+            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's tails");
+    }
+    for (int r = 0; r < R && st == SVP_OK && s > 0; r++) {
+        st = make(ctx, r, k, &scale);
+        if (st == SVP_OK)
+            st = svp_tail_new(k, rx, ry, w, h, 0, s, r0, v->tail_err, &v->tails[r]);
+    }
+    svp_image_free(k);
+    free(sums);
+    if (st != SVP_OK) return st;
+    v->tail_s = s;
+    v->tail_r0 = r0;
+    const int r1 = 2 * r0;
+    return frame_buffers(b, s > 0 && r1 < rx ? r1 : rx, s > 0 && r1 < ry ? r1 : ry);
+}
+
+/* A region term's kernel for tails_frame: its PSF rendered whole, scaled by its largest
+ * weight. */
+typedef struct region_term_ctx {
+    const svp_region_terms *t;
+    const svp_variant_data *v;
+    double support;
+    int rx, ry;
+    size_t n; /* pixels of a weight map */
+} region_term_ctx;
+
+static svp_status region_term_kernel(void *ctx, int r, svp_image *k, double *scale)
+{
+    const region_term_ctx *c = ctx;
+    svp_psf psf = c->t->psf[r];
+    psf.support = c->support;
+    svp_image *kernel = NULL;
+    SVP_CHECK(svp_psf_render(&psf, c->rx, c->ry, &kernel));
+    memcpy(k->data, kernel->data, (size_t)k->width * k->height * sizeof(double));
+    svp_image_free(kernel);
+    double l1 = 0, cmax = 0;
+    for (size_t i = 0; i < (size_t)k->width * k->height; i++) l1 += fabs(k->data[i]);
+    const double *wr = c->v->coef + (size_t)r * c->n;
+    for (size_t i = 0; i < c->n; i++) cmax = fmax(cmax, fabs(wr[i]));
+    *scale = l1 * cmax;
+    return SVP_OK;
+}
+
+/* Region k's spectrum: its kernel's, or with the far tail on a coarse grid its core's. */
+static svp_status region_otf(svp_blur *b, const svp_image *kernel, int rx, int ry,
+                             fftw_complex **otf)
+{
+    const svp_variant_data *v = b->variant;
+    if (!v->tails) return term_otf(b, kernel, rx, ry, otf);
+    svp_image *core = NULL;
+    int cx, cy;
+    SVP_CHECK(svp_tail_core(kernel, rx, ry, v->tail_r0, &core, &cx, &cy));
+    const svp_status st = term_otf(b, core, cx, cy, otf);
+    svp_image_free(core);
+    return st;
+}
+
 /* Regions (regions.c): term k is used label k's normalised kernel with its weight map as the
  * coefficients at "samples" on every pixel (gx = width, gy = height: the bilinear weights
  * between samples are then 1 and 0, exact), so setup_fill makes the per-pixel tables. The
@@ -1689,6 +1801,11 @@ static svp_status build_regions(svp_blur *b, const svp_variant_options *o, doubl
         v->n_terms = t.K;
         v->coef = t.weight; /* coef[(r gy + y) gx + x] = weight[r N + y w + x] */
         t.weight = NULL;
+        v->tail_pixel = 1;
+    }
+    if (st == SVP_OK && !b->frame.plan) { /* the far tail on a coarse grid, or the plain frame */
+        region_term_ctx c = {&t, v, support, rx, ry, (size_t)b->width * b->height};
+        st = tails_frame(b, t.K, rx, ry, o->tail_tol, region_term_kernel, &c);
     }
     for (int k = 0; k < t.K && st == SVP_OK; k++) {
         svp_psf psf = t.psf[k];
@@ -1700,7 +1817,7 @@ static svp_status build_regions(svp_blur *b, const svp_variant_options *o, doubl
                                   psf.beta);
             break;
         }
-        st = term_otf(b, kernel, rx, ry, &v->otf[k]);
+        st = region_otf(b, kernel, rx, ry, &v->otf[k]);
         svp_image_free(kernel);
         if (st == SVP_OK)
             st = svp_report_progress(o->progress, o->progress_user, (k + 1.0) / t.K);
@@ -2195,18 +2312,6 @@ static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **ot
     return SVP_OK;
 }
 
-/* The operator's frame for kernel radii rx, ry, and the buffers sized by it. */
-static svp_status frame_buffers(svp_blur *b, int rx, int ry)
-{
-    svp_variant_data *v = b->variant;
-    SVP_CHECK(svp_frame_init(&b->frame, b->width, b->height, rx, ry, b->boundary));
-    const size_t ns = (size_t)b->frame.ny * b->frame.ncx;
-    b->work_c = svp_alloc(ns * sizeof(fftw_complex));
-    v->acc = svp_alloc(ns * sizeof(fftw_complex));
-    if (!b->work_c || !v->acc) return svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
-    return SVP_OK;
-}
-
 /* Term r's whole kernel (kw x kh, centre rx, ry) from its fold; *l1 its ℓ1 norm, *cmax its
  * largest |coefficient| over the samples. */
 static void term_kernel(const gram_build *gb, const svp_variant_data *v, int r, svp_image *k,
@@ -2221,45 +2326,18 @@ static void term_kernel(const gram_build *gb, const svp_variant_data *v, int r, 
     for (int j = 0; j < gb->S; j++) *cmax = fmax(*cmax, fabs(v->coef[(size_t)r * gb->S + j]));
 }
 
-/* The far tail on a coarse grid (svp_variant_options.tail_tol): the split (s, r0) whose
- * estimated error, summed over the terms, is within tol at the least cost (svp_tail_pick; a
- * term's estimate per unit of its ℓ1 norm, times that norm and its largest |coefficient|: the
- * light one pixel's source sends to the wrong place), each term's tail on nodes (svp_tail_new)
- * and the frame for the cores (gram_otf places them); none cheaper within tol: the plain frame. */
-static svp_status gram_frame(svp_blur *b, gram_build *gb, double tol)
+typedef struct gram_term_ctx {
+    const gram_build *gb;
+    const svp_variant_data *v;
+} gram_term_ctx;
+
+static svp_status gram_term_kernel(void *ctx, int r, svp_image *k, double *scale)
 {
-    svp_variant_data *v = b->variant;
-    const int R = gb->R, w = b->width, h = b->height, n = svp_tail_n_splits();
-    double *sums = calloc((size_t)2 * n, sizeof *sums), *one = sums + n, l1, cmax;
-    svp_image *k = NULL;
-    svp_status st = sums ? svp_image_new(gb->kw, gb->kh, &k)
-                         : svp_fail(SVP_ERR_NOMEM, "out of memory for the tail's estimate");
-    for (int r = 0; r < R && st == SVP_OK; r++) {
-        term_kernel(gb, v, r, k, &l1, &cmax);
-        st = svp_tail_split_sums(k, gb->rx, gb->ry, w, h, 0, one);
-        for (int i = 0; i < n; i++) sums[i] += one[i] * l1 * cmax;
-    }
-    int nx, ny, s = 0, r0 = 0;
-    if (st == SVP_OK) st = svp_frame_size(w, h, gb->rx, gb->ry, b->boundary, &nx, &ny);
-    if (st == SVP_OK)
-        st = svp_tail_pick(k, gb->rx, gb->ry, w, h, 0, sums, tol, nx, ny, &s, &r0, &v->tail_err);
-    if (st == SVP_OK && s > 0) {
-        v->tails = calloc((size_t)R, sizeof *v->tails);
-        v->tail_in = svp_alloc((size_t)w * h * sizeof(double));
-        if (!v->tails || !v->tail_in)
-            st = svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's tails");
-    }
-    for (int r = 0; r < R && st == SVP_OK && s > 0; r++) {
-        term_kernel(gb, v, r, k, &l1, &cmax);
-        st = svp_tail_new(k, gb->rx, gb->ry, w, h, 0, s, r0, v->tail_err, &v->tails[r]);
-    }
-    svp_image_free(k);
-    free(sums);
-    if (st != SVP_OK) return st;
-    v->tail_s = s;
-    v->tail_r0 = gb->core_r0 = r0;
-    const int r1 = 2 * r0;
-    return frame_buffers(b, s > 0 && r1 < gb->rx ? r1 : gb->rx, s > 0 && r1 < gb->ry ? r1 : gb->ry);
+    const gram_term_ctx *c = ctx;
+    double l1, cmax;
+    term_kernel(c->gb, c->v, r, k, &l1, &cmax);
+    *scale = l1 * cmax;
+    return SVP_OK;
 }
 
 /* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
@@ -2293,7 +2371,11 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
     }
     if (st == SVP_OK) st = gram_terms(&gb, v);
     if (st == SVP_OK) gram_halves(&gb);
-    if (st == SVP_OK && !b->frame.plan) st = gram_frame(b, &gb, o->tail_tol);
+    if (st == SVP_OK && !b->frame.plan) {
+        gram_term_ctx c = {&gb, v};
+        st = tails_frame(b, gb.R, rx, ry, o->tail_tol, gram_term_kernel, &c);
+        gb.core_r0 = v->tail_r0; /* gram_otf places the cores */
+    }
     if (st == SVP_OK) {
         free(gb.blk); /* the row blocks are done with */
         gb.blk = NULL;
@@ -2435,9 +2517,10 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     if (regions) b->ops = &svp_regions_ops;
     svp_variant_data *v = b->variant = calloc(1, sizeof *v);
     if (!v) st = svp_fail(SVP_ERR_NOMEM, "out of memory for blur buffers");
-    /* the frame now, or with the far tail on a coarse grid once the terms are known (gram_frame:
+    /* the frame now, or with the far tail on a coarse grid once the terms are known (tails_frame:
      * it holds the cores only) */
-    const int tail = lowrank && build != 1 && o.tail_tol > 0 && boundary == SVP_BOUNDARY_ZERO;
+    const int tail =
+        (regions || (lowrank && build != 1)) && o.tail_tol > 0 && boundary == SVP_BOUNDARY_ZERO;
     if (st == SVP_OK && !tail) st = frame_buffers(b, rx, ry);
     if (st == SVP_OK) {
         /* no more nodes than pixels along an axis */
@@ -2465,8 +2548,8 @@ svp_status svp_blur_new_field_build(const svp_psf_field *field, int width, int h
     svp_region_terms_free(&terms); /* unless build_regions took them over */
     if (st == SVP_OK) st = keep_real_spectra(v, (size_t)b->frame.ny * b->frame.ncx);
     if (st == SVP_OK) st = setup_fill(b);
-    if (st == SVP_OK && regions) {
-        /* the per-pixel maps are in the weight tables now */
+    if (st == SVP_OK && regions && !v->tails) {
+        /* the per-pixel maps are in the weight tables now (the tails read them) */
         free(v->coef);
         v->coef = NULL;
     }

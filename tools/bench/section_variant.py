@@ -470,11 +470,10 @@ def ops_label(tok):
 
 
 def chosen_name(r):
+    tail = f", tail s {r['tail_step']} / r0 {r.get('tail_split')}" if r.get("tail_step") else ""
     if r.get("psf_representation") == "regions":
-        return f"regions ({r.get('psf_region_kernels')} kernels)"
+        return f"regions ({r.get('psf_region_kernels')} kernels){tail}"
     if r.get("psf_representation") == "low rank":
-        tail = (f", tail s {r['tail_step']} / r0 {r.get('tail_split')}"
-                if r.get("tail_step") else "")
         return (f"low rank {r.get('psf_rank')} ({r.get('psf_samples', '').replace(' ', '')})"
                 + tail)
     if r.get("psf_representation") == "tent":
@@ -576,10 +575,11 @@ def render_correct(results, sizes, threads, iterations, failed, elapsed, quick):
         "against the truth over the lit and dark significant pixels (as docs/accuracy.md). "
         "*centre PSF only*: the invariant correction with the map's PSF at the view's centre "
         "(with its default margin and its far tail on a coarse grid, docs/model.md §5). A "
-        "low-rank map's operator in `correct` takes the far tail on a coarse grid too "
-        "(`--tail-tol` 10⁻³, docs/model.md §9 \"The far tail on a coarse grid\"; *tail s / "
-        "r0* after its name: nodes every s px, the cores to radius 2 r0); the *operator error*, "
-        "*apply* and *RL iteration* columns (`bench_variant ops`) are of the plain frame. *auto, default, --margin auto*: the map's default with "
+        "low-rank or region map's operator in `correct` takes the far tail on a coarse grid "
+        "too (`--tail-tol` 10⁻³, docs/model.md §9 \"The far tail on a coarse grid\"; *tail s "
+        "/ r0* after its name: nodes every s px, the cores to radius 2 r0); the *operator "
+        "error*, *apply* and *RL iteration* columns (`bench_variant ops`) are of the plain "
+        "frame. *auto, default, --margin auto*: the map's default with "
         "a margin (the map's edge PSFs carried outward, docs/model.md §9 \"Light from outside "
         "the view\"; a map's default is none): what it costs where the data hold no light from "
         "outside. **Operator error** (docs/model.md §9's relative Frobenius "

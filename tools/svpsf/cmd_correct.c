@@ -130,10 +130,10 @@ static void print_help(const cli_run *run, FILE *out)
             "                        side by side, each on a copy of the operator (faster on\n"
             "                        several cores; a copy's memory each, docs/model.md); off:\n"
             "                        in order, one operator's memory\n"
-            "  --tail-tol TOL        with r / rl-signed, one PSF or a low-rank map: the PSF's\n"
-            "                        far tail convolved on a coarser grid when that is cheaper\n"
-            "                        and its estimated relative error is at most TOL (default\n"
-            "                        %g; 0: never; docs/model.md)\n"
+            "  --tail-tol TOL        with r / rl-signed, one PSF or a low-rank or region map:\n"
+            "                        the PSF's far tail convolved on a coarser grid when that\n"
+            "                        is cheaper and its estimated relative error is at most\n"
+            "                        TOL (default %g; 0: never; docs/model.md)\n"
             "  --boundary zero|mirror|periodic  the scene beyond the image edges (default: the\n"
             "                        PSF file's boundary, else zero)\n",
             d.pl_floor, d.tail_tol);
@@ -387,7 +387,7 @@ static int correct_compute(cli_run *run, struct correct_args *a, struct correct_
     int code;
     cli_stage_begin(run, "plan");
     job->psf.variant.applications = cli_correct_applications(opt, maps->n_fields); /* cost model */
-    /* a low-rank map's far tail on a coarse grid, for the RL methods as with one PSF */
+    /* a low-rank or region map's far tail on a coarse grid, for the RL methods as one PSF's */
     if (opt->method == SVP_METHOD_R || opt->method == SVP_METHOD_RL_SIGNED)
         job->psf.variant.tail_tol = opt->tail_tol;
     if ((code = cli_psf_blur(run, &job->psf, w + 2 * opt->margin, h + 2 * opt->margin,

@@ -105,9 +105,9 @@ static void print_help(const cli_run *run, FILE *out)
           "  --margin auto|PX      the margin (default auto: the PSF's reach, 0 with a halo;\n"
           "                        0 for a PSF map, whose edge PSFs a margin carries outward;\n"
           "                        auto there: the map's widest PSF's reach)\n"
-          "  --tail-tol TOL        one PSF or a low-rank map: its far tail on a coarser grid\n"
-          "                        when cheaper and within TOL (default 1e-3; 0: never; as\n"
-          "                        `correct`)\n",
+          "  --tail-tol TOL        one PSF or a low-rank or region map: its far tail on a\n"
+          "                        coarser grid when cheaper and within TOL (default 1e-3;\n"
+          "                        0: never; as `correct`)\n",
           out);
     cli_print_variant_help(out, 1e-2);
     fputs("outputs:\n"
@@ -518,7 +518,7 @@ static int fit_odmr_deconvolve(cli_run *run, const struct fit_odmr_args *a,
     /* a map's representation is chosen for this many H + Hᵀ pairs */
     const long pairs = (long)a->iterations * job->nf;
     job->psf.variant.applications = pairs < 1000000 ? (int)pairs : 1000000;
-    job->psf.variant.tail_tol = a->tail_tol; /* a low-rank map's far tail, as one PSF's */
+    job->psf.variant.tail_tol = a->tail_tol; /* a map's far tail (low rank, regions) */
     int code = cli_psf_blur(run, &job->psf, job->w + 2 * m, job->h + 2 * m, SVP_BOUNDARY_ZERO,
                             &blur);
     if (code) return code;
