@@ -170,8 +170,6 @@ svp_status svp_tail_split_sums(const svp_image *k, int cx, int cy, int width, in
 svp_status svp_tail_pick(const svp_image *k, int cx, int cy, int width, int height, int margin,
                          const double *sums, double tol, int pnx, int pny, int *s_out, int *r0_out,
                          double *error);
-/* The core's share 1 − w(r) of a kernel's value at offset (dx, dy) for split r0 (0 from 2 r0). */
-double svp_tail_core_weight(int dx, int dy, int r0);
 /* A copy with its own buffers and plans (another thread's), the same operator. */
 svp_status svp_tail_copy(const svp_tail *t, svp_tail **out);
 void svp_tail_free(svp_tail *t);

@@ -40,11 +40,6 @@ static double step(double r, int r0, int r1)
     return t * t * t * (10.0 + t * (-15.0 + 6.0 * t));
 }
 
-double svp_tail_core_weight(int dx, int dy, int r0)
-{
-    return 1.0 - step(hypot(dx, dy), r0, 2 * r0);
-}
-
 /* The kernel at offset (dx, dy); beyond its rectangle the value at the nearest offset inside it
  * when `extend` (a kernel that covers every offset the operator uses: what lies beyond is never
  * used, and the continuation keeps the tail smooth there), else 0. */

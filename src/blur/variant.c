@@ -96,8 +96,8 @@ struct svp_variant_data {
     float *fr_f;
     fftwf_complex *spec_f, *acc_f;
     const svp_fftf_rows *rows_img, *rows_win;
-    /* The far tail on a coarse grid (svp_variant_options.tail_tol; low rank only): the frame
-     * holds each eigen-PSF's core (radius 2 tail_r0, tail.c's split), tails[r] its tail as
+    /* The far tail on a coarse grid (svp_variant_options.tail_tol; low rank and regions): the
+     * frame holds each term's core (radius 2 tail_r0, tail.c's split), tails[r] its tail as
      * P K_c Pᵀ on nodes every tail_s pixels (tail.c), tail_err the estimated ℓ1 error per unit
      * flux of all of them; tail_in (w x h) a term's weighted input (apply) or its tail's output
      * (adjoint). A copy makes its own (svp_tail_copy). tails NULL: the plain frame. */
@@ -582,7 +582,7 @@ static void single_product(const svp_variant_data *v, int k, const float *restri
     }
 }
 
-/* ---- the far tail on a coarse grid (low rank) --------------------------------------------- */
+/* ---- the far tail on a coarse grid (low rank, regions) ------------------------------------ */
 
 /* Low-rank term r's coefficients along image row y at the sample columns (a[i], i < gx):
  * blended between the sample rows as the weight tables are. */
@@ -1701,8 +1701,9 @@ typedef svp_status (*term_kernel_fn)(void *ctx, int r, svp_image *k, double *sca
 /* The far tail on a coarse grid (svp_variant_options.tail_tol) for the R terms `make` gives:
  * the split (s, r0) whose estimated error, summed over the terms, is within tol at the least
  * cost (svp_tail_pick; a term's estimate per unit of its ℓ1 norm, times its scale: the light
- * one pixel's source sends to the wrong place), each term's tail on nodes (svp_tail_new) and
- * the frame for the cores (radius 2 r0); none cheaper within tol: the plain frame. */
+ * one pixel's source sends to the wrong place) and the frame for the cores (radius 2 r0; the
+ * builders then give each term its tail and core with term_tail); none cheaper within tol:
+ * the plain frame. */
 static svp_status tails_frame(svp_blur *b, int R, int rx, int ry, double tol, term_kernel_fn make,
                               void *ctx)
 {
@@ -1726,11 +1727,6 @@ static svp_status tails_frame(svp_blur *b, int R, int rx, int ry, double tol, te
         v->tail_in = svp_alloc((size_t)w * h * sizeof(double));
         if (!v->tails || !v->tail_in)
             st = svp_fail(SVP_ERR_NOMEM, "out of memory for the operator's tails");
-    }
-    for (int r = 0; r < R && st == SVP_OK && s > 0; r++) {
-        st = make(ctx, r, k, &scale);
-        if (st == SVP_OK)
-            st = svp_tail_new(k, rx, ry, w, h, 0, s, r0, v->tail_err, &v->tails[r]);
     }
     svp_image_free(k);
     free(sums);
@@ -1768,12 +1764,15 @@ static svp_status region_term_kernel(void *ctx, int r, svp_image *k, double *sca
     return SVP_OK;
 }
 
-/* Region k's spectrum: its kernel's, or with the far tail on a coarse grid its core's. */
-static svp_status region_otf(svp_blur *b, const svp_image *kernel, int rx, int ry,
-                             fftw_complex **otf)
+/* Term r's spectrum from its whole kernel (centre rx, ry): the kernel's, or with the far tail
+ * on a coarse grid (tails_frame chose it) its tail on nodes (svp_tail_new) and its core's. */
+static svp_status term_tail(svp_blur *b, const svp_image *kernel, int rx, int ry, int r,
+                            fftw_complex **otf)
 {
-    const svp_variant_data *v = b->variant;
+    svp_variant_data *v = b->variant;
     if (!v->tails) return term_otf(b, kernel, rx, ry, otf);
+    SVP_CHECK(svp_tail_new(kernel, rx, ry, b->width, b->height, 0, v->tail_s, v->tail_r0,
+                           v->tail_err, &v->tails[r]));
     svp_image *core = NULL;
     int cx, cy;
     SVP_CHECK(svp_tail_core(kernel, rx, ry, v->tail_r0, &core, &cx, &cy));
@@ -1817,7 +1816,7 @@ static svp_status build_regions(svp_blur *b, const svp_variant_options *o, doubl
                                   psf.beta);
             break;
         }
-        st = region_otf(b, kernel, rx, ry, &v->otf[k]);
+        st = term_tail(b, kernel, rx, ry, k, &v->otf[k]);
         svp_image_free(kernel);
         if (st == SVP_OK)
             st = svp_report_progress(o->progress, o->progress_user, (k + 1.0) / t.K);
@@ -1922,7 +1921,6 @@ static void gram_accumulate(const double *const *a, int S, size_t n, double *res
  * columns, rsum: the rows' sums, placed: the frame gram_otf places a kernel on). */
 typedef struct gram_build {
     int S, Sp, R, Q, centred, rx, ry, kw, kh, hr, nblk, chunks, threads, sym;
-    int core_r0; /* > 0: gram_otf places only the cores of the far tail's split (tail.c) */
     size_t m, n, bp;
     size_t *rowoff;
     int *wx;
@@ -2281,14 +2279,9 @@ static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **ot
     const int zero = b->boundary == SVP_BOUNDARY_ZERO, rx = gb->rx, ry = gb->ry, kw = gb->kw;
     *otf = svp_alloc((size_t)f->ny * f->ncx * sizeof(fftw_complex));
     if (!*otf) return svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d spectrum", f->nx, f->ny);
-    /* offsets beyond the image join no pixels (zero); with a tail, the core's reach only */
-    const int r1 = 2 * gb->core_r0;
-    for (int x = 0; x < kw; x++)
-        gb->wx[x] = (zero && abs(x - rx) > f->width - 1) || (r1 > 0 && abs(x - rx) > r1)
-                        ? -1
-                        : wrap_index(x - rx, f->nx);
-    int reach = zero && ry > f->height - 1 ? f->height - 1 : ry; /* rows placed: ±reach */
-    if (r1 > 0 && reach > r1) reach = r1;
+    for (int x = 0; x < kw; x++) /* offsets beyond the image join no pixels (zero) */
+        gb->wx[x] = zero && abs(x - rx) > f->width - 1 ? -1 : wrap_index(x - rx, f->nx);
+    const int reach = zero && ry > f->height - 1 ? f->height - 1 : ry; /* rows placed: ±reach */
     const double inv = 1.0 / ((double)f->nx * f->ny), *e = gb->eh + (size_t)r * gb->n;
     double *placed = gb->placed;
     memset(placed, 0, (size_t)f->ny * f->nx * sizeof(double));
@@ -2301,9 +2294,7 @@ static svp_status gram_otf(svp_blur *b, gram_build *gb, int r, fftw_complex **ot
         if (abs(y - ry) > reach) continue;
         double *row = placed + (size_t)wrap_index(y - ry, f->ny) * f->nx;
         for (int x = 0; x < kw; x++)
-            if (gb->wx[x] >= 0)
-                row[gb->wx[x]] +=
-                    inv * k[x] * (r1 > 0 ? svp_tail_core_weight(x - rx, y - ry, gb->core_r0) : 1.0);
+            if (gb->wx[x] >= 0) row[gb->wx[x]] += inv * k[x];
     }
     double total = 0;
     for (int y = 0; y < gb->kh; y++) total += gb->rsum[y];
@@ -2340,6 +2331,21 @@ static svp_status gram_term_kernel(void *ctx, int r, svp_image *k, double *scale
     return SVP_OK;
 }
 
+/* With the far tail: term r's whole kernel made from its fold, its tail and core (term_tail)
+ * and its flux (gram_otf's otherwise). */
+static svp_status gram_tail(svp_blur *b, gram_build *gb, int r)
+{
+    svp_image *k = NULL;
+    SVP_CHECK(svp_image_new(gb->kw, gb->kh, &k));
+    double l1, cmax, flux = 0;
+    term_kernel(gb, b->variant, r, k, &l1, &cmax);
+    for (size_t i = 0; i < gb->m; i++) flux += k->data[i];
+    gb->flux[r] = flux;
+    const svp_status st = term_tail(b, k, gb->rx, gb->ry, r, &b->variant->otf[r]);
+    svp_image_free(k);
+    return st;
+}
+
 /* Low rank through the S x S Gram matrix (S samples) instead of the SVD of the whole m x S
  * kernel matrix A: G = Aᵀ A = V Λ Vᵀ (LAPACKE_dsyevr), then the left singular vectors
  * u_r = A v_r / σ_r, σ_r = √λ_r (the same eigen-PSFs and coefficients σ_r v_r as the SVD, up to
@@ -2374,18 +2380,18 @@ static svp_status build_lowrank_gram(svp_blur *b, const svp_variant_options *o, 
     if (st == SVP_OK && !b->frame.plan) {
         gram_term_ctx c = {&gb, v};
         st = tails_frame(b, gb.R, rx, ry, o->tail_tol, gram_term_kernel, &c);
-        gb.core_r0 = v->tail_r0; /* gram_otf places the cores */
     }
     if (st == SVP_OK) {
         free(gb.blk); /* the row blocks are done with */
         gb.blk = NULL;
-        gb.placed = svp_alloc((size_t)b->frame.ny * b->frame.nx * sizeof(double));
-        if (!gb.placed)
+        const size_t frame = (size_t)b->frame.ny * b->frame.nx; /* gram_otf's, not gram_tail's */
+        gb.placed = v->tails ? NULL : svp_alloc(frame * sizeof(double));
+        if (!v->tails && !gb.placed)
             st = svp_fail(SVP_ERR_NOMEM, "out of memory for a %d x %d frame", b->frame.nx,
                           b->frame.ny);
     }
     for (int r = 0; r < gb.R && st == SVP_OK; r++) {
-        st = gram_otf(b, &gb, r, &v->otf[r], &gb.flux[r]);
+        st = v->tails ? gram_tail(b, &gb, r) : gram_otf(b, &gb, r, &v->otf[r], &gb.flux[r]);
         if (st == SVP_OK)
             st = svp_report_progress(o->progress, o->progress_user, 0.5 + 0.5 * (r + 1.0) / gb.R);
     }
