@@ -1716,6 +1716,15 @@ typedef enum svp_pad_mode {
     SVP_PAD_NONE = 2   /* no padding: periodic */
 } svp_pad_mode;
 
+/* How m_z is found from B_z (docs/model.md §11). */
+typedef enum svp_recon_method {
+    SVP_RECON_FOURIER = 0, /* default: divide the padded map's spectrum by the flake's transfer
+                              function (the padding continues the map; k = 0 is lost) */
+    SVP_RECON_SUPPORT = 1  /* magnetisation only: the m_z on the view (zero outside it) whose
+                              field fits B_z on the view in least squares, by conjugate gradients
+                              preconditioned with the Fourier inverse; then the window */
+} svp_recon_method;
+
 typedef struct svp_recon_options {
     svp_sensor sensor;        /* pixel size, standoff, NV thickness, side */
     double cutoff;            /* k_c of the window, rad/m; 0 (default) = 2π / standoff */
@@ -1728,8 +1737,20 @@ typedef struct svp_recon_options {
                                  (1 − e^(−kt))/(kt); 0 (default) = thin film */
     int zero_border;          /* magnetisation only: 1 (default) then subtracts the mean of
                                  the image's outermost pixel ring (m_z = 0 around a flake that
-                                 lies inside the view); 0: only the k = 0 term set to 0 */
+                                 lies inside the view); 0: only the k = 0 term set to 0.
+                                 Not used by SVP_RECON_SUPPORT, which determines the mean */
+    svp_recon_method method;  /* magnetisation: SVP_RECON_FOURIER (default) or _SUPPORT; the
+                                 current reconstructions accept only SVP_RECON_FOURIER */
+    int max_iterations;       /* SVP_RECON_SUPPORT: conjugate-gradient cap (default 200) */
+    double tolerance;         /* SVP_RECON_SUPPORT: stop when the normal equations' residual
+                                 falls below this fraction of Aᵀ B_z's norm (default 1e-9) */
 } svp_recon_options;
+
+/* What a support reconstruction did (zeros for the Fourier method). */
+typedef struct svp_recon_report {
+    int iterations;  /* conjugate-gradient steps taken */
+    double residual; /* final relative residual of the normal equations */
+} svp_recon_report;
 
 SVP_API void svp_recon_defaults(svp_recon_options *options);
 
@@ -1744,6 +1765,18 @@ SVP_API void svp_recon_defaults(svp_recon_options *options);
 SVP_API svp_status svp_reconstruct_magnetisation(const svp_image *bz,
                                                  const svp_recon_options *options,
                                                  svp_image *mz);
+/* The same with options->method honoured and reported (report may be NULL). With
+ * SVP_RECON_SUPPORT, m_z is the least-squares solution on the view: m_z outside the view is 0,
+ * its field (the transfer function of (15) on a canvas padded by pad_factor with zeros) is
+ * compared with B_z on the view only, so a bad edge pixel or light from beyond the view moves
+ * m_z near that pixel instead of shifting the whole map, and the mean is determined (no border
+ * shift). The window then filters the solution as in the Fourier method. Costs about
+ * 6 transforms of the padded canvas per step (20–40 steps). A solve that does not reach
+ * `tolerance` within `max_iterations` is SVP_ERR_DOUBTFUL (mz holds the last iterate). */
+SVP_API svp_status svp_reconstruct_magnetisation_report(const svp_image *bz,
+                                                        const svp_recon_options *options,
+                                                        svp_image *mz,
+                                                        svp_recon_report *report);
 /* Sheet current density (A/m) from B_z (T), in the frame above (right-handed, rows down):
  *   J_x(k) = +i (ky/k) α W B_z(k),   J_y(k) = −i (kx/k) α W B_z(k),   α = 2 / (μ0 f(k)),
  * the same for either sensor side; k = 0 set to 0 (a uniform current makes no B_z). NOTE:

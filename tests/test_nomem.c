@@ -792,10 +792,10 @@ static void test_cube_deconvolve(void **state)
     svp_cube_free(c.ref);
 }
 
-/* The magnetisation reconstructed from B_z (padded FFTs) and T with a tent PSF map built in the
- * call. */
+/* The magnetisation reconstructed from B_z (padded FFTs; the Fourier and the support method)
+ * and T with a tent PSF map built in the call. */
 typedef struct physics_ctx {
-    svp_image *bz, *pl, *mz, *ref_mz;
+    svp_image *bz, *pl, *mz, *ref_mz, *mz_support, *ref_mz_support;
     svp_psf_field *map;
     svp_image *pl_app, *b_app, *ref_pl, *ref_b;
 } physics_ctx;
@@ -809,6 +809,8 @@ static svp_status physics_call(void *user)
     ro.sensor.pixel_m = 1e-7;
     ro.sensor.standoff_m = 1e-7;
     SVP_CHECK(svp_reconstruct_magnetisation(c->bz, &ro, c->mz));
+    ro.method = SVP_RECON_SUPPORT;
+    SVP_CHECK(svp_reconstruct_magnetisation(c->bz, &ro, c->mz_support));
     svp_variant_options vo;
     svp_variant_defaults(&vo);
     vo.representation = SVP_VARIANT_TENT;
@@ -827,6 +829,8 @@ static double physics_diff(void *user)
 {
     physics_ctx *c = user;
     double d = test_max_abs_diff(c->mz, c->ref_mz) / test_max_abs(c->ref_mz);
+    d = fmax(d, test_max_abs_diff(c->mz_support, c->ref_mz_support) /
+                    test_max_abs(c->ref_mz_support));
     d = fmax(d, test_max_abs_diff(c->pl_app, c->ref_pl) / test_max_abs(c->ref_pl));
     return fmax(d, test_max_abs_diff(c->b_app, c->ref_b) / test_max_abs(c->ref_b));
 }
@@ -841,18 +845,21 @@ static void test_physics(void **state)
     c.pl = pl_scene(w, h, 4);
     c.map = corner_map(w, h);
     c.mz = c.ref_mz = test_image(w, h);
+    c.mz_support = c.ref_mz_support = test_image(w, h);
     c.pl_app = c.ref_pl = test_image(w, h);
     c.b_app = c.ref_b = test_image(w, h);
     ASSERT_OK(physics_call(&c));
     c.mz = test_image(w, h);
+    c.mz_support = test_image(w, h);
     c.pl_app = test_image(w, h);
     c.b_app = test_image(w, h);
-    const sweep_case sc = {"magnetisation from B_z; T with a tent PSF map", physics_call,
+    const sweep_case sc = {"magnetisation from B_z (Fourier, support); T with a tent PSF map", physics_call,
                            physics_diff, &c, 1e-12};
     const sweep_result r = sweep(&sc);
     assert_true(r.allocations > 0 && r.nomem > 0);
-    svp_image *all[8] = {c.bz, c.pl, c.mz, c.ref_mz, c.pl_app, c.b_app, c.ref_pl, c.ref_b};
-    for (int k = 0; k < 8; k++) svp_image_free(all[k]);
+    svp_image *all[10] = {c.bz,     c.pl,    c.mz,     c.ref_mz, c.mz_support,
+                          c.ref_mz_support, c.pl_app, c.b_app, c.ref_pl, c.ref_b};
+    for (int k = 0; k < 10; k++) svp_image_free(all[k]);
     svp_psf_field_free(c.map);
 }
 

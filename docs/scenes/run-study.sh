@@ -2,7 +2,12 @@
 # Runs every shipped scene of the reference study and writes the tables of
 # docs/reference-study.md from their summary.json files.
 #   docs/scenes/run-study.sh [SVPSF [OUT]]
+#   docs/scenes/run-study.sh --support [SVPSF [OUT]]
 #   docs/scenes/run-study.sh --tables-only [OUT]     (the tables from an earlier run)
+# --support: every scene that reconstructs magnetisation does it by the support method
+# (`reconstruct: {quantity: magnetisation, method: support}`, docs/model.md §11) instead of the
+# Fourier method; the scenes run from copies in a temporary folder; OUT defaults to
+# out/study-support.
 # SVPSF: the svpsf program (default build/tools/svpsf/svpsf), OUT: the output folder (default
 # out/study). Each scene goes to OUT/<scene name>/ (report.md, figures/, tables/, summary.json);
 # the tables go to OUT/tables.md. About 5 minutes on 2 idle cores (the corrections-* scenes
@@ -13,12 +18,23 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 if [ "${1:-}" = --tables-only ]; then
     OUT=${2:-out/study}
 else
+    SUPPORT=
+    if [ "${1:-}" = --support ]; then
+        SUPPORT=$(mktemp -d)
+        trap 'rm -rf "$SUPPORT"' EXIT
+        shift
+    fi
     SVPSF=${1:-build/tools/svpsf/svpsf}
-    OUT=${2:-out/study}
+    OUT=${2:-out/study${SUPPORT:+-support}}
     mkdir -p "$OUT"
     for scene in "$HERE"/*.yaml; do
         name=$(basename "$scene" .yaml)
         echo "== $name" >&2
+        if [ -n "$SUPPORT" ]; then
+            sed 's/^reconstruct: magnetisation$/reconstruct: {quantity: magnetisation, method: support}/' \
+                "$scene" >"$SUPPORT/$name.yaml"
+            scene=$SUPPORT/$name.yaml
+        fi
         "$SVPSF" simulate "$scene" -o "$OUT/$name" --force --quiet
     done
 fi

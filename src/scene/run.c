@@ -1062,6 +1062,7 @@ static svp_status stage_reconstruct(run_ctx *c)
     o.cutoff = rc->cutoff_per_um * 1e6;
     o.window = rc->window;
     o.pad = rc->pad;
+    o.method = rc->method;
     char versions[SCENE_MAX_VERSIONS][48];
     int nv = scene_versions(s, versions);
     /* the component maps of one version by name suffix */

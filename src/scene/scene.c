@@ -1090,13 +1090,15 @@ static svp_status parse_one_recon(struct svp_scene *s, const svp_yaml_node *r, c
     static const char *const quantities[] = {"magnetisation", "current_from_bz", "current_from_bxy",
                                              NULL};
     static const char *const keys[] = {"quantity", "standoff_nm", "cutoff_per_um",
-                                       "window",   "pad",         NULL};
+                                       "window",   "pad",         "method", NULL};
     static const char *const pads[] = {"taper", "mean", "none", NULL};
+    static const char *const methods[] = {"fourier", "support", NULL};
     where_of(r, out->where);
     const svp_yaml_node *qnode = r;
     int q = 0;
     out->window = 1;
     out->pad = SVP_PAD_TAPER;
+    out->method = SVP_RECON_FOURIER;
     if (svp_yaml_type_of(r) == SVP_YAML_MAPPING) {
         SVP_CHECK(check_keys(r, what, keys));
         SVP_CHECK(get_choice(r, what, "quantity", quantities, &q, 1));
@@ -1109,6 +1111,18 @@ static svp_status parse_one_recon(struct svp_scene *s, const svp_yaml_node *r, c
         int pad = 0;
         SVP_CHECK(get_choice(r, what, "pad", pads, &pad, 0));
         out->pad = (svp_pad_mode)pad;
+        int method = 0;
+        SVP_CHECK(get_choice(r, what, "method", methods, &method, 0));
+        out->method = (svp_recon_method)method;
+        if (method && q != 0)
+            return svp_yaml_fail(svp_yaml_get(r, "method"), SVP_ERR_INVALID,
+                                 "%s: method support finds magnetisation only (the current "
+                                 "uses the Fourier method)",
+                                 what);
+        if (method && pad == SVP_PAD_NONE)
+            return svp_yaml_fail(svp_yaml_get(r, "method"), SVP_ERR_INVALID,
+                                 "%s: method support needs a padded canvas (pad taper or mean)",
+                                 what);
     } else {
         SVP_CHECK(svp_yaml_choice(r, what, quantities, &q));
     }

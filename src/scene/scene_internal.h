@@ -136,6 +136,7 @@ typedef struct scene_recon {
     double cutoff_per_um; /* k_c in rad/µm; 0 = 2π / standoff */
     int window;           /* Hann window on (default 1) */
     svp_pad_mode pad;
+    svp_recon_method method; /* magnetisation: Fourier (default) or support */
     char where[SCENE_WHERE];
 } scene_recon;
 

@@ -167,6 +167,40 @@ case "$rc:$out" in
 *) fail "reconstruct with a 1 m stand-off: exit $rc ($out)" ;;
 esac
 [ ! -e "$T/rec4" ] && [ ! -e "$T/rec5" ] || fail "a refused reconstruct wrote its folder"
+# the support method: converged, its steps in summary.json; a cap it cannot meet exits 3 and
+# writes nothing; the current is refused (exit 1), in a scene too
+out=$("$SVPSF" reconstruct --quantity magnetisation --method support --bz "$T/run/maps/B_z_true.tif" \
+    --pixel-um 0.1 --standoff-nm 100 -o "$T/rec6" 2>&1) || fail "reconstruct --method support: exit $? ($out)"
+grep -q '"cg_iterations"' "$T/rec6/summary.json" || fail "support: no cg_iterations in summary.json"
+grep -q '"method": "support"' "$T/rec6/summary.json" || fail "support: no method in summary.json"
+out=$("$SVPSF" reconstruct --quantity magnetisation --method support --max-iterations 1 \
+    --bz "$T/run/maps/B_z_true.tif" --pixel-um 0.1 --standoff-nm 100 -o "$T/rec7" 2>&1)
+rc=$?
+case "$rc:$out" in
+3:*"conjugate gradients stopped after 1 steps"*"raise max_iterations"*) ;;
+*) fail "support with --max-iterations 1: exit $rc ($out)" ;;
+esac
+[ ! -e "$T/rec7" ] || fail "an unconverged support reconstruction wrote $T/rec7"
+out=$("$SVPSF" reconstruct --quantity current_from_bz --method support \
+    --bz "$T/run/maps/B_z_true.tif" --pixel-um 0.1 --standoff-nm 100 -o "$T/rec8" 2>&1)
+rc=$?
+case "$rc:$out" in
+1:*"--method support finds magnetisation only"*) ;;
+*) fail "support for the current: exit $rc ($out)" ;;
+esac
+sed 's/^reconstruct: magnetisation$/reconstruct: {quantity: magnetisation, method: support}/' \
+    "$T/good.yaml" >"$T/support.yaml"
+out=$("$SVPSF" simulate "$T/support.yaml" -o "$T/run_support" --quiet 2>&1) ||
+    fail "scene with the support method: exit $? ($out)"
+[ -s "$T/run_support/maps/m_z_apparent.tif" ] || fail "support scene: no m_z map"
+sed 's/^reconstruct: magnetisation$/reconstruct: {quantity: current_from_bz, method: support}/' \
+    "$T/good.yaml" >"$T/support_bad.yaml"
+out=$("$SVPSF" simulate "$T/support_bad.yaml" -o "$T/run_support_bad" --quiet 2>&1)
+rc=$?
+case "$rc:$out" in
+1:*"support_bad.yaml"*"method support finds magnetisation only"*) ;;
+*) fail "scene with the support method for the current: exit $rc ($out)" ;;
+esac
 
 # every shipped scene of docs/scenes/ loads (keys, units, files) and compiles to its plan;
 # run-study.sh runs them in full

@@ -25,7 +25,9 @@ enum {
     OPT_CUTOFF,
     OPT_NO_WINDOW,
     OPT_PAD,
-    OPT_THICKNESS
+    OPT_THICKNESS,
+    OPT_METHOD,
+    OPT_MAX_IT
 };
 
 static const char *const quantity_names[] = {"magnetisation", "current_from_bz", "current_from_bxy",
@@ -33,6 +35,7 @@ static const char *const quantity_names[] = {"magnetisation", "current_from_bz",
 static const char *const unit_names[] = {"T", "mT", "uT", "nT", NULL};
 static const double unit_scale[] = {1, 1e-3, 1e-6, 1e-9};
 static const char *const pad_names[] = {"taper", "mean", "none", NULL};
+static const char *const method_names[] = {"fourier", "support", NULL};
 
 static void print_help(const cli_run *run, FILE *out)
 {
@@ -41,7 +44,7 @@ static void print_help(const cli_run *run, FILE *out)
           "       svpsf reconstruct --quantity current_from_bz --bz Bz.tif ...\n"
           "       svpsf reconstruct --quantity current_from_bxy --bx Bx.tif [--by By.tif] ...\n"
           "\n"
-          "Source reconstruction by the Fourier method (docs/model.md §11): the areal magnetisation\n"
+          "Source reconstruction (docs/model.md §11): the areal magnetisation\n"
           "m_z = M_z t (A) from B_z, or the sheet current density J (A/m) from B_z or from the\n"
           "in-plane field. A radial Hann window W = (1 + cos(pi k / k_c)) / 2 (k_c = 2 pi /\n"
           "standoff by default) tames the e^(kh) gain; the maps are padded (x2, tapered) against\n"
@@ -65,7 +68,15 @@ static void print_help(const cli_run *run, FILE *out)
           "  --thickness-nm T      flake thickness for the magnetisation (default 0: thin film)\n"
           "  --cutoff-per-um K     window cut-off k_c, rad/um (default 2 pi / standoff)\n"
           "  --no-window           no Hann window (the gain is capped at e^700)\n"
-          "  --pad taper|mean|none padding of the maps before the FFT (default taper)\n",
+          "  --pad taper|mean|none padding of the maps before the FFT (default taper)\n"
+          "  --method fourier|support   magnetisation: fourier divides the padded map's\n"
+          "                        spectrum (default); support finds the m_z on the view\n"
+          "                        (zero outside it) whose field fits B_z on the view in least\n"
+          "                        squares (conjugate gradients, then the window): an edge\n"
+          "                        pixel's error stays local and the mean is determined, no\n"
+          "                        border shift; about 20-40x the Fourier method's time\n"
+          "  --max-iterations N    support: conjugate-gradient cap (default 200); a solve that\n"
+          "                        does not converge exits 3 and writes nothing\n",
           out);
     cli_print_common_help(run, out);
     fputs("\n"
@@ -96,7 +107,7 @@ static int figure(cli_run *run, const char *dir, const char *name, const svp_ima
 struct reconstruct_args {
     const char *paths[3]; /* --bx, --by, --bz */
     int quantity;         /* index in quantity_names, -1 when not given */
-    int unit, side, pad, window;
+    int unit, side, pad, window, method, max_iterations;
     double pixel_um, standoff_nm, nv_nm, cutoff, thickness_nm;
 };
 
@@ -123,6 +134,9 @@ static int reconstruct_option(cli_run *run, struct reconstruct_args *a, int c)
     }
     case OPT_PAD: return cli_parse_choice(run, "--pad", optarg, pad_names, &a->pad);
     case OPT_NO_WINDOW: a->window = 0; return 0;
+    case OPT_METHOD: return cli_parse_choice(run, "--method", optarg, method_names, &a->method);
+    case OPT_MAX_IT:
+        return cli_parse_int(run, "--max-iterations", optarg, 1, 100000, &a->max_iterations);
     case OPT_PIXEL:
     case OPT_STANDOFF:
     case OPT_NV:
@@ -160,6 +174,12 @@ static int reconstruct_check_maps(const cli_run *run, const struct reconstruct_a
                          quantity_names[quantity]);
     if (quantity == 2 && !paths[0] && !paths[1])
         return cli_error(run, "--quantity current_from_bxy needs --bx and/or --by");
+    if (quantity > 0 && a->method != 0)
+        return cli_error(run, "--method support finds magnetisation only (drop --method for "
+                              "--quantity %s: the current uses the Fourier method)",
+                         quantity_names[quantity]);
+    if (a->max_iterations && a->method == 0)
+        return cli_error(run, "--max-iterations applies to --method support only");
     if (quantity == 2 && paths[2])
         return cli_error(run, "--quantity current_from_bxy uses --bx, --by (drop --bz, or use "
                               "current_from_bz)");
@@ -217,6 +237,8 @@ static int parse_reconstruct_args(cli_run *run, struct reconstruct_args *a)
         {"no-window", no_argument, NULL, OPT_NO_WINDOW},
         {"pad", required_argument, NULL, OPT_PAD},
         {"thickness-nm", required_argument, NULL, OPT_THICKNESS},
+        {"method", required_argument, NULL, OPT_METHOD},
+        {"max-iterations", required_argument, NULL, OPT_MAX_IT},
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
@@ -310,6 +332,8 @@ static int reconstruct_options(cli_run *run, const struct reconstruct_args *a,
     o->window = a->window;
     o->pad = (svp_pad_mode)a->pad;
     o->source_thickness_m = a->thickness_nm * 1e-9;
+    o->method = a->method ? SVP_RECON_SUPPORT : SVP_RECON_FOURIER;
+    if (a->max_iterations) o->max_iterations = a->max_iterations;
     svp_status st = svp_sensor_validate(&o->sensor);
     if (st != SVP_OK) return cli_fail(run, st, NULL);
     cli_setting_str(run, "quantity", quantity_names[a->quantity]);
@@ -322,6 +346,8 @@ static int reconstruct_options(cli_run *run, const struct reconstruct_args *a,
                     a->cutoff > 0 ? a->cutoff : 2 * M_PI / (a->standoff_nm * 1e-3));
     cli_setting_int(run, "window", a->window);
     cli_setting_str(run, "pad", pad_names[a->pad]);
+    cli_setting_str(run, "method", method_names[a->method]);
+    if (a->method) cli_setting_int(run, "max_iterations", o->max_iterations);
     return 0;
 }
 
@@ -335,8 +361,14 @@ static int reconstruct_compute(cli_run *run, const struct reconstruct_args *a,
     cli_stage_begin(run, "reconstruct");
     for (int k = 0; k < job->n_out && st == SVP_OK; k++) st = svp_image_new(w, h, &out[k]);
     if (st == SVP_OK) {
-        if (a->quantity == 0)
-            st = svp_reconstruct_magnetisation(b[2], &job->o, out[0]);
+        if (a->quantity == 0) {
+            svp_recon_report rep;
+            st = svp_reconstruct_magnetisation_report(b[2], &job->o, out[0], &rep);
+            if (a->method) {
+                cli_result_int(run, "cg_iterations", rep.iterations);
+                cli_result_num(run, "cg_residual", rep.residual);
+            }
+        }
         else if (a->quantity == 1)
             st = svp_reconstruct_current_from_bz(b[2], &job->o, out[0], out[1]);
         else
