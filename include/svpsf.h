@@ -1771,7 +1771,7 @@ SVP_API svp_status svp_reconstruct_magnetisation(const svp_image *bz,
  * compared with B_z on the view only, so a bad edge pixel or light from beyond the view moves
  * m_z near that pixel instead of shifting the whole map, and the mean is determined (no border
  * shift). The window then filters the solution as in the Fourier method. Costs about
- * 6 transforms of the padded canvas per step (20–40 steps). A solve that does not reach
+ * 6 transforms of the padded canvas per step (15–30 steps). A solve that does not reach
  * `tolerance` within `max_iterations` is SVP_ERR_DOUBTFUL (mz holds the last iterate). */
 SVP_API svp_status svp_reconstruct_magnetisation_report(const svp_image *bz,
                                                         const svp_recon_options *options,

@@ -74,7 +74,7 @@ static void print_help(const cli_run *run, FILE *out)
           "                        (zero outside it) whose field fits B_z on the view in least\n"
           "                        squares (conjugate gradients, then the window): an edge\n"
           "                        pixel's error stays local and the mean is determined, no\n"
-          "                        border shift; about 20-40x the Fourier method's time\n"
+          "                        border shift; about 15-40x the Fourier method's time\n"
           "  --max-iterations N    support: conjugate-gradient cap (default 200); a solve that\n"
           "                        does not converge exits 3 and writes nothing\n",
           out);
