@@ -20,7 +20,7 @@ __all__ = [
     "Error", "DoubtfulError", "version", "fftw_version", "set_threads", "get_threads",
     "set_fft_effort", "wisdom_load", "wisdom_save", "read_image", "write_image", "PSF", "PSFMap",
     "read_psf", "Blur", "forward", "correct", "deconvolve", "fit_psf", "map_psf", "fit_odmr",
-    "read_stack", "read_mat", "write_mat", "OdmrFit",
+    "read_stack", "read_mat", "write_mat", "OdmrFit", "reconstruct_magnetisation",
     "SpotFit", "LIBRARY", "HEADER",
 ]
 
@@ -861,6 +861,45 @@ def deconvolve(image, psf, method="wiener", balance=1e-3, noise=0.0, iterations=
         first = next(iter(doubts.values()))
         raise DoubtfulError(lib.SVP_ERR_DOUBTFUL, "result in doubt: " + first)
     return x, rep
+
+
+# ---- source reconstruction -------------------------------------------------------------------
+
+
+def reconstruct_magnetisation(bz, pixel_um, standoff_nm, method="fourier", nv_thickness_nm=0.0,
+                              thickness_nm=0.0, cutoff_per_um=0.0, window=True, pad="taper",
+                              max_iterations=200):
+    """The areal magnetisation m_z (A) from B_z (T), as `svpsf reconstruct --quantity
+    magnetisation` (docs/model.md §11): `method` "fourier" (the padded map's spectrum divided,
+    the outermost pixel ring set to zero) or "support" (the m_z on the view, zero outside it,
+    whose field fits B_z on the view in least squares; an edge pixel's error stays local).
+    Returns (m_z, report): report["cg_iterations"], report["cg_residual"] for "support" (0
+    for "fourier"). A support solve that does not converge within max_iterations raises
+    DoubtfulError (the program exits 3)."""
+    b = _input(bz, "bz")
+    methods = {"fourier": lib.SVP_RECON_FOURIER, "support": lib.SVP_RECON_SUPPORT}
+    pads = {"taper": lib.SVP_PAD_TAPER, "mean": lib.SVP_PAD_MEAN, "none": lib.SVP_PAD_NONE}
+    if method not in methods:
+        raise ValueError("method %r: fourier or support" % (method,))
+    if pad not in pads:
+        raise ValueError("pad %r: taper, mean or none" % (pad,))
+    o = ffi.new("svp_recon_options *")
+    lib.svp_recon_defaults(o)
+    o.sensor.pixel_m = float(pixel_um) * 1e-6
+    o.sensor.standoff_m = float(standoff_nm) * 1e-9
+    o.sensor.nv_thickness_m = float(nv_thickness_nm) * 1e-9
+    o.source_thickness_m = float(thickness_nm) * 1e-9
+    o.cutoff = float(cutoff_per_um) * 1e6
+    o.window = int(bool(window))
+    o.pad = pads[pad]
+    o.method = methods[method]
+    o.max_iterations = _count(max_iterations, "max_iterations")
+    report = ffi.new("svp_recon_report *")
+    imgs = _Images()
+    bi = imgs.view(b)
+    m, mi = imgs.out(b.shape)
+    _check(lib.svp_reconstruct_magnetisation_report(bi, o, mi, report))
+    return m, {"cg_iterations": report.iterations, "cg_residual": report.residual}
 
 
 # ---- PSF fits and maps ------------------------------------------------------------------------

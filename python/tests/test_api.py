@@ -866,3 +866,45 @@ def test_library_lookup_errors(tmp_path):
                        text=True)
     assert p.returncode != 0
     assert "SVPSF_HEADER=%s: no such file" % (tmp_path / "none.h") in p.stderr
+
+
+def square_flake_bz(n, lo, hi, px=0.1e-6, h=100e-9):
+    """B_z (T) of a thin square flake of 1 mA over [lo, hi]² pixels: the dipole sheet's closed
+    form, written here (not by the library)."""
+    j, i = np.mgrid[:n, :n]
+    x, y = i * px, j * px
+    hz = 0
+    for a, xx in enumerate((lo * px - x, hi * px - x)):
+        for b, yy in enumerate((lo * px - y, hi * px - y)):
+            r = np.sqrt(xx * xx + yy * yy + h * h)
+            hz = hz + (1 if a == b else -1) * xx * yy * (r * r + h * h) / (
+                r * (xx * xx + h * h) * (yy * yy + h * h))
+    return 4e-7 * np.pi * 1e-3 / (4 * np.pi) * hz
+
+
+@pytest.mark.parametrize("method", ["fourier", "support"])
+def test_reconstruct_magnetisation_equals_cli(cli, tmp_path, method):
+    bz = square_flake_bz(96, 23.75, 72.25)
+    np.save(tmp_path / "bz.npy", bz)
+    cli("reconstruct", "--quantity", "magnetisation", "--bz", tmp_path / "bz.npy", "--pixel-um",
+        "0.1", "--standoff-nm", "100", "--method", method, "-o", tmp_path / "out", "--format",
+        "npy", "--quiet", "--fft", "estimate")
+    mz, report = svpsf.reconstruct_magnetisation(bz, 0.1, 100, method=method)
+    assert np.array_equal(mz, np.load(tmp_path / "out" / "m_z.npy"))
+    inside = mz[34:62, 34:62]
+    if method == "support":
+        assert 0 < report["cg_iterations"] < 200 and report["cg_residual"] <= 1e-9
+        assert np.abs(inside - 1e-3).max() < 0.01e-3  # within 1 % of 1 mA
+    else:
+        assert report == {"cg_iterations": 0, "cg_residual": 0.0}
+
+
+def test_reconstruct_magnetisation_refusals():
+    bz = square_flake_bz(48, 11.75, 36.25)
+    with pytest.raises(svpsf.DoubtfulError, match="conjugate gradients stopped after 1 steps"):
+        svpsf.reconstruct_magnetisation(bz, 0.1, 100, method="support", max_iterations=1)
+    with pytest.raises(ValueError, match="fourier or support"):
+        svpsf.reconstruct_magnetisation(bz, 0.1, 100, method="wiener")
+    bz[3, 4] = np.nan
+    with pytest.raises(svpsf.Error, match="NaN or Inf"):
+        svpsf.reconstruct_magnetisation(bz, 0.1, 100, method="support")
