@@ -277,9 +277,9 @@ static double pixel_kernel(const recon_filter *f, double px, int dx, int dy)
     return sum;
 }
 
-/* G of the linear convolution (see support_solver): the pixel kernel at the offsets the view
- * can hold (|dx| < w, |dy| < h; even in both), its spectrum on the solver's canvas. */
-static svp_status support_linear_kernel(support_solver *s, const recon_filter *f)
+/* s->g: the spectrum on the solver's canvas of the pixel kernel at the offsets the view can
+ * hold (|dx| < w, |dy| < h; even in both), i.e. of A's linear convolution (support_solver). */
+static void support_linear_kernel(support_solver *s, const recon_filter *f)
 {
     svp_canvas *c = &s->c;
     memset(c->real, 0, (size_t)c->nx * c->ny * sizeof(double));
@@ -295,7 +295,6 @@ static svp_status support_linear_kernel(support_solver *s, const recon_filter *f
     svp_fft_forward(c->plan, c->real, c->spec);
     const size_t nbins = (size_t)c->ny * c->ncx;
     for (size_t b = 0; b < nbins; b++) s->g[b] = creal(c->spec[b]);
-    return SVP_OK;
 }
 
 static svp_status support_tables(support_solver *s, const recon_filter *f)
@@ -328,7 +327,8 @@ static svp_status support_tables(support_solver *s, const recon_filter *f)
             if (s->win) s->win[b] = k >= f->kc ? 0 : 0.5 * (1 + cos(M_PI * k / f->kc));
         }
     }
-    return support_linear_kernel(s, f);
+    support_linear_kernel(s, f);
+    return SVP_OK;
 }
 
 /* Preconditioned conjugate gradients on AᵀA m = Aᵀ B_z from the preconditioned start
