@@ -1766,11 +1766,11 @@ SVP_API svp_status svp_reconstruct_magnetisation(const svp_image *bz,
                                                  const svp_recon_options *options,
                                                  svp_image *mz);
 /* The same with options->method honoured and reported (report may be NULL). With
- * SVP_RECON_SUPPORT, m_z is the least-squares solution on the view: m_z outside the view is 0,
- * its field (the transfer function of (15) on a canvas padded by pad_factor with zeros) is
- * compared with B_z on the view only, so a bad edge pixel or light from beyond the view moves
- * m_z near that pixel instead of shifting the whole map, and the mean is determined (no border
- * shift). The window then filters the solution as in the Fourier method. Costs about
+ * SVP_RECON_SUPPORT, m_z is the least-squares solution on the view: m_z uniform over each pixel
+ * and 0 outside the view, its field (a linear convolution with one pixel's closed-form field,
+ * averaged over the NV layer and the source thickness, on the canvas padded by pad_factor with
+ * zeros) compared with B_z on the view only, so a bad edge pixel moves m_z near that pixel
+ * instead of shifting the whole map, and the mean is determined (no border shift). The window then filters the solution as in the Fourier method. Costs about
  * 6 transforms of the padded canvas per step (15–30 steps). A solve that does not reach
  * `tolerance` within `max_iterations` is SVP_ERR_DOUBTFUL (mz holds the last iterate). */
 SVP_API svp_status svp_reconstruct_magnetisation_report(const svp_image *bz,

@@ -84,6 +84,22 @@ def ms(s):
     return "–" if s is None else f"{1e3 * s:.1f}"
 
 
+def sig(v, nd=3):
+    """v to nd significant digits; – for None or NaN."""
+    if v is None or (isinstance(v, float) and v != v):
+        return "–"
+    return f"{v:.{nd}g}"
+
+
+def built(build, *parts):
+    """The path of a built program under the build folder (os.path.join(build, *parts)); exits
+    with a message when it is missing."""
+    path = os.path.join(build, *parts)
+    if not os.access(path, os.X_OK):
+        sys.exit(f"{path} is missing: build first (tools/run bench, or ninja -C {build})")
+    return path
+
+
 def ok(r):
     return r is not None and "error" not in r
 

@@ -14,7 +14,7 @@ import sys
 import tempfile
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, describe_error, log, ms, ok, run_json  # noqa: E402
+from benchlib import ROOT, built, describe_error, log, ms, ok, run_json  # noqa: E402
 
 # Targets (ours; the issue names none): a 31 x 31 fit well under 10 ms, a 100-spot map in a
 # second, recovery within the issue's tolerances (FWHM 2 %, beta 5 %).
@@ -28,9 +28,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="fewer spots, 1 repetition")
     ap.add_argument("--threads", default="1,2")
     args = ap.parse_args()
-    exe = os.path.join(args.build, "tools", "bench", "bench_fit")
-    if not os.access(exe, os.X_OK):
-        sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
+    exe = built(args.build, "tools", "bench", "bench_fit")
     threads = [int(t) for t in args.threads.split(",")]
     count = {31: 60, 63: 20} if args.quick else {31: 400, 63: 100}
     reps = 1 if args.quick else 3

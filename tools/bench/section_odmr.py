@@ -25,18 +25,13 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import (ROOT, built_library, interleaved, loadavg, log, ok,  # noqa: E402
+from benchlib import (ROOT, built, built_library, interleaved, loadavg, log, ok,  # noqa: E402
                       run_json)
+from benchlib import sig as f  # noqa: E402
 
 TARGET_RATIO = 1.5        # the issue's: fit-odmr within 1.5 x of the scene engine's fitter
 SCENE_FIGURE = 3.2e5      # the scene engine's fits per second on 2 threads (scene section, 256²)
 NOISES = (0.0, 0.002)     # shot-noise-like σ = S √(b · b_peak) (bench_scene odmr --noise S)
-
-
-def f(v, nd=3):
-    if v is None or (isinstance(v, float) and v != v):
-        return "–"
-    return f"{v:.{nd}g}"
 
 
 def cli_runs(svpsf, work, reps, extra=(), threads=2, out_name="fit"):
@@ -149,11 +144,8 @@ def main():
     ap.add_argument("--build", default=os.path.join(ROOT, "build"))
     ap.add_argument("--quick", action="store_true", help="128², 1 repetition")
     args = ap.parse_args()
-    exe = os.path.join(args.build, "tools", "bench", "bench_scene")
-    svpsf = os.path.join(args.build, "tools", "svpsf", "svpsf")
-    for p in (exe, svpsf):
-        if not os.access(p, os.X_OK):
-            sys.exit(f"{p} is missing: build first (ninja -C {args.build})")
+    exe = built(args.build, "tools", "bench", "bench_scene")
+    svpsf = built(args.build, "tools", "svpsf", "svpsf")
     # idle OpenMP threads sleep instead of spinning (as the program's default does), so CPU
     # time counts work only
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")

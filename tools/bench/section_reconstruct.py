@@ -12,13 +12,8 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, describe_error, loadavg, log, ok, run_json  # noqa: E402
-
-
-def f(v, nd=3):
-    if v is None or (isinstance(v, float) and v != v):
-        return "–"
-    return f"{v:.{nd}g}"
+from benchlib import ROOT, built, describe_error, loadavg, log, ok, run_json  # noqa: E402
+from benchlib import sig as f  # noqa: E402
 
 
 def main():
@@ -26,9 +21,7 @@ def main():
     ap.add_argument("--build", default=os.path.join(ROOT, "build"))
     ap.add_argument("--quick", action="store_true", help="128² and 256², 1 repetition")
     args = ap.parse_args()
-    exe = os.path.join(args.build, "tools", "bench", "bench_scene")
-    if not os.access(exe, os.X_OK):
-        sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
+    exe = built(args.build, "tools", "bench", "bench_scene")
     sizes = [128, 256] if args.quick else [256, 512, 1024]
     reps = 1 if args.quick else 3
     load0 = loadavg()

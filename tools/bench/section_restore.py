@@ -16,7 +16,7 @@ import sys
 import tempfile
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, describe_error, log, ms, ok, run_json, verdict  # noqa: E402
+from benchlib import ROOT, built, describe_error, log, ms, ok, run_json, verdict  # noqa: E402
 
 TARGET_BOUND = 1.3
 TARGET_SKIMAGE = 30.0
@@ -31,9 +31,7 @@ def main():
     ap.add_argument("--no-skimage", action="store_true")
     args = ap.parse_args()
 
-    exe = os.path.join(args.build, "tools", "bench", "svpsf_bench")
-    if not os.access(exe, os.X_OK):
-        sys.exit(f"{exe} is missing: build first (tools/run bench, or ninja -C {args.build})")
+    exe = built(args.build, "tools", "bench", "svpsf_bench")
     wisdom = os.path.join(args.build, "tools", "bench", "fftw.wisdom")
     threads = [int(t) for t in args.threads.split(",")]
     rl_sizes = [512] if args.quick else [512, 1024, 2048]

@@ -14,18 +14,11 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, describe_error, loadavg, log, ok, run_json  # noqa: E402
+from benchlib import ROOT, built, describe_error, loadavg, log, ok, run_json  # noqa: E402
+from benchlib import sig as f  # noqa: E402
 
 ANCHOR_CPU = 0.25e6  # per-pixel fits per second of CPU fitters (Gpufit's CPU reference)
 ANCHOR_GPU = 1e6     # GPU fitters: millions per second
-
-
-def f(v, nd=3):
-    if v is None:
-        return "–"
-    if isinstance(v, float) and v != v:
-        return "–"
-    return f"{v:.{nd}g}"
 
 
 def main():
@@ -33,9 +26,7 @@ def main():
     ap.add_argument("--build", default=os.path.join(ROOT, "build"))
     ap.add_argument("--quick", action="store_true", help="128², 50 points, 1 repetition")
     args = ap.parse_args()
-    exe = os.path.join(args.build, "tools", "bench", "bench_scene")
-    if not os.access(exe, os.X_OK):
-        sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
+    exe = built(args.build, "tools", "bench", "bench_scene")
 
     size = 128 if args.quick else 512
     points = [50] if args.quick else [50, 100, 200]

@@ -31,7 +31,7 @@ import tempfile
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchlib import ROOT, log  # noqa: E402
+from benchlib import ROOT, built, log  # noqa: E402
 
 TARGET_RATIO = 1.25          # one application vs (K + 1) real FFTs of the padded frame
 TARGET_ERR = {"strong": 0.015, "mild": 0.001}   # tent 8 x 8 vs the exact operator
@@ -724,9 +724,7 @@ def main():
     ap.add_argument("--corr-threads", type=int, default=2,
                     help="threads of the correction part (default 2)")
     args = ap.parse_args()
-    exe = os.path.join(args.build, "tools", "bench", "bench_variant")
-    if not os.access(exe, os.X_OK):
-        sys.exit(f"{exe} is missing: build first (ninja -C {args.build})")
+    exe = built(args.build, "tools", "bench", "bench_variant")
     texts, failed = [], []
     if args.part in ("all", "apply"):
         t, f = apply_section(args, exe)
