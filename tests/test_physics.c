@@ -663,6 +663,19 @@ static void test_reconstruct_support(void **state)
     double dt = test_max_abs_diff(ms1, ms);
     print_message("1 against %d threads: max |difference| %.2e A\n", threads, dt);
     assert_true(dt <= 1e-12 * 1e-3);
+    /* linear at any scale: B_z times 2^±960 (about 10^±289; its sums of squares far outside
+     * double's range) gives m_z times the same, to the bit (not zeros, not overflow) */
+    for (int sgn = -1; sgn <= 1; sgn += 2) {
+        for (size_t p = 0; p < (size_t)n * n; p++) bad->data[p] = ldexp(bz->data[p], 960 * sgn);
+        ASSERT_OK(svp_reconstruct_magnetisation(bad, &o, ms1));
+        double worst = 0;
+        for (size_t p = 0; p < (size_t)n * n; p++)
+            worst = fmax(worst, fabs(ldexp(ms1->data[p], -960 * sgn) - ms->data[p]));
+        print_message("B_z times 2^%+d: m_z differs from the unscaled one's times the same by "
+                      "%.2e A\n",
+                      960 * sgn, worst);
+        if (!(worst == 0)) fail_msg("B_z times 2^%+d: m_z off by %g A", 960 * sgn, worst);
+    }
     /* white noise of 1 % of the peak (uniform, rms 0.577 %): rms error of m_z inside */
     {
         uint64_t seed = 0x5eed;

@@ -214,6 +214,7 @@ typedef struct support_solver {
     double *scratch;        /* svp_dot's products */
     size_t n;
     double pixel_m;
+    int gexp;               /* the kernel's spectrum is stored times 2^−gexp (support_tables) */
 } support_solver;
 
 /* out = crop(F⁻¹[mult · F[pad(in)]]); in and out may be the same. */
@@ -328,6 +329,21 @@ static svp_status support_tables(support_solver *s, const recon_filter *f)
         }
     }
     support_linear_kernel(s, f);
+    /* A scaled by a power of two to a largest |spectrum| in [1, 2) (P by its square, so that
+     * P AᵀA keeps its scale; exact, so the iterates are the same bits, only scaled): the CG's
+     * sums of squares then stay in range whatever the pixel size and standoff */
+    double gmax = 0;
+    for (size_t b = 0; b < nbins; b++) gmax = fmax(gmax, fabs(s->g[b]));
+    if (!(gmax > 0 && isfinite(gmax)))
+        return svp_fail(SVP_ERR_INVALID,
+                        "support reconstruction of m_z: the pixel kernel's spectrum is %g at "
+                        "most: pixel size or standoff out of range",
+                        gmax);
+    s->gexp = ilogb(gmax);
+    for (size_t b = 0; b < nbins; b++) {
+        s->g[b] = ldexp(s->g[b], -s->gexp);
+        s->pinv[b] = ldexp(s->pinv[b], 2 * s->gexp);
+    }
     return SVP_OK;
 }
 
@@ -397,13 +413,21 @@ static svp_status recon_support(const svp_image *bz, const svp_recon_options *o,
         if (!(v[i] = svp_alloc(s.n * sizeof(double))))
             st = svp_fail(SVP_ERR_NOMEM, "out of memory for the support reconstruction");
     if (st == SVP_OK) {
-        memcpy(v[0], bz->data, s.n * sizeof(double));
+        /* B_z scaled by a power of two to a largest |value| in [1, 2) (exact, and ldexp keeps
+         * subnormal values), so that the solve's sums of squares neither underflow nor
+         * overflow: the method is linear, and the scale is undone on m_z */
+        double bmax = 0;
+        for (size_t i = 0; i < s.n; i++) bmax = fmax(bmax, fabs(bz->data[i]));
+        const int e = bmax > 0 ? ilogb(bmax) : 0;
+        for (size_t i = 0; i < s.n; i++) v[0][i] = ldexp(bz->data[i], -e);
         st = support_solve(&s, o, v[0], mz->data, v[1], v[2], v[3], v[4], report);
         /* the window as in the Fourier method, also on an iterate in doubt */
         if ((st == SVP_OK || st == SVP_ERR_DOUBTFUL) && s.win) {
             svp_status sw = support_apply(&s, s.win, mz->data, mz->data);
             if (sw != SVP_OK) st = sw;
         }
+        if (st == SVP_OK || st == SVP_ERR_DOUBTFUL)
+            for (size_t i = 0; i < s.n; i++) mz->data[i] = ldexp(mz->data[i], e - s.gexp);
     }
     for (int i = 0; i < 5; i++) svp_free(v[i]);
     svp_free(s.g);
