@@ -532,11 +532,12 @@ static svp_status mark_missing(inverse_run *r, double *pl_max)
     for (size_t i = 0; i < n; i++) {
         if (r->missing[i]) continue;
         if (pl[i] > top) top = pl[i];
-        if (r->rl_pl && pl[i] < 0)
+        if (r->rl_pl && pl[i] < 0) /* named in the view's pixels: the grid holds the margin */
             return svp_fail(SVP_ERR_INVALID,
                             "%s is negative (%g) at pixel (%zu, %zu): Richardson-Lucy "
                             "needs non-negative PL (clip the background or use method W)",
-                            pl_name(&r->opt), pl[i], i % (size_t)r->w, i / (size_t)r->w);
+                            pl_name(&r->opt), pl[i], i % (size_t)r->w - (size_t)r->opt.margin,
+                            i / (size_t)r->w - (size_t)r->opt.margin);
     }
     /* no light anywhere (a PL of zeros, or an offset above every value): every pixel would
      * come back with validity 0 and a field of 0 */

@@ -382,6 +382,12 @@ expect_bad missing_pl "nope_pl.tif|no such file" correct --field Bz.txt --pl nop
 awk 'NR == 3 { $2 = -1 } { print }' pl.txt >pl_negative.txt
 expect_bad forward_negative_pl "pl_negative.txt: pl_true is negative (-1) at pixel (1, 2)" \
     forward --field Bz.txt --pl pl_negative.txt --psf moffat.yaml -o bad $FAST
+# correct names the pixel in the view's coordinates, also with its default margin (auto: the
+# deconvolutions run on the view plus that margin)
+expect_bad correct_negative_pl "pl_negative.txt|is negative (-1) at pixel (1, 2)" \
+    correct --field Bz.txt --pl pl_negative.txt --psf moffat.yaml -o bad $FAST
+expect_bad correct_negative_pl_margin "pl_negative.txt|is negative (-1) at pixel (1, 2)" \
+    correct --field Bz.txt --pl pl_negative.txt --psf moffat.yaml --margin 7 -o bad $FAST
 # a PL without light (an offset above every value) has nothing to restore: exit 1, not a field of
 # 0 with validity 0 everywhere
 expect_bad correct_no_light "pl.txt holds no light|after the offset is subtracted" \
