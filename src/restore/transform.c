@@ -425,14 +425,14 @@ static svp_status signed_shift(const svp_image *field, const unsigned char *miss
         return SVP_OK;
     }
     char buf[32];
-    const size_t w = (size_t)field->width;
+    const size_t w = (size_t)field->width, m = (size_t)o->margin; /* named in the view's pixels */
     if (!(lo + requested > 0))
         return svp_fail(SVP_ERR_INVALID,
                         "%s: the shift c = %g leaves the field + c = %g <= 0 at pixel (x %zu, "
                         "y %zu) (field minimum %g there): the signed shift needs c > %g (or c = "
                         "0: automatic)",
-                        field_name(o, c, buf, sizeof buf), requested, lo + requested, at % w,
-                        at / w, lo, -lo);
+                        field_name(o, c, buf, sizeof buf), requested, lo + requested,
+                        at % w - m, at / w - m, lo, -lo);
     *shift = requested;
     return SVP_OK;
 }

@@ -388,6 +388,9 @@ expect_bad correct_negative_pl "pl_negative.txt|is negative (-1) at pixel (1, 2)
     correct --field Bz.txt --pl pl_negative.txt --psf moffat.yaml -o bad $FAST
 expect_bad correct_negative_pl_margin "pl_negative.txt|is negative (-1) at pixel (1, 2)" \
     correct --field Bz.txt --pl pl_negative.txt --psf moffat.yaml --margin 7 -o bad $FAST
+awk 'NR == 3 { $2 = -1000 } { print }' Bz.txt >Bz_dip.txt
+expect_bad correct_shift_pixel "Bz_dip.txt: the shift c = 1 leaves the field + c = -999 <= 0 at pixel (x 1, y 2)" \
+    correct --field Bz_dip.txt --pl pl.txt --psf moffat.yaml --method r --shift 1 --margin 7 -o bad $FAST
 # a PL without light (an offset above every value) has nothing to restore: exit 1, not a field of
 # 0 with validity 0 everywhere
 expect_bad correct_no_light "pl.txt holds no light|after the offset is subtracted" \
