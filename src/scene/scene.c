@@ -504,6 +504,17 @@ static svp_status parse_sources(struct svp_scene *s, const svp_yaml_node *root)
                                  "sensor.nv_thickness_nm (%g nm): the NV layer would reach "
                                  "into the source",
                                  what, src->standoff_nm, s->nv_thickness_nm);
+        /* a flake's field is made on the canvas padded twice (periodic): its images, two
+         * canvas sides away, must stay far beyond the standoff (else, at a standoff of a metre,
+         * the field came out 0 and the metrics NaN with exit 0) */
+        const double side_um = fmin(s->canvas_w, s->canvas_h) * s->pixel_um;
+        if (src->kind == SRC_FLAKE && src->standoff_nm * 1e-3 > 0.1 * side_um)
+            return svp_yaml_fail(svp_yaml_get(body, "standoff_nm"), SVP_ERR_INVALID,
+                                 "%s.standoff_nm = %g is more than a tenth of the canvas's "
+                                 "smaller side (%g um): the flake's field is made on a periodic "
+                                 "canvas, whose images of it would no longer be negligible; "
+                                 "enlarge grid.size_um or grid.margin_um",
+                                 what, src->standoff_nm, side_um);
     }
     return SVP_OK;
 }

@@ -38,6 +38,20 @@ expect_bad wrong_unit 5:24 "wrong or missing unit"
 printf '%s\npsf: {model: gaussian, fwhm_um: [0.3]}\n' "$head" >"$T/wrong_type.yaml"
 expect_bad wrong_type 5:33 "must be a number, got a list"
 
+# a flake's standoff beyond a tenth of the canvas: its periodic images would matter (at a metre
+# its field came out 0, the metrics NaN, exit 0)
+printf 'grid: {pixel_um: 0.1, size_um: [4.8, 4.8]}\nsources:\n  - flake: {shape: rectangle, size_um: [2.4, 2.4], magnetisation_A_per_m: 1.0e6,\n            thickness_nm: 1, standoff_nm: 1.0e9}\npsf: {model: gaussian, fwhm_um: 0.3}\n' >"$T/far_standoff.yaml"
+expect_bad far_standoff 4:43 "standoff_nm = 1e+09 is more than a tenth of the canvas's smaller side"
+# a flake without magnetisation: no relative error to quote, said so (not "nan %")
+printf 'grid: {pixel_um: 0.1, size_um: [4.8, 4.8]}\nsources:\n  - flake: {shape: rectangle, size_um: [2.4, 2.4], magnetisation_A_per_m: 0,\n            thickness_nm: 1, standoff_nm: 100}\npsf: {model: gaussian, fwhm_um: 0.3}\nmetrics: {masks: [{name: flake, inside: flakes}]}\n' >"$T/no_field.yaml"
+out=$("$SVPSF" simulate "$T/no_field.yaml" -o "$T/no_field" 2>&1)
+rc=$?
+case "$rc $out" in
+"0 "*"B_z over mask 'flake': no relative error (the true B_z is 0 there)"*) echo "ok: no_field: exit 0, no relative error quoted" ;;
+*) fail "no_field: exit $rc: $out" ;;
+esac
+case $out in *nan*) fail "no_field: 'nan' printed: $out" ;; esac
+
 printf '%s\npsf: {model: gaussian, fwhm_um: 0.3}\ncorrect: {method: rw, iterations: 0}\n' \
     "$head" >"$T/impossible.yaml"
 expect_bad impossible 6:35 "iterations must be"

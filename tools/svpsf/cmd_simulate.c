@@ -98,6 +98,11 @@ static void print_headline(const svp_scene_result *result)
         double v = 0;
         snprintf(key, sizeof key, "%s/%s%s", quantities[qi], mask, tail);
         svp_scene_result_value(result, key, &v);
+        if (isnan(v)) { /* the metrics' relative errors are undefined where the truth is 0 */
+            printf("  %s over mask '%s': no relative error (the true %s is 0 there)\n",
+                   quantities[qi], mask, quantities[qi]);
+            return;
+        }
         printf("  %s over mask '%s': median |relative error| %.3g %% apparent", quantities[qi],
                mask, v);
         char prefix[160];
