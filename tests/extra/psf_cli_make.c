@@ -4,6 +4,7 @@
  *                     centre (20.3, 19.6), peak 5000 photons over 100
  *     empty.npy       background only;  border.npy the spot centred 3 px from the left edge
  *     saturated.npy   spot.npy clipped at 3000;  wide.npy 43 x 41
+ *     double.npy      two such spots 16 px apart (one Moffat cannot describe them)
  *     exc.npy, pl.npy an excitation/emission pair, 50 nm pixels, 72 x 72: I_G Moffat beta 3.3,
  *                     FWHM 480 nm; p Moffat beta 1.1, FWHM 610 nm; I_PL = I_G (*) p, shifted by
  *                     (+2.4, -1.3) px; empty72.npy background only, 72 x 72
@@ -139,6 +140,11 @@ static int make(const char *dir)
     add_spot(img, &s, 3.0, 20.0, 5000);
     noisy(img, 100);
     rc |= save(dir, "border.npy", img);
+    memset(img->data, 0, 41 * 41 * sizeof(double));
+    add_spot(img, &s, 12.0, 20.0, 5000);
+    add_spot(img, &s, 28.0, 20.0, 5000);
+    noisy(img, 100);
+    rc |= save(dir, "double.npy", img);
     svp_image_free(img);
     svp_image_new(43, 41, &img);
     rc |= save(dir, "wide.npy", img);

@@ -57,16 +57,36 @@ else
     bad "svpsf correct --psf fit/spot.yaml failed"
 fi
 expect_fail "fit-psf no overwrite" 1 "fit/spot.yaml exists" "$S" fit-psf spot.npy --pixel-um 0.05 -o fit/spot.yaml
-"$S" fit-psf spot.npy --pixel-um 0.05 -o fit/spot.yaml --force --no-figures --model gaussian >/dev/null 2>&1 \
-    && grep -q "model: gaussian" fit/spot.yaml && ok "fit-psf --force --model gaussian" || bad "fit-psf --force"
+# a Gaussian does not describe the Moffat spot (chi2_red 6.1): in doubt, exit 3; kept on request
+expect_fail "fit-psf --model gaussian on a Moffat spot" 3 "poor fit" \
+    "$S" fit-psf spot.npy --pixel-um 0.05 -o fit/spot.yaml --force --no-figures --model gaussian
+grep -q "model: moffat" fit/spot.yaml && ok "a fit in doubt leaves the existing file" \
+    || bad "a fit in doubt replaced fit/spot.yaml"
+"$S" fit-psf spot.npy --pixel-um 0.05 -o fit/spot.yaml --force --no-figures --model gaussian \
+    --keep-doubtful >/dev/null 2>&1 \
+    && grep -q "model: gaussian" fit/spot.yaml && ok "fit-psf --force --model gaussian --keep-doubtful" || bad "fit-psf --force"
 
 # ---- robustness through the CLI ----
 expect_fail "empty image" 1 "empty.npy" "$S" fit-psf empty.npy --pixel-um 0.05 -o fit/e.yaml
 expect_fail "border refused" 1 "border.npy" "$S" fit-psf border.npy --pixel-um 0.05 --refuse-border -o fit/b.yaml
 "$S" fit-psf border.npy --pixel-um 0.05 --no-figures -o fit/b.yaml >"$T/b.txt" 2>&1
 grep -q "near border" "$T/b.txt" && ok "border spot flagged" || bad "border spot not flagged: $(cat "$T/b.txt")"
+grep -q '"in_doubt": 0' fit/b.summary.json && ok "a border spot is flagged, not in doubt (written, exit 0)" \
+    || bad "border spot: in_doubt not 0"
 "$S" fit-psf saturated.npy --pixel-um 0.05 --no-figures -o fit/s.yaml >"$T/s.txt" 2>&1
 grep -q "saturated" "$T/s.txt" && ok "saturated spot flagged" || bad "saturated spot not flagged"
+# a fit the program cannot vouch for (two spots: one Moffat does not describe them) exits 3 and
+# writes nothing; --keep-doubtful writes it, in_doubt recorded
+expect_fail "two spots in doubt" 3 "double.npy: the fit cannot be vouched for" \
+    "$S" fit-psf double.npy --pixel-um 0.05 --no-figures -o fit/d.yaml
+[ -e fit/d.yaml ] || [ -e fit/d.summary.json ] && bad "a fit in doubt wrote $(ls fit/d.*)" \
+    || ok "a fit in doubt writes nothing"
+if "$S" fit-psf double.npy --pixel-um 0.05 --no-figures --keep-doubtful -o fit/d.yaml >/dev/null 2>&1 &&
+    grep -q '"in_doubt": 1' fit/d.summary.json; then
+    ok "fit-psf --keep-doubtful writes the fit, in_doubt 1"
+else
+    bad "fit-psf --keep-doubtful"
+fi
 expect_fail "missing file" 1 "nothere.npy" "$S" fit-psf nothere.npy --pixel-um 0.05 -o fit/x.yaml
 expect_fail "no pixel size" 1 "--pixel-um" "$S" fit-psf spot.npy -o fit/x.yaml
 expect_fail "bad model" 1 "--model" "$S" fit-psf spot.npy --pixel-um 0.05 --model airy -o fit/x.yaml

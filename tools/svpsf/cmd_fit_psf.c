@@ -21,7 +21,8 @@ enum {
     OPT_FIGURES,
     OPT_NO_FIGURES,
     OPT_USE,
-    OPT_MAX_ITER
+    OPT_MAX_ITER,
+    OPT_KEEP_DOUBTFUL
 };
 
 static void print_help(const cli_run *run, FILE *out)
@@ -57,6 +58,9 @@ static void print_help(const cli_run *run, FILE *out)
           "  --max-iterations N    Levenberg-Marquardt steps before giving up (default 200)\n"
           "  --refuse-border       a spot within 2 FWHM of an edge is an error (default: fitted\n"
           "                        and flagged)\n"
+          "  --keep-doubtful       write a fit the program cannot vouch for (beta or the width\n"
+          "                        on its bound, chi2_red above 3 with known noise): exit 0,\n"
+          "                        the flags recorded (default: exit 3, nothing written)\n"
           "  --figures DIR         where the figures go (default: PSF.figures/ next to\n"
           "                        PSF.yaml)\n"
           "  --no-figures          no figures\n",
@@ -69,7 +73,9 @@ static void print_help(const cli_run *run, FILE *out)
           "model above background versus radius, log10); for a pair the same with prefixes\n"
           "excitation_, direct_ and deconvolved_.\n"
           "exit status: 1 for bad input (an empty image, a refused border spot), 2 when the fit\n"
-          "does not converge (the last parameters are printed, nothing is written).\n",
+          "does not converge (the last parameters are printed, nothing is written), 3 when the\n"
+          "fit to be written has beta or the width on its bound or a poor fit (not one Moffat\n"
+          "spot, or noise other than counts): printed, nothing written, unless --keep-doubtful.\n",
           out);
 }
 
@@ -315,6 +321,7 @@ struct fit_psf_args {
     const char *figures;   /* --figures */
     int no_figures;        /* --no-figures */
     int use_direct;        /* --use direct */
+    int keep_doubtful;     /* --keep-doubtful */
     double pixel_um;       /* --pixel-um */
     cli_spot_args spot;    /* --model, --circular, --gain */
     svp_pair_options po;   /* the pair method and its spot fit (the group applied) */
@@ -356,6 +363,7 @@ static int fit_psf_option(cli_run *run, struct fit_psf_args *a, int c)
         return cli_parse_int(run, "--max-iterations", optarg, 1, 100000, &so->lm.max_iterations);
     case OPT_FIGURES: a->figures = optarg; return 0;
     case OPT_NO_FIGURES: a->no_figures = 1; return 0;
+    case OPT_KEEP_DOUBTFUL: a->keep_doubtful = 1; return 0;
     case OPT_USE: {
         static const char *const uses[] = {"deconvolved", "direct", NULL};
         return cli_parse_choice(run, "--use", optarg, uses, &a->use_direct);
@@ -382,6 +390,7 @@ static int parse_fit_psf_args(cli_run *run, struct fit_psf_args *a)
         {"no-figures", no_argument, NULL, OPT_NO_FIGURES},
         {"use", required_argument, NULL, OPT_USE},
         {"max-iterations", required_argument, NULL, OPT_MAX_ITER},
+        {"keep-doubtful", no_argument, NULL, OPT_KEEP_DOUBTFUL},
         {NULL, 0, NULL, 0},
     };
     memset(a, 0, sizeof *a);
@@ -589,6 +598,12 @@ static int fit_psf_write(cli_run *run, const struct fit_psf_args *a, struct fit_
     return 0;
 }
 
+static void append(char *buf, size_t cap, const char *text)
+{
+    const size_t len = strlen(buf);
+    if (len < cap) snprintf(buf + len, cap - len, "%s", text);
+}
+
 /* The fit (one spot or a pair), the flags of the written fit, the figures, the files. */
 static int fit_psf_compute(cli_run *run, const struct fit_psf_args *a, struct fit_psf_job *job)
 {
@@ -599,9 +614,32 @@ static int fit_psf_compute(cli_run *run, const struct fit_psf_args *a, struct fi
                    !a->exc_path    ? "spot"
                    : a->use_direct ? "direct"
                                    : "deconvolved");
+    /* a parameter on its bound (not measured: its uncertainty is unknown) or a fit that does
+     * not describe the data is no PSF to hand to a correction */
+    const unsigned doubt =
+        job->chosen->flags & (SVP_SPOT_BETA_AT_BOUND | SVP_SPOT_WIDTH_AT_BOUND | SVP_SPOT_POOR_FIT);
+    cli_result_int(run, "in_doubt", doubt != 0);
     if (job->chosen->flags) {
         char buf[256];
         svp_spot_flags_describe(job->chosen->flags, buf, sizeof buf);
+        if (doubt && !a->keep_doubtful) {
+            char why[512] = "";
+            if (doubt & SVP_SPOT_BETA_AT_BOUND)
+                append(why, sizeof why, "; beta ran to its bound (a Gaussian-like spot: "
+                                            "--model gaussian; else --fix-beta)");
+            if (doubt & SVP_SPOT_WIDTH_AT_BOUND)
+                append(why, sizeof why, "; the width ran to its bound (a spot wider than "
+                                            "the image shows, or not one spot)");
+            if (doubt & SVP_SPOT_POOR_FIT)
+                append(why, sizeof why, "; the model does not describe the data (another "
+                                            "--model, two spots, a ring, a sloped background, "
+                                            "or data not in photon counts: --gain)");
+            cli_error(run,
+                      "%s: the fit cannot be vouched for (flags: %s)%s; nothing written "
+                      "(--keep-doubtful writes it)",
+                      a->spot_path, buf, why);
+            return CLI_EXIT_DOUBTFUL;
+        }
         cli_note(run, "%s: the written fit is flagged: %s", a->spot_path, buf);
     }
     if (a->no_figures) return 0;
