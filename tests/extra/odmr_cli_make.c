@@ -14,6 +14,7 @@
  *       10 px beyond the view: blobs of PL 400..1600 counts, a field step of 240 µT (1 MHz
  *       lines 3 % deep), noise σ = 1 count; truth and PL unblurred
  *   odmr_cli_make pages OUT.tif N          a 16-bit TIFF of N 8 x 6 pages
+ *   odmr_cli_make nanframe IN OUT.npy K    the stack IN with frame K NaN at every pixel
  *   odmr_cli_make compare EST.npy TRUTH.npy SCALE MEAN_TOL MAX_TOL [SIGMA.npy]
  *       EST / SCALE against TRUTH: mean and max |difference| within the tolerances (NaN pixels
  *       fail), and with SIGMA (same unit as EST) the rms of (EST − TRUTH) / SIGMA in [0.8, 1.25]
@@ -298,10 +299,29 @@ done: /* freed, so the sanitizer build's leak check passes */
     return rc;
 }
 
+/* IN (a stack) with frame K set to NaN at every pixel, as a float64 .npy OUT */
+static int nan_frame(char **a)
+{
+    svp_stack *st = NULL;
+    if (svp_stack_read(a[0], &st) != SVP_OK) {
+        fprintf(stderr, "%s\n", svp_last_error());
+        return 1;
+    }
+    const int k = atoi(a[2]);
+    int rc = k < 0 || k >= st->n_frames;
+    if (!rc) {
+        for (size_t p = 0; p < (size_t)st->width * st->height; p++) st->frame[k]->data[p] = NAN;
+        rc = svp_stack_write(a[1], (const svp_image *const *)st->frame, st->n_frames, 1) != SVP_OK;
+    }
+    svp_stack_free(st);
+    return rc;
+}
+
 int main(int argc, char **argv)
 {
     if (argc == 10 && !strcmp(argv[1], "stack")) return make_stack(argv + 2);
     if (argc == 4 && !strcmp(argv[1], "pages")) return make_pages(argv + 2);
+    if (argc == 5 && !strcmp(argv[1], "nanframe")) return nan_frame(argv + 2);
     if (argc == 12 && !strcmp(argv[1], "drift")) return make_drift(argv + 2);
     if (argc == 11 && !strcmp(argv[1], "blurred")) return make_blurred(argv + 2);
     if ((argc == 7 || argc == 8) && !strcmp(argv[1], "compare")) return compare(argc - 2, argv + 2);

@@ -76,6 +76,14 @@ echo "fit-odmr --lines pair (uT):"
 run 3 fit-odmr nodip.tif --frequencies 2.8e9:2.94e9:20 -o fit_none --format npy
 expect_in err "none of the 48 pixel fits found a dip in the sweep"
 [ -e fit_none ] && fail "fit_none was written by a run in doubt"
+# a frame of NaN (missing at every pixel) makes every pixel missing: said so, naming the frame
+# and its frequency (it said "none of the pixel fits found a dip ... no light, no dip above the
+# noise", exit 3); exit 1, nothing written
+"$make" nanframe stack.tif nanframe.npy 10 || fail "cannot write nanframe.npy"
+run 1 fit-odmr nanframe.npy --frequencies 2750:2990:100 --frequency-unit MHz -o fit_nan --format npy
+expect_in err "nanframe.npy: every one of the 1920 pixels holds NaN or Inf in some frame"
+expect_in err "frame 10 of the stack, 2.77424 GHz, is NaN or Inf at every pixel"
+[ -e fit_nan ] && fail "fit_nan was written"
 run 1 fit-odmr stack.tif --frequencies 2750:2990:100 -o fit_unit --format npy
 expect_in err "below 1 MHz where no NV line lies: give their unit with --frequency-unit"
 run 1 fit-odmr stack.tif --frequencies -2.99e9:-2.75e9:100 -o fit_neg --format npy

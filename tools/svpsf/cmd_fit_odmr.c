@@ -647,6 +647,28 @@ static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_
     if (st != SVP_OK) return cli_fail(run, st, a->stack_path);
     const size_t n = (size_t)job->w * job->h;
     if (job->n_failed == n) { /* maps of NaN only: nothing to vouch for */
+        /* missing data (NaN/Inf in some frame) is not "no dip": name it, and a frame that
+         * holds nothing else */
+        size_t n_missing = 0;
+        for (size_t p = 0; p < n; p++) {
+            int miss = 0;
+            for (int f = 0; f < job->nf && !miss; f++) miss = !isfinite(job->frames[f]->data[p]);
+            n_missing += (size_t)miss;
+        }
+        if (n_missing == n) {
+            int whole = -1;
+            for (int f = 0; f < job->nf && whole < 0; f++)
+                if (svp_image_count_nonfinite(job->frames[f]) == n) whole = f;
+            char frame[160] = "";
+            if (whole >= 0)
+                snprintf(frame, sizeof frame, " (frame %d of the stack, %.6g GHz, is NaN or Inf "
+                         "at every pixel: drop it from the stack and its frequency)",
+                         job->decreasing ? job->nf - 1 - whole : whole, job->freq[whole] * 1e-9);
+            return cli_error(run,
+                             "%s: every one of the %zu pixels holds NaN or Inf in some frame "
+                             "(missing data: such a pixel is not fitted)%s; nothing written",
+                             a->stack_path, n, frame);
+        }
         cli_error(run,
                   "%s: none of the %zu pixel fits found a dip in the sweep (%.6g to %.6g GHz): "
                   "no light, no dip above the noise, lines outside the sweep, or frequencies in "
