@@ -2000,12 +2000,19 @@ typedef struct svp_odmr_maps {
  * least 1.5 Γ from the first when it is at least 30 % as deep, else its mirror about D),
  * Γ = odmr->linewidth_hz, C from the area of the dips. n_freq >= 5 (and > the parameter
  * count). Pixels run in parallel (one LM workspace per thread); each pixel's result does not
- * depend on the thread count. A pixel with NaN/Inf in any frame (missing data) gets NaN in
- * every map but converged (0). *n_failed (may be NULL): pixels whose fit did not converge or
- * was missing. */
+ * depend on the thread count. A pixel with NaN/Inf in some frames (a failed frame, masked
+ * samples) is fitted on its finite samples alone — the same bits as the stack without those
+ * frames would give it — when it keeps at least svp_odmr_fit_min_finite of them; else it is
+ * missing: NaN in every map but converged (0). *n_failed (may be NULL): pixels whose fit did
+ * not converge or was missing. */
 SVP_API svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                                      const svp_odmr_fit_options *options,
                                      const svp_odmr_maps *maps, size_t *n_failed);
+
+/* The finite samples a pixel of an n_freq-frame stack needs to be fitted by
+ * svp_odmr_fit_maps: half the frames (rounded up), and at least the parameters + 1, 5, and
+ * twice options->baseline_frames (options NULL: the defaults). */
+SVP_API int svp_odmr_fit_min_finite(int n_freq, const svp_odmr_fit_options *options);
 
 /* svp_odmr_fit_maps with field, contrast, baseline and linewidth (each but field may be NULL). */
 SVP_API svp_status svp_odmr_fit(const svp_odmr *odmr, const svp_cube *cube,

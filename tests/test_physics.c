@@ -1529,6 +1529,74 @@ static void test_fit_maps_bound(void **state)
     svp_cube_free(cube);
 }
 
+/* Missing samples (NaN in some frames of a pixel): the pixel is fitted on its finite samples,
+ * to the bit as the stack without those frames fits it; with more than half missing it is
+ * missing (NaN maps, not converged). */
+static void test_fit_maps_missing(void **state)
+{
+    (void)state;
+    const int nf = 60, w = 6;
+    svp_odmr od;
+    svp_odmr_defaults(&od);
+    od.linewidth_hz = 4e6;
+    const double D = od.zero_field_hz, g = od.gamma_hz_per_t;
+    double freq[60], freq_kept[60];
+    for (int f = 0; f < nf; f++) freq[f] = D - 60e6 + 120e6 * f / (nf - 1);
+    svp_cube *cube = NULL, *kept = NULL;
+    ASSERT_OK(svp_cube_new(w, 1, nf, freq, &cube));
+    uint64_t seed = 21;
+    for (int f = 0; f < nf; f++)
+        for (int p = 0; p < w; p++)
+            cube->frame[f]->data[p] = own_spectrum(freq[f], 1000, 0.03, D - g * (1e-3 + 1e-4 * p),
+                                                   D + g * (1e-3 + 1e-4 * p), 5e6) +
+                                      3 * test_gauss(&seed);
+    /* pixels 0..4: frames 7 and 33 missing (33 inside the lower dip, at D - 28 MHz); pixel 5:
+     * 31 of 60 missing */
+    const int gone[2] = {7, 33};
+    int nk = 0;
+    for (int f = 0; f < nf; f++)
+        if (f != gone[0] && f != gone[1]) freq_kept[nk++] = freq[f];
+    ASSERT_OK(svp_cube_new(w, 1, nk, freq_kept, &kept));
+    for (int f = 0, k = 0; f < nf; f++) {
+        const int drop = f == gone[0] || f == gone[1];
+        for (int p = 0; p < w; p++) {
+            if (!drop) kept->frame[k]->data[p] = cube->frame[f]->data[p];
+            if (drop && p < 5) cube->frame[f]->data[p] = NAN;
+            if (p == 5 && f % 2 == 0) cube->frame[f]->data[p] = f == 0 ? INFINITY : NAN;
+        }
+        k += !drop;
+    }
+    cube->frame[nf - 1]->data[5] = NAN; /* 31 missing */
+    assert_int_equal(svp_odmr_fit_min_finite(nf, NULL), 30);
+    svp_odmr_fit_options opt;
+    svp_odmr_fit_defaults(&opt);
+    fit_maps_set m, mk;
+    svp_odmr_maps maps = maps_of(&m, w, 1, 0), maps_k = maps_of(&mk, w, 1, 0);
+    size_t n_failed = 0, n_failed_k = 0;
+    ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps, &n_failed));
+    ASSERT_OK(svp_odmr_fit_maps(&od, kept, &opt, &maps_k, &n_failed_k));
+    svp_image *a[] = {m.field, m.field_sigma, m.b, m.b_sigma, m.c, m.c_sigma, m.g, m.g_sigma,
+                      m.quality, m.conv};
+    svp_image *b[] = {mk.field, mk.field_sigma, mk.b, mk.b_sigma, mk.c, mk.c_sigma, mk.g,
+                      mk.g_sigma, mk.quality, mk.conv};
+    for (int p = 0; p < 5; p++) {
+        for (size_t k = 0; k < sizeof a / sizeof a[0]; k++)
+            if (memcmp(&a[k]->data[p], &b[k]->data[p], sizeof(double)) != 0)
+                fail_msg("pixel %d, map %zu: %.17g with NaN frames, %.17g without them", p, k,
+                         a[k]->data[p], b[k]->data[p]);
+        assert_true(m.conv->data[p] == 1 && fabs(m.field->data[p] - 1e-3 - 1e-4 * p) < 20e-6);
+    }
+    print_message("2 of 60 frames missing: pixels 0-4 fitted, the same bits as without those "
+                  "frames (field of pixel 0 %.6g T); 31 missing: NaN\n",
+                  m.field->data[0]);
+    assert_true(isnan(m.field->data[5]) && isnan(m.b->data[5]) && m.conv->data[5] == 0);
+    assert_int_equal(n_failed, n_failed_k + 1);
+    maps_free(&m);
+    maps_free(&mk);
+    svp_cube_free(cube);
+    svp_cube_free(kept);
+}
+
 /* ---- bad input -------------------------------------------------------------------------- */
 
 static void test_bad_input(void **state)
@@ -1806,6 +1874,7 @@ int main(void)
         cmocka_unit_test(test_fit_noise_only),
         cmocka_unit_test(test_fit_maps_lines),
         cmocka_unit_test(test_fit_maps_bound),
+        cmocka_unit_test(test_fit_maps_missing),
         cmocka_unit_test(test_projection),
         cmocka_unit_test(test_cube_deconvolve),
         cmocka_unit_test(test_bad_input),

@@ -703,6 +703,32 @@ def test_fit_odmr_errors(cli, tmp_path):
         svpsf.fit_odmr(stack[0], freq)
 
 
+def test_fit_odmr_missing_frames(cli, tmp_path):
+    # a frame of NaN: every pixel fitted on the other frames, to the bit as the stack without
+    # that frame, and as the program fits it
+    stack, freq, truth = odmr_stack(h=6, w=5, nf=60, seed=5)
+    st = stack.copy()
+    st[7] = np.nan
+    r = svpsf.fit_odmr(st, freq, failed="keep")
+    k = svpsf.fit_odmr(np.delete(stack, 7, axis=0), np.delete(freq, 7), failed="keep")
+    cli("fit-odmr", write(tmp_path, "st.npy", st), "--frequencies", "2750:2990:60",
+        "--frequency-unit", "MHz", "--failed", "keep", "-o", tmp_path / "fit", *ODMR_COMMON)
+    for name in ("field", "field_sigma", "pl", "contrast", "linewidth", "quality"):
+        assert np.array_equal(r[name], k[name]), name
+        assert np.array_equal(r[name], np.load(tmp_path / "fit" / (name + ".npy"))), name
+    assert np.abs(r["field"] - truth).max() < 50e-6
+    # more than half the frames missing everywhere: missing data, said so (the program: exit 1)
+    st[:31] = np.nan
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.fit_odmr(st, freq)
+    assert e.value.status == 1 and not isinstance(e.value, svpsf.DoubtfulError)
+    assert ("every one of the 30 pixels holds NaN or Inf in more than 30 of its 60 frames"
+            in e.value.message) and "frame 0 of the stack, 2.75 GHz" in e.value.message
+    p = cli("fit-odmr", write(tmp_path, "half.npy", st), "--frequencies", "2750:2990:60",
+            "--frequency-unit", "MHz", "-o", tmp_path / "o2", *ODMR_COMMON, ok=False)
+    assert p.returncode == 1 and "more than 30 of its 60 frames" in p.stderr
+
+
 def test_errors_carry_the_library_message(cli, tmp_path, maps):
     pl, field = maps
     bad = write(tmp_path, "typo.yaml", "pixel_um: 0.1\npsf: {model: moffat, fwhm_umm: 0.6, "

@@ -725,6 +725,7 @@ typedef struct fit_thread {
     odmr_pixel px;
     svp_lm_problem prob, gprob;
     odmr_gen go;
+    double *sub; /* 4 nf: a pixel's finite samples, their frequencies, q and xs (fit_pixel) */
 } fit_thread;
 
 /* One pixel's start values from its spectrum y: baseline b0 (mean of the end frames), dip area
@@ -966,18 +967,76 @@ static int fit_significant(const fit_shared *c, const double th[GEN_MAX],
  * failed (*st the status; SVP_ERR_NUMERIC for a fit that converged to no dip the sweep shows —
  * outside it, too narrow, without light, or not significant — which is counted like one that
  * did not converge) and 2 for a missing pixel. */
-static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
+static void fit_thread_init(const fit_shared *c, fit_thread *t, double *y);
+static void fit_shared_fill(const svp_cube *cube, const svp_odmr_fit_options *options,
+                            const svp_odmr_maps *maps, double D, double gamma, double G0,
+                            double *q, double *xs, fit_shared *c);
+
+static int fit_spectrum(const fit_shared *c, fit_thread *t, double *y, size_t p,
+                        svp_status *st);
+
+/* A pixel with NaN/Inf samples (failed frames, masked values): fitted on its finite samples
+ * alone, exactly as a stack without the other frames would fit it, when at most half are
+ * missing and enough remain for the model and the baseline frames; else missing. */
+int svp_odmr_fit_min_finite(int n_freq, const svp_odmr_fit_options *options)
 {
-    const int nf = c->nf, nb = c->nb;
-    fit_start s = {0, 0, 0, 0, 0};
-    int finite = 1;
-    *st = SVP_OK;
-    t->prob.data = t->gprob.data = t->go.y = y;
-    for (int f = 0; f < nf; f++) finite &= isfinite(y[f]) != 0;
-    if (!finite) {
+    svp_odmr_fit_options d;
+    if (!options) {
+        svp_odmr_fit_defaults(&d);
+        options = &d;
+    }
+    const int np = options->lines == SVP_ODMR_LINES_TWO ? 5 : 4;
+    int need = (n_freq + 1) / 2;
+    if (need < np + 1) need = np + 1;
+    if (need < 5) need = 5;
+    if (need < 2 * options->baseline_frames) need = 2 * options->baseline_frames;
+    return need;
+}
+
+static int fit_pixel_finite(const fit_shared *c, fit_thread *t, const double *y, size_t p,
+                            int n_ok, svp_status *st)
+{
+    const int nf = c->nf;
+    if (n_ok < svp_odmr_fit_min_finite(nf, c->options)) {
         fit_put_missing(c->maps, p);
         return 2;
     }
+    double *ys = t->sub, *fs = ys + nf, *qs = fs + nf, *xs = qs + nf;
+    int k = 0;
+    for (int f = 0; f < nf; f++)
+        if (isfinite(y[f])) {
+            ys[k] = y[f];
+            fs[k++] = c->cube->freq[f];
+        }
+    const svp_cube sub = {.width = c->cube->width, .height = c->cube->height, .n_freq = n_ok,
+                          .freq = fs, .frame = NULL};
+    svp_odmr_fit_options o = *c->options;
+    o.baseline_frames = c->nb;
+    fit_shared cs;
+    fit_shared_fill(&sub, &o, c->maps, c->D, c->gamma, c->G0, qs, xs, &cs);
+    fit_thread_init(&cs, t, ys);
+    const int fail = fit_spectrum(&cs, t, ys, p, st);
+    fit_thread_init(c, t, (double *)y); /* the next pixel's full set */
+    return fail;
+}
+
+static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
+{
+    int n_ok = 0;
+    *st = SVP_OK;
+    for (int f = 0; f < c->nf; f++) n_ok += isfinite(y[f]) != 0;
+    if (n_ok < c->nf) return fit_pixel_finite(c, t, y, p, n_ok, st);
+    return fit_spectrum(c, t, y, p, st);
+}
+
+/* The fit of spectrum y (every sample finite) at pixel p, as fit_pixel. */
+static int fit_spectrum(const fit_shared *c, fit_thread *t, double *y, size_t p,
+                        svp_status *st)
+{
+    const int nf = c->nf, nb = c->nb;
+    fit_start s = {0, 0, 0, 0, 0};
+    *st = SVP_OK;
+    t->prob.data = t->gprob.data = t->go.y = y;
     for (int f = 0; f < nb; f++) s.b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
     for (int f = 0; f < nf; f++) {
         s.den += c->q[f] * (s.b0 - y[f]);
@@ -1001,6 +1060,29 @@ static const double fit_lower4[4] = {-INFINITY, 0, -INFINITY, 0};
 static const double fit_upper4[4] = {INFINITY, 1, INFINITY, INFINITY};
 static const double fit_lowerg[GEN_MAX] = {-INFINITY, 0, -INFINITY, -INFINITY, 0};
 static const double fit_upperg[GEN_MAX] = {INFINITY, 1, INFINITY, INFINITY, INFINITY};
+
+/* The settings every pixel's fit shares, for the frequencies of cube (the stack's, or a
+ * pixel's finite samples): q (trapezoid weights) and xs ((ω − D) / Γ0) filled, nf of each. */
+static void fit_shared_fill(const svp_cube *cube, const svp_odmr_fit_options *options,
+                            const svp_odmr_maps *maps, double D, double gamma, double G0,
+                            double *q, double *xs, fit_shared *c)
+{
+    const int nf = cube->n_freq;
+    for (int f = 0; f < nf; f++) {
+        q[f] = 0.5 * (cube->freq[f < nf - 1 ? f + 1 : f] - cube->freq[f > 0 ? f - 1 : f]);
+        xs[f] = (cube->freq[f] - D) / G0;
+    }
+    /* smoothing half-width for the starting point: about half a linewidth of frames */
+    const double spacing = (cube->freq[nf - 1] - cube->freq[0]) / (nf - 1);
+    const double f_first = cube->freq[0], f_last = cube->freq[nf - 1];
+    *c = (fit_shared){.cube = cube, .options = options, .maps = maps,
+                      .lines = options->lines, .nf = nf,
+                      .np = options->lines == SVP_ODMR_LINES_TWO ? 5 : 4,
+                      .nb = options->baseline_frames, .D = D, .gamma = gamma, .G0 = G0,
+                      .q = q, .xs = xs, .half_box = (int)fmin(nf / 4, floor(0.5 * G0 / spacing)),
+                      .exclude = (int)ceil(1.5 * G0 / spacing),
+                      .sweep_lo = fmin(f_first, f_last), .sweep_hi = fmax(f_first, f_last)};
+}
 
 /* A thread's solvers for spectra at y (pointers moved per pixel by fit_pixel). */
 static void fit_thread_init(const fit_shared *c, fit_thread *t, double *y)
@@ -1049,20 +1131,8 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
         free(xs);
         return svp_fail(SVP_ERR_NOMEM, "out of memory for the fit");
     }
-    for (int f = 0; f < nf; f++) {
-        q[f] = 0.5 * (cube->freq[f < nf - 1 ? f + 1 : f] - cube->freq[f > 0 ? f - 1 : f]);
-        xs[f] = (cube->freq[f] - D) / G0;
-    }
-    /* smoothing half-width for the starting point: about half a linewidth of frames */
-    const double spacing = (cube->freq[nf - 1] - cube->freq[0]) / (nf - 1);
-    const double f_first = cube->freq[0], f_last = cube->freq[nf - 1];
-    const fit_shared c = {.cube = cube, .options = options, .maps = maps,
-                          .lines = options->lines, .nf = nf, .np = np,
-                          .nb = options->baseline_frames, .D = D,
-                          .gamma = odmr->gamma_hz_per_t, .G0 = G0, .q = q, .xs = xs,
-                          .half_box = (int)fmin(nf / 4, floor(0.5 * G0 / spacing)),
-                          .exclude = (int)ceil(1.5 * G0 / spacing),
-                          .sweep_lo = fmin(f_first, f_last), .sweep_hi = fmax(f_first, f_last)};
+    fit_shared c;
+    fit_shared_fill(cube, options, maps, D, odmr->gamma_hz_per_t, G0, q, xs, &c);
     size_t failed = 0;
     int alloc_failed = 0, cancelled = 0;
     svp_status first_error = SVP_OK;
@@ -1082,7 +1152,8 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
         /* the chunk's spectra, pixel-major: read frame by frame (a run of contiguous pixels
          * from each), not pixel by pixel across all frames */
         double *spectra = malloc((size_t)nf * chunk * sizeof(double));
-        if (svp_lm_workspace_new(np, nf, &t.ws) != SVP_OK || !spectra) {
+        t.sub = malloc(4 * (size_t)nf * sizeof(double));
+        if (svp_lm_workspace_new(np, nf, &t.ws) != SVP_OK || !spectra || !t.sub) {
 #pragma omp atomic write
             alloc_failed = 1;
         }
@@ -1092,7 +1163,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
             int stop;
 #pragma omp atomic read
             stop = cancelled;
-            if (stop || !t.ws || !spectra) continue;
+            if (stop || !t.ws || !spectra || !t.sub) continue;
             const size_t p0 = ck * chunk, p1 = p0 + chunk < n ? p0 + chunk : n;
             for (int f = 0; f < nf; f++) {
                 const double *src = cube->frame[f]->data + p0;
@@ -1123,6 +1194,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
         }
         svp_lm_workspace_free(t.ws);
         free(spectra);
+        free(t.sub);
     }
     free(q);
     free(xs);

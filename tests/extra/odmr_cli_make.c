@@ -14,7 +14,9 @@
  *       10 px beyond the view: blobs of PL 400..1600 counts, a field step of 240 µT (1 MHz
  *       lines 3 % deep), noise σ = 1 count; truth and PL unblurred
  *   odmr_cli_make pages OUT.tif N          a 16-bit TIFF of N 8 x 6 pages
- *   odmr_cli_make nanframe IN OUT.npy K    the stack IN with frame K NaN at every pixel
+ *   odmr_cli_make nanframe IN OUT.npy K [N]  the stack IN with frames K .. K+N-1 (N: 1) NaN
+ *                                          at every pixel
+ *   odmr_cli_make dropframe IN OUT.npy K   the stack IN without frame K
  *   odmr_cli_make compare EST.npy TRUTH.npy SCALE MEAN_TOL MAX_TOL [SIGMA.npy]
  *       EST / SCALE against TRUTH: mean and max |difference| within the tolerances (NaN pixels
  *       fail), and with SIGMA (same unit as EST) the rms of (EST − TRUTH) / SIGMA in [0.8, 1.25]
@@ -299,8 +301,9 @@ done: /* freed, so the sanitizer build's leak check passes */
     return rc;
 }
 
-/* IN (a stack) with frame K set to NaN at every pixel, as a float64 .npy OUT */
-static int nan_frame(char **a)
+/* IN (a stack) with frames K .. K + N − 1 set to NaN at every pixel (drop = 0), or without
+ * frame K (drop = 1), as a float64 .npy OUT */
+static int edit_frames(char **a, int n_nan, int drop)
 {
     svp_stack *st = NULL;
     if (svp_stack_read(a[0], &st) != SVP_OK) {
@@ -308,11 +311,19 @@ static int nan_frame(char **a)
         return 1;
     }
     const int k = atoi(a[2]);
-    int rc = k < 0 || k >= st->n_frames;
-    if (!rc) {
-        for (size_t p = 0; p < (size_t)st->width * st->height; p++) st->frame[k]->data[p] = NAN;
-        rc = svp_stack_write(a[1], (const svp_image *const *)st->frame, st->n_frames, 1) != SVP_OK;
+    int rc = k < 0 || k + (drop ? 1 : n_nan) > st->n_frames || n_nan < 1;
+    if (!rc && drop) {
+        svp_image *gone = st->frame[k];
+        for (int f = k; f < st->n_frames - 1; f++) st->frame[f] = st->frame[f + 1];
+        st->frame[--st->n_frames] = gone; /* freed with the stack */
+    } else if (!rc) {
+        for (int f = k; f < k + n_nan; f++)
+            for (size_t p = 0; p < (size_t)st->width * st->height; p++)
+                st->frame[f]->data[p] = NAN;
     }
+    if (!rc)
+        rc = svp_stack_write(a[1], (const svp_image *const *)st->frame, st->n_frames, 1) != SVP_OK;
+    if (drop && !rc) st->n_frames++;
     svp_stack_free(st);
     return rc;
 }
@@ -321,7 +332,9 @@ int main(int argc, char **argv)
 {
     if (argc == 10 && !strcmp(argv[1], "stack")) return make_stack(argv + 2);
     if (argc == 4 && !strcmp(argv[1], "pages")) return make_pages(argv + 2);
-    if (argc == 5 && !strcmp(argv[1], "nanframe")) return nan_frame(argv + 2);
+    if ((argc == 5 || argc == 6) && !strcmp(argv[1], "nanframe"))
+        return edit_frames(argv + 2, argc == 6 ? atoi(argv[5]) : 1, 0);
+    if (argc == 5 && !strcmp(argv[1], "dropframe")) return edit_frames(argv + 2, 1, 1);
     if (argc == 12 && !strcmp(argv[1], "drift")) return make_drift(argv + 2);
     if (argc == 11 && !strcmp(argv[1], "blurred")) return make_blurred(argv + 2);
     if ((argc == 7 || argc == 8) && !strcmp(argv[1], "compare")) return compare(argc - 2, argv + 2);

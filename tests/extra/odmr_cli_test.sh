@@ -76,14 +76,24 @@ echo "fit-odmr --lines pair (uT):"
 run 3 fit-odmr nodip.tif --frequencies 2.8e9:2.94e9:20 -o fit_none --format npy
 expect_in err "none of the 48 pixel fits found a dip in the sweep"
 [ -e fit_none ] && fail "fit_none was written by a run in doubt"
-# a frame of NaN (missing at every pixel) makes every pixel missing: said so, naming the frame
-# and its frequency (it said "none of the pixel fits found a dip ... no light, no dip above the
-# noise", exit 3); exit 1, nothing written
+# a frame of NaN (a failed frame): every pixel is fitted on its other frames, to the bit as
+# the stack without that frame (it made every pixel missing, and the run said "none of the pixel
+# fits found a dip ... no light", exit 3)
 "$make" nanframe stack.tif nanframe.npy 10 || fail "cannot write nanframe.npy"
-run 1 fit-odmr nanframe.npy --frequencies 2750:2990:100 --frequency-unit MHz -o fit_nan --format npy
-expect_in err "nanframe.npy: every one of the 1920 pixels holds NaN or Inf in some frame"
-expect_in err "frame 10 of the stack, 2.77424 GHz, is NaN or Inf at every pixel"
-[ -e fit_nan ] && fail "fit_nan was written"
+"$make" dropframe stack.tif dropframe.npy 10 || fail "cannot write dropframe.npy"
+awk 'BEGIN {for (k = 0; k < 100; k++) if (k != 10) printf "%.17g\n", (2750 + k * 240 / 99) * 1e6}' >f_drop.txt
+run 0 fit-odmr nanframe.npy --frequencies 2750:2990:100 --frequency-unit MHz -o fit_nan --format npy
+run 0 fit-odmr dropframe.npy --frequencies f_drop.txt -o fit_drop --format npy
+for m in field field_sigma pl contrast linewidth quality; do
+    cmp -s fit_nan/$m.npy fit_drop/$m.npy || fail "a NaN frame: $m differs from the fit without that frame"
+done
+# more than half the frames missing at every pixel: no pixel can be fitted, said so, naming a
+# frame of NaN and its frequency; exit 1, nothing written
+"$make" nanframe stack.tif nanhalf.npy 0 51 || fail "cannot write nanhalf.npy"
+run 1 fit-odmr nanhalf.npy --frequencies 2750:2990:100 --frequency-unit MHz -o fit_half --format npy
+expect_in err "nanhalf.npy: every one of the 1920 pixels holds NaN or Inf in more than 50 of its 100 frames"
+expect_in err "frame 0 of the stack, 2.75 GHz, is NaN or Inf at every pixel"
+[ -e fit_half ] && fail "fit_half was written"
 run 1 fit-odmr stack.tif --frequencies 2750:2990:100 -o fit_unit --format npy
 expect_in err "below 1 MHz where no NV line lies: give their unit with --frequency-unit"
 run 1 fit-odmr stack.tif --frequencies -2.99e9:-2.75e9:100 -o fit_neg --format npy
