@@ -1483,6 +1483,14 @@ static void test_fit_maps_lines(void **state)
     free(t_g);
 }
 
+/* The default NV with a 4 MHz starting linewidth, and nf frequencies over D ± 60 MHz. */
+static void sweep_120mhz(svp_odmr *od, int nf, double *freq)
+{
+    svp_odmr_defaults(od);
+    od->linewidth_hz = 4e6;
+    for (int f = 0; f < nf; f++) freq[f] = od->zero_field_hz - 60e6 + 120e6 * f / (nf - 1);
+}
+
 /* A pixel whose best contrast is on a bound has no σ from the curvature: INFINITY in every σ
  * map. A frame read as 0 (a dropped frame) in a flat spectrum is fitted by one line as a
  * narrow dip of depth 1 — with R² near 1, so only σ tells; where the fit lands exactly on
@@ -1492,11 +1500,9 @@ static void test_fit_maps_bound(void **state)
     (void)state;
     const int nf = 80, w = 25;
     svp_odmr od;
-    svp_odmr_defaults(&od);
-    od.linewidth_hz = 4e6;
-    const double D = od.zero_field_hz, g = od.gamma_hz_per_t;
     double freq[80];
-    for (int f = 0; f < nf; f++) freq[f] = D - 60e6 + 120e6 * f / (nf - 1);
+    sweep_120mhz(&od, nf, freq);
+    const double D = od.zero_field_hz, g = od.gamma_hz_per_t;
     svp_cube *cube = NULL;
     ASSERT_OK(svp_cube_new(w, 1, nf, freq, &cube));
     uint64_t seed = 11;
@@ -1537,11 +1543,9 @@ static void test_fit_maps_missing(void **state)
     (void)state;
     const int nf = 60, w = 6;
     svp_odmr od;
-    svp_odmr_defaults(&od);
-    od.linewidth_hz = 4e6;
-    const double D = od.zero_field_hz, g = od.gamma_hz_per_t;
     double freq[60], freq_kept[60];
-    for (int f = 0; f < nf; f++) freq[f] = D - 60e6 + 120e6 * f / (nf - 1);
+    sweep_120mhz(&od, nf, freq);
+    const double D = od.zero_field_hz, g = od.gamma_hz_per_t;
     svp_cube *cube = NULL, *kept = NULL;
     ASSERT_OK(svp_cube_new(w, 1, nf, freq, &cube));
     uint64_t seed = 21;

@@ -963,99 +963,6 @@ static int fit_significant(const fit_shared *c, const double th[GEN_MAX],
     return area_ok || depth_ok;
 }
 
-/* Pixel p of spectrum y: its start, fit and maps. Returns 0 when it converged, 1 when its fit
- * failed (*st the status; SVP_ERR_NUMERIC for a fit that converged to no dip the sweep shows —
- * outside it, too narrow, without light, or not significant — which is counted like one that
- * did not converge) and 2 for a missing pixel. */
-static void fit_thread_init(const fit_shared *c, fit_thread *t, double *y);
-static void fit_shared_fill(const svp_cube *cube, const svp_odmr_fit_options *options,
-                            const svp_odmr_maps *maps, double D, double gamma, double G0,
-                            double *q, double *xs, fit_shared *c);
-
-static int fit_spectrum(const fit_shared *c, fit_thread *t, double *y, size_t p,
-                        svp_status *st);
-
-/* A pixel with NaN/Inf samples (failed frames, masked values): fitted on its finite samples
- * alone, exactly as a stack without the other frames would fit it, when at most half are
- * missing and enough remain for the model and the baseline frames; else missing. */
-int svp_odmr_fit_min_finite(int n_freq, const svp_odmr_fit_options *options)
-{
-    svp_odmr_fit_options d;
-    if (!options) {
-        svp_odmr_fit_defaults(&d);
-        options = &d;
-    }
-    const int np = options->lines == SVP_ODMR_LINES_TWO ? 5 : 4;
-    int need = (n_freq + 1) / 2;
-    if (need < np + 1) need = np + 1;
-    if (need < 5) need = 5;
-    if (need < 2 * options->baseline_frames) need = 2 * options->baseline_frames;
-    return need;
-}
-
-static int fit_pixel_finite(const fit_shared *c, fit_thread *t, const double *y, size_t p,
-                            int n_ok, svp_status *st)
-{
-    const int nf = c->nf;
-    if (n_ok < svp_odmr_fit_min_finite(nf, c->options)) {
-        fit_put_missing(c->maps, p);
-        return 2;
-    }
-    double *ys = t->sub, *fs = ys + nf, *qs = fs + nf, *xs = qs + nf;
-    int k = 0;
-    for (int f = 0; f < nf; f++)
-        if (isfinite(y[f])) {
-            ys[k] = y[f];
-            fs[k++] = c->cube->freq[f];
-        }
-    const svp_cube sub = {.width = c->cube->width, .height = c->cube->height, .n_freq = n_ok,
-                          .freq = fs, .frame = NULL};
-    svp_odmr_fit_options o = *c->options;
-    o.baseline_frames = c->nb;
-    fit_shared cs;
-    fit_shared_fill(&sub, &o, c->maps, c->D, c->gamma, c->G0, qs, xs, &cs);
-    fit_thread_init(&cs, t, ys);
-    const int fail = fit_spectrum(&cs, t, ys, p, st);
-    fit_thread_init(c, t, (double *)y); /* the next pixel's full set */
-    return fail;
-}
-
-static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
-{
-    int n_ok = 0;
-    *st = SVP_OK;
-    for (int f = 0; f < c->nf; f++) n_ok += isfinite(y[f]) != 0;
-    if (n_ok < c->nf) return fit_pixel_finite(c, t, y, p, n_ok, st);
-    return fit_spectrum(c, t, y, p, st);
-}
-
-/* The fit of spectrum y (every sample finite) at pixel p, as fit_pixel. */
-static int fit_spectrum(const fit_shared *c, fit_thread *t, double *y, size_t p,
-                        svp_status *st)
-{
-    const int nf = c->nf, nb = c->nb;
-    fit_start s = {0, 0, 0, 0, 0};
-    *st = SVP_OK;
-    t->prob.data = t->gprob.data = t->go.y = y;
-    for (int f = 0; f < nb; f++) s.b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
-    for (int f = 0; f < nf; f++) {
-        s.den += c->q[f] * (s.b0 - y[f]);
-        s.mean += y[f];
-    }
-    s.mean /= nf;
-    s.best = deepest(y, nf, c->half_box, -1, 0, &s.v_best);
-    /* θ in physical units: PAIR (b, C, B, Γ); ONE (b, C, f₀, Γ); TWO (b, C, f₋, f₊, Γ) */
-    double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], chi2 = NAN;
-    int fail = c->lines == SVP_ODMR_LINES_PAIR ? fit_pair(c, t, y, &s, th, cov, &chi2, st)
-                                               : fit_lines(c, t, y, &s, th, cov, &chi2, st);
-    if (!fail && (!fit_in_sweep(c, th) || !fit_significant(c, th, cov))) {
-        fail = 1;
-        *st = SVP_ERR_NUMERIC;
-    }
-    fit_put(c, p, y, s.mean, th, cov, chi2, fail);
-    return fail;
-}
-
 static const double fit_lower4[4] = {-INFINITY, 0, -INFINITY, 0};
 static const double fit_upper4[4] = {INFINITY, 1, INFINITY, INFINITY};
 static const double fit_lowerg[GEN_MAX] = {-INFINITY, 0, -INFINITY, -INFINITY, 0};
@@ -1097,6 +1004,90 @@ static void fit_thread_init(const fit_shared *c, fit_thread *t, double *y)
                                 .user = &t->go, .analytic_jacobian = 1, .data = y,
                                 .lower = c->np == 5 ? fit_lowerg : fit_lower4,
                                 .upper = fit_upperg};
+}
+
+/* The fit of spectrum y at pixel p, every sample finite; returns as fit_pixel. */
+static int fit_spectrum(const fit_shared *c, fit_thread *t, double *y, size_t p,
+                        svp_status *st)
+{
+    const int nf = c->nf, nb = c->nb;
+    fit_start s = {0, 0, 0, 0, 0};
+    *st = SVP_OK;
+    t->prob.data = t->gprob.data = t->go.y = y;
+    for (int f = 0; f < nb; f++) s.b0 += (y[f] + y[nf - 1 - f]) / (2.0 * nb);
+    for (int f = 0; f < nf; f++) {
+        s.den += c->q[f] * (s.b0 - y[f]);
+        s.mean += y[f];
+    }
+    s.mean /= nf;
+    s.best = deepest(y, nf, c->half_box, -1, 0, &s.v_best);
+    /* θ in physical units: PAIR (b, C, B, Γ); ONE (b, C, f₀, Γ); TWO (b, C, f₋, f₊, Γ) */
+    double th[GEN_MAX], cov[GEN_MAX][GEN_MAX], chi2 = NAN;
+    int fail = c->lines == SVP_ODMR_LINES_PAIR ? fit_pair(c, t, y, &s, th, cov, &chi2, st)
+                                               : fit_lines(c, t, y, &s, th, cov, &chi2, st);
+    if (!fail && (!fit_in_sweep(c, th) || !fit_significant(c, th, cov))) {
+        fail = 1;
+        *st = SVP_ERR_NUMERIC;
+    }
+    fit_put(c, p, y, s.mean, th, cov, chi2, fail);
+    return fail;
+}
+
+/* The finite samples a pixel needs to be fitted (the rule is documented in svpsf.h). */
+int svp_odmr_fit_min_finite(int n_freq, const svp_odmr_fit_options *options)
+{
+    svp_odmr_fit_options d;
+    if (!options) {
+        svp_odmr_fit_defaults(&d);
+        options = &d;
+    }
+    const int np = options->lines == SVP_ODMR_LINES_TWO ? 5 : 4;
+    int need = (n_freq + 1) / 2;
+    if (need < np + 1) need = np + 1;
+    if (need < 5) need = 5;
+    if (need < 2 * options->baseline_frames) need = 2 * options->baseline_frames;
+    return need;
+}
+
+/* A pixel with NaN/Inf samples (failed frames, masked values): fitted on its finite samples
+ * alone, exactly as a stack without the other frames would fit it, when at most half are
+ * missing and enough remain for the model and the baseline frames; else missing. */
+static int fit_pixel_finite(const fit_shared *c, fit_thread *t, double *y, size_t p, int n_ok,
+                            svp_status *st)
+{
+    const int nf = c->nf;
+    if (n_ok < svp_odmr_fit_min_finite(nf, c->options)) {
+        fit_put_missing(c->maps, p);
+        return 2;
+    }
+    double *ys = t->sub, *fs = ys + nf, *qs = fs + nf, *xs = qs + nf;
+    int k = 0;
+    for (int f = 0; f < nf; f++)
+        if (isfinite(y[f])) {
+            ys[k] = y[f];
+            fs[k++] = c->cube->freq[f];
+        }
+    const svp_cube sub = {.width = c->cube->width, .height = c->cube->height, .n_freq = n_ok,
+                          .freq = fs, .frame = NULL};
+    fit_shared cs;
+    fit_shared_fill(&sub, c->options, c->maps, c->D, c->gamma, c->G0, qs, xs, &cs);
+    fit_thread_init(&cs, t, ys);
+    const int fail = fit_spectrum(&cs, t, ys, p, st);
+    fit_thread_init(c, t, y); /* the next pixel's full set */
+    return fail;
+}
+
+/* Pixel p of spectrum y: its start, fit and maps. Returns 0 when it converged, 1 when its fit
+ * failed (*st the status; SVP_ERR_NUMERIC for a fit that converged to no dip the sweep shows —
+ * outside it, too narrow, without light, or not significant — which is counted like one that
+ * did not converge) and 2 for a missing pixel. */
+static int fit_pixel(const fit_shared *c, fit_thread *t, double *y, size_t p, svp_status *st)
+{
+    int n_ok = 0;
+    *st = SVP_OK;
+    for (int f = 0; f < c->nf; f++) n_ok += isfinite(y[f]) != 0;
+    if (n_ok < c->nf) return fit_pixel_finite(c, t, y, p, n_ok, st);
+    return fit_spectrum(c, t, y, p, st);
 }
 
 svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,

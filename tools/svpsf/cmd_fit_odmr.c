@@ -663,7 +663,7 @@ static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_
             char frame[160] = "";
             if (whole >= 0)
                 snprintf(frame, sizeof frame, " (frame %d of the stack, %.6g GHz, is NaN or Inf "
-                         "at every pixel: drop it from the stack and its frequency)",
+                         "at every pixel)",
                          job->decreasing ? job->nf - 1 - whole : whole, job->freq[whole] * 1e-9);
             return cli_error(run,
                              "%s: every one of the %zu pixels holds NaN or Inf in more than "
