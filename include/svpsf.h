@@ -1876,7 +1876,10 @@ SVP_API void svp_align_defaults(svp_align_options *options);
  * be NULL) the largest shift, the measured shifts' deviation from the polynomial and the
  * weakest registration. A frame whose correlation with the mean frame is below
  * SVP_ALIGN_MIN_CORRELATION is counted in info->n_low_correlation: the caller decides (svpsf
- * fit-odmr --register refuses it).
+ * fit-odmr --register refuses it). A frame with no finite pixel (a failed frame) is missing: it
+ * has no say in the drift polynomial or info, stays NaN, and its shift is the polynomial's at
+ * its place in the sweep (NaN with degree −1, where it cannot be the reference frame:
+ * SVP_ERR_INVALID).
  * The frames go to the threads (one-thread FFT plans each: bit-identical for any thread
  * count); progress from the calling thread; options NULL =
  * svp_align_defaults; a cube needs >= 2 frames (> degree + 1 with degree >= 0) of >= 8 x 8
@@ -1893,7 +1896,8 @@ SVP_API svp_status svp_cube_align(svp_cube *cube, const svp_align_options *optio
  * built for the frames plus `margin` pixels per side (zero boundary); each frame is
  * estimated on that grid with the margin missing (NaN: the data term over the frame only, so
  * light from outside the view is explained by the margin, as svp_correct_options.margin does),
- * and the frame's own missing pixels stay NaN. RL needs data >= 0: a finite value below 0
+ * and the frame's own missing pixels stay NaN (a frame with no finite pixel, a failed frame,
+ * is left as it is). RL needs data >= 0: a finite value below 0
  * (noise about a zero level, a subtracted background) is taken as 0, and *n_negative (may be
  * NULL) counts them over the cube. With two or more threads and an operator svp_blur_clone can copy
  * (invariant, or a map's tent, low-rank or region operator in double precision) the frames go

@@ -966,6 +966,27 @@ static void test_cube_align(void **state)
     assert_true(worst < 2e-3);
     for (size_t i = 0; i < (size_t)w * h; i++) ASSERT_CLOSE(drifted->frame[0]->data[i], frame0->data[i], 1e-9);
     svp_image_free(frame0);
+    /* a missing frame (NaN at every pixel, a failed frame): it has no say in the drift, stays
+     * NaN, and gets the polynomial's shift at its place in the sweep; the other frames' shifts
+     * as good as without it. With degree -1 it has no shift of its own: as the reference it is
+     * refused */
+    drift_sweep(&sc, &od, freq, 0, dx, dy, still, drifted);
+    for (size_t i = 0; i < (size_t)w * h; i++) drifted->frame[17]->data[i] = NAN;
+    svp_align_info info;
+    svp_align_defaults(&ao);
+    ASSERT_OK(svp_cube_align(drifted, &ao, sx, sy, &info, NULL, NULL));
+    worst = 0;
+    for (int f = 0; f < nf; f++) worst = fmax(worst, hypot(sx[f] - dx[f], sy[f] - dy[f]));
+    print_message("a missing frame: shifts within %.1e px (frame 17 %.4f, %.4f px on the "
+                  "polynomial; true %.4f, %.4f), lowest correlation %.4f\n",
+                  worst, sx[17], sy[17], dx[17], dy[17], info.min_correlation);
+    assert_true(worst < 2e-3 && info.n_low_correlation == 0 && info.min_correlation > 0.99);
+    assert_int_equal(svp_image_count_nonfinite(drifted->frame[17]), (size_t)w * h);
+    ao.degree = -1;
+    ao.reference_frame = 17;
+    assert_int_equal(svp_cube_align(drifted, &ao, NULL, NULL, NULL, NULL, NULL), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "reference frame 17 has no finite pixel"));
+    svp_align_defaults(&ao);
     /* only translations; too few frames for the degree; a degree or reference out of range */
     svp_register_options o;
     svp_register_defaults(&o);

@@ -912,6 +912,7 @@ static int poly_fit(int n, const double *t, const double *v, const double *wt, i
     const int k = deg + 1;
     double A[6][7] = {{0}};
     for (int i = 0; i < n; i++) {
+        if (wt[i] == 0) continue; /* an outlier's or a missing frame's (v may be NaN) */
         double p[6];
         p[0] = 1;
         for (int j = 1; j < k; j++) p[j] = p[j - 1] * t[i];
@@ -964,7 +965,7 @@ static svp_status smooth_drift(int n, int deg, const double *mx, const double *m
     double *wt = t + n, *res = t + 2 * n, *sorted = t + 3 * n, cx[6], cy[6];
     for (int i = 0; i < n; i++) {
         t[i] = n > 1 ? 2.0 * i / (n - 1) - 1 : 0;
-        wt[i] = 1;
+        wt[i] = isfinite(mx[i]) && isfinite(my[i]); /* a missing frame has no say */
     }
     svp_status st = SVP_OK;
     for (int it = 0; it < 30; it++) {
@@ -975,12 +976,13 @@ static svp_status smooth_drift(int n, int deg, const double *mx, const double *m
                           deg);
             break;
         }
+        int m = 0; /* the measured frames' residuals */
         for (int i = 0; i < n; i++) {
             res[i] = hypot(mx[i] - poly_eval(cx, deg, t[i]), my[i] - poly_eval(cy, deg, t[i]));
-            sorted[i] = res[i];
+            if (isfinite(res[i])) sorted[m++] = res[i];
         }
-        qsort(sorted, (size_t)n, sizeof(double), cmp_double);
-        const double med = n % 2 ? sorted[n / 2] : 0.5 * (sorted[n / 2 - 1] + sorted[n / 2]);
+        qsort(sorted, (size_t)m, sizeof(double), cmp_double);
+        const double med = m % 2 ? sorted[m / 2] : 0.5 * (sorted[m / 2 - 1] + sorted[m / 2]);
         *median = med;
         const double cut = 4.685 * fmax(1.4826 * med, 1e-4);
         double change = 0;
@@ -1018,6 +1020,11 @@ static svp_status align_frame(void *ctx, int worker, int f)
 {
     const align_job *j = ctx;
     (void)worker;
+    if (svp_image_count_nonfinite(j->cube->frame[f]) ==
+        (size_t)j->cube->width * j->cube->height) { /* a missing frame: no shift to measure */
+        if (!j->moving) j->mx[f] = j->my[f] = j->corr[f] = j->sig[f] = NAN;
+        return SVP_OK;
+    }
     if (j->moving) return svp_shift(j->cube->frame[f], -j->ax[f], -j->ay[f], j->cube->frame[f]);
     svp_register_options o = *j->o;
     char name[48];
@@ -1107,6 +1114,7 @@ svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options, doub
                      .progress_user = progress_user, .base = 0, .span = 0.5};
     st = align_frames(&job);
     for (int f = 0; f < nf && st == SVP_OK && info; f++) {
+        if (isnan(corr[f])) continue; /* a missing frame */
         if (!(corr[f] >= info->min_correlation)) {
             info->min_correlation = corr[f];
             info->worst_frame = f;
@@ -1121,6 +1129,12 @@ svp_status svp_cube_align(svp_cube *cube, const svp_align_options *options, doub
         memcpy(ay, my, (size_t)nf * sizeof(double));
     }
     if (info) info->median_deviation = median;
+    if (st == SVP_OK && ao.reference_frame >= 0 && !isfinite(ax[ao.reference_frame]))
+        st = svp_fail(SVP_ERR_INVALID,
+                      "align: reference frame %d has no finite pixel, so no position of its "
+                      "own (with drift degree -1); choose another frame or a degree >= 0",
+                      ao.reference_frame);
+    if (st != SVP_OK) goto done;
     if (ao.reference_frame >= 0) { /* to frame k's position: every shift relative to its */
         const double kx = ax[ao.reference_frame], ky = ay[ao.reference_frame];
         for (int f = 0; f < nf; f++) {

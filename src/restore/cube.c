@@ -25,6 +25,8 @@ static svp_status deconvolve_frame(void *ctx, int worker, int f)
     svp_image *frame = j->cube->frame[f], *grid = j->grid[worker], *out = j->out[worker];
     const int w = frame->width, h = frame->height, m = j->margin, gw = grid->width;
     const size_t n = (size_t)gw * grid->height;
+    j->negative[f] = 0;
+    if (svp_image_count_nonfinite(frame) == (size_t)w * h) return SVP_OK; /* missing: stays */
     for (size_t i = 0; i < n; i++) grid->data[i] = NAN;
     /* RL needs data >= 0: a value below 0 (noise about a zero level, a subtracted
      * background) is taken as 0, and counted */

@@ -87,6 +87,16 @@ run 0 fit-odmr dropframe.npy --frequencies f_drop.txt -o fit_drop --format npy
 for m in field field_sigma pl contrast linewidth quality; do
     cmp -s fit_nan/$m.npy fit_drop/$m.npy || fail "a NaN frame: $m differs from the fit without that frame"
 done
+# ... also through --psf (the frame stays NaN, the others deconvolved as without it: the same
+# bits) and --register (it has no say in the drift and gets the polynomial's shift)
+printf 'pixel_um: 0.1\npsf: {model: gaussian, fwhm_um: 0.2}\n' >g02.yaml
+run 0 fit-odmr nanframe.npy --frequencies 2750:2990:100 --frequency-unit MHz --psf g02.yaml \
+    -o fit_nan_psf --format npy
+run 0 fit-odmr dropframe.npy --frequencies f_drop.txt --psf g02.yaml -o fit_drop_psf --format npy
+cmp -s fit_nan_psf/field.npy fit_drop_psf/field.npy || fail "a NaN frame with --psf: field differs"
+run 0 fit-odmr nanframe.npy --frequencies 2750:2990:100 --frequency-unit MHz --register \
+    -o fit_nan_reg --format npy
+[ "$(wc -l <fit_nan_reg/drift.csv)" -eq 101 ] || fail "a NaN frame with --register: drift.csv rows"
 # more than half the frames missing at every pixel: no pixel can be fitted, said so, naming a
 # frame of NaN and its frequency; exit 1, nothing written
 "$make" nanframe stack.tif nanhalf.npy 0 51 || fail "cannot write nanhalf.npy"
