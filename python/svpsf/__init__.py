@@ -668,7 +668,7 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
             acceleration=None, margin=None, gain=None, offset=None, field_sigma=None,
             keep_doubtful=False, plausible_factor=None, boundary=None, nodes=None, rank=None,
             field_names=None, operator_tol=1e-2, regions=False, side_by_side=True,
-            tail_tol=None):
+            tail_tol=None, pl_name=None):
     """The inverse transform T⁻¹ (eq. 4 of docs/model.md) on measured maps; `svpsf correct`
     with the same option names (docs/cli.md): method 'r' | 'rw' | 'w' | 'rl-signed';
     iterations N or 'auto'; balance λ or 'auto'; noise σ (with balance 'auto'); precision
@@ -681,7 +681,9 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
     operator error budget (default 1e-2, as `svpsf correct`); regions=True one kernel per region
     of a map of kind regions (`--regions`); side_by_side=False keeps the deconvolutions in
     order, one operator's memory (`--side-by-side off`); tail_tol the error budget of the PSF's
-    far tail on a coarse grid (`--tail-tol`, 0 = never). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
+    far tail on a coarse grid (`--tail-tol`, 0 = never); pl_name and field_names: what the
+    library's messages call the maps (e.g. their files, as the program does; default pl_apparent,
+    field_apparent[k]). None = the library's default (svp_correct_defaults: the program's defaults). psf as for
     forward(). Returns (pl, fields, validity, n_missing, summary, reports): the recovered maps
     (fields shaped as given), what T⁻¹ did (svp_correct_summary as a dict) and one report per
     deconvolution ([0] the PL's, [1 + c] field c's numerator). Raises DoubtfulError (the
@@ -757,6 +759,10 @@ def correct(pl, fields, psf, method=None, iterations=None, balance=None, noise=N
         name_array = ffi.new("char *[]", names)
         imgs._keep += [names, name_array]
         opt.field_names = name_array
+    if pl_name is not None:
+        pl_name_c = ffi.new("char[]", os.fsencode(pl_name))
+        imgs._keep.append(pl_name_c)
+        opt.pl_name = pl_name_c
     summary = ffi.new("svp_correct_summary *")
     reports = ffi.new("svp_deconv_report[]", len(fl) + 1)
     opt.summary = summary

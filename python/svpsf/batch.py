@@ -174,7 +174,8 @@ def correct_dataset(folder, out_root, psf=None, options=None, threads=1, fft="es
                                                  pl.shape[1], pl.shape[0]))
         _check_mat_pixels([pl_files[0]] + field_files, psf_path)
         opts = _program_defaults(dict(options or {}), psf_path, pl.shape)
-        res = svpsf.correct(pl, fields, psf_path, field_names=field_files, **opts)
+        res = svpsf.correct(pl, fields, psf_path, field_names=field_files, pl_name=pl_files[0],
+                            **opts)
         final = os.path.join(out_root, name)
         if os.path.exists(final) and not overwrite:
             raise FileExistsError("%s exists (use --force to replace it)" % final)

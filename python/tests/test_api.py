@@ -703,6 +703,21 @@ def test_fit_odmr_errors(cli, tmp_path):
         svpsf.fit_odmr(stack[0], freq)
 
 
+def test_correct_names_the_maps_as_asked(cli, tmp_path, maps):
+    # pl_name / field_names: the library's messages name the maps as the program names files
+    pl, field = maps
+    bad = pl.copy()
+    bad[3, 4] = -1.0
+    with pytest.raises(svpsf.Error) as e:
+        svpsf.correct(bad, field, svpsf.PSF("gaussian", fwhm=2), pl_name="pl_run7.npy")
+    p = cli("correct", "--pl", write(tmp_path, "pl_run7.npy", bad), "--field",
+            write(tmp_path, "B.npy", field), "--psf", write(tmp_path, "g.yaml", "pixel_um: 0.1\n"
+            "psf: {model: gaussian, fwhm_um: 0.2}\n"), "-o", tmp_path / "o", ok=False)
+    assert p.returncode == 1
+    assert e.value.message.startswith("pl_run7.npy is negative (-1) at pixel (4, 3)")
+    assert "is negative (-1) at pixel (4, 3)" in p.stderr
+
+
 def test_fit_odmr_missing_frames(cli, tmp_path):
     # a frame of NaN: every pixel fitted on the other frames, to the bit as the stack without
     # that frame, and as the program fits it

@@ -161,6 +161,16 @@ def test_two_field_files_of_one_name_fail_the_dataset(tmp_path):
     assert not (tmp_path / "out" / "d0").exists()
 
 
+def test_library_errors_name_the_dataset_files(tmp_path):
+    # a PL without light: the row names the PL file, as `svpsf correct` does (it said
+    # "pl_apparent holds no light", which names no file of the batch)
+    root = make_datasets(tmp_path / "data", n=3)
+    np.save(root / "d0" / "pl.npy", np.zeros_like(np.load(root / "d0" / "pl.npy")))
+    rows = batch.run([root / "d0"], tmp_path / "out", psf=root / "psf.yaml", options=OPTIONS)
+    assert rows[0]["status"] == "failed", rows[0]
+    assert str(root / "d0" / "pl.npy") + " holds no light" in rows[0]["message"], rows[0]
+
+
 def test_mat_datasets(tmp_path):
     # MATLAB files are datasets too: the same numbers as the .npy files, and a file whose
     # `step` says other pixels than the PSF file fails the dataset, naming both
