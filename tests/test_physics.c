@@ -1572,31 +1572,42 @@ static void test_fit_maps_missing(void **state)
     }
     cube->frame[nf - 1]->data[5] = NAN; /* 31 missing */
     assert_int_equal(svp_odmr_fit_min_finite(nf, NULL), 30);
-    svp_odmr_fit_options opt;
-    svp_odmr_fit_defaults(&opt);
-    fit_maps_set m, mk;
-    svp_odmr_maps maps = maps_of(&m, w, 1, 0), maps_k = maps_of(&mk, w, 1, 0);
-    size_t n_failed = 0, n_failed_k = 0;
-    ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps, &n_failed));
-    ASSERT_OK(svp_odmr_fit_maps(&od, kept, &opt, &maps_k, &n_failed_k));
-    svp_image *a[] = {m.field, m.field_sigma, m.b, m.b_sigma, m.c, m.c_sigma, m.g, m.g_sigma,
-                      m.quality, m.conv};
-    svp_image *b[] = {mk.field, mk.field_sigma, mk.b, mk.b_sigma, mk.c, mk.c_sigma, mk.g,
-                      mk.g_sigma, mk.quality, mk.conv};
-    for (int p = 0; p < 5; p++) {
-        for (size_t k = 0; k < sizeof a / sizeof a[0]; k++)
-            if (memcmp(&a[k]->data[p], &b[k]->data[p], sizeof(double)) != 0)
-                fail_msg("pixel %d, map %zu: %.17g with NaN frames, %.17g without them", p, k,
-                         a[k]->data[p], b[k]->data[p]);
-        assert_true(m.conv->data[p] == 1 && fabs(m.field->data[p] - 1e-3 - 1e-4 * p) < 20e-6);
+    svp_odmr_fit_options few;
+    svp_odmr_fit_defaults(&few);
+    few.lines = SVP_ODMR_LINES_TWO;
+    assert_int_equal(svp_odmr_fit_min_finite(9, &few), 6);  /* the 5 parameters + 1 */
+    few.baseline_frames = 4;
+    assert_int_equal(svp_odmr_fit_min_finite(9, &few), 8);  /* twice the baseline frames */
+    for (int two = 0; two < 2; two++) { /* the pair model, and two free lines (5 parameters) */
+        svp_odmr_fit_options opt;
+        svp_odmr_fit_defaults(&opt);
+        if (two) opt.lines = SVP_ODMR_LINES_TWO;
+        fit_maps_set m, mk;
+        svp_odmr_maps maps = maps_of(&m, w, 1, two), maps_k = maps_of(&mk, w, 1, two);
+        size_t n_failed = 0, n_failed_k = 0;
+        ASSERT_OK(svp_odmr_fit_maps(&od, cube, &opt, &maps, &n_failed));
+        ASSERT_OK(svp_odmr_fit_maps(&od, kept, &opt, &maps_k, &n_failed_k));
+        svp_image *a[] = {m.field, m.field_sigma, m.b, m.b_sigma, m.c,  m.c_sigma,
+                          m.g,     m.g_sigma,     m.quality, m.conv, m.lo, m.hi};
+        svp_image *b[] = {mk.field, mk.field_sigma, mk.b, mk.b_sigma, mk.c,  mk.c_sigma,
+                          mk.g,     mk.g_sigma,     mk.quality, mk.conv, mk.lo, mk.hi};
+        const size_t n_maps = two ? 12 : 10;
+        for (int p = 0; p < 5; p++) {
+            for (size_t k = 0; k < n_maps; k++)
+                if (memcmp(&a[k]->data[p], &b[k]->data[p], sizeof(double)) != 0)
+                    fail_msg("%s, pixel %d, map %zu: %.17g with NaN frames, %.17g without them",
+                             two ? "two lines" : "pair", p, k, a[k]->data[p], b[k]->data[p]);
+            assert_true(m.conv->data[p] == 1 &&
+                        fabs(m.field->data[p] - 1e-3 - 1e-4 * p) < 20e-6);
+        }
+        print_message("%s: 2 of 60 frames missing: pixels 0-4 fitted, the same bits as without "
+                      "those frames (field of pixel 0 %.6g T); 31 missing: NaN\n",
+                      two ? "two lines" : "pair", m.field->data[0]);
+        assert_true(isnan(m.field->data[5]) && isnan(m.b->data[5]) && m.conv->data[5] == 0);
+        assert_int_equal(n_failed, n_failed_k + 1);
+        maps_free(&m);
+        maps_free(&mk);
     }
-    print_message("2 of 60 frames missing: pixels 0-4 fitted, the same bits as without those "
-                  "frames (field of pixel 0 %.6g T); 31 missing: NaN\n",
-                  m.field->data[0]);
-    assert_true(isnan(m.field->data[5]) && isnan(m.b->data[5]) && m.conv->data[5] == 0);
-    assert_int_equal(n_failed, n_failed_k + 1);
-    maps_free(&m);
-    maps_free(&mk);
     svp_cube_free(cube);
     svp_cube_free(kept);
 }
