@@ -2008,7 +2008,8 @@ typedef struct svp_odmr_maps {
  * samples) is fitted on its finite samples alone — the same bits as the stack without those
  * frames would give it — when it keeps at least svp_odmr_fit_min_finite of them; else it is
  * missing: NaN in every map but converged (0). *n_failed (may be NULL): pixels whose fit did
- * not converge or was missing. */
+ * not converge or was missing. Every pixel missing is SVP_ERR_INVALID (nothing to fit; the
+ * message names a frame with no finite value by its frequency). */
 SVP_API svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                                      const svp_odmr_fit_options *options,
                                      const svp_odmr_maps *maps, size_t *n_failed);

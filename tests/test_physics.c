@@ -1608,6 +1608,17 @@ static void test_fit_maps_missing(void **state)
         maps_free(&m);
         maps_free(&mk);
     }
+    /* every pixel missing (31 of 60 frames NaN everywhere): nothing to fit, refused naming
+     * a frame that holds no value (it returned maps of NaN, n_failed = every pixel) */
+    for (int f = 0; f < 31; f++)
+        for (int p = 0; p < w; p++) cube->frame[f]->data[p] = NAN;
+    fit_maps_set mn;
+    svp_odmr_maps maps_n = maps_of(&mn, w, 1, 0);
+    assert_int_equal(svp_odmr_fit_maps(&od, cube, NULL, &maps_n, NULL), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "every one of the 6 pixels holds NaN or Inf in more "
+                                             "than 30 of its 60 frames"));
+    assert_non_null(strstr(svp_last_error(), "(the frame at 2.81 GHz is NaN or Inf at every"));
+    maps_free(&mn);
     svp_cube_free(cube);
     svp_cube_free(kept);
 }

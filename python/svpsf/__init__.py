@@ -1295,18 +1295,7 @@ def fit_odmr(stack, frequencies, lines="pair", line=None, zero_field_hz=2.870e9,
             if name in result:
                 result[name][bad] = np.nan
     result.n_failed = int(n_failed[0])
-    if nf and result.n_failed == w * h:  # maps of NaN only: `svpsf fit-odmr` exits 1 or 3
-        need = lib.svp_odmr_fit_min_finite(nf, opt)
-        n_ok = sum(np.isfinite(f).astype(np.int64) for f in frames)
-        if (n_ok < need).all():  # missing data, not "no dip"
-            whole = next((k for k in range(nf) if not np.isfinite(frames[k]).any()), -1)
-            raise Error(lib.SVP_ERR_INVALID,
-                        "stack: every one of the %d pixels holds NaN or Inf in more than %d of "
-                        "its %d frames (missing data: a pixel needs %d finite samples to be "
-                        "fitted)%s" % (w * h, nf - need, nf, need, "" if whole < 0 else
-                                       " (frame %d of the stack, %.6g GHz, is NaN or Inf at "
-                                       "every pixel)" % (nf - 1 - whole if decreasing else whole,
-                                                         fr[whole] * 1e-9)))
+    if nf and result.n_failed == w * h:  # maps of NaN only: `svpsf fit-odmr` exits 3
         raise DoubtfulError(lib.SVP_ERR_DOUBTFUL,
                             "none of the %d pixel fits found a dip in the sweep (%.6g to %.6g "
                             "GHz): no light, no dip above the noise, lines outside the sweep, "

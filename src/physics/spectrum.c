@@ -1124,7 +1124,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     }
     fit_shared c;
     fit_shared_fill(cube, options, maps, D, odmr->gamma_hz_per_t, G0, q, xs, &c);
-    size_t failed = 0;
+    size_t failed = 0, missing = 0;
     int alloc_failed = 0, cancelled = 0;
     svp_status first_error = SVP_OK;
     /* Pixels go to the threads in chunks (dynamic: fits differ in cost), with no barrier
@@ -1136,7 +1136,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     const size_t chunk = per_thread < 1 ? 1 : per_thread > 64 ? 64 : per_thread;
     const size_t n_chunks = (n + chunk - 1) / chunk, step = n / 100 > 0 ? n / 100 : 1;
     size_t done = 0;
-#pragma omp parallel reduction(+ : failed)
+#pragma omp parallel reduction(+ : failed, missing)
     {
         size_t next_report = step; /* thread 0's */
         fit_thread t = {0};
@@ -1164,6 +1164,7 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
                 svp_status st;
                 const int fail = fit_pixel(&c, &t, spectra + (p - p0) * (size_t)nf, p, &st);
                 if (fail) failed++;
+                if (fail == 2) missing++;
                 if (fail == 1 && st != SVP_ERR_NUMERIC) {
 #pragma omp critical(svp_odmr_fit_error)
                     if (first_error == SVP_OK) first_error = st;
@@ -1197,6 +1198,21 @@ svp_status svp_odmr_fit_maps(const svp_odmr *odmr, const svp_cube *cube,
     if (first_error != SVP_OK)
         return svp_fail(first_error, "Lorentzian fit: a pixel fit failed (%s)",
                         svp_status_string(first_error));
+    if (missing == n) { /* nothing to fit (as svp_inverse_transform: nothing to restore) */
+        const int need = svp_odmr_fit_min_finite(nf, options);
+        int whole = -1;
+        for (int f = 0; f < nf && whole < 0; f++)
+            if (svp_image_count_nonfinite(cube->frame[f]) == n) whole = f;
+        char frame[96] = "";
+        if (whole >= 0)
+            snprintf(frame, sizeof frame, " (the frame at %.6g GHz is NaN or Inf at every pixel)",
+                     cube->freq[whole] * 1e-9);
+        return svp_fail(SVP_ERR_INVALID,
+                        "ODMR fit: every one of the %zu pixels holds NaN or Inf in more than %d "
+                        "of its %d frames (missing data: a pixel needs %d finite samples to be "
+                        "fitted)%s",
+                        n, nf - need, nf, need, frame);
+    }
     if (n_failed) *n_failed = failed;
     return SVP_OK;
 }

@@ -101,8 +101,8 @@ run 0 fit-odmr nanframe.npy --frequencies 2750:2990:100 --frequency-unit MHz --r
 # frame of NaN and its frequency; exit 1, nothing written
 "$make" nanframe stack.tif nanhalf.npy 0 51 || fail "cannot write nanhalf.npy"
 run 1 fit-odmr nanhalf.npy --frequencies 2750:2990:100 --frequency-unit MHz -o fit_half --format npy
-expect_in err "nanhalf.npy: every one of the 1920 pixels holds NaN or Inf in more than 50 of its 100 frames"
-expect_in err "frame 0 of the stack, 2.75 GHz, is NaN or Inf at every pixel"
+expect_in err "nanhalf.npy: ODMR fit: every one of the 1920 pixels holds NaN or Inf in more than 50 of its 100 frames"
+expect_in err "(the frame at 2.75 GHz is NaN or Inf at every pixel)"
 [ -e fit_half ] && fail "fit_half was written"
 run 1 fit-odmr stack.tif --frequencies 2750:2990:100 -o fit_unit --format npy
 expect_in err "below 1 MHz where no NV line lies: give their unit with --frequency-unit"

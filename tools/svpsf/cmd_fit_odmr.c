@@ -647,30 +647,6 @@ static int fit_odmr_fit(cli_run *run, const struct fit_odmr_args *a, struct fit_
     if (st != SVP_OK) return cli_fail(run, st, a->stack_path);
     const size_t n = (size_t)job->w * job->h;
     if (job->n_failed == n) { /* maps of NaN only: nothing to vouch for */
-        /* missing data (too few finite samples to fit) is not "no dip": name it, and a frame
-         * that holds nothing else */
-        const int need = svp_odmr_fit_min_finite(job->nf, &opt);
-        size_t n_missing = 0;
-        for (size_t p = 0; p < n; p++) {
-            int n_ok = 0;
-            for (int f = 0; f < job->nf; f++) n_ok += isfinite(job->frames[f]->data[p]) != 0;
-            n_missing += n_ok < need;
-        }
-        if (n_missing == n) {
-            int whole = -1;
-            for (int f = 0; f < job->nf && whole < 0; f++)
-                if (svp_image_count_nonfinite(job->frames[f]) == n) whole = f;
-            char frame[160] = "";
-            if (whole >= 0)
-                snprintf(frame, sizeof frame, " (frame %d of the stack, %.6g GHz, is NaN or Inf "
-                         "at every pixel)",
-                         job->decreasing ? job->nf - 1 - whole : whole, job->freq[whole] * 1e-9);
-            return cli_error(run,
-                             "%s: every one of the %zu pixels holds NaN or Inf in more than "
-                             "%d of its %d frames (missing data: a pixel needs %d finite "
-                             "samples to be fitted)%s; nothing written",
-                             a->stack_path, n, job->nf - need, job->nf, need, frame);
-        }
         cli_error(run,
                   "%s: none of the %zu pixel fits found a dip in the sweep (%.6g to %.6g GHz): "
                   "no light, no dip above the noise, lines outside the sweep, or frequencies in "
