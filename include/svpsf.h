@@ -1580,7 +1580,8 @@ typedef struct svp_scene_result svp_scene_result;
 /* Runs the plan. out_dir is created when missing (write = 1). Every output is written
  * atomically; summary.json records the plan, each stage's time, the settings and the metrics;
  * report.md lists them with the figures. The result (may be NULL when not wanted) gives the
- * timings, the maps and the metric values. */
+ * timings, the maps and the metric values. A run that fails or is cancelled after writing some
+ * outputs removes those it created (all or none; files it overwrote stay). */
 SVP_API svp_status svp_scene_run(const svp_scene *scene, const char *out_dir,
                                  const svp_scene_options *options, svp_scene_result **result);
 SVP_API void svp_scene_result_free(svp_scene_result *result);

@@ -915,6 +915,71 @@ static void test_outputs_written(void **state)
     svp_scene_free(s);
 }
 
+/* cancels the run as its last stage begins, counting the outputs already written then */
+typedef struct {
+    const svp_scene *s;
+    const char *dir;
+    int written_before_cancel;
+} cancel_late;
+
+static int cancel_at_last_stage(void *user, int index, int n_stages, const svp_scene_stage *stage)
+{
+    (void)stage;
+    cancel_late *c = user;
+    if (index < n_stages - 1) return 0;
+    for (int i = 0; i < svp_scene_n_outputs(c->s); i++) {
+        char path[512];
+        struct stat st;
+        snprintf(path, sizeof path, "%s/%s", c->dir, svp_scene_output(c->s, i));
+        c->written_before_cancel += stat(path, &st) == 0;
+    }
+    return 1;
+}
+
+/* a run that fails after writing some outputs removes them (all or none); a file that was there
+ * before the run stays */
+static void test_failed_run_leaves_nothing(void **state)
+{
+    (void)state;
+    char dir[] = "/tmp/svpsf_scene_XXXXXX";
+    assert_non_null(mkdtemp(dir));
+    svp_scene *s = load("late.yaml", FLAKE_SCENE_HEAD "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                                                      "correct: {method: w, balance: 0.01}\n");
+    const svp_scene_stage *stages = NULL;
+    int n_stages = svp_scene_plan(s, &stages);
+    assert_string_equal(stages[n_stages - 1].name, "write"); /* after the figures */
+    char keep[600];
+    snprintf(keep, sizeof keep, "%s/mine.txt", dir);
+    FILE *f = fopen(keep, "w");
+    assert_non_null(f);
+    fputs("the user's file\n", f);
+    fclose(f);
+    cancel_late c = {s, dir, 0};
+    svp_scene_options o;
+    svp_scene_defaults(&o);
+    o.on_stage = cancel_at_last_stage;
+    o.stage_user = &c;
+    assert_int_equal(svp_scene_run(s, dir, &o, NULL), SVP_ERR_CANCELLED);
+    assert_true(c.written_before_cancel > 3); /* the figures were written */
+    for (int i = 0; i < svp_scene_n_outputs(s); i++) {
+        char path[512];
+        struct stat st;
+        snprintf(path, sizeof path, "%s/%s", dir, svp_scene_output(s, i));
+        if (stat(path, &st) == 0) fail_msg("%s was left behind by a failed run", path);
+    }
+    struct stat st;
+    assert_int_equal(stat(keep, &st), 0);
+    unlink(keep);
+    const char *sub[] = {"maps", "figures", "tables"};
+    for (int i = 0; i < 3; i++) {
+        char path[512];
+        snprintf(path, sizeof path, "%s/%s", dir, sub[i]);
+        rmdir(path);
+    }
+    assert_int_equal(rmdir(dir), 0); /* empty: nothing else was left */
+    svp_scene_free(s);
+}
+
 int main(void)
 {
     svp_set_fft_effort(SVP_FFT_ESTIMATE);
@@ -935,6 +1000,7 @@ int main(void)
         cmocka_unit_test(test_cube_correction),
         cmocka_unit_test(test_figure_diverging),
         cmocka_unit_test(test_outputs_written),
+        cmocka_unit_test(test_failed_run_leaves_nothing),
     };
     int rc = cmocka_run_group_tests_name("scene", tests, NULL, NULL);
     svp_figure_cleanup();

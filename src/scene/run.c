@@ -14,6 +14,7 @@
 #include <string.h>
 #include <sys/stat.h>
 #include <time.h>
+#include <unistd.h>
 
 #define GAMMA_NV_HZ_PER_T 28.033e9
 /* Shot-noise-limited CW-ODMR field noise of a Lorentzian dip at its steepest slope:
@@ -1127,7 +1128,10 @@ static svp_status make_dirs(const char *path)
     return make_dir(buf);
 }
 
-static svp_status check_outputs(const svp_scene *s, const char *out_dir, int overwrite)
+/* `absent[i]` (when not NULL) is set to whether output i did not exist: what a failed run removes
+ * again (remove_new_outputs). */
+static svp_status check_outputs(const svp_scene *s, const char *out_dir, int overwrite,
+                                unsigned char *absent)
 {
     int existing = 0;
     char first[4096] = "";
@@ -1135,7 +1139,9 @@ static svp_status check_outputs(const svp_scene *s, const char *out_dir, int ove
         char path[4096];
         snprintf(path, sizeof path, "%s/%s", out_dir, s->outputs[i]);
         struct stat stt;
-        if (stat(path, &stt) != 0) continue;
+        int exists = stat(path, &stt) == 0;
+        if (absent) absent[i] = !exists;
+        if (!exists) continue;
         if (S_ISDIR(stt.st_mode))
             return svp_fail(SVP_ERR_EXISTS, "%s exists and is a folder", path);
         if (!overwrite && existing++ == 0) snprintf(first, sizeof first, "%s", path);
@@ -1145,6 +1151,19 @@ static svp_status check_outputs(const svp_scene *s, const char *out_dir, int ove
                         "%s exists (use --force to overwrite)%s; nothing was written", first,
                         existing > 1 ? " and other outputs too" : "");
     return SVP_OK;
+}
+
+/* A run that fails after writing some outputs (a map a float32 TIFF cannot hold, a full disk)
+ * removes those it created, so the folder holds all of a run's outputs or none (files that
+ * existed before, overwritten, stay). */
+static void remove_new_outputs(const svp_scene *s, const char *out_dir, const unsigned char *absent)
+{
+    for (int i = 0; i < s->n_outputs; i++) {
+        if (!absent[i]) continue;
+        char path[4096];
+        snprintf(path, sizeof path, "%s/%s", out_dir, s->outputs[i]);
+        unlink(path);
+    }
 }
 
 static svp_status write_maps(run_ctx *c)
@@ -1386,19 +1405,29 @@ svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scen
     snprintf(what, sizeof what, "the scene's run (%d x %d canvas, %d correction%s)", s->canvas_w,
              s->canvas_h, s->n_correct, s->n_correct == 1 ? "" : "s");
     SVP_CHECK(svp_io_check_memory(s->path, what, scene_memory_estimate(s)));
+    unsigned char *absent = NULL;
     if (o->write) {
-        SVP_CHECK(check_outputs(s, out_dir, o->overwrite));
-        SVP_CHECK(make_dirs(out_dir));
+        absent = calloc((size_t)s->n_outputs + 1, 1);
+        if (!absent) return svp_fail(SVP_ERR_NOMEM, "out of memory");
+        svp_status cs = check_outputs(s, out_dir, o->overwrite, absent);
+        if (cs == SVP_OK) cs = make_dirs(out_dir);
         const char *sub[] = {"maps", "figures", "tables"};
-        for (int i = 0; i < 3; i++) {
+        for (int i = 0; i < 3 && cs == SVP_OK; i++) {
             char p[4096];
             snprintf(p, sizeof p, "%s/%s", out_dir, sub[i]);
             if ((i == 0 && !s->write_maps) || (i == 1 && !s->write_figures)) continue;
-            SVP_CHECK(make_dir(p));
+            cs = make_dir(p);
+        }
+        if (cs != SVP_OK) {
+            free(absent);
+            return cs;
         }
     }
     svp_scene_result *r = calloc(1, sizeof *r);
-    if (!r) return svp_fail(SVP_ERR_NOMEM, "out of memory");
+    if (!r) {
+        free(absent);
+        return svp_fail(SVP_ERR_NOMEM, "out of memory");
+    }
     r->n_stages = s->n_stages;
     r->seconds = calloc((size_t)s->n_stages, sizeof *r->seconds);
     run_ctx c;
@@ -1426,7 +1455,7 @@ svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scen
                 svp_fail(SVP_ERR_CANCELLED, "scene run cancelled before stage %s", s->plan[i].name);
             break;
         }
-        SVP_CHECK(progress(&c, 0));
+        if ((st = progress(&c, 0)) != SVP_OK) break;
         double t0 = now_s();
         st = run_stage(&c, i);
         r->seconds[i] += now_s() - t0;
@@ -1477,6 +1506,8 @@ svp_status svp_scene_run(const svp_scene *s, const char *out_dir, const svp_scen
     svp_blur_free(c.blur);
     svp_blur_free(c.blur_view);
     if (c.have_analysis) scene_analysis_free(&c.analysis);
+    if (st != SVP_OK && absent) remove_new_outputs(s, out_dir, absent);
+    free(absent);
     if (st != SVP_OK || !result) {
         svp_scene_result_free(r);
         return st;

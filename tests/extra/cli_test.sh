@@ -439,6 +439,18 @@ else
 fi
 expect_ok output_force forward --field Bz.txt --pl pl.txt --psf moffat.yaml -o exists --format txt --force $FAST
 [ "$(cat exists/validity.txt)" != "old validity" ] && pass "--force overwrites" || fail "--force" "not overwritten"
+# a run that fails after writing some of its outputs removes them (all or none): a field of
+# 1e300 fits a float64 PL output but not the float32 TIFF of field.tif, written after pl.tif
+awk '{ for (i = 1; i <= NF; i++) $i = $i * 1e300; print }' Bz.txt >Bz_huge.txt
+mkdir -p partial
+echo "old pl" >partial/old.txt
+expect_bad fail_after_write "partial/field.tif|exceed a float32 TIFF" forward --field Bz_huge.txt --pl pl.txt \
+    --psf moffat.yaml -o partial $FAST
+if [ "$(ls partial)" = "old.txt" ] && grep -q "removed the 1 output written before the failure" err.fail_after_write; then
+    pass "failed run: the output it had written (pl.tif) is removed, the file that was there kept"
+else
+    fail "failed run partial outputs" "partial holds: $(ls partial); $(cat err.fail_after_write)"
+fi
 expect_bad unknown_option "--bogus|unknown option" forward --bogus
 expect_bad unknown_command "frobnicate|unknown command" frobnicate
 expect_bad bad_number "--balance|abc" correct --field Bz.txt --pl pl.txt --psf moffat.yaml -o bad --balance abc

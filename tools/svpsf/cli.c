@@ -44,7 +44,9 @@ struct cli_input {
 struct cli_output {
     char *role;
     char *path;
-    int exact; /* planned by exact path: its own extension decides the format */
+    int exact;   /* planned by exact path: its own extension decides the format */
+    int existed; /* -1 not checked yet; 0 absent when cli_outputs_check ran (a failed run
+                  * removes it again: all or none); 1 present then (overwritten with --force) */
 };
 
 struct cli_stage {
@@ -168,6 +170,25 @@ static void free_kvs(cli_kv *kv, int n)
     free(kv);
 }
 
+/* A run that fails after writing some of its outputs (a later output not representable in its
+ * format, a full disk) removes the ones it created, so that a failed run leaves nothing behind
+ * (all or none, docs/cli.md). Files that existed before (overwritten with --force) stay. */
+static void remove_partial_outputs(const cli_run *run)
+{
+    int n_removed = 0;
+    for (int i = 0; i < run->n_outputs; i++) {
+        if (run->outputs[i].existed != 0) continue;
+        const char *path = run->outputs[i].path;
+        char mfile[PATH_MAX], mvar[64];
+        int bad = 0;
+        if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad)) path = mfile;
+        if (unlink(path) == 0) n_removed++;
+    }
+    if (n_removed)
+        cli_note(run, "removed the %d output%s written before the failure (a failed run leaves "
+                 "nothing behind)", n_removed, n_removed == 1 ? "" : "s");
+}
+
 int cli_run_finish(cli_run *run, int exit_code)
 {
     if (run->stage_open) cli_stage_end(run);
@@ -178,6 +199,7 @@ int cli_run_finish(cli_run *run, int exit_code)
     }
     /* measured plans are good whatever the outcome: kept for the next run */
     cli_wisdom_cache_save(run);
+    if (exit_code != CLI_EXIT_OK) remove_partial_outputs(run);
     free(run->wisdom_cache);
     run->wisdom_cache = NULL;
     for (int i = 0; i < run->n_inputs; i++) {
@@ -1235,6 +1257,7 @@ static const char *add_output(cli_run *run, const char *role, char *path, int ex
     o->role = xstrdup(role);
     o->path = path;
     o->exact = exact;
+    o->existed = -1;
     return path;
 }
 
@@ -1354,7 +1377,8 @@ int cli_outputs_check(cli_run *run)
         int bad = 0;
         if (svp_io_mat_path(path, mfile, sizeof mfile, mvar, sizeof mvar, &bad))
             path = mfile; /* "OUT.mat:VAR" is written to OUT.mat */
-        if (stat(path, &st) != 0) continue;
+        run->outputs[i].existed = stat(path, &st) == 0;
+        if (!run->outputs[i].existed) continue;
         if (S_ISDIR(st.st_mode)) return cli_error(run, "%s exists and is a folder", path);
         if (!run->force && n_existing++ == 0) {
             static char first_path[PATH_MAX];
