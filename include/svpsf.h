@@ -448,7 +448,8 @@ SVP_API svp_status svp_skimage_richardson_lucy(const svp_image *image, const svp
  * field_apparent[c] = H(field_true[c] · pl_true) / pl_apparent. Where pl_apparent <=
  * 1e-10 · max(pl_apparent) (dark: no light, or FFT round-off of none) the apparent field is 0
  * and validity (may be NULL) 0, else 1. The true maps must be complete: NaN/Inf in pl_true or
- * a field_true, or a negative pl_true, is SVP_ERR_INVALID naming the input. Outputs must not
+ * a field_true, a negative pl_true, or one of zeros only (no light: the apparent field would
+ * be undefined everywhere) is SVP_ERR_INVALID naming the input. Outputs must not
  * share pixels with inputs or each other. One H application per component plus one. */
 SVP_API svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
                                          const svp_image *const *field_true, int n_fields,

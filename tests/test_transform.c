@@ -876,10 +876,21 @@ static void test_constant_images(void **state)
     }
     svp_image_free(out_pl);
     free_images(out_b, NF);
-    /* T of an all-dark PL: apparent field 0, validity 0 */
-    apparent a = forward_run(op, pl, b, NF);
-    assert_true(test_max_abs(a.field[1]) == 0 && test_max_abs(a.valid) == 0);
-    apparent_free(&a, NF);
+    /* T of an all-dark PL is refused as T⁻¹'s is: the apparent field would be undefined (0 with
+     * validity 0) at every pixel; one faint pixel is light */
+    {
+        svp_image *pa = test_image(w, h), *fa[NF] = {test_image(w, h), test_image(w, h)};
+        assert_int_equal(svp_forward_transform(op, pl, (const svp_image *const *)b, NF, pa, fa,
+                                               NULL),
+                         SVP_ERR_INVALID);
+        assert_non_null(strstr(svp_last_error(), "pl_true holds no light (0 at every pixel)"));
+        pl->data[w + 1] = 1e-300;
+        apparent a = forward_run(op, pl, b, NF);
+        assert_true(a.valid->data[w + 1] == 1);
+        apparent_free(&a, NF);
+        svp_image_free(pa);
+        free_images(fa, NF);
+    }
     svp_blur_free(op);
     svp_image_free(pl);
     free_images(b, NF);

@@ -218,6 +218,11 @@ svp_status svp_forward_transform(svp_blur *blur, const svp_image *pl_true,
             return svp_fail(SVP_ERR_INVALID,
                             "pl_true is negative (%g) at pixel (%zu, %zu): PL is an intensity",
                             pl_true->data[i], i % (size_t)w, i / (size_t)w);
+    /* no light: every apparent field would be undefined (0 with validity 0 at every pixel) */
+    if (!(svp_max(pl_true->data, n) > 0))
+        return svp_fail(SVP_ERR_INVALID,
+                        "pl_true holds no light (0 at every pixel): the apparent field is "
+                        "undefined everywhere");
 
     svp_image *product = NULL, *pl_unit = NULL;
     svp_status st = svp_image_new(w, h, &product);

@@ -382,6 +382,9 @@ expect_bad missing_pl "nope_pl.tif|no such file" correct --field Bz.txt --pl nop
 awk 'NR == 3 { $2 = -1 } { print }' pl.txt >pl_negative.txt
 expect_bad forward_negative_pl "pl_negative.txt: pl_true is negative (-1) at pixel (1, 2)" \
     forward --field Bz.txt --pl pl_negative.txt --psf moffat.yaml -o bad $FAST
+awk '{ for (i = 1; i <= NF; i++) $i = 0; print }' pl.txt >pl_zero.txt
+expect_bad forward_dark_pl "pl_zero.txt: pl_true holds no light" \
+    forward --field Bz.txt --pl pl_zero.txt --psf moffat.yaml -o bad $FAST
 # correct names the pixel in the view's coordinates, also with its default margin (auto: the
 # deconvolutions run on the view plus that margin)
 expect_bad correct_negative_pl "pl_negative.txt|is negative (-1) at pixel (1, 2)" \
