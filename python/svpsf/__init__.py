@@ -466,6 +466,9 @@ class Blur:
                 v.tail_tol = float(tail_tol)
             _check(lib.svp_blur_new_field(psf._ptr, w, h, _boundary(boundary), v, out))
         else:
+            if psf is None or np.isscalar(psf) or isinstance(psf, dict):
+                raise TypeError("psf: a PSF, a PSFMap, a PSF file's path or a kernel image (2-D "
+                                "array) is needed, got %s" % type(psf).__name__)
             imgs = _Images()
             k = imgs.view(_input(psf, "psf kernel"))
             _check(lib.svp_blur_new_kernel(k, -1, -1, 1, w, h, _boundary(boundary), out))

@@ -329,6 +329,9 @@ def test_options_the_program_refuses(tmp_path, maps):
     # arrays and objects that were taken silently the wrong way
     with pytest.raises(ValueError, match="complex array"):
         svpsf.correct(pl + 0j, field, pf)
+    for bad in (None, 2.0, {"fwhm": 2}):  # read as a 0-D "kernel image"
+        with pytest.raises(TypeError, match="psf: a PSF, a PSFMap, a PSF file's path or a kernel"):
+            svpsf.forward(pl, field, bad)
     q = svpsf.PSF("gaussian", fwhm=2)
     with pytest.raises(AttributeError, match="immutable"):
         q.fwhm = 6  # it showed in repr, and every computation used 2
