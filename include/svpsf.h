@@ -245,9 +245,10 @@ SVP_API svp_status svp_psf_validate(const svp_psf *psf);
 SVP_API double svp_psf_fwhm_to_r0(double fwhm, double beta);
 /* Un-normalised profile value at offset (dx, dy) in pixels (peak 1, no pixel integration). */
 SVP_API double svp_psf_profile(const svp_psf *psf, double dx, double dy);
-/* Fraction of the flux of a circular profile inside radius r of a disc of radius R (both in
- * units of pixels; R = 0: infinite plane when the flux converges). Analytic, stable near
- * beta = 1 (expm1/log1p). */
+/* Fraction of the flux inside radius r of a disc of radius R (both in units of pixels; R = 0:
+ * infinite plane when the flux converges, else NaN). Circular profiles in closed form, stable
+ * near beta = 1 (expm1/log1p); elliptical ones exactly, by a quadrature over the direction
+ * (about 1e-13 relative; their disc is rotation invariant, so the angle does not matter). */
 SVP_API double svp_psf_encircled_energy(const svp_psf *psf, double r, double R);
 /* Radius (pixels) along the major axis where the core profile falls to `level` (in (0, 1)) of
  * its peak, at most the support when one is set: the PSF's significant reach (level 0.01 gives
@@ -257,7 +258,8 @@ SVP_API double svp_psf_reach(const svp_psf *psf, double level);
  * a width x height view: ceil(svp_psf_reach(psf, 0.01)), at most a quarter of the larger side;
  * 0 for a PSF with a halo, whose flux a margin's unknowns could take up (docs/model.md §3). */
 SVP_API int svp_psf_auto_margin(const svp_psf *psf, int width, int height);
-/* Radius (pixels) enclosing `fraction` of the flux over a disc of radius R. */
+/* Radius (pixels) enclosing `fraction` of the flux over a disc of radius R (R = 0: the plane,
+ * SVP_ERR_INVALID when its flux diverges); exact for elliptical profiles too. */
 SVP_API svp_status svp_psf_encircled_radius(const svp_psf *psf, double fraction, double R,
                                             double *radius);
 /* Renders the core kernel (no halo term) sampled on a (2 rx + 1) x (2 ry + 1) grid centred at

@@ -1,6 +1,7 @@
 /* PSF models: Gaussian, Lorentzian, Moffat (elliptical), sampling and normalisation. */
 #include "../core/internal.h"
 
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -148,29 +149,106 @@ int svp_psf_auto_margin(const svp_psf *psf, int width, int height)
     return r < cap ? r : cap;
 }
 
-/* Fraction of flux within radius r of a disc of radius R (circular profile with the
- * geometric-mean FWHM for elliptical ones). */
+/* Encircled energy. A profile P(q) of q = u²/a² + v²/b² (axis scales a >= b; the angle does
+ * not matter for a disc) holds, inside the disc x² + y² < r², a b ∫∫ P over the unit-scale
+ * region ρ² < r² / (a² cos²φ + b² sin²φ), so with the unit-scale radial cumulative
+ *     U(s) = ∫_0^√s P(ρ²) ρ dρ:  Gaussian −expm1(−s/2); Moffat expm1((1 − β) log1p(s)) / (1 − β)
+ * (log1p(s) at β = 1; over the plane U(∞) = 1 resp. 1 / (β − 1) when β > 1)
+ * the flux is 2π a b F(r) with F(r) = (2/π) ∫_0^{π/2} U(r² / (a² cos²φ + b² sin²φ)) dφ, and the
+ * encircled energy is F(r) / F(R) (R = 0: / U(∞)). Circular: F(r) = U(r² / a²), closed form;
+ * elliptical: the φ integral by adaptive Simpson to about 1e-13 relative. */
+typedef struct ee_eval {
+    int gaussian;
+    double beta;
+    double a2, b2; /* axis scales squared */
+} ee_eval;
+
+static void ee_setup(const svp_psf *psf, ee_eval *e)
+{
+    double sa, sb;
+    axis_scales(psf, &sa, &sb);
+    e->gaussian = psf->model == SVP_PSF_GAUSSIAN;
+    e->beta = effective_beta(psf);
+    e->a2 = sa * sa;
+    e->b2 = sb * sb;
+}
+
+static double ee_cumulative(const ee_eval *e, double s)
+{
+    if (e->gaussian) return -expm1(-0.5 * s);
+    const double l = log1p(s);
+    return e->beta == 1.0 ? l : expm1((1.0 - e->beta) * l) / (1.0 - e->beta);
+}
+
+static double ee_integrand(const ee_eval *e, double r2, double phi)
+{
+    const double c = cos(phi), sn = sin(phi);
+    return ee_cumulative(e, r2 / (e->a2 * c * c + e->b2 * sn * sn));
+}
+
+/* tol halves with each split down to `floor` (the round-off of the whole integral), so that
+ * round-off never drives the recursion to its depth limit */
+static double ee_simpson(const ee_eval *e, double r2, double lo, double hi, double flo, double fmid,
+                         double fhi, double whole, double tol, double floor, int depth)
+{
+    const double mid = 0.5 * (lo + hi), m1 = 0.5 * (lo + mid), m2 = 0.5 * (mid + hi);
+    const double f1 = ee_integrand(e, r2, m1), f2 = ee_integrand(e, r2, m2);
+    const double left = (mid - lo) / 6.0 * (flo + 4.0 * f1 + fmid);
+    const double right = (hi - mid) / 6.0 * (fmid + 4.0 * f2 + fhi);
+    const double diff = left + right - whole;
+    if (depth <= 0 || fabs(diff) <= 15.0 * fmax(tol, floor)) return left + right + diff / 15.0;
+    return ee_simpson(e, r2, lo, mid, flo, f1, fmid, left, 0.5 * tol, floor, depth - 1) +
+           ee_simpson(e, r2, mid, hi, fmid, f2, fhi, right, 0.5 * tol, floor, depth - 1);
+}
+
+/* F(r) (see above); circular profiles in closed form */
+static double ee_flux(const ee_eval *e, double r)
+{
+    const double r2 = r * r;
+    if (e->a2 == e->b2) return ee_cumulative(e, r2 / e->a2);
+    /* 16 panels first, so that the peak of U near φ = π/2 (width ~ b / a) is seen */
+    const int panels = 16;
+    const double h = 0.5 * M_PI / panels;
+    double lo_value = ee_integrand(e, r2, 0.0), sum = 0, scale = 0;
+    double parts[16], f_lo[16], f_mid[16], f_hi[16];
+    for (int k = 0; k < panels; k++) {
+        const double lo = k * h, hi = (k + 1) * h;
+        f_lo[k] = k ? f_hi[k - 1] : lo_value;
+        f_mid[k] = ee_integrand(e, r2, 0.5 * (lo + hi));
+        f_hi[k] = ee_integrand(e, r2, hi);
+        parts[k] = h / 6.0 * (f_lo[k] + 4.0 * f_mid[k] + f_hi[k]);
+        scale += fabs(parts[k]);
+    }
+    const double tol = 1e-13 * scale / panels, floor = 4.0 * DBL_EPSILON * scale;
+    for (int k = 0; k < panels; k++)
+        sum += ee_simpson(e, r2, k * h, (k + 1) * h, f_lo[k], f_mid[k], f_hi[k], parts[k], tol,
+                          floor, 30);
+    return sum / (0.5 * M_PI);
+}
+
+/* F over the plane; 0 when it diverges (β <= 1) */
+static double ee_total(const ee_eval *e)
+{
+    if (e->gaussian) return 1.0;
+    return e->beta > 1.0 ? 1.0 / (e->beta - 1.0) : 0.0;
+}
+
+/* Fraction of flux within radius r of a disc of radius R (R = 0: the plane); exact for
+ * elliptical profiles too. */
 double svp_psf_encircled_energy(const svp_psf *psf, double r, double R)
 {
-    double fwhm = psf->fwhm_minor > 0 ? sqrt(psf->fwhm * psf->fwhm_minor) : psf->fwhm;
     if (r <= 0) return 0.0;
     if (R > 0 && r >= R) return 1.0;
-    if (psf->model == SVP_PSF_GAUSSIAN) {
-        double sigma = svp_psf_fwhm_to_r0(fwhm, 0.0);
-        double num = -expm1(-0.5 * r * r / (sigma * sigma));
-        double den = R > 0 ? -expm1(-0.5 * R * R / (sigma * sigma)) : 1.0;
-        return num / den;
-    }
-    double beta = effective_beta(psf);
-    double r0 = svp_psf_fwhm_to_r0(fwhm, beta);
-    double lu = log1p((r / r0) * (r / r0));
+    ee_eval e;
+    ee_setup(psf, &e);
     if (R <= 0) {
-        if (beta <= 1.0) return NAN; /* the flux over the plane diverges */
-        return -expm1((1.0 - beta) * lu);
+        const double total = ee_total(&e);
+        if (!(total > 0)) return NAN; /* the flux over the plane diverges */
+        if (e.a2 == e.b2 && !e.gaussian) /* 1 − (1 + s)^(1 − β), accurate near 1 */
+            return -expm1((1.0 - e.beta) * log1p(r * r / e.a2));
+        return ee_flux(&e, r) / total;
     }
-    double lU = log1p((R / r0) * (R / r0));
-    if (beta == 1.0) return lu / lU;
-    return expm1((1.0 - beta) * lu) / expm1((1.0 - beta) * lU);
+    return ee_flux(&e, r) / ee_flux(&e, R);
 }
 
 svp_status svp_psf_encircled_radius(const svp_psf *psf, double fraction, double R,
@@ -180,33 +258,49 @@ svp_status svp_psf_encircled_radius(const svp_psf *psf, double fraction, double 
     if (!(fraction > 0 && fraction < 1))
         return svp_fail(SVP_ERR_INVALID, "encircled-energy fraction must be in (0, 1), got %g",
                         fraction);
-    double fwhm = psf->fwhm_minor > 0 ? sqrt(psf->fwhm * psf->fwhm_minor) : psf->fwhm;
-    if (psf->model == SVP_PSF_GAUSSIAN) {
-        double sigma = svp_psf_fwhm_to_r0(fwhm, 0.0);
-        double den = R > 0 ? -expm1(-0.5 * R * R / (sigma * sigma)) : 1.0;
-        *radius = sigma * sqrt(-2.0 * log1p(-fraction * den));
-        return SVP_OK;
-    }
-    double beta = effective_beta(psf);
-    double r0 = svp_psf_fwhm_to_r0(fwhm, beta);
-    if (R <= 0 && beta <= 1.0)
+    ee_eval e;
+    ee_setup(psf, &e);
+    if (R <= 0 && !e.gaussian && e.beta <= 1.0)
         return svp_fail(SVP_ERR_INVALID,
                         "encircled energy of a Moffat with beta = %g <= 1 needs a finite "
                         "support radius (its flux over the plane diverges)",
-                        beta);
-    double u;
-    if (R <= 0) {
-        u = expm1(log1p(-fraction) / (1.0 - beta));
-    } else {
-        double lU = log1p((R / r0) * (R / r0));
-        if (beta == 1.0) {
-            u = expm1(fraction * lU);
+                        e.beta);
+    /* the circular radius of scale s (closed-form inversion of U(r² / s²) = fraction · F(R)) */
+    double radius_a = 0, radius_b = 0;
+    for (int axis = 0; axis < 2; axis++) {
+        const double s2 = axis ? e.b2 : e.a2;
+        double u;
+        if (e.gaussian) {
+            const double den = R > 0 ? -expm1(-0.5 * R * R / s2) : 1.0;
+            u = -2.0 * log1p(-fraction * den);
+        } else if (R <= 0) {
+            u = expm1(log1p(-fraction) / (1.0 - e.beta));
         } else {
-            double D = -expm1((1.0 - beta) * lU);
-            u = expm1(log1p(-fraction * D) / (1.0 - beta));
+            const double lU = log1p(R * R / s2);
+            if (e.beta == 1.0) {
+                u = expm1(fraction * lU);
+            } else {
+                const double D = -expm1((1.0 - e.beta) * lU);
+                u = expm1(log1p(-fraction * D) / (1.0 - e.beta));
+            }
         }
+        *(axis ? &radius_b : &radius_a) = sqrt(s2 * u);
     }
-    *radius = r0 * sqrt(u);
+    if (e.a2 == e.b2) {
+        *radius = radius_a;
+        return SVP_OK;
+    }
+    /* elliptical: bisection on the exact encircled energy. Over the plane the radius lies
+     * between the circular ones of the minor and the major scale; within a disc in (0, R). */
+    double lo = R > 0 ? 0.0 : fmin(radius_a, radius_b), hi = R > 0 ? R : fmax(radius_a, radius_b);
+    for (int it = 0; it < 200 && hi - lo > 1e-15 * hi; it++) {
+        const double mid = 0.5 * (lo + hi);
+        if (svp_psf_encircled_energy(psf, mid, R) < fraction)
+            lo = mid;
+        else
+            hi = mid;
+    }
+    *radius = 0.5 * (lo + hi);
     return SVP_OK;
 }
 

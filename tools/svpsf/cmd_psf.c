@@ -162,7 +162,8 @@ static int print_encircled(cli_run *run, const char *psf_path, const svp_psf *p,
         R_note = R_buf;
     }
     printf("  encircled energy of the core %s%s:\n", R_note,
-           p->fwhm_minor > 0 ? " (circular, geometric-mean FWHM)" : "");
+           p->fwhm_minor > 0 && p->fwhm_minor != p->fwhm ? " (elliptical: radius of the disc)"
+                                                          : "");
     static const double fractions[] = {0.50, 0.80, 0.90, 0.95};
     for (int i = 0; i < 4; i++) {
         double r = 0;
