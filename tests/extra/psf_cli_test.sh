@@ -163,6 +163,19 @@ fi
     && "$MAKE" check-regions map/rdiff.yaml 2 && [ -s map/rdiff.labels.npy ] && ok "regions separate" || bad "regions separate"
 "$S" map-psf regions_same.yaml --labels labels.npy -o map/rsame.yaml >/dev/null 2>&1 \
     && "$MAKE" check-regions map/rsame.yaml 1 && ok "regions merge" || bad "regions merge"
+# a region without spots (a metal wire quenches the beads on it) gets the mean of all spots:
+# said on stdout and in a warning naming the labels file, counted in the summary
+awk 'BEGIN { for (y = 0; y < 400; y++) { l = ""; for (x = 0; x < 400; x++)
+             l = l (x ? " " : "") (x < 8 && y < 8 ? 2 : (x < 200 ? 0 : 1)); print l } }' >labels3.txt
+if "$S" map-psf regions_diff.yaml --labels labels3.txt -o map/r3.yaml >"$T/r3.txt" 2>"$T/r3e.txt" \
+    && grep -q "region 2: no spot: given the mean of all spots" "$T/r3.txt" \
+    && grep -q "regions 0 and 2: not compared (region 2 has 0 spots" "$T/r3.txt" \
+    && grep -q "warning: labels3.txt: no spot lies in region 2: its PSF in map/r3.yaml is the mean of all spots" "$T/r3e.txt" \
+    && grep -q '"n_regions_without_spots": 1' map/r3.summary.json; then
+    ok "a region without spots is named: $(cat "$T/r3e.txt")"
+else
+    bad "region without spots: $(cat "$T/r3.txt" "$T/r3e.txt")"
+fi
 expect_fail "map: missing spot file" 1 "nothere.npy" sh -c "printf 'pixel_um: 0.05\nfield: {width: 400, height: 400}\nspots:\n  - {file: nothere.npy, origin: [0, 0]}\n' > bad1.yaml; \"$S\" map-psf bad1.yaml -o map/b1.yaml"
 expect_fail "map: unknown key" 1 "bad2.yaml:2" sh -c "printf 'pixel_um: 0.05\nimages: field.npy\n' > bad2.yaml; \"$S\" map-psf bad2.yaml -o map/b2.yaml"
 expect_fail "map: no field size" 1 "bad3.yaml" sh -c "printf 'pixel_um: 0.05\nspots:\n  - {file: cut_00.npy, origin: [0, 0]}\n' > bad3.yaml; \"$S\" map-psf bad3.yaml -o map/b3.yaml"

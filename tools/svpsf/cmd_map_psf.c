@@ -727,11 +727,37 @@ static void map_psf_report_regions(cli_run *run, const struct map_psf_args *a,
 {
     const svp_map_report *rep = job->rep;
     const double pixel_um = job->pixel_um;
-    char key[96];
+    char key[96], empty[256] = "";
+    int n_empty = 0;
     for (int l = 0; l < rep->n_regions; l++) {
         const svp_region_stats *r = &rep->regions[l];
-        printf("  region %d: %d spots, FWHM %.4f +- %.4f um, beta %.4f +- %.4f -> group %d\n",
-               r->label, r->count, r->mean[SVP_FIELD_FWHM] * pixel_um,
+        if (r->count == 0) {
+            /* the library gives a label without spots the mean of all spots: say so, and what
+             * that is (the map's PSF at one of its pixels), not a mean of 0 +- 0 */
+            double p[SVP_FIELD_NPARAM] = {0};
+            for (size_t i = 0; i < (size_t)job->width * job->height; i++)
+                if (job->labels[i] == l) {
+                    if (svp_psf_field_params_at(job->field, (double)(i % (size_t)job->width),
+                                                (double)(i / (size_t)job->width),
+                                                p) != SVP_OK)
+                        memset(p, 0, sizeof p);
+                    break;
+                }
+            printf("  region %d: no spot: given the mean of all spots, FWHM %.4f um, beta %.4f "
+                   "(not measured there) -> group %d\n",
+                   r->label, p[SVP_FIELD_FWHM] * pixel_um, p[SVP_FIELD_BETA], r->group);
+            size_t used = strlen(empty);
+            if (used + 16 < sizeof empty)
+                snprintf(empty + used, sizeof empty - used, "%s%d", n_empty ? ", " : "", l);
+            n_empty++;
+            snprintf(key, sizeof key, "region%d_count", l);
+            cli_result_int(run, key, 0);
+            snprintf(key, sizeof key, "region%d_group", l);
+            cli_result_int(run, key, r->group);
+            continue;
+        }
+        printf("  region %d: %d spot%s, FWHM %.4f +- %.4f um, beta %.4f +- %.4f -> group %d\n",
+               r->label, r->count, r->count == 1 ? "" : "s", r->mean[SVP_FIELD_FWHM] * pixel_um,
                r->sem[SVP_FIELD_FWHM] * pixel_um, r->mean[SVP_FIELD_BETA], r->sem[SVP_FIELD_BETA],
                r->group);
         snprintf(key, sizeof key, "region%d_count", l);
@@ -746,18 +772,30 @@ static void map_psf_report_regions(cli_run *run, const struct map_psf_args *a,
     for (int i = 0; i < rep->n_regions; i++)
         for (int j = i + 1; j < rep->n_regions; j++) {
             double p = rep->p_value[i * rep->n_regions + j];
-            printf("  regions %d and %d: Welch p = %.3g (%s)\n", i, j, p,
-                   p < 0             ? "too few spots"
-                   : p > a->mo.alpha ? "alike"
-                                     : "different");
+            if (p < 0) {
+                const int k = rep->regions[i].count < 2 ? i : j;
+                printf("  regions %d and %d: not compared (region %d has %d spot%s; the Welch "
+                       "test needs 2)\n",
+                       i, j, k, rep->regions[k].count, rep->regions[k].count == 1 ? "" : "s");
+            } else {
+                printf("  regions %d and %d: Welch p = %.3g (%s)\n", i, j, p,
+                       p > a->mo.alpha ? "alike" : "different");
+            }
             if (i * rep->n_regions + j < 64) {
                 snprintf(key, sizeof key, "p_value_%d_%d", i, j);
                 cli_result_num(run, key, p);
             }
         }
     cli_result_int(run, "n_groups", rep->n_groups);
+    cli_result_int(run, "n_regions_without_spots", n_empty);
     printf("  %d region(s) merged into %d group(s) (alpha %g)\n", rep->n_regions, rep->n_groups,
            a->mo.alpha);
+    if (n_empty)
+        cli_warn(run,
+                 "%s: no spot lies in region%s %s: %s PSF in %s is the mean of all spots, not a "
+                 "measurement there; add spots in %s, or give %s the label of a measured region",
+                 a->labels_path, n_empty == 1 ? "" : "s", empty, n_empty == 1 ? "its" : "their",
+                 run->output, n_empty == 1 ? "it" : "them", n_empty == 1 ? "it" : "them");
 }
 
 /* MAP.yaml, MAP.spots.csv, MAP.summary.json and the line on stdout. */
