@@ -1453,6 +1453,14 @@ typedef struct svp_map_report {
     double chi2_red[SVP_FIELD_NPARAM];    /* of the final surface fit */
     double rms[SVP_FIELD_NPARAM];   /* rms residual of the accepted spots, parameter units */
     int n_used[SVP_FIELD_NPARAM];   /* spots in the final fit */
+    /* how well the spots determine each surface over the whole field: the surface's standard
+     * error √(bᵀ (AᵀWA)⁻¹ b) · max(1, √χ²_red) at its worst point of a 33 x 33 grid over the
+     * field (corners included) and where that is (pixels), against the median standard error
+     * of the spots' own fits. A ratio well above 1 means the surface there is an extrapolation
+     * the spots do not support (spots along a line, in one corner). */
+    double surface_se_max[SVP_FIELD_NPARAM];
+    double surface_se_x[SVP_FIELD_NPARAM], surface_se_y[SVP_FIELD_NPARAM];
+    double spot_se_median[SVP_FIELD_NPARAM];
     /* per spot and parameter: svp_map_reject code and, for outliers, the z value */
     int *reject;                    /* n_samples * SVP_FIELD_NPARAM */
     double *reject_z;

@@ -942,6 +942,58 @@ static void field_truth(double x, double y, int W, int H, double *fwhm, double *
     *beta = 2.2 + 0.8 * u * u + 0.3 * v;
 }
 
+/* The surface's standard error (svp_map_report.surface_se_max) against the closed form: four
+ * spots of equal value and error σ at u, v = ±a (a = 1/2) make the degree-1 design orthogonal,
+ * so at a corner (u, v = ±1) se² = σ² (1/4 + 1/(4a²) + 1/(4a²)) = (3σ/2)²; degree 0 gives σ/2.
+ * Spots along one row leave the v term to their ±1 px scatter: a ratio in the thousands. */
+static void test_map_poly_surface_error(void **state)
+{
+    (void)state;
+    enum { W = 401, H = 401 };
+    svp_psf_sample sp[4];
+    memset(sp, 0, sizeof sp);
+    const double sigma = 0.1;
+    for (int k = 0; k < 4; k++) {
+        sp[k].x = k % 2 ? 300 : 100;
+        sp[k].y = k / 2 ? 300 : 100;
+        sp[k].fit.model = SVP_PSF_MOFFAT;
+        sp[k].fit.fwhm = 4.0;
+        sp[k].fit.fwhm_err = sigma;
+        sp[k].fit.e1_err = sp[k].fit.e2_err = 0.01;
+        sp[k].fit.beta = 2.5;
+        sp[k].fit.beta_err = 0.05;
+    }
+    svp_map_options mo;
+    svp_map_defaults(&mo);
+    mo.clip_kappa = 0;
+    for (int deg = 0; deg <= 1; deg++) {
+        mo.degree = deg;
+        svp_map_report *rep = NULL;
+        ASSERT_OK(svp_psf_map_poly(sp, 4, W, H, &mo, NULL, &rep));
+        assert_int_equal(rep->degree[SVP_FIELD_FWHM], deg);
+        ASSERT_CLOSE(rep->spot_se_median[SVP_FIELD_FWHM], sigma, 1e-15);
+        ASSERT_CLOSE(rep->surface_se_max[SVP_FIELD_FWHM], deg ? 1.5 * sigma : 0.5 * sigma, 1e-12);
+        if (deg) /* at a corner */
+            assert_true((rep->surface_se_x[SVP_FIELD_FWHM] == 0 ||
+                         rep->surface_se_x[SVP_FIELD_FWHM] == W - 1) &&
+                        (rep->surface_se_y[SVP_FIELD_FWHM] == 0 ||
+                         rep->surface_se_y[SVP_FIELD_FWHM] == H - 1));
+        svp_map_report_free(rep);
+    }
+    /* a row: y 199, 200, 201, 200 */
+    for (int k = 0; k < 4; k++) {
+        sp[k].x = 50 + 100 * k;
+        sp[k].y = 199 + (k % 3);
+    }
+    svp_map_report *rep = NULL;
+    ASSERT_OK(svp_psf_map_poly(sp, 4, W, H, &mo, NULL, &rep));
+    const double ratio = rep->surface_se_max[SVP_FIELD_FWHM] / rep->spot_se_median[SVP_FIELD_FWHM];
+    printf("# map of a row of spots, degree 1: surface error %.3g = %.3g x a spot's\n",
+           rep->surface_se_max[SVP_FIELD_FWHM], ratio);
+    assert_true(ratio > 100);
+    svp_map_report_free(rep);
+}
+
 static void test_map_poly_recovers_field(void **state)
 {
     (void)state;
@@ -1171,6 +1223,7 @@ int main(void)
         cmocka_unit_test(test_spot_model_residual),
         cmocka_unit_test(test_pair_recovers_psf),
         cmocka_unit_test(test_map_poly_recovers_field),
+        cmocka_unit_test(test_map_poly_surface_error),
         cmocka_unit_test(test_map_regions_separate_or_merge),
     };
     if (getenv("SVP_TEST_FILTER")) cmocka_set_test_filter(getenv("SVP_TEST_FILTER"));

@@ -334,8 +334,62 @@ typedef struct poly_work {
 /* The polynomial surface of parameter q: its values and 1/σ per spot, the degree (given, or
  * by cross-validation) and the weighted fit, repeated while outliers are clipped; then the
  * report's degree, n_used, chi2_red and rms. */
+/* The surface's standard error over the field (svp_map_report.surface_se_max): the final
+ * fit's R factor (A = Q R, rows weighted by 1/σ) gives bᵀ (AᵀA)⁻¹ b = |R⁻ᵀ b|², scaled by
+ * √χ²_red when the scatter exceeds the spots' errors; the worst of a 33 x 33 grid over the
+ * field. The R factor is refitted here: the outlier rounds use A as scratch. */
+#define SURFACE_GRID 33
+static svp_status surface_error(const poly_data *d, int nt, svp_map_report *rep, int q, int width,
+                                int height)
+{
+    unsigned char *mask = malloc((size_t)d->n);
+    double *coef = malloc(MAX_TERMS * sizeof(double)), *spot_se = malloc((size_t)d->n * sizeof(double));
+    if (!mask || !coef || !spot_se) {
+        free(mask);
+        free(coef);
+        free(spot_se);
+        return svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
+    }
+    memset(mask, 1, (size_t)d->n);
+    for (int k = 0; k < d->n; k++) spot_se[k] = 1.0 / d->sw[d->idx[k]];
+    rep->spot_se_median[q] = svp_median(spot_se, (size_t)d->n);
+    rep->surface_se_max[q] = NAN;
+    rep->surface_se_x[q] = rep->surface_se_y[q] = NAN;
+    if (wls_fit(d, mask, nt, coef) == 0) {
+        const int lda = d->n;
+        const double scale = sqrt(fmax(1.0, rep->chi2_red[q]));
+        double worst = -1, b[MAX_TERMS], z[MAX_TERMS];
+        for (int gy = 0; gy < SURFACE_GRID; gy++)
+            for (int gx = 0; gx < SURFACE_GRID; gx++) {
+                const double x = (width - 1) * (double)gx / (SURFACE_GRID - 1);
+                const double yy = (height - 1) * (double)gy / (SURFACE_GRID - 1);
+                svp_psf_field_poly_basis(MAX_DEGREE, width, height, x, yy, b);
+                /* Rᵀ z = b, forward substitution (R upper triangular in A's first nt rows) */
+                double s2 = 0;
+                for (int t = 0; t < nt; t++) {
+                    double acc = b[t];
+                    for (int u = 0; u < t; u++) acc -= d->A[(size_t)t * lda + u] * z[u];
+                    z[t] = acc / d->A[(size_t)t * lda + t];
+                    s2 += z[t] * z[t];
+                }
+                const double se = scale * sqrt(s2);
+                if (se > worst) {
+                    worst = se;
+                    rep->surface_se_max[q] = se;
+                    rep->surface_se_x[q] = x;
+                    rep->surface_se_y[q] = yy;
+                }
+            }
+    }
+    free(mask);
+    free(coef);
+    free(spot_se);
+    return SVP_OK;
+}
+
 static svp_status poly_fit_param(const svp_psf_sample *samples, int n, const svp_map_options *op,
-                                 svp_map_report *rep, int q, poly_work *pw, double *coeffs)
+                                 svp_map_report *rep, int q, poly_work *pw, double *coeffs,
+                                 int width, int height)
 {
     const svp_map_options o = *op;
     const double *basis = pw->basis;
@@ -414,7 +468,7 @@ static svp_status poly_fit_param(const svp_psf_sample *samples, int n, const svp
     rep->n_used[q] = d.n;
     rep->chi2_red[q] = d.n > nt ? chi2 / (d.n - nt) : 0.0;
     rep->rms[q] = sqrt(ss / d.n);
-    return SVP_OK;
+    return surface_error(&d, nt, rep, q, width, height);
 }
 
 /* The poly field of the fitted surfaces (every parameter at the largest degree; lower
@@ -482,7 +536,8 @@ svp_status svp_psf_map_poly(const svp_psf_sample *samples, int n, int width, int
     double coeffs[NP][MAX_TERMS];
     memset(coeffs, 0, sizeof coeffs);
     for (int q = 0; q < NP && st == SVP_OK; q++)
-        if (rep->mapped[q]) st = poly_fit_param(samples, n, &o, rep, q, &pw, coeffs[q]);
+        if (rep->mapped[q])
+            st = poly_fit_param(samples, n, &o, rep, q, &pw, coeffs[q], width, height);
     if (st == SVP_OK && field) st = poly_field(rep, &o, width, height, coeffs, field);
 cleanup:
     free(pw.basis);

@@ -158,6 +158,23 @@ if "$S" correct --field exc.npy --pl pl.npy --psf map/tiny.yaml --nodes 2x2 -o m
 else
     bad "svpsf correct --psf map/tiny.yaml: $(cat "$T/cm.txt")"
 fi
+# spots along one row (y 199..201) cannot say how the PSF varies in y: a degree-1 surface is
+# named as undetermined away from them (its standard error against a spot's own), as the
+# spread spots of field.yaml are not
+printf 'pixel_um: 0.05\nfield: {width: 400, height: 400}\nspots:\n' >row.yaml
+for k in 0 1 2 3 4 5 6 7 8; do
+    printf '  - {file: cut_0%d.npy, x: %d, y: %d}\n' $k $((30 + 40 * k)) $((199 + k % 3)) >>row.yaml
+done
+if "$S" map-psf row.yaml --degree 1 -o map/row.yaml >"$T/row.txt" 2>"$T/rowe.txt" \
+    && grep -q "warning: map/row.yaml: the fwhm surface (degree 1) is uncertain to" "$T/rowe.txt" \
+    && grep -q "they span x 30..350, y 199..201" "$T/rowe.txt" \
+    && ! grep -q "is uncertain to" "$T/m1.txt" 2>/dev/null; then
+    ok "a surface the spots do not determine is named: $(grep 'is uncertain' "$T/rowe.txt")"
+else
+    bad "undetermined surface: $(cat "$T/row.txt" "$T/rowe.txt")"
+fi
+awk -F': ' '/"fwhm_surface_error_ratio"/ { r = $2 + 0 } END { exit !(r > 0 && r < 5) }' map/cut.summary.json \
+    && ok "spread spots: surface error ratio below 5" || bad "spread spots' surface error ratio: $(grep surface_error map/cut.summary.json)"
 # regions: metal vs oxide differ -> 2 groups; alike -> merged
 "$S" map-psf regions_diff.yaml --labels labels.npy -o map/rdiff.yaml >/dev/null 2>&1 \
     && "$MAKE" check-regions map/rdiff.yaml 2 && [ -s map/rdiff.labels.npy ] && ok "regions separate" || bad "regions separate"

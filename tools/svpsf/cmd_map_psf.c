@@ -219,6 +219,10 @@ struct map_psf_args {
 };
 
 /* What a run holds (released by map_psf_release). */
+/* map-psf warns when a surface's standard error somewhere in the field exceeds this many
+ * times the median error of a spot's own fit (svp_map_report.surface_se_max) */
+#define MAP_SURFACE_SE_RATIO 5.0
+
 struct map_psf_job {
     svp_yaml_doc *doc;
     double pixel_um;
@@ -233,6 +237,7 @@ struct map_psf_job {
     int *sample_of, n_samples, n_failed;
     svp_psf_field *field;
     svp_map_report *rep;
+    int spots_box[4]; /* x0, y0, x1, y1 of the spots' centres (polynomial maps) */
     char *csv;
     char csv_path[4096], summary_path[4096], labels_out[4096];
 };
@@ -608,6 +613,7 @@ static int map_psf_map(cli_run *run, const struct map_psf_args *a, struct map_ps
             box[2] = (int)fmax(box[2], ceil(sp->x));
             box[3] = (int)fmax(box[3], ceil(sp->y));
         }
+        memcpy(job->spots_box, box, sizeof box);
         svp_psf_field_range r;
         st = svp_psf_field_check_range(job->field, box, &r);
         if (st == SVP_OK && r.clamped) {
@@ -701,15 +707,35 @@ static void map_psf_report_poly(cli_run *run, const struct map_psf_args *a,
     for (int q = 0; q < SVP_FIELD_NPARAM; q++) {
         if (!rep->mapped[q]) continue;
         double scale = q == SVP_FIELD_FWHM ? job->pixel_um : 1;
-        printf("  %-5s degree %d, %d spots, rms residual %.4g%s, chi2_red %.3f\n", pnames[q],
-               rep->degree[q], rep->n_used[q], rep->rms[q] * scale,
-               q == SVP_FIELD_FWHM ? " um" : "", rep->chi2_red[q]);
+        const double ratio = rep->surface_se_max[q] / rep->spot_se_median[q];
+        printf("  %-5s degree %d, %d spots, rms residual %.4g%s, chi2_red %.3f, surface error "
+               "at worst %.3g (%.2g x a spot's)\n",
+               pnames[q], rep->degree[q], rep->n_used[q], rep->rms[q] * scale,
+               q == SVP_FIELD_FWHM ? " um" : "", rep->chi2_red[q],
+               rep->surface_se_max[q] * scale, ratio);
         if (a->mo.degree >= 0 && rep->degree[q] < a->mo.degree)
             cli_warn(run,
                      "%s: degree %d asked for, %d fitted: the %d spots' positions determine no "
                      "more terms (degree d needs (d + 1)(d + 2) / 2 spots, at d + 1 distinct "
                      "positions along each axis)",
                      pnames[q], a->mo.degree, rep->degree[q], rep->n_used[q]);
+        /* a surface far less certain somewhere in the field than one spot's own fit is an
+         * extrapolation the spots do not support (measured: 0.2-1.3 x for spots spread over
+         * the field, 6000 x for a row of spots at one y) */
+        if (ratio > MAP_SURFACE_SE_RATIO)
+            cli_warn(run,
+                     "%s: the %s surface (degree %d) is uncertain to +-%.3g%s at pixel (%.0f, "
+                     "%.0f), %.2g times a spot's own error: the spots' positions do not "
+                     "determine it there (they span x %d..%d, y %d..%d); spread the "
+                     "spots over the field, or ask for a lower --degree",
+                     run->output, pnames[q], rep->degree[q], rep->surface_se_max[q] * scale,
+                     q == SVP_FIELD_FWHM ? " um" : "", rep->surface_se_x[q],
+                     rep->surface_se_y[q], ratio, job->spots_box[0], job->spots_box[2],
+                     job->spots_box[1], job->spots_box[3]);
+        snprintf(key, sizeof key, "%s_surface_error_max", pnames[q]);
+        cli_result_num(run, key, rep->surface_se_max[q] * scale);
+        snprintf(key, sizeof key, "%s_surface_error_ratio", pnames[q]);
+        cli_result_num(run, key, ratio);
         snprintf(key, sizeof key, "%s_degree", pnames[q]);
         cli_result_int(run, key, rep->degree[q]);
         snprintf(key, sizeof key, "%s_rms", pnames[q]);
