@@ -312,9 +312,10 @@ static int psf_compare_scene(cli_run *run, struct psf_compare_job *job)
         if ((st = svp_image_new(n, n, imgs[k])) != SVP_OK) return cli_fail(run, st, NULL);
     flake_scene(n, job->btrue, job->pltrue);
     if ((code = psf_compare_transforms(run, job))) return code;
-    double s_ab = 0, s_a = 0, s_at = 0, s_bt = 0, s_t = 0, m_ab = 0, m_t = 0;
+    double s_ab = 0, s_a = 0, s_at = 0, s_bt = 0, s_t = 0, m_ab = 0, m_t = 0, s_pt = 0;
     for (size_t i = 0; i < (size_t)n * n; i++) {
         double a = job->bc_a->data[i], b = job->bc_b->data[i], t = job->btrue->data[i];
+        s_pt += (job->bapp->data[i] - t) * (job->bapp->data[i] - t);
         s_ab += (b - a) * (b - a);
         s_a += a * a;
         s_at += (a - t) * (a - t);
@@ -323,13 +324,17 @@ static int psf_compare_scene(cli_run *run, struct psf_compare_job *job)
         m_ab = fmax(m_ab, fabs(b - a));
         m_t = fmax(m_t, fabs(t));
     }
-    const double rel = sqrt(s_ab / s_a), rel_a = sqrt(s_at / s_t), rel_b = sqrt(s_bt / s_t);
+    const double rel = sqrt(s_ab / s_a), rel_a = sqrt(s_at / s_t), rel_b = sqrt(s_bt / s_t),
+                 rel_app = sqrt(s_pt / s_t);
     printf("reference scene (%d x %d px at (%d, %d), micromagnet-like flake, blurred with A):\n", n,
            n, ox, oy);
     printf("  corrected with B vs with A: relative rms difference %.4f, max |difference| %.4f of "
            "the field's peak\n",
            rel, m_ab / m_t);
-    printf("  relative rms error to the truth: corrected with A %.4f, with B %.4f\n", rel_a, rel_b);
+    printf("  relative rms error to the truth: corrected with A %.4f, with B %.4f; uncorrected "
+           "%.4f\n",
+           rel_a, rel_b, rel_app);
+    cli_result_num(run, "scene_rel_rms_error_uncorrected", rel_app);
     const svp_correct_summary *sums[2] = {&job->sum_a, &job->sum_b};
     for (int k = 0; k < 2; k++) {
         char list[256];
