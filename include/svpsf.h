@@ -331,7 +331,10 @@ SVP_API double svp_blur_tail_tol(const svp_blur *blur);
 typedef struct svp_deconv_report {
     int wiener;         /* 1: a Wiener–Hunt deconvolution (the fields below apply); 0: RL */
     double balance;     /* the balance λ used (the chosen one with a discrepancy balance) */
-    double noise_sigma; /* discrepancy balance: the noise σ used (given or estimated); else 0 */
+    double noise_sigma; /* discrepancy balance: the noise σ used (given or estimated); with a
+                           per-pixel noise (noise_per_pixel) the rms of its σ; else 0 */
+    int noise_per_pixel; /* discrepancy balance: 1 when each pixel had its own noise variance
+                            (svp_inverse_transform's noise models, docs/model.md §6), else 0 */
     int cg_steps;       /* zero-boundary Wiener: conjugate-gradient steps taken; else 0 */
     double cg_residual; /* its final relative residual ‖Hᵀ M y − A x‖ / ‖Hᵀ M y‖ */
     int cg_capped;      /* 1: the CG stopped at the step cap with the residual above its
@@ -607,14 +610,16 @@ SVP_API svp_status svp_correct_check_margin(int margin, int width, int height);
 /* Inverse transform T⁻¹ (eq. 4): pl_true = Ĩ ⊘ p; field_true[c] = ((B̃_c Ĩ) ⊘ p) / max(pl_true,
  * floor), floor = pl_floor · max(pl_true); for R / RL_SIGNED the numerator is
  * ((B̃_c + c) Ĩ) ⊘ p − c · pl_true (eq. 5). All components share the one deconvolution of Ĩ.
- * Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution
- * (RL masks it, Wiener fills it), so numerator and denominator see the same measurements.
+ * Missing data: a pixel where Ĩ or any B̃_c (or, given, its field_sigma) is NaN/Inf is missing
+ * in every deconvolution (RL masks it, Wiener fills it), so numerator and denominator see the
+ * same measurements.
  * validity (may be NULL) in [0, 1] (eq. 6): clamp(pl_true / floor, 0, 1), times at missing
  * pixels the share of their light the core PSF puts on measured pixels (0 where nothing covers
  * them). No NaN or Inf is ever written. n_missing (may be NULL) returns the number of missing
  * pixel positions. options NULL = svp_correct_defaults. RL methods (RW, R, RL_SIGNED) need
- * Ĩ >= 0 (SVP_ERR_INVALID otherwise; W accepts signed PL). No light at all (max Ĩ <= 0):
- * everything 0, validity 0. Outputs must not share pixels with inputs or each other. */
+ * Ĩ >= 0 (SVP_ERR_INVALID otherwise; W accepts signed PL). No light at all (max Ĩ <= 0) and
+ * no measured pixel are SVP_ERR_INVALID ("holds no light", "every pixel of ... is NaN or Inf").
+ * Outputs must not share pixels with inputs or each other. */
 SVP_API svp_status svp_inverse_transform(svp_blur *blur, const svp_image *pl_apparent,
                                          const svp_image *const *field_apparent, int n_fields,
                                          const svp_correct_options *options,

@@ -661,7 +661,7 @@ def _count(value, name, lo=1, hi=_MAX_COUNT):
 
 def _report(r):
     return {"wiener": bool(r.wiener), "balance": r.balance, "noise_sigma": r.noise_sigma,
-            "cg_steps": r.cg_steps, "cg_residual": r.cg_residual, "cg_capped": bool(r.cg_capped),
+            "noise_per_pixel": bool(r.noise_per_pixel), "cg_steps": r.cg_steps, "cg_residual": r.cg_residual, "cg_capped": bool(r.cg_capped),
             "balance_at_bound": r.balance_at_bound, "iterations": r.iterations, "chi2": r.chi2,
             "stop": _STOPS.get(r.stop, r.stop)}
 

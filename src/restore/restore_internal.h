@@ -53,7 +53,8 @@ void svp_rl_levels_free(svp_rl_levels *levels);
 svp_status svp_field_noise_k2(const svp_image *field, const svp_image *pl, double *k2);
 /* The discrepancy principle with a per-pixel noise variance (NULL: sigma², sigma <= 0
  * estimated): Σ M (H x_λ − y)² / var = n_finite. *at_bound: −1 / +1 when the choice is the
- * lower / upper end of the search, else 0. lcurve (may be NULL: no fallback): when no λ the
+ * lower / upper end of the search, else 0. *sigma_used: the σ used; with a variance map the
+ * rms of its σ over the measured pixels. lcurve (may be NULL: no fallback): when no λ the
  * search can solve meets the noise, the L-curve's corner is taken instead and *lcurve = 1
  * (wiener.c; docs/model.md §6). */
 svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y,

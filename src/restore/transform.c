@@ -322,6 +322,7 @@ static svp_status deconvolve(svp_blur *blur, const svp_image *y, int use_rl,
                            : svp_deconv_wiener(blur, y, &o, x);
     if (report && !use_rl) {
         report->noise_sigma = sigma_used;
+        report->noise_per_pixel = balance_auto && noise_sigma <= 0 && variance != NULL;
         report->balance_at_bound = at_bound;
         report->balance_lcurve = lcurve;
     }
@@ -505,7 +506,9 @@ typedef struct inverse_run {
 } inverse_run;
 
 /* Missing data: a pixel where Ĩ or any B̃_c is NaN/Inf is missing in every deconvolution, so
- * numerator and denominator of (4) see the same measurements. *pl_max: the largest measured Ĩ. */
+ * numerator and denominator of (4) see the same measurements; so is one whose σ (field_sigma)
+ * is NaN/Inf, a fit that failed to say its uncertainty (its NaN σ poisoned the discrepancy
+ * sums: λ blew the field up). *pl_max: the largest measured Ĩ. */
 static svp_status mark_missing(inverse_run *r, double *pl_max)
 {
     const size_t n = r->n;
@@ -515,6 +518,8 @@ static svp_status mark_missing(inverse_run *r, double *pl_max)
     for (size_t i = 0; i < n; i++) {
         int m = !isfinite(pl[i]);
         for (int c = 0; c < r->n_fields && !m; c++) m = !isfinite(r->field_apparent[c]->data[i]);
+        for (int c = 0; r->field_sigma && c < r->n_fields && !m; c++)
+            m = r->field_sigma[c] && !isfinite(r->field_sigma[c]->data[i]);
         r->missing[i] = (unsigned char)m;
         n_miss += (size_t)m;
     }

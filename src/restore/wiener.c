@@ -904,9 +904,19 @@ svp_status svp_wiener_balance_discrepancy_var(svp_blur *blur, const svp_image *y
     if (!isfinite(sigma))
         return svp_fail(SVP_ERR_INVALID, "%s: noise deviation %g is not finite", what, sigma);
     if (!variance && sigma <= 0) SVP_CHECK(svp_noise_sigma_estimate(y, &sigma));
-    if (sigma_used) *sigma_used = variance ? 0.0 : sigma;
     const int w = y->width, h = y->height;
     const size_t n = (size_t)w * h;
+    if (sigma_used && !variance) *sigma_used = sigma;
+    if (sigma_used && variance) { /* the per-pixel noise's rms over the measured pixels */
+        double sum = 0;
+        size_t count = 0;
+        for (size_t i = 0; i < n; i++)
+            if (isfinite(y->data[i]) && isfinite(variance->data[i]) && variance->data[i] > 0) {
+                sum += variance->data[i];
+                count++;
+            }
+        *sigma_used = count ? sqrt(sum / (double)count) : 0.0;
+    }
     const size_t n_finite = n - svp_image_count_nonfinite(y);
     if (n_finite == 0)
         return svp_fail(SVP_ERR_INVALID, "%s: all %zu pixels of the data y are NaN or Inf",

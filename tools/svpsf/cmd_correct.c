@@ -433,6 +433,8 @@ static void correct_report_balance(cli_run *run, const struct correct_args *a,
     cli_result_num(run, key, r->balance);
     snprintf(key, sizeof key, "noise_sigma_%s", name);
     cli_result_num(run, key, r->noise_sigma);
+    snprintf(key, sizeof key, "noise_per_pixel_%s", name);
+    cli_result_int(run, key, r->noise_per_pixel);
     snprintf(key, sizeof key, "balance_rule_%s", name);
     cli_result_str(run, key, r->balance_lcurve ? "lcurve" : "discrepancy");
     char what[600];
@@ -447,11 +449,12 @@ static void correct_report_balance(cli_run *run, const struct correct_args *a,
     }
     if (*at < sizeof job->bal)
         *at +=
-            (size_t)snprintf(job->bal + *at, sizeof job->bal - *at, "%s %s %g (%s, noise sigma %g)",
+            (size_t)snprintf(job->bal + *at, sizeof job->bal - *at, "%s %s %g (%s, %s %g)",
                              *at ? "," : ", automatic balance:", k == 0 ? "PL" : name, r->balance,
                              r->balance_lcurve ? "L-curve corner: the noise level is "
                                                  "out of reach"
                                                : "discrepancy principle",
+                             r->noise_per_pixel ? "per-pixel noise of rms sigma" : "noise sigma",
                              r->noise_sigma);
 }
 
@@ -570,12 +573,13 @@ static int correct_write(cli_run *run, const struct correct_args *a, struct corr
         snprintf(iters, sizeof iters, ", %d RL iterations (auto: %s)", job->summary.rl_iterations,
                  cli_rl_stop_names[job->summary.rl_stop]);
     printf("svpsf correct: %d field map%s of %d x %d corrected with %s%s%s. "
-           "%zu input pixel%s were missing (NaN/Inf) and treated as missing data; "
+           "%zu input pixel%s missing (NaN/Inf in a map or its --field-sigma) and treated "
+           "as missing data; "
            "%zu pixels (%.2f %%) are flagged (validity < 1), %zu of them with no "
            "information (validity 0). Time %.2f s (deconvolutions %.2f s).%s "
            "Outputs in %s.\n",
            maps->n_fields, maps->n_fields > 1 ? "s" : "", w, h, method_long_name(opt->method),
-           iters, job->bal, job->n_missing, job->n_missing == 1 ? "" : "s", job->n_flagged,
+           iters, job->bal, job->n_missing, job->n_missing == 1 ? " was" : "s were", job->n_flagged,
            100.0 * (double)job->n_flagged / (double)n, job->n_invalid, cli_now() - run->t_start,
            cli_stage_seconds(run, "transform"), op, run->output);
     return 0;
