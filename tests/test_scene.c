@@ -545,6 +545,50 @@ static void test_strip_reconstruction(void **state)
     svp_scene_free(s);
 }
 
+/* A wire without current is still metal: it quenches the emission under it and its 'strips'
+ * mask exists (both came from |J| / J, so a current of 0 made neither: no quench, and an
+ * empty default mask that stopped the run) */
+static void test_strip_without_current(void **state)
+{
+    (void)state;
+    svp_scene *s = load("dark_wire.yaml",
+                        FLAKE_SCENE_HEAD
+                        "  - strip: {width_um: 1, current_mA: 0, standoff_nm: 60, angle_deg: 90,\n"
+                        "            centre_um: [-2.5, 0]}\n"
+                        "emission:\n"
+                        "  - quench: {under: strips, factor: 0.1}\n"
+                        "psf: {model: gaussian, fwhm_um: 0.3}\n"
+                        "metrics:\n"
+                        "  masks: [{name: wire, inside: strips}]\n");
+    svp_scene_result *r = run_nowrite(s);
+    const svp_image *pl = map(r, "pl_true"), *wire = map(r, "mask_wire");
+    size_t n_wire = 0;
+    const size_t n = (size_t)pl->width * pl->height;
+    for (size_t p = 0; p < n; p++)
+        if (wire->data[p] != 0) {
+            n_wire++;
+            ASSERT_CLOSE(pl->data[p], 0.1, 1e-12);
+        }
+    /* 1 µm wide (10 px) across the 64 px view */
+    assert_int_equal(n_wire, 10 * 64);
+    svp_scene_result_free(r);
+    svp_scene_free(s);
+    /* a wire outside the view leaves its default mask empty: named as a default, not as
+     * "s.yaml: : mask" */
+    s = load("far_wire.yaml", "grid: {pixel_um: 0.1, size_um: [6.4, 6.4]}\n"
+                              "sources:\n"
+                              "  - strip: {width_um: 1, current_mA: 1, standoff_nm: 60,\n"
+                              "            angle_deg: 90, centre_um: [100, 0]}\n"
+                              "psf: {model: gaussian, fwhm_um: 0.3}\n");
+    svp_scene_options o;
+    svp_scene_defaults(&o);
+    o.write = 0;
+    assert_int_equal(svp_scene_run(s, NULL, &o, &r), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "the default mask 'strip' holds no pixel"));
+    assert_non_null(strstr(svp_last_error(), "are the sources inside the view?"));
+    svp_scene_free(s);
+}
+
 /* ---- noise -------------------------------------------------------------------------------- */
 
 static void test_noise(void **state)
@@ -992,6 +1036,7 @@ int main(void)
         cmocka_unit_test(test_correct_margin),
         cmocka_unit_test(test_correct_margin_regions),
         cmocka_unit_test(test_strip_reconstruction),
+        cmocka_unit_test(test_strip_without_current),
         cmocka_unit_test(test_noise),
         cmocka_unit_test(test_determinism),
         cmocka_unit_test(test_cube_centroid_is_closed_form),

@@ -149,13 +149,18 @@ svp_status scene_make_masks(const svp_scene *s, svp_scene_result *r)
             for (size_t p = 0; p < n; p++)
                 if (!(pl->data[p] >= mk->lit_above * pl_max)) mask->data[p] = 0;
         /* an empty mask has no statistics: every metric over it would be NaN */
-        if (mask_count(mask) == 0)
+        if (mask_count(mask) == 0) {
+            const int own = mk->where[0] != 0; /* else one of the scene's defaults */
             return svp_fail(SVP_ERR_INVALID,
-                            "%s: mask '%s' holds no pixel of the %d x %d view (its region %zu, "
+                            "%s%s mask '%s' holds no pixel of the %d x %d view (its region %zu, "
                             "after erode_um %g: %zu, after lit_above %g: 0): its statistics "
-                            "would be NaN; widen it, erode less, or drop it",
-                            mk->where, mk->name, w, h, n_region, mk->erode_um, n_eroded,
-                            mk->lit_above);
+                            "would be NaN; %s",
+                            own ? mk->where : "", own ? ":" : "the default", mk->name, w, h,
+                            n_region, mk->erode_um, n_eroded, mk->lit_above,
+                            own ? "widen it, erode less, or drop it"
+                                : "are the sources inside the view? (metrics: masks: lists the "
+                                  "masks to use instead of the defaults)");
+        }
     }
     return SVP_OK;
 }

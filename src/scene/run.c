@@ -236,10 +236,17 @@ static svp_status stage_sources(run_ctx *c)
                 add_into(jy, tj[1], 1);
                 size_t n = (size_t)w * h;
                 double j = fabs(strip.sheet_current);
-                for (size_t p = 0; p < n; p++)
+                if (!(j > 0)) {
+                    /* a wire without current is still metal: it quenches the emission under
+                     * it and makes the 'strips' masks (its cover, from a unit current) */
+                    svp_strip unit = strip;
+                    unit.sheet_current = 1;
+                    j = 1;
+                    st = svp_strip_current(&unit, sn.pixel_m, tj[0], tj[1]);
+                }
+                for (size_t p = 0; st == SVP_OK && p < n; p++)
                     cover_s->data[p] =
-                        fmin(1.0, cover_s->data[p] +
-                                      (j > 0 ? hypot(tj[0]->data[p], tj[1]->data[p]) / j : 0));
+                        fmin(1.0, cover_s->data[p] + hypot(tj[0]->data[p], tj[1]->data[p]) / j);
             }
         } else {
             svp_image *f = NULL;
