@@ -589,6 +589,58 @@ static void test_strip_without_current(void **state)
     svp_scene_free(s);
 }
 
+/* Failed per-pixel fits of a spectrum are missing data (NaN), as `svpsf fit-odmr` writes them
+ * by default: the corrections treat them as missing, the reconstructions fill them and give
+ * NaN there, the metrics skip them. Before, a fit's last parameters (up to 1e95 T at 10
+ * photons) went on as data. A measurement whose fits mostly fail is refused. */
+#define NOISY_SPECTRUM(photons)                                                                    \
+    "grid: {pixel_um: 0.1, size_um: [4, 4]}\n"                                                     \
+    "sources:\n"                                                                                   \
+    "  - flake: {shape: rectangle, size_um: [2, 2], magnetisation_A_per_m: 1.0e5,\n"               \
+    "            thickness_nm: 1, standoff_nm: 100}\n"                                             \
+    "psf: {model: gaussian, fwhm_um: 0.3}\n"                                                       \
+    "effects:\n"                                                                                   \
+    "  spectrum: {points: 50, linewidth_MHz: 1, contrast: 0.02, estimator: lorentzian_fit}\n"      \
+    "  noise: {photons_per_pixel: " photons ", seed: 1}\n"                                         \
+    "correct:\n"                                                                                   \
+    "  - {method: r, iterations: 10}\n"                                                            \
+    "reconstruct: magnetisation\n"
+
+static void test_failed_fits_are_missing(void **state)
+{
+    (void)state;
+    svp_scene *s = load("noisy.yaml", NOISY_SPECTRUM("1e7"));
+    svp_scene_result *r = run_nowrite(s);
+    const double failed = value(r, "cube/z/fits_not_converged");
+    const svp_image *app = map(r, "B_z_apparent"), *mz = map(r, "m_z_apparent");
+    const size_t n = (size_t)app->width * app->height;
+    size_t n_nan = 0, n_mz_nan = 0;
+    for (size_t p = 0; p < n; p++) {
+        n_nan += isnan(app->data[p]) != 0;
+        n_mz_nan += isnan(mz->data[p]) != 0;
+    }
+    print_message("1e7 photons: %.0f of %zu fits failed, %zu NaN in B_z_apparent; m_z filled at "
+                  "%.0f pixels\n",
+                  failed, n, n_nan, value(r, "reconstruct/m_z/apparent/filled_pixels"));
+    assert_true(failed > 0 && failed < 0.5 * (double)n);
+    assert_int_equal(n_nan, (size_t)failed);
+    assert_int_equal(n_mz_nan, (size_t)failed);
+    ASSERT_CLOSE(value(r, "reconstruct/m_z/apparent/filled_pixels"), failed, 0);
+    const svp_image *corr = map(r, "B_z_corrected_r");
+    for (size_t p = 0; p < n; p++) assert_true(isfinite(corr->data[p]));
+    svp_scene_result_free(r);
+    svp_scene_free(s);
+    /* 10 photons: nearly every fit fails */
+    s = load("hopeless.yaml", NOISY_SPECTRUM("10"));
+    svp_scene_options o;
+    svp_scene_defaults(&o);
+    o.write = 0;
+    assert_int_equal(svp_scene_run(s, NULL, &o, &r), SVP_ERR_INVALID);
+    assert_non_null(strstr(svp_last_error(), "pixel fits of B_z did not converge"));
+    assert_non_null(strstr(svp_last_error(), "raise effects.noise.photons_per_pixel"));
+    svp_scene_free(s);
+}
+
 /* ---- noise -------------------------------------------------------------------------------- */
 
 static void test_noise(void **state)
@@ -1037,6 +1089,7 @@ int main(void)
         cmocka_unit_test(test_correct_margin_regions),
         cmocka_unit_test(test_strip_reconstruction),
         cmocka_unit_test(test_strip_without_current),
+        cmocka_unit_test(test_failed_fits_are_missing),
         cmocka_unit_test(test_noise),
         cmocka_unit_test(test_determinism),
         cmocka_unit_test(test_cube_centroid_is_closed_form),

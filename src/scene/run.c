@@ -631,16 +631,27 @@ static svp_status cube_register(run_ctx *c, svp_cube *view_cube, const char *cn)
 }
 
 /* The per-pixel estimate of a cube (centroid with the baseline, or the Lorentzian fit), the
- * bias removed. */
+ * bias removed. A fit that did not converge (or found no dip the sweep shows) is NaN, missing
+ * data, as `svpsf fit-odmr` writes it by default (--failed nan): its last parameters reached
+ * 1e95 T on a noisy cube, and a correction of them blew up. */
 static svp_status cube_estimate(const svp_scene *s, const svp_odmr *odmr, const svp_cube *cube,
                                 const svp_image *baseline, double bias, svp_image *est,
                                 size_t *failed)
 {
     const size_t n = (size_t)cube->width * cube->height;
     *failed = 0;
-    svp_status st = s->estimator == 0
-                        ? svp_odmr_centroid(odmr, cube, baseline, 0, 0, est, NULL)
-                        : svp_odmr_fit(odmr, cube, NULL, est, NULL, NULL, NULL, failed);
+    svp_status st;
+    if (s->estimator == 0) {
+        st = svp_odmr_centroid(odmr, cube, baseline, 0, 0, est, NULL);
+    } else {
+        svp_image *ok = NULL;
+        st = svp_image_new(cube->width, cube->height, &ok);
+        svp_odmr_maps maps = {.field = est, .converged = ok};
+        if (st == SVP_OK) st = svp_odmr_fit_maps(odmr, cube, NULL, &maps, failed);
+        for (size_t p = 0; p < n && st == SVP_OK; p++)
+            if (!(ok->data[p] > 0)) est->data[p] = NAN;
+        svp_image_free(ok);
+    }
     for (size_t p = 0; p < n && st == SVP_OK; p++) est->data[p] -= bias;
     return st;
 }
@@ -848,6 +859,19 @@ static svp_status stage_cube(run_ctx *c)
         total_failed += (double)failed;
         if (st == SVP_OK && s->estimator)
             st = value(c, (double)failed, "cube/%s/fits_not_converged", cn);
+        /* a measurement whose fits mostly fail has no apparent map to compare or correct */
+        if (st == SVP_OK && s->estimator && 2 * failed > (size_t)vw * vh) {
+            char why[160] = "";
+            if (s->noise)
+                snprintf(why, sizeof why, " (effects.noise: %g photons at the brightest pixel "
+                         "over %d frames)", s->photons, nfreq);
+            st = svp_fail(SVP_ERR_INVALID,
+                          "%s: %zu of the %d pixel fits of B_%s did not converge or found no "
+                          "dip in the noise%s: the apparent map would be mostly missing; raise "
+                          "effects.noise.photons_per_pixel or effects.spectrum.contrast, or use "
+                          "the centroid estimator",
+                          s->path, failed, vw * vh, cn, why);
+        }
         if (st == SVP_OK) st = value(c, now_s() - t_est, "cube/%s/estimate_seconds", cn);
         for (int j = 0; j < s->n_correct && st == SVP_OK; j++)
             if (s->correct[j].cube) st = cube_correct(c, j, k, &odmr, view_cube, bias);
@@ -1058,6 +1082,70 @@ static svp_status stage_correct(run_ctx *c)
 
 /* ---- reconstruction ------------------------------------------------------------------------ */
 
+/* A field map with missing pixels (NaN: fits that failed) for the reconstruction, which needs a
+ * complete map: a copy (*filled, to free) with each missing pixel the mean of its measured
+ * 8-neighbours, layer by layer from the measured ones inwards; *n_missing counts them. The map
+ * itself when complete (*filled NULL). */
+static svp_status recon_source(const svp_image *map, svp_image **filled, size_t *n_missing)
+{
+    *filled = NULL;
+    *n_missing = map ? svp_image_count_nonfinite(map) : 0;
+    if (!*n_missing) return SVP_OK;
+    const int w = map->width, h = map->height;
+    const size_t n = (size_t)w * h;
+    if (*n_missing == n)
+        return svp_fail(SVP_ERR_INVALID, "every pixel of the field map is missing (NaN)");
+    SVP_CHECK(svp_image_new(w, h, filled));
+    unsigned char *have = malloc(n), *next = malloc(n);
+    if (!have || !next) {
+        free(have);
+        free(next);
+        svp_image_free(*filled);
+        *filled = NULL;
+        return svp_fail(SVP_ERR_NOMEM, "out of memory");
+    }
+    double *v = (*filled)->data;
+    for (size_t p = 0; p < n; p++) {
+        have[p] = isfinite(map->data[p]) != 0;
+        v[p] = have[p] ? map->data[p] : 0.0;
+    }
+    for (int grown = 1; grown;) {
+        grown = 0;
+        memcpy(next, have, n);
+        for (int y = 0; y < h; y++)
+            for (int x = 0; x < w; x++) {
+                const size_t p = (size_t)y * w + x;
+                if (have[p]) continue;
+                double sum = 0;
+                int count = 0;
+                for (int dy = -1; dy <= 1; dy++)
+                    for (int dx = -1; dx <= 1; dx++) {
+                        const int xx = x + dx, yy = y + dy;
+                        if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
+                        const size_t k = (size_t)yy * w + xx;
+                        if (have[k]) sum += v[k], count++;
+                    }
+                if (count) {
+                    v[p] = sum / count;
+                    next[p] = 1;
+                    grown = 1;
+                }
+            }
+        memcpy(have, next, n);
+    }
+    free(have);
+    free(next);
+    return SVP_OK;
+}
+
+/* NaN where the field maps the reconstruction came from were missing (filled only for it) */
+static void recon_mark_missing(svp_image *out, const svp_image *a, const svp_image *b)
+{
+    if (!out) return;
+    for (size_t p = 0; p < (size_t)out->width * out->height; p++)
+        if ((a && !isfinite(a->data[p])) || (b && !isfinite(b->data[p]))) out->data[p] = NAN;
+}
+
 static svp_status stage_reconstruct(run_ctx *c)
 {
     const int r = c->s->plan[c->stage].index;
@@ -1078,11 +1166,32 @@ static svp_status stage_reconstruct(run_ctx *c)
         char vn[48], name[96];
         memcpy(vn, versions[v], sizeof vn); /* bounded: keeps the names' lengths visible */
         SVP_CHECK(progress(c, (double)v / nv));
-        if (rc->kind == RECON_MAGNETISATION) {
+        /* a version's field maps may miss pixels (failed fits of a spectrum, NaN): filled
+         * for the reconstruction, NaN again in its result, counted */
+        const svp_image *bz = get(c, "B_z_%s", vn), *bx = get(c, "B_x_%s", vn),
+                        *by = get(c, "B_y_%s", vn);
+        svp_image *fz = NULL, *fx = NULL, *fy = NULL;
+        size_t mz_n = 0, mx_n = 0, my_n = 0;
+        svp_status st = recon_source(rc->kind == RECON_CURRENT_BXY ? NULL : bz, &fz, &mz_n);
+        if (st == SVP_OK && rc->kind == RECON_CURRENT_BXY) st = recon_source(bx, &fx, &mx_n);
+        if (st == SVP_OK && rc->kind == RECON_CURRENT_BXY) st = recon_source(by, &fy, &my_n);
+        if (st == SVP_OK)
+            st = value(c, (double)(mz_n + mx_n + my_n), "reconstruct/%s/%s/filled_pixels",
+                       rc->name, vn);
+        const svp_image *in_z = fz ? fz : bz, *in_x = fx ? fx : bx, *in_y = fy ? fy : by;
+        if (st == SVP_OK && rc->kind == RECON_MAGNETISATION) {
             svp_image *mz = NULL;
             snprintf(name, sizeof name, "m_z_%s", vn);
-            NEW_MAP(mz, c, name, w, h);
-            SVP_CHECK(svp_reconstruct_magnetisation(get(c, "B_z_%s", vn), &o, mz));
+            mz = new_map(c, name, w, h);
+            if (!mz) st = svp_fail(SVP_ERR_NOMEM, "out of memory");
+            if (st == SVP_OK) st = svp_reconstruct_magnetisation(in_z, &o, mz);
+            if (st == SVP_OK) recon_mark_missing(mz, bz, NULL);
+        }
+        if (st != SVP_OK || rc->kind == RECON_MAGNETISATION) {
+            svp_image_free(fz);
+            svp_image_free(fx);
+            svp_image_free(fy);
+            if (st != SVP_OK) return svp_fail_context(st, "reconstruction of %s", vn);
             continue;
         }
         svp_image *jx = NULL, *jy = NULL, *jn = NULL;
@@ -1093,12 +1202,23 @@ static svp_status stage_reconstruct(run_ctx *c)
         snprintf(name, sizeof name, "%s_%s", rc->name, vn);
         NEW_MAP(jn, c, name, w, h);
         if (rc->kind == RECON_CURRENT_BZ) {
-            SVP_CHECK(svp_reconstruct_current_from_bz(get(c, "B_z_%s", vn), &o, jx, jy));
+            st = svp_reconstruct_current_from_bz(in_z, &o, jx, jy);
         } else {
-            const svp_image *bx = get(c, "B_x_%s", vn), *by = get(c, "B_y_%s", vn);
-            SVP_CHECK(svp_reconstruct_current_from_bxy(bx, by, &o, by ? jx : NULL, bx ? jy : NULL));
+            st = svp_reconstruct_current_from_bxy(bx ? in_x : NULL, by ? in_y : NULL, &o,
+                                                  by ? jx : NULL, bx ? jy : NULL);
         }
+        svp_image_free(fz);
+        svp_image_free(fx);
+        svp_image_free(fy);
+        if (st != SVP_OK) return svp_fail_context(st, "reconstruction of %s", vn);
         for (size_t p = 0; p < (size_t)w * h; p++) jn->data[p] = hypot(jx->data[p], jy->data[p]);
+        if (rc->kind == RECON_CURRENT_BZ) {
+            recon_mark_missing(jx, bz, NULL), recon_mark_missing(jy, bz, NULL);
+            recon_mark_missing(jn, bz, NULL);
+        } else {
+            recon_mark_missing(jx, bx, by), recon_mark_missing(jy, bx, by);
+            recon_mark_missing(jn, bx, by);
+        }
     }
     if (rc->kind != RECON_MAGNETISATION && !get(c, "J_source_norm")) {
         svp_image *jn = NULL;
