@@ -105,6 +105,40 @@ static int cmp_double(const void *a, const void *b)
     return (x > y) - (x < y);
 }
 
+/* svp_fill_nan (internal.h) */
+svp_status svp_fill_nan(double *restrict v, int w, int h, int max_passes, double fallback)
+{
+    const size_t n = (size_t)w * h;
+    double *prev = svp_alloc(n * sizeof(double));
+    if (!prev) return svp_fail(SVP_ERR_NOMEM, "out of memory filling missing pixels");
+    for (int pass = 0; pass < max_passes; pass++) {
+        memcpy(prev, v, n * sizeof(double));
+        size_t left = 0;
+        for (int y = 0; y < h; y++)
+            for (int x = 0; x < w; x++) {
+                if (!isnan(prev[(size_t)y * w + x])) continue;
+                double sum = 0;
+                int count = 0;
+                for (int j = y - 1; j <= y + 1; j++)
+                    for (int i = x - 1; i <= x + 1; i++)
+                        if (i >= 0 && i < w && j >= 0 && j < h &&
+                            !isnan(prev[(size_t)j * w + i])) {
+                            sum += prev[(size_t)j * w + i];
+                            count++;
+                        }
+                if (count)
+                    v[(size_t)y * w + x] = sum / count;
+                else
+                    left++;
+            }
+        if (!left) break;
+    }
+    for (size_t i = 0; i < n; i++)
+        if (isnan(v[i])) v[i] = fallback;
+    svp_free(prev);
+    return SVP_OK;
+}
+
 double svp_median(double *v, size_t n)
 {
     qsort(v, n, sizeof *v, cmp_double);

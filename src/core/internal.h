@@ -58,6 +58,10 @@ double svp_max_abs(const double *restrict x, size_t n); /* largest finite |value
  * else 0 (also for none): the power of two that brings data of extreme magnitude to unit size
  * and back exactly (linear steps commute with it bit for bit, barring overflow). */
 int svp_unit_exponent(const double *restrict x, size_t n, int bits);
+/* Fills the NaN pixels of v (w x h) with the mean of their non-NaN 3 x 3 neighbours, growing
+ * inwards one ring per pass for clusters; what is left after max_passes passes (large holes)
+ * gets `fallback`. A local fill adds far less spurious texture than a constant. */
+svp_status svp_fill_nan(double *restrict v, int w, int h, int max_passes, double fallback);
 /* Median of v[0..n), n >= 1 (sorts v in place; the mean of the middle two for even n). */
 double svp_median(double *v, size_t n);
 /* The k-th smallest of a[0..n) (0-based, n > 0, k < n) by quickselect; reorders a. */

@@ -161,41 +161,11 @@ svp_status svp_warp(const svp_image *moving, const double affine[6],
 
 /* ---- preprocessing ------------------------------------------------------------------------- */
 
-/* Fills the NaN pixels of v (w x h) with the mean of their finite 3 x 3 neighbours, growing
- * inwards one ring per pass for clusters; what is left after FILL_PASSES passes (large holes)
- * gets `fallback`. A local fill adds far less spurious texture than a constant. */
+/* large holes: what the neighbour fill leaves after this many rings gets the fallback */
 #define FILL_PASSES 8
 static svp_status fill_holes(double *restrict v, int w, int h, double fallback)
 {
-    const size_t n = (size_t)w * h;
-    double *prev = svp_alloc(n * sizeof(double));
-    if (!prev) return svp_fail(SVP_ERR_NOMEM, "registration: out of memory");
-    for (int pass = 0; pass < FILL_PASSES; pass++) {
-        memcpy(prev, v, n * sizeof(double));
-        size_t left = 0;
-        for (int y = 0; y < h; y++)
-            for (int x = 0; x < w; x++) {
-                if (!isnan(prev[(size_t)y * w + x])) continue;
-                double sum = 0;
-                int count = 0;
-                for (int j = y - 1; j <= y + 1; j++)
-                    for (int i = x - 1; i <= x + 1; i++)
-                        if (i >= 0 && i < w && j >= 0 && j < h &&
-                            !isnan(prev[(size_t)j * w + i])) {
-                            sum += prev[(size_t)j * w + i];
-                            count++;
-                        }
-                if (count)
-                    v[(size_t)y * w + x] = sum / count;
-                else
-                    left++;
-            }
-        if (!left) break;
-    }
-    for (size_t i = 0; i < n; i++)
-        if (isnan(v[i])) v[i] = fallback;
-    svp_free(prev);
-    return SVP_OK;
+    return svp_fill_nan(v, w, h, FILL_PASSES, fallback);
 }
 
 /* out = (x − mean) / sd (normalise) or x, with mean and sd over the finite pixels; non-finite

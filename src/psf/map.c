@@ -331,9 +331,6 @@ typedef struct poly_work {
     unsigned char *mask;
 } poly_work;
 
-/* The polynomial surface of parameter q: its values and 1/σ per spot, the degree (given, or
- * by cross-validation) and the weighted fit, repeated while outliers are clipped; then the
- * report's degree, n_used, chi2_red and rms. */
 /* The surface's standard error over the field (svp_map_report.surface_se_max): the final
  * fit's R factor (A = Q R, rows weighted by 1/σ) gives bᵀ (AᵀA)⁻¹ b = |R⁻ᵀ b|², scaled by
  * √χ²_red when the scatter exceeds the spots' errors; the worst of a 33 x 33 grid over the
@@ -343,10 +340,9 @@ static svp_status surface_error(const poly_data *d, int nt, svp_map_report *rep,
                                 int height)
 {
     unsigned char *mask = malloc((size_t)d->n);
-    double *coef = malloc(MAX_TERMS * sizeof(double)), *spot_se = malloc((size_t)d->n * sizeof(double));
-    if (!mask || !coef || !spot_se) {
+    double coef[MAX_TERMS], *spot_se = malloc((size_t)d->n * sizeof(double));
+    if (!mask || !spot_se) {
         free(mask);
-        free(coef);
         free(spot_se);
         return svp_fail(SVP_ERR_NOMEM, "PSF map: out of memory");
     }
@@ -382,11 +378,13 @@ static svp_status surface_error(const poly_data *d, int nt, svp_map_report *rep,
             }
     }
     free(mask);
-    free(coef);
     free(spot_se);
     return SVP_OK;
 }
 
+/* The polynomial surface of parameter q: its values and 1/σ per spot, the degree (given, or
+ * by cross-validation) and the weighted fit, repeated while outliers are clipped; then the
+ * report's degree, n_used, chi2_red, rms and surface error. */
 static svp_status poly_fit_param(const svp_psf_sample *samples, int n, const svp_map_options *op,
                                  svp_map_report *rep, int q, poly_work *pw, double *coeffs,
                                  int width, int height)

@@ -669,6 +669,23 @@ static void cube_baseline(const svp_cube *cube, svp_image *baseline)
     }
 }
 
+/* A measurement whose fits mostly fail has no apparent map to compare or correct: refused. */
+static svp_status fits_mostly_failed(const svp_scene *s, size_t failed, int n, int nfreq,
+                                     const char *cn)
+{
+    if (2 * failed <= (size_t)n) return SVP_OK;
+    char why[160] = "";
+    if (s->noise)
+        snprintf(why, sizeof why, " (effects.noise: %g photons at the brightest pixel over %d "
+                 "frames)", s->photons, nfreq);
+    return svp_fail(SVP_ERR_INVALID,
+                    "%s: %zu of the %d pixel fits of B_%s did not converge or found no dip in "
+                    "the noise%s: the apparent map would be mostly missing; raise "
+                    "effects.noise.photons_per_pixel or effects.spectrum.contrast, or use the "
+                    "centroid estimator",
+                    s->path, failed, n, cn, why);
+}
+
 static svp_status correct_margin(run_ctx *c, const scene_correct *cr, const scene_psf *psf,
                                  int w, int h, int *m);
 /* Correction j of method cube, component k: a copy of the view's cube deconvolved frame by
@@ -859,19 +876,7 @@ static svp_status stage_cube(run_ctx *c)
         total_failed += (double)failed;
         if (st == SVP_OK && s->estimator)
             st = value(c, (double)failed, "cube/%s/fits_not_converged", cn);
-        /* a measurement whose fits mostly fail has no apparent map to compare or correct */
-        if (st == SVP_OK && s->estimator && 2 * failed > (size_t)vw * vh) {
-            char why[160] = "";
-            if (s->noise)
-                snprintf(why, sizeof why, " (effects.noise: %g photons at the brightest pixel "
-                         "over %d frames)", s->photons, nfreq);
-            st = svp_fail(SVP_ERR_INVALID,
-                          "%s: %zu of the %d pixel fits of B_%s did not converge or found no "
-                          "dip in the noise%s: the apparent map would be mostly missing; raise "
-                          "effects.noise.photons_per_pixel or effects.spectrum.contrast, or use "
-                          "the centroid estimator",
-                          s->path, failed, vw * vh, cn, why);
-        }
+        if (st == SVP_OK && s->estimator) st = fits_mostly_failed(s, failed, vw * vh, nfreq, cn);
         if (st == SVP_OK) st = value(c, now_s() - t_est, "cube/%s/estimate_seconds", cn);
         for (int j = 0; j < s->n_correct && st == SVP_OK; j++)
             if (s->correct[j].cube) st = cube_correct(c, j, k, &odmr, view_cube, bias);
@@ -1084,7 +1089,7 @@ static svp_status stage_correct(run_ctx *c)
 
 /* A field map with missing pixels (NaN: fits that failed) for the reconstruction, which needs a
  * complete map: a copy (*filled, to free) with each missing pixel the mean of its measured
- * 8-neighbours, layer by layer from the measured ones inwards; *n_missing counts them. The map
+ * 3 x 3 neighbours, ring by ring inwards (svp_fill_nan); *n_missing counts them. The map
  * itself when complete (*filled NULL). */
 static svp_status recon_source(const svp_image *map, svp_image **filled, size_t *n_missing)
 {
@@ -1096,46 +1101,15 @@ static svp_status recon_source(const svp_image *map, svp_image **filled, size_t 
     if (*n_missing == n)
         return svp_fail(SVP_ERR_INVALID, "every pixel of the field map is missing (NaN)");
     SVP_CHECK(svp_image_new(w, h, filled));
-    unsigned char *have = malloc(n), *next = malloc(n);
-    if (!have || !next) {
-        free(have);
-        free(next);
+    for (size_t p = 0; p < n; p++)
+        (*filled)->data[p] = isfinite(map->data[p]) ? map->data[p] : NAN;
+    /* w + h rings reach every pixel from any measured one */
+    svp_status st = svp_fill_nan((*filled)->data, w, h, w + h, 0.0);
+    if (st != SVP_OK) {
         svp_image_free(*filled);
         *filled = NULL;
-        return svp_fail(SVP_ERR_NOMEM, "out of memory");
     }
-    double *v = (*filled)->data;
-    for (size_t p = 0; p < n; p++) {
-        have[p] = isfinite(map->data[p]) != 0;
-        v[p] = have[p] ? map->data[p] : 0.0;
-    }
-    for (int grown = 1; grown;) {
-        grown = 0;
-        memcpy(next, have, n);
-        for (int y = 0; y < h; y++)
-            for (int x = 0; x < w; x++) {
-                const size_t p = (size_t)y * w + x;
-                if (have[p]) continue;
-                double sum = 0;
-                int count = 0;
-                for (int dy = -1; dy <= 1; dy++)
-                    for (int dx = -1; dx <= 1; dx++) {
-                        const int xx = x + dx, yy = y + dy;
-                        if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
-                        const size_t k = (size_t)yy * w + xx;
-                        if (have[k]) sum += v[k], count++;
-                    }
-                if (count) {
-                    v[p] = sum / count;
-                    next[p] = 1;
-                    grown = 1;
-                }
-            }
-        memcpy(have, next, n);
-    }
-    free(have);
-    free(next);
-    return SVP_OK;
+    return st;
 }
 
 /* NaN where the field maps the reconstruction came from were missing (filled only for it) */
