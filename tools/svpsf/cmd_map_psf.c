@@ -218,11 +218,11 @@ struct map_psf_args {
     double threshold, transition_um;
 };
 
-/* What a run holds (released by map_psf_release). */
 /* map-psf warns when a surface's standard error somewhere in the field exceeds this many
  * times the median error of a spot's own fit (svp_map_report.surface_se_max) */
 #define MAP_SURFACE_SE_RATIO 5.0
 
+/* What a run holds (released by map_psf_release). */
 struct map_psf_job {
     svp_yaml_doc *doc;
     double pixel_um;
@@ -721,7 +721,7 @@ static void map_psf_report_poly(cli_run *run, const struct map_psf_args *a,
                      pnames[q], a->mo.degree, rep->degree[q], rep->n_used[q]);
         /* a surface far less certain somewhere in the field than one spot's own fit is an
          * extrapolation the spots do not support (measured: 0.2-1.3 x for spots spread over
-         * the field, 6000 x for a row of spots at one y) */
+         * the field, 2.2e3 - 6e3 x for rows of spots at one y) */
         if (ratio > MAP_SURFACE_SE_RATIO)
             cli_warn(run,
                      "%s: the %s surface (degree %d) is uncertain to +-%.3g%s at pixel (%.0f, "
