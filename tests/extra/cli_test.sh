@@ -161,6 +161,15 @@ if awk -v e="$errs" 'BEGIN { split(e, x, " "); exit !(x[1] > 0 && x[2] > 0 && x[
 else
     fail "demo errors" "apparent/corrected = '$errs': $(cat out.demo)"
 fi
+# the demo corrects as `svpsf correct` does with its defaults (R, margin auto): the same bits
+expect_ok demo_npy demo -o demo_npy --format npy
+expect_ok demo_correct correct --field demo_npy/field_apparent.npy --pl demo_npy/pl_apparent.npy \
+    --psf demo_npy/psf.yaml --format npy --fft estimate -o demo_c
+if cmp -s demo_npy/field_corrected.npy demo_c/field.npy && cmp -s demo_npy/validity.npy demo_c/validity.npy; then
+    pass "demo: its correction is svpsf correct's with the defaults, bit for bit"
+else
+    fail "demo vs correct" "demo_npy/field_corrected.npy differs from demo_c/field.npy"
+fi
 sum_before=$(cat demo/*.tif demo/summary.json | cksum)
 expect_bad demo_exists "demo/|exists|--force" demo -o demo
 if [ "$(cat demo/*.tif demo/summary.json | cksum)" = "$sum_before" ]; then

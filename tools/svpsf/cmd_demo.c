@@ -1,6 +1,7 @@
 /* svpsf demo: a built-in example that needs no input files. A synthetic field map under a
- * chequered, spot-lit PL map is blurred by a Lorentzian PSF (T, eq. 3) and corrected with R&W
- * (T⁻¹, eq. 4); the errors in the lit regions before and after are printed.
+ * chequered, spot-lit PL map is blurred by a Lorentzian PSF (T, eq. 3) and corrected with
+ * `svpsf correct`'s defaults (T⁻¹, eq. 4: R, margin auto); the errors in the lit regions before
+ * and after are printed.
  * (`svpsf simulate` runs full scenes; this quick example is kept in its own file on purpose.) */
 #include "cli.h"
 
@@ -30,14 +31,14 @@ static void print_help(const cli_run *run, FILE *out)
             "  - a true PL map: a Gaussian illumination spot (FWHM %g um) times a chessboard of\n"
             "    %g um squares with levels 0.1, 0.8 and 1.0;\n"
             "  - a Lorentzian PSF of %g um FWHM reaching over the whole field of view.\n"
-            "It runs T (the apparent maps a microscope would record), then T^-1 with R&W\n"
-            "(%d Richardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL),\n"
-            "and prints the errors in the lit regions (true PL above %g %% of its maximum).\n"
+            "It runs T (the apparent maps a microscope would record), then T^-1 with the\n"
+            "defaults of svpsf correct (R: %d Richardson-Lucy iterations on the PL and on the\n"
+            "shifted field x PL, the object estimated on the view plus the PSF's reach), and\n"
+            "prints the errors in the lit regions (true PL above %g %% of its maximum).\n"
             "\n"
             "  -o, --output DIR      output folder (default ./svpsf-demo)\n",
             DEMO_SIZE, DEMO_SIZE, DEMO_PIXEL_UM, DEMO_SPOT_FWHM_PX * DEMO_PIXEL_UM,
-            DEMO_SQUARE_PX * DEMO_PIXEL_UM, DEMO_FWHM_UM, d.deconv.iterations, d.deconv.balance,
-            100 * DEMO_LIT);
+            DEMO_SQUARE_PX * DEMO_PIXEL_UM, DEMO_FWHM_UM, d.deconv.iterations, 100 * DEMO_LIT);
     cli_print_common_help(run, out);
     fputs("\n"
           "outputs in DIR: field_true, pl_true, field_apparent, pl_apparent, field_corrected,\n"
@@ -124,7 +125,7 @@ struct demo_job {
     svp_image *images[N_IMAGES]; /* indexed by the enum above */
     const char *image_paths[N_IMAGES], *figure_paths[N_FIGURES], *psf_path, *summary_path;
     svp_image *err_apparent, *err_corrected;
-    svp_blur *blur;
+    svp_blur *blur, *blur_margin; /* the view's (T); the view plus the margin's (T⁻¹) */
     svp_correct_options opt;
     size_t n_missing;
     double pl_max, peak; /* of the true PL and |field| */
@@ -186,21 +187,25 @@ static int demo_compute(cli_run *run, struct demo_job *job)
     psf.model = SVP_PSF_LORENTZIAN;
     psf.fwhm = DEMO_FWHM_UM / DEMO_PIXEL_UM;
     psf.beta = 1.0;
+    /* svpsf correct's defaults for one PSF at this size: R, margin auto, double precision */
     svp_correct_defaults(opt);
-    opt->method = SVP_METHOD_RW;
+    opt->margin = svp_psf_auto_margin(&psf, DEMO_SIZE, DEMO_SIZE);
     cli_setting_int(run, "size", DEMO_SIZE);
     cli_setting_num(run, "pixel_um", DEMO_PIXEL_UM);
     cli_setting_str(run, "psf_model", "lorentzian");
     cli_setting_num(run, "psf_fwhm_um", DEMO_FWHM_UM);
     cli_setting_str(run, "boundary", "zero");
-    cli_setting_str(run, "method", "rw");
+    cli_setting_str(run, "method", "r");
     cli_setting_int(run, "iterations", opt->deconv.iterations);
-    cli_setting_num(run, "balance", opt->deconv.balance);
+    cli_setting_int(run, "margin", opt->margin);
     cli_setting_num(run, "pl_floor", opt->pl_floor);
     cli_setting_num(run, "lit_threshold", DEMO_LIT);
 
     cli_stage_begin(run, "plan");
     svp_status st = svp_blur_new(&psf, DEMO_SIZE, DEMO_SIZE, SVP_BOUNDARY_ZERO, &job->blur);
+    if (st == SVP_OK)
+        st = svp_blur_new(&psf, DEMO_SIZE + 2 * opt->margin, DEMO_SIZE + 2 * opt->margin,
+                          SVP_BOUNDARY_ZERO, &job->blur_margin);
     if (st != SVP_OK) return cli_fail(run, st, "PSF");
 
     cli_stage_begin(run, "forward");
@@ -214,7 +219,8 @@ static int demo_compute(cli_run *run, struct demo_job *job)
     opt->deconv.progress_user = run;
     cli_progress_start(run, "correcting");
     const svp_image *fields_app[1] = {im[FIELD_APPARENT]};
-    st = svp_inverse_transform(job->blur, im[PL_APPARENT], fields_app, 1, opt, im[PL_CORRECTED],
+    st = svp_inverse_transform(job->blur_margin, im[PL_APPARENT], fields_app, 1, opt,
+                               im[PL_CORRECTED],
                                &im[FIELD_CORRECTED], im[VALIDITY], &job->n_missing);
     cli_progress_done(run);
     return st == SVP_OK ? 0 : cli_fail(run, st, "inverse transform");
@@ -281,7 +287,7 @@ static int demo_write(cli_run *run, struct demo_job *job)
              "# The svpsf demo's PSF: a Lorentzian of %g um FWHM at %g um pixels, reaching\n"
              "# over the whole field of view. Try:\n"
              "#   svpsf correct --field field_apparent.%s --pl pl_apparent.%s \\\n"
-             "#       --psf psf.yaml --method rw -o corrected\n"
+             "#       --psf psf.yaml -o corrected\n"
              "pixel_um: %g\n"
              "psf:\n"
              "  model: lorentzian\n"
@@ -311,14 +317,14 @@ static int run_demo(cli_run *run, const struct demo_args *a)
         const double peak = job.peak;
         printf(
             "svpsf demo: a %d x %d field map (peak %.3g uT) under a chequered, spot-lit PL map,\n"
-            "blurred by a Lorentzian PSF of %g um FWHM (%g um pixels), then corrected with R&W\n"
-            "(%d Richardson-Lucy iterations on the PL, Wiener-Hunt balance %g on field x PL).\n"
+            "blurred by a Lorentzian PSF of %g um FWHM (%g um pixels), then corrected with the\n"
+            "defaults of svpsf correct (R, %d Richardson-Lucy iterations, margin %d px).\n"
             "Errors in the lit regions (true PL > %g %% of max):\n"
             "  apparent  (T):     max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
             "  corrected (T^-1):  max %7.3f uT (%5.2f %% of peak), mean %7.3f uT (%5.2f %%)\n"
             "Time %.2f s. Outputs (maps, psf.yaml, figures *.png, summary.json) are in %s/\n",
             DEMO_SIZE, DEMO_SIZE, peak, DEMO_FWHM_UM, DEMO_PIXEL_UM, job.opt.deconv.iterations,
-            job.opt.deconv.balance, 100 * DEMO_LIT, ea.max, 100 * ea.max / peak, ea.mean,
+            job.opt.margin, 100 * DEMO_LIT, ea.max, 100 * ea.max / peak, ea.mean,
             100 * ea.mean / peak, ec.max, 100 * ec.max / peak, ec.mean, 100 * ec.mean / peak,
             cli_now() - run->t_start, a->output);
     }
@@ -326,6 +332,7 @@ static int run_demo(cli_run *run, const struct demo_args *a)
     svp_image_free(job.err_apparent);
     svp_image_free(job.err_corrected);
     svp_blur_free(job.blur);
+    svp_blur_free(job.blur_margin);
     return code;
 }
 
