@@ -622,16 +622,24 @@ static cli_input *record_read(cli_run *run, const char *role, const char *path, 
     return in;
 }
 
-int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out)
+int cli_read_image_info(cli_run *run, const char *role, const char *path, svp_image **out,
+                        svp_mat_info *info_out)
 {
     *out = NULL;
-    svp_mat_info info = {.pixel_um = 0};
+    svp_mat_info info;
+    memset(&info, 0, sizeof info);
     svp_status st = is_mat_input(path) ? svp_mat_read(path, NULL, out, &info)
                                        : svp_image_read(path, out);
+    if (info_out) *info_out = info;
     if (st != SVP_OK) return cli_fail(run, st, path);
     record_read(run, role, path, (*out)->width, (*out)->height, info.pixel_um)->n_nonfinite =
         (long long)svp_image_count_nonfinite(*out);
     return 0;
+}
+
+int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out)
+{
+    return cli_read_image_info(run, role, path, out, NULL);
 }
 
 int cli_read_stack(cli_run *run, const char *role, const char *path, svp_stack **out)

@@ -236,6 +236,10 @@ extern const char *const cli_precision_names[];
 /* Reads an image (svp_image_read) and records it as an input with `role` ("pl", "field").
  * On failure prints the message (it names the file) and returns the exit code; 0 on success. */
 int cli_read_image(cli_run *run, const char *role, const char *path, svp_image **out);
+/* The same, and what a MATLAB file holds beside the map (its `step`, `h`; zeros for other
+ * formats) into *info (may be NULL). */
+int cli_read_image_info(cli_run *run, const char *role, const char *path, svp_image **out,
+                        svp_mat_info *info);
 /* Reads a stack (svp_stack_read; a .mat through svp_mat_read_stack, its `step` recorded as
  * cli_read_image does) and records it as an input with `role`; the exit code, 0 on success. */
 int cli_read_stack(cli_run *run, const char *role, const char *path, svp_stack **out);

@@ -188,28 +188,22 @@ static int reconstruct_check_maps(const cli_run *run, const struct reconstruct_a
 }
 
 /* A QDMlab Bz file (.mat) holds the pixel size (`step`) and the stand-off (`h`): used when the
- * options are not given (docs/cli.md, MATLAB / QDMlab files). */
-static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a)
+ * options are not given (docs/cli.md, MATLAB / QDMlab files). info[k]: what reading map k found
+ * beside it (zeros for other formats), so that each file is read once. */
+static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a,
+                                    const svp_mat_info info[3])
 {
     const char *odd_step = NULL; /* a file whose `step` is not one pixel size */
     int odd_n = 0;
     for (int k = 0; k < 3 && !(a->pixel_um > 0 && a->standoff_nm > 0); k++) {
-        char mfile[PATH_MAX], mvar[64];
-        int bad = 0;
-        if (!a->paths[k] ||
-            !svp_io_mat_path(a->paths[k], mfile, sizeof mfile, mvar, sizeof mvar, &bad))
-            continue;
-        svp_image *tmp = NULL;
-        svp_mat_info info;
-        svp_status st = svp_mat_read(a->paths[k], NULL, &tmp, &info);
-        svp_image_free(tmp);
-        if (st != SVP_OK) return cli_fail(run, st, a->paths[k]);
-        if (!(a->pixel_um > 0) && info.pixel_um > 0) a->pixel_um = info.pixel_um;
-        if (info.step_elements > 0 && !(info.pixel_um > 0) && !odd_step) {
+        if (!a->paths[k]) continue;
+        if (!(a->pixel_um > 0) && info[k].pixel_um > 0) a->pixel_um = info[k].pixel_um;
+        if (info[k].step_elements > 0 && !(info[k].pixel_um > 0) && !odd_step) {
             odd_step = a->paths[k];
-            odd_n = info.step_elements;
+            odd_n = info[k].step_elements;
         }
-        if (!(a->standoff_nm > 0) && info.standoff_um > 0) a->standoff_nm = info.standoff_um * 1e3;
+        if (!(a->standoff_nm > 0) && info[k].standoff_um > 0)
+            a->standoff_nm = info[k].standoff_um * 1e3;
     }
     if (!(a->pixel_um > 0) && odd_step && odd_n == 1)
         return cli_error(run, "--pixel-um is required: %s holds `step`, but not as a real number",
@@ -219,6 +213,10 @@ static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a)
                          "--pixel-um is required: %s holds `step` with %d elements, not one "
                          "pixel size (one number, or [dx dy] of square pixels)",
                          odd_step, odd_n);
+    if (!(a->pixel_um > 0))
+        return cli_error(run, "--pixel-um is required (the map file holds no pixel size)");
+    if (!(a->standoff_nm > 0))
+        return cli_error(run, "--standoff-nm is required (the map file holds no stand-off)");
     return 0;
 }
 
@@ -257,20 +255,17 @@ static int parse_reconstruct_args(cli_run *run, struct reconstruct_args *a)
         return cli_error(run, "unexpected argument '%s' (maps are given with --bx, --by, --bz)",
                          run->argv[optind]);
     int code;
-    if ((code = reconstruct_check_maps(run, a)) || (code = reconstruct_mat_geometry(run, a)))
-        return code;
-    if (!(a->pixel_um > 0))
-        return cli_error(run, "--pixel-um is required (the map file holds no pixel size)");
-    if (!(a->standoff_nm > 0))
-        return cli_error(run, "--standoff-nm is required (the map file holds no stand-off)");
+    if ((code = reconstruct_check_maps(run, a))) return code;
     if (!run->output) return cli_error(run, "-o DIR is required");
     return 0;
 }
 
 /* The maps (in tesla, all one size), the outputs planned, the sensor checked, the settings. */
-static int reconstruct_read(cli_run *run, const struct reconstruct_args *a,
+static int reconstruct_read(cli_run *run, struct reconstruct_args *a,
                             struct reconstruct_job *job)
 {
+    svp_mat_info info[3];
+    memset(info, 0, sizeof info);
     static const char *const roles[3] = {"bx", "by", "bz"};
     const svp_image *first = NULL;
     const char *first_path = NULL, *first_role = NULL;
@@ -279,7 +274,7 @@ static int reconstruct_read(cli_run *run, const struct reconstruct_args *a,
     for (int k = 0; k < 3; k++) {
         svp_image **b = &job->b[k];
         if (!a->paths[k]) continue;
-        if ((code = cli_read_image(run, roles[k], a->paths[k], b))) return code;
+        if ((code = cli_read_image_info(run, roles[k], a->paths[k], b, &info[k]))) return code;
         /* the Fourier method needs every pixel: named here, with what to do */
         const size_t n_bad = svp_image_count_nonfinite(*b);
         if (n_bad) {
@@ -299,6 +294,7 @@ static int reconstruct_read(cli_run *run, const struct reconstruct_args *a,
             return code;
         if (!first) first = *b, first_path = a->paths[k], first_role = roles[k];
     }
+    if ((code = reconstruct_mat_geometry(run, a, info))) return code;
     job->w = first->width;
     job->h = first->height;
     if (a->quantity == 0) {
@@ -421,7 +417,7 @@ static int reconstruct_write(cli_run *run, const struct reconstruct_args *a,
     return 0;
 }
 
-static int run_reconstruct(cli_run *run, const struct reconstruct_args *a)
+static int run_reconstruct(cli_run *run, struct reconstruct_args *a)
 {
     struct reconstruct_job job;
     memset(&job, 0, sizeof job);
