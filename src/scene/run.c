@@ -1140,59 +1140,48 @@ static svp_status stage_reconstruct(run_ctx *c)
         char vn[48], name[96];
         memcpy(vn, versions[v], sizeof vn); /* bounded: keeps the names' lengths visible */
         SVP_CHECK(progress(c, (double)v / nv));
-        /* a version's field maps may miss pixels (failed fits of a spectrum, NaN): filled
-         * for the reconstruction, NaN again in its result, counted */
-        const svp_image *bz = get(c, "B_z_%s", vn), *bx = get(c, "B_x_%s", vn),
-                        *by = get(c, "B_y_%s", vn);
-        svp_image *fz = NULL, *fx = NULL, *fy = NULL;
-        size_t mz_n = 0, mx_n = 0, my_n = 0;
-        svp_status st = recon_source(rc->kind == RECON_CURRENT_BXY ? NULL : bz, &fz, &mz_n);
-        if (st == SVP_OK && rc->kind == RECON_CURRENT_BXY) st = recon_source(bx, &fx, &mx_n);
-        if (st == SVP_OK && rc->kind == RECON_CURRENT_BXY) st = recon_source(by, &fy, &my_n);
-        if (st == SVP_OK)
-            st = value(c, (double)(mz_n + mx_n + my_n), "reconstruct/%s/%s/filled_pixels",
-                       rc->name, vn);
-        const svp_image *in_z = fz ? fz : bz, *in_x = fx ? fx : bx, *in_y = fy ? fy : by;
-        if (st == SVP_OK && rc->kind == RECON_MAGNETISATION) {
-            svp_image *mz = NULL;
+        /* the maps it reads (B_z, or B_x and B_y) and writes (m_z, or J_x, J_y and |J|). A
+         * version's field maps may miss pixels (failed fits of a spectrum, NaN): filled for the
+         * reconstruction, NaN again in its results, counted */
+        const int bxy = rc->kind == RECON_CURRENT_BXY;
+        const svp_image *src[2] = {get(c, bxy ? "B_x_%s" : "B_z_%s", vn),
+                                   bxy ? get(c, "B_y_%s", vn) : NULL};
+        svp_image *out[3] = {NULL, NULL, NULL};
+        if (rc->kind == RECON_MAGNETISATION) {
             snprintf(name, sizeof name, "m_z_%s", vn);
-            mz = new_map(c, name, w, h);
-            if (!mz) st = svp_fail(SVP_ERR_NOMEM, "out of memory");
-            if (st == SVP_OK) st = svp_reconstruct_magnetisation(in_z, &o, mz);
-            if (st == SVP_OK) recon_mark_missing(mz, bz, NULL);
-        }
-        if (st != SVP_OK || rc->kind == RECON_MAGNETISATION) {
-            svp_image_free(fz);
-            svp_image_free(fx);
-            svp_image_free(fy);
-            if (st != SVP_OK) return svp_fail_context(st, "reconstruction of %s", vn);
-            continue;
-        }
-        svp_image *jx = NULL, *jy = NULL, *jn = NULL;
-        snprintf(name, sizeof name, "%s_x_%s", rc->name, vn);
-        NEW_MAP(jx, c, name, w, h);
-        snprintf(name, sizeof name, "%s_y_%s", rc->name, vn);
-        NEW_MAP(jy, c, name, w, h);
-        snprintf(name, sizeof name, "%s_%s", rc->name, vn);
-        NEW_MAP(jn, c, name, w, h);
-        if (rc->kind == RECON_CURRENT_BZ) {
-            st = svp_reconstruct_current_from_bz(in_z, &o, jx, jy);
+            NEW_MAP(out[0], c, name, w, h);
         } else {
-            st = svp_reconstruct_current_from_bxy(bx ? in_x : NULL, by ? in_y : NULL, &o,
-                                                  by ? jx : NULL, bx ? jy : NULL);
+            static const char *const parts[3] = {"_x", "_y", ""};
+            for (int k = 0; k < 3; k++) {
+                snprintf(name, sizeof name, "%s%s_%s", rc->name, parts[k], vn);
+                NEW_MAP(out[k], c, name, w, h);
+            }
         }
-        svp_image_free(fz);
-        svp_image_free(fx);
-        svp_image_free(fy);
+        svp_image *filled[2] = {NULL, NULL};
+        size_t n_filled = 0;
+        svp_status st = SVP_OK;
+        for (int k = 0; k < 2 && st == SVP_OK; k++) {
+            size_t m = 0;
+            st = recon_source(src[k], &filled[k], &m);
+            n_filled += m;
+        }
+        const svp_image *in[2] = {filled[0] ? filled[0] : src[0], filled[1] ? filled[1] : src[1]};
+        if (st == SVP_OK)
+            st = value(c, (double)n_filled, "reconstruct/%s/%s/filled_pixels", rc->name, vn);
+        if (st == SVP_OK && rc->kind == RECON_MAGNETISATION)
+            st = svp_reconstruct_magnetisation(in[0], &o, out[0]);
+        else if (st == SVP_OK && rc->kind == RECON_CURRENT_BZ)
+            st = svp_reconstruct_current_from_bz(in[0], &o, out[0], out[1]);
+        else if (st == SVP_OK)
+            st = svp_reconstruct_current_from_bxy(in[0], in[1], &o, in[1] ? out[0] : NULL,
+                                                  in[0] ? out[1] : NULL);
+        svp_image_free(filled[0]);
+        svp_image_free(filled[1]);
         if (st != SVP_OK) return svp_fail_context(st, "reconstruction of %s", vn);
-        for (size_t p = 0; p < (size_t)w * h; p++) jn->data[p] = hypot(jx->data[p], jy->data[p]);
-        if (rc->kind == RECON_CURRENT_BZ) {
-            recon_mark_missing(jx, bz, NULL), recon_mark_missing(jy, bz, NULL);
-            recon_mark_missing(jn, bz, NULL);
-        } else {
-            recon_mark_missing(jx, bx, by), recon_mark_missing(jy, bx, by);
-            recon_mark_missing(jn, bx, by);
-        }
+        if (out[2])
+            for (size_t p = 0; p < (size_t)w * h; p++)
+                out[2]->data[p] = hypot(out[0]->data[p], out[1]->data[p]);
+        for (int k = 0; k < 3; k++) recon_mark_missing(out[k], src[0], src[1]);
     }
     if (rc->kind != RECON_MAGNETISATION && !get(c, "J_source_norm")) {
         svp_image *jn = NULL;

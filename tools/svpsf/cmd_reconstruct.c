@@ -187,10 +187,11 @@ static int reconstruct_check_maps(const cli_run *run, const struct reconstruct_a
     return 0;
 }
 
-/* A QDMlab Bz file (.mat) holds the pixel size (`step`) and the stand-off (`h`): used when the
- * options are not given (docs/cli.md, MATLAB / QDMlab files). info[k]: what reading map k found
- * beside it (zeros for other formats), so that each file is read once. */
-static int reconstruct_mat_geometry(cli_run *run, struct reconstruct_args *a,
+/* The pixel size and the stand-off: the options, else what a QDMlab Bz file (.mat) holds
+ * (`step`, `h`; docs/cli.md, MATLAB / QDMlab files), else an error naming the option. info[k]:
+ * what reading map k found beside it (zeros for other formats), so that each file is read
+ * once. */
+static int reconstruct_geometry(cli_run *run, struct reconstruct_args *a,
                                     const svp_mat_info info[3])
 {
     const char *odd_step = NULL; /* a file whose `step` is not one pixel size */
@@ -294,7 +295,7 @@ static int reconstruct_read(cli_run *run, struct reconstruct_args *a,
             return code;
         if (!first) first = *b, first_path = a->paths[k], first_role = roles[k];
     }
-    if ((code = reconstruct_mat_geometry(run, a, info))) return code;
+    if ((code = reconstruct_geometry(run, a, info))) return code;
     job->w = first->width;
     job->h = first->height;
     if (a->quantity == 0) {
